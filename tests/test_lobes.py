@@ -1,0 +1,76 @@
+import math
+
+import numpy as np
+import pytest
+
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.modal import Mode, oriented_frf
+
+
+@pytest.mark.parametrize("fn,zeta,k,kf", [
+    (250.0, 0.03, 2e7, 1e9),
+    (800.0, 0.01, 5e7, 2e9),
+    (120.0, 0.08, 8e6, 6e8),
+])
+def test_single_mode_matches_closed_form(fn, zeta, k, kf):
+    lobes = StabilityLobes([Mode(fn, zeta, k)], kf)
+    closed = 2 * k * zeta * (1 + zeta) / kf
+    assert lobes.b_lim_min_m == pytest.approx(closed, rel=0.005)
+    # Re G is most negative at r = sqrt(1 + 2 zeta)
+    assert lobes.chatter_frequency_hz == pytest.approx(fn * math.sqrt(1 + 2 * zeta), rel=0.005)
+
+
+def test_orientation_scales_limit_by_directional_factor():
+    base = StabilityLobes([Mode(300, 0.04, 3e7, 0.0)], 1e9).b_lim_min_m
+    tilted = StabilityLobes([Mode(300, 0.04, 3e7, 60.0)], 1e9).b_lim_min_m
+    assert tilted == pytest.approx(base / math.cos(math.radians(60)) ** 2, rel=0.005)
+
+
+def test_two_modes_minimum_matches_brute_force():
+    modes = [Mode(220, 0.03, 2e7, 30), Mode(610, 0.02, 3.5e7, 70)]
+    kf = 1.5e9
+    lobes = StabilityLobes(modes, kf)
+    f = np.linspace(100, 2000, 2_000_001)
+    re = oriented_frf(modes, f).real
+    assert lobes.b_lim_min_m == pytest.approx(-1 / (2 * kf * re.min()), rel=1e-4)
+
+
+def test_boundary_points_satisfy_characteristic_equation():
+    modes = [Mode(220, 0.03, 2e7, 30), Mode(610, 0.02, 3.5e7, 70)]
+    kf = 1.5e9
+    lobes = StabilityLobes(modes, kf)
+    rpm = np.array([900.0, 1500.0, 2333.0, 4100.0, 5800.0])
+    b, fc = lobes.b_lim_at(rpm)
+    w = 2 * np.pi * fc
+    T = 60 / rpm
+    residual = 1 + kf * b * (1 - np.exp(-1j * w * T)) * oriented_frf(modes, fc)
+    assert np.all(np.abs(residual) < 2e-3)
+    assert np.all(b >= lobes.b_lim_min_m * (1 - 1e-9))
+
+
+def test_limit_is_lowest_branch_and_touches_minimum():
+    lobes = StabilityLobes([Mode(250, 0.03, 2e7)], 1e9)
+    n = np.linspace(300, 6000, 4000)
+    b, _ = lobes.b_lim_at(n)
+    assert np.all(np.isfinite(b))
+    assert b.min() == pytest.approx(lobes.b_lim_min_m, rel=1e-3)
+    # at every speed, no lobe piece lies below the reported limit
+    for piece in lobes.lobes(300, 6000):
+        interp = np.interp(piece.rpm, n, b)
+        assert np.all(piece.b_lim_m >= interp * (1 - 5e-3))
+    # pockets exist: the limit at a pocket exceeds the minimum several times
+    assert b.max() > 3 * lobes.b_lim_min_m
+
+
+def test_is_stable_and_errors():
+    lobes = StabilityLobes([Mode(250, 0.03, 2e7)], 1e9)
+    assert not lobes.is_stable(2000, 10 * lobes.b_lim_min_m)[0]
+    assert lobes.is_stable(2000, 0.9 * lobes.b_lim_min_m)[0]
+    with pytest.raises(ValueError, match="at least one"):
+        StabilityLobes([], 1e9)
+    with pytest.raises(ValueError, match="Kf"):
+        StabilityLobes([Mode(250, 0.03, 2e7)], 0)
+    with pytest.raises(ValueError, match="90 deg"):
+        StabilityLobes([Mode(250, 0.03, 2e7, 90)], 1e9)
+    with pytest.raises(ValueError, match="speed range"):
+        lobes.lobes(3000, 1000)
