@@ -1,0 +1,289 @@
+"""Thermal behaviour of the simulated spindle: lumped heat capacities, the
+growth of the spindle nose, and DS18B20-like readings of the four sensors.
+
+Used twice: by the live simulated lathe (``SpindleThermal.step`` every 0.1 s
+of sim time) and to generate runs for tests and benchmarks
+(``generate_run``), so the analysis is always tested against the same physics
+the daemon compensates.
+
+Nodes (°C): front bearing, rear bearing, motor, spindle body, shaft; each
+sensor is a node of its own that follows its body with a short lag, because
+a DS18B20 glued to a housing reads the housing late. The room is an input
+(set point plus a slow daily swing and drift). Heat from speed: bearing
+friction ~ n^1.3, motor losses ~ a·n + b·n² (iron and copper).
+
+With no effect switched on, the nose growth is a *static linear* function of
+the body temperatures, which the sensors follow within ~20 s: the paper's
+regression (eq. 14) is then the right model. Each effect adds what such a
+regression lacks:
+
+- ``lag``:        a heavy shaft warmed through the front bearing grows the
+                  nose; it lags the front-bearing sensor by ~30 min.
+- ``rate``:       while the front bearing heats, the radial gradient across
+                  its housing adds growth in proportion to dT/dt.
+- ``speed``:      centrifugal (and gyroscopic) shortening ~ n², instantaneous.
+- ``nonlinear``:  growth rises with the square of the front bearing's rise
+                  (preload grows with temperature).
+- ``hysteresis``: the bearing seat slips: the growth lags its temperature by a
+                  dead band (play operator), different heating vs cooling.
+- ``drift``:      a slow creep of the bed after a cold start, µm per hour,
+                  seen by no sensor.
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy.linalg import expm
+
+EFFECTS = ("lag", "rate", "speed", "nonlinear", "hysteresis", "drift")
+
+SENSOR_KEYS = ("front_bearing", "rear_bearing", "motor", "room")
+CSV_COLUMNS = ("time_s", "spindle_rpm", "t_front_bearing_c", "t_rear_bearing_c",
+               "t_motor_c", "t_room_c", "displacement_um")
+
+# State vector order.
+FB, RB, MOT, BODY, SHAFT, S_FB, S_RB, S_MOT = range(8)
+_N = 8
+
+
+@dataclass(frozen=True)
+class ThermalParams:
+    """Lumped parameters; C in J/K, G in W/K, heat in W at 4000 r/min."""
+    c_fb: float = 6000.0
+    c_rb: float = 5000.0
+    c_mot: float = 15000.0
+    c_body: float = 300.0           # small: the body follows its neighbours in ~1 min
+    c_shaft: float = 6000.0
+    g_fb_room: float = 3.0
+    g_rb_room: float = 3.0
+    g_mot_room: float = 6.0
+    g_body_room: float = 0.5
+    g_shaft_room: float = 0.5
+    g_fb_body: float = 2.0
+    g_rb_body: float = 1.5
+    g_mot_body: float = 1.0
+    g_fb_shaft: float = 3.0
+    tau_sensor_s: float = 20.0
+    q_fb_w: float = 60.0            # bearing friction at 4000 r/min
+    q_rb_w: float = 30.0
+    q_mot_lin_w: float = 20.0       # iron losses ~ n
+    q_mot_sq_w: float = 60.0        # copper losses ~ n² (torque rises with speed)
+    bearing_exponent: float = 1.3
+    # Growth of the nose, µm per °C rise of each body (base, static-linear).
+    k_fb: float = -2.0
+    k_rb: float = 1.5
+    k_mot: float = 0.5
+    k_body: float = 8.0
+    k_room: float = -1.0
+    # Effects.
+    k_lag_um_per_c: float = 6.0          # shaft
+    k_rate_um_per_c_min: float = 15.0    # front bearing dT/dt
+    k_speed_um_per_krpm2: float = -0.6
+    k_nonlinear_um_per_c2: float = 0.15  # front bearing rise squared
+    k_hyst_um_per_c: float = 4.0
+    hyst_width_c: float = 1.0
+    drift_um_per_h: float = 2.0
+    # Room.
+    room_daily_amp_c: float = 1.0
+    room_drift_c_per_h: float = 0.05
+    # DS18B20.
+    quantum_c: float = 0.0625
+    sensor_noise_c: float = 0.02
+
+
+def _system(p: ThermalParams) -> tuple[np.ndarray, np.ndarray]:
+    """x' = A x + B u with u = (Q_fb, Q_rb, Q_mot, T_room)."""
+    A = np.zeros((_N, _N))
+    B = np.zeros((_N, 4))
+    caps = {FB: p.c_fb, RB: p.c_rb, MOT: p.c_mot, BODY: p.c_body, SHAFT: p.c_shaft}
+    links = [(FB, BODY, p.g_fb_body), (RB, BODY, p.g_rb_body), (MOT, BODY, p.g_mot_body),
+             (FB, SHAFT, p.g_fb_shaft)]
+    for i, j, g in links:
+        A[i, i] -= g / caps[i]
+        A[i, j] += g / caps[i]
+        A[j, j] -= g / caps[j]
+        A[j, i] += g / caps[j]
+    for i, g in ((FB, p.g_fb_room), (RB, p.g_rb_room), (MOT, p.g_mot_room),
+                 (BODY, p.g_body_room), (SHAFT, p.g_shaft_room)):
+        A[i, i] -= g / caps[i]
+        B[i, 3] += g / caps[i]
+    B[FB, 0] = 1.0 / p.c_fb
+    B[RB, 1] = 1.0 / p.c_rb
+    B[MOT, 2] = 1.0 / p.c_mot
+    for s, body in ((S_FB, FB), (S_RB, RB), (S_MOT, MOT)):
+        A[s, s] = -1.0 / p.tau_sensor_s
+        A[s, body] = 1.0 / p.tau_sensor_s
+    return A, B
+
+
+class SpindleThermal:
+    """The spindle's temperatures and nose growth, advanced in exact steps
+    (piecewise-constant speed), so any step length is stable and a step is two
+    8x8 matrix-vector products."""
+
+    def __init__(self, room_c: float = 20.0, seed: int = 0, effects: Iterable[str] = (),
+                 params: ThermalParams | None = None, room_phase_h: float | None = None):
+        self.effects = frozenset(effects)
+        unknown = self.effects - set(EFFECTS)
+        if unknown:
+            raise ValueError(f"unknown thermal effect(s) {sorted(unknown)}; known: {', '.join(EFFECTS)}")
+        self.p = params or ThermalParams()
+        self.room_c = float(room_c)
+        self._rng = np.random.default_rng(seed)
+        # Where in the day the run starts; a different seed is a different day.
+        self.room_phase_h = float(self._rng.uniform(0, 24) if room_phase_h is None else room_phase_h)
+        self._A, self._B = _system(self.p)
+        self._steps: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        self.t_s = 0.0
+        self.rpm = 0.0
+        t0 = self.room_temp(0.0)
+        self.x = np.full(_N, t0)
+        self.x0 = self.x.copy()
+        self.room0 = t0
+        self._play = t0           # hysteresis state on the front bearing
+
+    # -- physics ---------------------------------------------------------
+    def room_temp(self, t_s: float) -> float:
+        p = self.p
+        h = t_s / 3600.0
+        return (self.room_c + p.room_daily_amp_c * math.sin(2 * math.pi * (h + self.room_phase_h) / 24.0)
+                + p.room_drift_c_per_h * h)
+
+    def heat_w(self, rpm: float) -> tuple[float, float, float]:
+        p = self.p
+        r = max(float(rpm), 0.0) / 4000.0
+        bearing = r ** p.bearing_exponent
+        return p.q_fb_w * bearing, p.q_rb_w * bearing, p.q_mot_lin_w * r + p.q_mot_sq_w * r * r
+
+    def _step_matrices(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        key = round(dt_s, 9)
+        m = self._steps.get(key)
+        if m is None:
+            phi = expm(self._A * dt_s)
+            gamma = np.linalg.solve(self._A, (phi - np.eye(_N)) @ self._B)
+            m = self._steps[key] = (phi, gamma)
+        return m
+
+    def step(self, dt_s: float, rpm: float) -> None:
+        """Advance ``dt_s`` seconds at constant spindle speed ``rpm``."""
+        if not dt_s > 0:
+            raise ValueError(f"thermal step must be > 0 s, got {dt_s}")
+        phi, gamma = self._step_matrices(dt_s)
+        # Room held at its mid-step value: its swing is hours long.
+        u = np.array([*self.heat_w(rpm), self.room_temp(self.t_s + dt_s / 2)])
+        self.x = phi @ self.x + gamma @ u
+        self.t_s += dt_s
+        self.rpm = float(rpm)
+        w = self.p.hyst_width_c
+        self._play = min(max(self._play, self.x[FB] - w), self.x[FB] + w)
+
+    # -- outputs ---------------------------------------------------------
+    def _rise(self, i: int) -> float:
+        return float(self.x[i] - self.x0[i])
+
+    @property
+    def displacement_um(self) -> float:
+        """True growth of the spindle nose (µm) since the cold start."""
+        p = self.p
+        room_rise = self.room_temp(self.t_s) - self.room0
+        d = (p.k_fb * self._rise(FB) + p.k_rb * self._rise(RB) + p.k_mot * self._rise(MOT)
+             + p.k_body * self._rise(BODY) + p.k_room * room_rise)
+        e = self.effects
+        if "lag" in e:
+            d += p.k_lag_um_per_c * self._rise(SHAFT)
+        if "rate" in e:
+            u = np.array([*self.heat_w(self.rpm), self.room_temp(self.t_s)])
+            dfb_dt = float(self._A[FB] @ self.x + self._B[FB] @ u)     # °C/s
+            d += p.k_rate_um_per_c_min * dfb_dt * 60.0
+        if "speed" in e:
+            d += p.k_speed_um_per_krpm2 * (self.rpm / 1000.0) ** 2
+        if "nonlinear" in e:
+            d += p.k_nonlinear_um_per_c2 * self._rise(FB) ** 2
+        if "hysteresis" in e:
+            d += p.k_hyst_um_per_c * (self._play - self.x[FB])
+        if "drift" in e:
+            d += p.drift_um_per_h * self.t_s / 3600.0
+        return float(d)
+
+    def true_temperatures(self) -> dict[str, float]:
+        names = ("front_bearing", "rear_bearing", "motor", "spindle_body", "shaft")
+        out = {n: float(self.x[i]) for n, i in zip(names, (FB, RB, MOT, BODY, SHAFT))}
+        out["room"] = self.room_temp(self.t_s)
+        return out
+
+    def readings(self) -> dict[str, float]:
+        """What the four DS18B20s report now (°C, 1/16 °C steps, small noise)."""
+        p = self.p
+        raw = (self.x[S_FB], self.x[S_RB], self.x[S_MOT], self.room_temp(self.t_s))
+        noisy = np.asarray(raw) + self._rng.normal(0.0, p.sensor_noise_c, 4)
+        q = np.round(noisy / p.quantum_c) * p.quantum_c
+        return dict(zip(SENSOR_KEYS, (float(v) for v in q)))
+
+
+# -- runs for tests and benchmarks ---------------------------------------
+
+def random_schedule(seed: int, total_s: float = 18000.0, seg_s: tuple[float, float] = (600.0, 2400.0),
+                    rpms: Sequence[float] = (0, 1000, 1500, 2000, 2500, 3000, 3500, 4000)
+                    ) -> list[tuple[float, float]]:
+    """Piecewise-constant speed schedule ``[(duration_s, rpm), ...]``."""
+    rng = np.random.default_rng(seed)
+    out: list[tuple[float, float]] = []
+    t = 0.0
+    last = None
+    while t < total_s:
+        d = float(min(rng.uniform(*seg_s), total_s - t))
+        r = float(rng.choice([x for x in rpms if x != last]))
+        out.append((d, r))
+        last = r
+        t += d
+    return out
+
+
+@dataclass
+class Run:
+    """A generated run: one array per CSV column."""
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    effects: frozenset[str] = frozenset()
+    noise_um: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.columns["time_s"])
+
+    def write_csv(self, path: str | Path) -> None:
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(CSV_COLUMNS)
+            cols = [self.columns[c] for c in CSV_COLUMNS]
+            for row in zip(*cols):
+                w.writerow([f"{row[0]:.1f}", f"{row[1]:.0f}", *(f"{v:.4f}" for v in row[2:6]),
+                            f"{row[6]:.3f}"])
+
+
+def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str] = (), seed: int = 0,
+                 dt_s: float = 6.0, room_c: float = 20.0, noise_um: float = 0.3,
+                 params: ThermalParams | None = None) -> Run:
+    """Simulate ``schedule`` from a cold start and sample every ``dt_s``:
+    sensor readings, speed, and the displacement a probe measures (true growth
+    plus ``noise_um`` of probe repeatability)."""
+    sim = SpindleThermal(room_c=room_c, seed=seed, effects=effects, params=params)
+    rng = np.random.default_rng(seed + 7919)
+    rpm_at = np.concatenate([np.full(max(int(round(d / dt_s)), 0), r) for d, r in schedule])
+    n = len(rpm_at)
+    cols = {c: np.empty(n) for c in CSV_COLUMNS}
+    for k in range(n):
+        sim.step(dt_s, rpm_at[k])
+        r = sim.readings()
+        cols["time_s"][k] = sim.t_s
+        cols["spindle_rpm"][k] = rpm_at[k]
+        cols["t_front_bearing_c"][k] = r["front_bearing"]
+        cols["t_rear_bearing_c"][k] = r["rear_bearing"]
+        cols["t_motor_c"][k] = r["motor"]
+        cols["t_room_c"][k] = r["room"]
+        cols["displacement_um"][k] = sim.displacement_um
+    cols["displacement_um"] += rng.normal(0.0, noise_um, n)
+    return Run(columns=cols, effects=frozenset(effects), noise_um=noise_um)
