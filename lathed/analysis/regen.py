@@ -1,0 +1,383 @@
+"""Regenerative turning simulator: the time-delay chip model behind chatter.
+
+Chip thickness along the surface normal (y positive = tool pushed away from
+the part, so a larger y thins the chip):
+
+    h(t) = h0 + s(theta - 2*pi) - y(t) + rho(theta)
+
+``s`` is the surface the previous pass left, looked up one revolution back
+*in spindle angle* (the delay follows speed changes exactly; at constant speed
+it is T = 60/n).  In the cut s(t) = y(t); out of the cut (h <= 0, or over the
+flat of an interrupted surface) no material is removed and s(t) = s(t-T) + h0.
+The force Kf*b*h (plus a small random cutting-process part that makes a stable
+cut sound like one) is zero out of the cut, which bounds chatter.  Each
+``Mode`` takes the force projected by its directional factor ``u``
+(lathed.analysis.modal) and the accelerometer reads the summed modal
+acceleration along the normal, plus sensor noise.
+
+Runout (``runout_um``) is modelled as spindle error motion the cut cannot
+remove: rho(theta) = r*(cos theta + 0.3 cos(2 theta + 0.7)), a synchronous
+chip-load modulation every revolution.  A flat (``flat_fraction``) takes the
+tool out of the cut over that fraction of every revolution; re-entry is a
+force step, so the structure rings once per revolution.
+
+Speed: while the tool stays in (or out of) the cut the system is linear, so
+the simulator diagonalises the zero-order-hold discretisation of each regime
+and runs each mode's complex first-order recursion with scipy.signal.lfilter
+over a chunk shorter than one revolution (its delayed input is then already
+known).  It only falls back to shorter chunks where the tool leaves or
+re-enters the cut.  No asyncio here: the simulated lathe, the benchmark and
+the tests share it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import expm
+from scipy.signal import lfilter
+
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.modal import Mode
+
+# Default lathe structure: a compliant tool-post/spindle mode at 620 Hz at
+# 30 deg to the surface normal, plus a stiffer one at 1450 Hz.  With
+# DEFAULT_KF (medium carbon steel, specific cutting pressure ~2 GPa) the
+# limiting depth is ~1.5-1.9 mm between 1500 and 2500 r/min, so the paper's
+# 3 mm cut chatters and a 1 mm cut does not (tests/test_regen.py checks it).
+DEFAULT_MODES: tuple[Mode, ...] = (
+    Mode(620.0, 0.035, 3.0e7, 30.0),
+    Mode(1450.0, 0.05, 9.0e7, 60.0),
+)
+DEFAULT_KF = 2.0e9          # N/m^2
+DEFAULT_RATE_HZ = 51200.0   # the paper's DAQ rate
+DEFAULT_NOISE_RMS = 0.2    # m/s^2, accelerometer + DAQ noise floor
+DEFAULT_PROCESS_NOISE = 0.03  # relative random part of the cutting force
+# Chatter is "visible" when the surface the cut leaves differs from the one
+# a revolution earlier by this rms over one revolution (waviness of ~1 um is
+# where Ra starts to show it; cf. the paper's 3.6 vs 4.5 um Ra).
+VISIBLE_WAVINESS_M = 1.0e-6
+
+_HIST = 1 << 19             # samples of surface history kept (>= 10 s at 51.2 kS/s)
+
+
+@dataclass
+class SimBlock:
+    accel: np.ndarray       # m/s^2 along the normal, with sensor noise
+    y_m: np.ndarray         # tool-workpiece displacement along the normal (m)
+    in_cut: np.ndarray      # bool: tool removing material at that sample
+    h_m: np.ndarray         # geometric chip thickness (m), <= 0 out of the cut
+    theta_rad: np.ndarray   # cumulative spindle angle at each sample
+
+
+class _Regime:
+    """Diagonalised ZOH discretisation of x' = A x + B*g*w."""
+
+    def __init__(self, a: np.ndarray, bvec: np.ndarray, gain: float, dt: float) -> None:
+        ad = expm(a * dt)
+        bd = np.linalg.solve(a, (ad - np.eye(len(a))) @ bvec) * gain
+        lam, v = np.linalg.eig(ad)
+        self.lam = lam
+        self.v = v
+        self.vinv = np.linalg.inv(v)
+        self.beta = self.vinv @ bd
+
+
+class RegenerativeTurning:
+    """Streaming regenerative turning model; all state is kept between ``run`` calls."""
+
+    def __init__(self, modes=DEFAULT_MODES, kf_n_per_m2: float = DEFAULT_KF,
+                 rate_hz: float = DEFAULT_RATE_HZ, noise_rms: float = DEFAULT_NOISE_RMS,
+                 runout_um: float = 0.0, flat_fraction: float = 0.0, seed: int = 0,
+                 process_noise: float = DEFAULT_PROCESS_NOISE) -> None:
+        if not modes:
+            raise ValueError("the simulator needs at least one structural mode")
+        if not kf_n_per_m2 > 0:
+            raise ValueError(f"cutting coefficient Kf must be > 0 N/m^2, got {kf_n_per_m2}")
+        if not rate_hz > 0:
+            raise ValueError(f"sample rate must be > 0 Hz, got {rate_hz}")
+        if not 0.0 <= flat_fraction < 1.0:
+            raise ValueError(f"flat fraction must be in [0, 1), got {flat_fraction}")
+        if noise_rms < 0 or runout_um < 0 or process_noise < 0:
+            raise ValueError("noise, runout and process noise must be >= 0")
+        self.modes = tuple(modes)
+        self.kf = float(kf_n_per_m2)
+        self.rate = float(rate_hz)
+        self.dt = 1.0 / self.rate
+        self.noise_rms = float(noise_rms)
+        self.runout_m = runout_um * 1e-6
+        self.flat_fraction = float(flat_fraction)
+        self.process_noise = float(process_noise)
+        self.rng = np.random.default_rng(seed)
+
+        m = len(self.modes)
+        a = np.zeros((2 * m, 2 * m))
+        b = np.zeros(2 * m)
+        self._c = np.zeros(2 * m)          # displacement along the normal
+        for i, md in enumerate(self.modes):
+            a[2 * i, 2 * i + 1] = 1.0
+            a[2 * i + 1, 2 * i] = -md.wn ** 2
+            a[2 * i + 1, 2 * i + 1] = -2 * md.zeta * md.wn
+            b[2 * i + 1] = md.u / md.mass_kg
+            self._c[2 * i] = 1.0
+        self._a0 = a
+        self._b = b
+        # acceleration along the normal = acc_row . x + acc_gain * F
+        self._acc_row = np.zeros(2 * m)
+        for i, md in enumerate(self.modes):
+            self._acc_row[2 * i] = -md.wn ** 2
+            self._acc_row[2 * i + 1] = -2 * md.zeta * md.wn
+        self._acc_gain = float(b.sum())
+        self._free = _Regime(a, b, 0.0, self.dt)
+        self._cut_cache: dict[float, _Regime] = {}
+
+        self.x = np.zeros(2 * m)
+        self.theta = 0.0
+        self._th = np.empty(_HIST)
+        self._s = np.empty(_HIST)
+        self._n = 0                         # valid history samples
+        self._was_cutting = False
+
+    # -- history of the machined surface -----------------------------------------
+    def _push(self, th: np.ndarray, s: np.ndarray) -> None:
+        k = len(th)
+        if self._n + k > _HIST:
+            keep = _HIST // 2
+            self._th[:keep] = self._th[self._n - keep:self._n]
+            self._s[:keep] = self._s[self._n - keep:self._n]
+            self._n = keep
+        self._th[self._n:self._n + k] = th
+        self._s[self._n:self._n + k] = s
+        self._n += k
+
+    def _surface_back(self, th: np.ndarray) -> np.ndarray:
+        """Surface left one revolution earlier at these angles (0: fresh material)."""
+        if self._n == 0:
+            return np.zeros_like(th)
+        q = th - 2 * np.pi
+        lo = int(np.searchsorted(self._th[:self._n], q[0])) - 1
+        lo = max(lo, 0)
+        return np.interp(q, self._th[lo:self._n], self._s[lo:self._n], left=0.0)
+
+    def _cut_regime(self, b_m: float) -> _Regime:
+        reg = self._cut_cache.get(b_m)
+        if reg is None:
+            g = self.kf * b_m
+            reg = _Regime(self._a0 - g * np.outer(self._b, self._c), self._b, g, self.dt)
+            if len(self._cut_cache) > 64:
+                self._cut_cache.clear()
+            self._cut_cache[b_m] = reg
+        return reg
+
+    # -- public ------------------------------------------------------------------
+    def reset(self) -> None:
+        self.x[:] = 0.0
+        self.theta = 0.0
+        self._n = 0
+
+    def run(self, n_samples: int, rpm: float, depth_mm: float, feed_mm_rev: float) -> SimBlock:
+        """Advance ``n_samples`` at a constant speed, depth and feed."""
+        if not rpm > 0:
+            raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
+        if depth_mm < 0 or feed_mm_rev < 0:
+            raise ValueError("depth of cut and feed must be >= 0 mm")
+        n = int(n_samples)
+        b_m = depth_mm * 1e-3
+        h0 = feed_mm_rev * 1e-3
+        dth = 2 * np.pi * rpm / 60.0 * self.dt
+        spr = 2 * np.pi / dth               # samples per revolution
+        theta = self.theta + dth * np.arange(1, n + 1)   # angle at each output sample
+        y = np.empty(n)
+        acc = np.empty(n)
+        h = np.empty(n)
+        inc = np.zeros(n, dtype=bool)
+
+        if b_m == 0.0 or h0 == 0.0:
+            # Tool clear of the part: free vibration; the next pass meets fresh material.
+            z = self._free_run(n)
+            xs = (self._free.v @ z).real
+            y[:] = self._c @ xs[:, 1:]
+            acc[:] = self._acc_row @ xs[:, 1:]
+            self.x = xs[:, -1]
+            h[:] = 0.0
+            self._push(theta, np.zeros(n))
+        else:
+            self._run_cut(theta, n, b_m, h0, spr, y, acc, h, inc)
+
+        self.theta = float(theta[-1]) if n else self.theta
+        if self.noise_rms:
+            acc += self.rng.normal(0.0, self.noise_rms, n)
+        return SimBlock(acc, y, inc, h, theta)
+
+    def _free_run(self, n: int) -> np.ndarray:
+        z0 = self._free.vinv @ self.x
+        k = np.arange(n + 1)
+        return z0[:, None] * self._free.lam[:, None] ** k[None, :]
+
+    def _run_cut(self, theta, n, b_m, h0, spr, y, acc, h, inc) -> None:
+        cut = self._cut_regime(b_m)
+        free = self._free
+        g = self.kf * b_m
+        max_chunk = max(1, min(4096, int(spr) - 1))
+        chunk = max_chunk
+        flat_edge = 2 * np.pi * self.flat_fraction
+        pos = 0
+        while pos < n:
+            m = min(chunk, n - pos)
+            th = theta[pos:pos + m]
+            s_back = self._surface_back(th)
+            geo = h0 + s_back
+            if self.runout_m:
+                geo = geo + self.runout_m * (np.cos(th) + 0.3 * np.cos(2 * th + 0.7))
+            flat = (np.mod(th, 2 * np.pi) < flat_edge) if flat_edge else None
+            y0 = float(self._c @ self.x)
+            cutting = geo[0] - y0 > 0 and not (flat is not None and flat[0])
+            reg = cut if cutting else free
+            z0 = reg.vinv @ self.x
+            if cutting:
+                w = geo
+                if self.process_noise:
+                    w = geo + h0 * self.process_noise * self.rng.standard_normal(m)
+                z = np.empty((len(z0), m + 1), dtype=complex)
+                z[:, 0] = z0
+                for j in range(len(z0)):
+                    z[j, 1:] = lfilter([reg.beta[j]], [1.0, -reg.lam[j]], w,
+                                       zi=[reg.lam[j] * z0[j]])[0]
+            else:
+                z = z0[:, None] * reg.lam[:, None] ** np.arange(m + 1)[None, :]
+            xs = (reg.v @ z).real
+            ys = self._c @ xs[:, :m]
+            hs = geo - ys
+            now = hs > 0
+            if flat is not None:
+                now &= ~flat
+            # first sample whose regime differs from the one simulated
+            bad = np.flatnonzero(now != cutting)
+            # sample 0 always matches (same state, same test), so j >= 1
+            j = int(bad[0]) if bad.size else m
+            sl = slice(pos, pos + j)
+            y[sl] = ys[:j]
+            h[sl] = hs[:j]
+            inc[sl] = cutting
+            force = g * (w[:j] - ys[:j]) if cutting else 0.0
+            acc[sl] = self._acc_row @ xs[:, :j] + self._acc_gain * force
+            if cutting:
+                surf = ys[:j]
+            else:
+                surf = s_back[:j] + h0
+                if flat is not None:
+                    # over the flat there is no material; keep the neighbours' level
+                    surf = np.where(flat[:j], ys[:j], surf)
+            self._push(th[:j], surf)
+            self.x = xs[:, j]
+            pos += j
+            # long chunks while the regime holds, short ones while it switches
+            chunk = max_chunk if j == m else max(32, min(max_chunk, 4 * j))
+
+
+# -- labelled recordings ---------------------------------------------------------
+@dataclass(frozen=True)
+class Segment:
+    """A stretch of a simulated cut: speed (r/min), depth (mm), duration (s).
+    The speed ramps linearly from the previous segment's over ``ramp_s``."""
+    duration_s: float
+    rpm: float
+    depth_mm: float
+    ramp_s: float = 0.0
+
+
+@dataclass
+class Recording:
+    name: str
+    signal: np.ndarray          # accelerometer, m/s^2
+    rate_hz: float
+    rpm: np.ndarray             # spindle speed at each sample
+    depth_mm: np.ndarray        # depth of cut at each sample
+    y_m: np.ndarray
+    in_cut: np.ndarray
+    label: str                  # "chatter" or "stable"
+    unstable_at_s: float | None  # first instant depth > stability limit at the speed
+    visible_at_s: float | None   # first instant chatter is visible (see VISIBLE_WAVINESS_M)
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.signal) / self.rate_hz
+
+
+def surface_waviness(y_m: np.ndarray, theta: np.ndarray, in_cut: np.ndarray) -> np.ndarray:
+    """Per-sample rms over the last revolution of y(theta) - y(theta - 2 pi) over
+    in-cut samples: the pass-to-pass surface difference chatter leaves."""
+    d = y_m - np.interp(theta - 2 * np.pi, theta, y_m, left=np.nan)
+    d = np.where(in_cut & np.isfinite(d), d, 0.0)
+    spr = 2 * np.pi / np.maximum(np.gradient(theta), 1e-12)
+    win = int(max(1, np.median(spr)))
+    c = np.cumsum(np.r_[0.0, d * d])
+    cnt = np.cumsum(np.r_[0, (in_cut & np.isfinite(d)).astype(np.int64)])
+    idx = np.arange(1, len(d) + 1)
+    lo = np.maximum(idx - win, 0)
+    num = c[idx] - c[lo]
+    den = np.maximum(cnt[idx] - cnt[lo], 1)
+    return np.sqrt(num / den)
+
+
+def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: float = DEFAULT_KF,
+                 rate_hz: float = DEFAULT_RATE_HZ, feed_mm_rev: float = 0.25,
+                 runout_um: float = 0.0, flat_fraction: float = 0.0,
+                 noise_rms: float = DEFAULT_NOISE_RMS, process_noise: float = DEFAULT_PROCESS_NOISE,
+                 seed: int = 0, block: int = 512) -> Recording:
+    """Simulate a cut made of ``Segment``s and label it.
+
+    ``unstable_at_s``: first instant the (depth, speed) pair lies above the
+    stability lobe limit.  ``visible_at_s``: first instant at or after it
+    where the surface waviness (``surface_waviness``) reaches
+    VISIBLE_WAVINESS_M; label "chatter" iff that happens.
+    """
+    segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
+    sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,
+                              flat_fraction, seed, process_noise)
+    lobes = StabilityLobes(modes, kf_n_per_m2)
+    acc, ys, inc, th, rpms, deps = [], [], [], [], [], []
+    prev_rpm = segs[0].rpm
+    for seg in segs:
+        n_seg = int(round(seg.duration_s * rate_hz))
+        done = 0
+        while done < n_seg:
+            k = min(block, n_seg - done)
+            t_in = done / rate_hz
+            if seg.ramp_s > 0 and t_in < seg.ramp_s:
+                rpm = prev_rpm + (seg.rpm - prev_rpm) * (t_in + 0.5 * k / rate_hz) / seg.ramp_s
+            else:
+                rpm = seg.rpm
+            out = sim.run(k, rpm, seg.depth_mm, feed_mm_rev)
+            acc.append(out.accel); ys.append(out.y_m); inc.append(out.in_cut)
+            th.append(out.theta_rad)
+            rpms.append(np.full(k, rpm)); deps.append(np.full(k, seg.depth_mm))
+            done += k
+        prev_rpm = seg.rpm
+    signal = np.concatenate(acc)
+    y = np.concatenate(ys)
+    in_cut = np.concatenate(inc)
+    theta = np.concatenate(th)
+    rpm_arr = np.concatenate(rpms)
+    dep = np.concatenate(deps)
+
+    # unstable where depth exceeds the limit at the (block) speed
+    uniq = np.unique(rpm_arr)
+    blim = dict(zip(uniq, lobes.b_lim_at(uniq)[0]))
+    lim = np.array([blim[r] for r in rpm_arr[::block]])
+    unstable = dep[::block] * 1e-3 > lim
+    unstable_at = float(np.flatnonzero(unstable)[0] * block / rate_hz) if unstable.any() else None
+    visible_at = None
+    if unstable_at is not None:
+        wav = surface_waviness(y, theta, in_cut)
+        i0 = int(unstable_at * rate_hz)
+        hit = np.flatnonzero(wav[i0:] >= VISIBLE_WAVINESS_M)
+        if hit.size:
+            visible_at = (i0 + int(hit[0])) / rate_hz
+    return Recording(name, signal, rate_hz, rpm_arr, dep, y, in_cut,
+                     "chatter" if visible_at is not None else "stable",
+                     unstable_at, visible_at,
+                     {"feed_mm_rev": feed_mm_rev, "runout_um": runout_um,
+                      "flat_fraction": flat_fraction, "seed": seed})
