@@ -1,0 +1,292 @@
+"""Spindle speed selection (SSS) against chatter, and the policy that decides
+when to act.  Pure Python/numpy: the daemon's analyzer plugin, the
+``lathectl suppress`` command and the benches all drive the same objects.
+
+Strategies (each has ``select(rpm_now, chatter_frequency_hz, avoid) -> Decision``):
+
+* ``FrequencySelection`` - no modal model: put the revolution frequency at the
+  measured chatter frequency divided by an integer N, so the wave left on the
+  surface is in phase with the one being cut and the regenerative chip
+  variation vanishes; of the speeds 60*fc/N the machine can drive, the highest
+  (largest removal rate).
+* ``LobeSelection`` - a modal model is configured: the highest speed whose
+  limiting depth exceeds the depth of cut by a margin, over a speed band wide
+  enough to survive model error, that the spindle's torque and power allow.
+* ``RatedSpeed`` - the paper's rule: drop to a configured rated speed.
+* ``VariationSelection`` - keep the speed, modulate it (speed_variation.py).
+
+Removal rate in turning is depth * feed * cutting speed, so at fixed depth,
+feed and diameter it scales with the spindle speed: the decision's
+``removal_rate_ratio`` is rpm_after / rpm_before.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.speed_variation import SpeedVariation, ramp_time_s
+
+
+@dataclass(frozen=True)
+class SpindleLimits:
+    """Spindle drive envelope.  Torque is flat up to ``base_rpm`` and falls as
+    constant power above it (the MC4200: 35.8 N*m peak at 1500 r/min)."""
+    max_rpm: float = 6000.0
+    min_rpm: float = 100.0
+    peak_torque_nm: float = 35.8
+    base_rpm: float = 1500.0
+    max_power_w: float | None = None      # default: peak torque at base speed
+    accel_rpm_per_s: float = 2000.0
+
+    @property
+    def power_w(self) -> float:
+        if self.max_power_w is not None:
+            return self.max_power_w
+        return self.peak_torque_nm * self.base_rpm * 2 * math.pi / 60
+
+    def torque_available(self, rpm: np.ndarray | float) -> np.ndarray:
+        n = np.asarray(rpm, dtype=float)
+        omega = n * 2 * math.pi / 60
+        with np.errstate(divide="ignore"):
+            by_power = np.where(omega > 0, self.power_w / np.maximum(omega, 1e-12), np.inf)
+        return np.minimum(self.peak_torque_nm, by_power)
+
+
+@dataclass(frozen=True)
+class Cut:
+    """The programmed cut.  ``kt_n_per_m2`` is the tangential (cutting-force)
+    coefficient: it sets the spindle torque; the chatter model's Kf is the
+    force along the chip-thickness direction and lives in the lobes."""
+    depth_m: float
+    feed_m_per_rev: float
+    diameter_m: float
+    kt_n_per_m2: float
+
+    @property
+    def torque_nm(self) -> float:
+        return self.kt_n_per_m2 * self.depth_m * self.feed_m_per_rev * self.diameter_m / 2
+
+    def removal_rate_mm3_s(self, rpm: float) -> float:
+        v = math.pi * self.diameter_m * rpm / 60          # cutting speed, m/s
+        return self.depth_m * self.feed_m_per_rev * v * 1e9
+
+    def drivable(self, rpm: np.ndarray | float, limits: SpindleLimits) -> np.ndarray:
+        """Speeds within the speed range where the spindle has the torque."""
+        n = np.asarray(rpm, dtype=float)
+        return ((n >= limits.min_rpm) & (n <= limits.max_rpm)
+                & (self.torque_nm <= limits.torque_available(n)))
+
+
+@dataclass(frozen=True)
+class Decision:
+    strategy: str
+    rpm_before: float
+    rpm_after: float
+    chatter_frequency_hz: float | None
+    expected_b_lim_mm: float | None       # from the lobes, where known
+    expected_stable: bool | None          # None: no model to say
+    removal_rate_ratio: float
+    reason: str
+    variation: SpeedVariation | None = None
+    chatter_index: float | None = None
+    threshold: float | None = None
+
+    def record(self) -> dict:
+        """Critical values for the event store."""
+        d = asdict(self)
+        d["variation"] = None if self.variation is None else asdict(self.variation)
+        return d
+
+
+class Strategy(Protocol):
+    name: str
+
+    def select(self, rpm_now: float, chatter_frequency_hz: float | None,
+               avoid: Sequence[tuple[float, float]] = ()) -> Decision | None: ...
+
+
+def _allowed(n: np.ndarray, avoid: Sequence[tuple[float, float]]) -> np.ndarray:
+    ok = np.ones(n.shape, bool)
+    for lo, hi in avoid:
+        ok &= ~((n >= lo) & (n <= hi))
+    return ok
+
+
+@dataclass
+class FrequencySelection:
+    limits: SpindleLimits
+    cut: Cut | None = None
+    name: str = "sss_frequency"
+
+    def select(self, rpm_now, chatter_frequency_hz, avoid=()):
+        if chatter_frequency_hz is None or not chatter_frequency_hz > 0:
+            return None          # nothing to tune to
+        waves = np.arange(1, int(60 * chatter_frequency_hz / self.limits.min_rpm) + 1)
+        n = 60 * chatter_frequency_hz / waves
+        ok = (n >= self.limits.min_rpm) & (n <= self.limits.max_rpm) & _allowed(n, avoid)
+        if self.cut is not None:
+            ok &= self.cut.drivable(n, self.limits)
+        if not ok.any():
+            return None
+        i = int(np.flatnonzero(ok)[0])             # highest speed that fits
+        return Decision(self.name, rpm_now, float(n[i]), chatter_frequency_hz, None, None,
+                        float(n[i]) / rpm_now,
+                        f"revolution frequency = {chatter_frequency_hz:.1f} Hz / {waves[i]} waves")
+
+
+@dataclass
+class LobeSelection:
+    lobes: StabilityLobes
+    cut: Cut
+    limits: SpindleLimits
+    margin: float = 1.15         # depth must stay this far below b_lim
+    band: float = 0.03           # ... over +-3 % of speed (model error, speed ripple)
+    resolution: int = 6000
+    name: str = "sss_lobes"
+
+    def select(self, rpm_now, chatter_frequency_hz, avoid=()):
+        n = np.linspace(self.limits.min_rpm, self.limits.max_rpm, self.resolution)
+        b, _ = self.lobes.b_lim_at(n)
+        # robust limit: the worst b_lim within +-band of each speed
+        half = np.maximum(1, np.round(self.band * n / (n[1] - n[0])).astype(int))
+        worst = np.array([b[max(0, i - h):i + h + 1].min() for i, h in enumerate(half)])
+        ok = self.cut.drivable(n, self.limits) & _allowed(n, avoid)
+        stable = ok & (worst >= self.margin * self.cut.depth_m)
+        if stable.any():
+            i = int(np.flatnonzero(stable)[-1])
+            reason = (f"highest speed with b_lim >= {self.margin:g} x depth over "
+                      f"+-{self.band:.0%} of speed")
+            ok_stable = True
+        elif ok.any():
+            # no stable speed the machine can drive: the most stable one
+            i = int(np.flatnonzero(ok)[np.argmax(worst[ok])])
+            reason = "no stable speed within the spindle limits; most stable drivable speed"
+            ok_stable = False
+        else:
+            return None
+        return Decision(self.name, rpm_now, float(n[i]), chatter_frequency_hz,
+                        float(b[i] * 1e3), ok_stable, float(n[i]) / rpm_now, reason)
+
+
+@dataclass
+class RatedSpeed:
+    rated_rpm: float
+    lobes: StabilityLobes | None = None
+    cut: Cut | None = None
+    name: str = "rated_speed"
+
+    def select(self, rpm_now, chatter_frequency_hz, avoid=()):
+        if not _allowed(np.array([self.rated_rpm]), avoid)[0]:
+            return None
+        b_mm = stable = None
+        if self.lobes is not None:
+            b_mm = float(self.lobes.b_lim_at(self.rated_rpm)[0][0] * 1e3)
+            if self.cut is not None:
+                stable = self.cut.depth_m * 1e3 < b_mm
+        return Decision(self.name, rpm_now, self.rated_rpm, chatter_frequency_hz, b_mm, stable,
+                        self.rated_rpm / rpm_now, "paper's rule: drop to the rated speed")
+
+
+@dataclass
+class VariationSelection:
+    variation: SpeedVariation
+    name: str = "ssv"
+
+    def select(self, rpm_now, chatter_frequency_hz, avoid=()):
+        return Decision(self.name, rpm_now, rpm_now, chatter_frequency_hz, None, None, 1.0,
+                        f"{self.variation.kind} modulation, RVA "
+                        f"{self.variation.achieved_amplitude_ratio(rpm_now):.3f}, "
+                        f"period {self.variation.period_s:g} s", variation=self.variation)
+
+
+@dataclass
+class SuppressionPolicy:
+    """When to act on chatter alarms.  Feed it one judgement per analysis
+    window (``observe``); it returns a Decision when the speed must change.
+
+    Rules (these are what keeps it from oscillating):
+
+    1. Act only after ``confirm`` consecutive alarm windows.
+    2. After a change, hold: alarms are ignored until the spindle has reached
+       the new speed (ramp at the spindle's acceleration) and then turned
+       ``settle_revs`` revolutions at it - old chatter marks are still being
+       cut off and the vibration must decay before it can be judged.
+    3. A speed left because of chatter is banned, +-``ban_band``, for the rest
+       of the part; no strategy may pick a banned speed.  So no speed is
+       visited twice and A -> B -> A cannot happen.
+    4. The speed is never raised back because alarms stopped; only ``reset``
+       (next part) clears the bans.
+    5. At most ``max_changes`` changes per part; when the strategy has no
+       admissible speed or the budget is spent, the ``fallback`` (the paper's
+       rated speed) is taken once; after that the policy holds and reports.
+    """
+    strategy: Strategy
+    limits: SpindleLimits
+    fallback: Strategy | None = None
+    settle_revs: float = 20.0
+    confirm: int = 1
+    ban_band: float = 0.04
+    max_changes: int = 3
+    changes: list[Decision] = field(default_factory=list)
+    banned: list[tuple[float, float]] = field(default_factory=list)
+    _streak: int = 0
+    _hold_until_s: float = -math.inf
+    exhausted: bool = False
+
+    def reset(self) -> None:
+        self.changes.clear()
+        self.banned.clear()
+        self._streak = 0
+        self._hold_until_s = -math.inf
+        self.exhausted = False
+
+    @property
+    def holding(self) -> bool:
+        return bool(self.changes)
+
+    def hold_until(self) -> float:
+        return self._hold_until_s
+
+    def _admissible(self, d: Decision | None) -> Decision | None:
+        # enforced here, not trusted to the strategy: a banned target is refused
+        if d is None or d.variation is not None:
+            return d
+        if not _allowed(np.array([d.rpm_after]), self.banned)[0]:
+            return None
+        return d
+
+    def observe(self, t_s: float, rpm: float, alarm: bool,
+                chatter_frequency_hz: float | None = None,
+                chatter_index: float | None = None,
+                threshold: float | None = None) -> Decision | None:
+        if t_s < self._hold_until_s:
+            self._streak = 0
+            return None
+        self._streak = self._streak + 1 if alarm else 0
+        if self._streak < self.confirm or self.exhausted:
+            return None
+        self._streak = 0
+        self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
+        decision = None
+        if len(self.changes) < self.max_changes:
+            decision = self._admissible(self.strategy.select(rpm, chatter_frequency_hz, self.banned))
+        if decision is None and self.fallback is not None and not any(
+                d.strategy == self.fallback.name for d in self.changes):
+            decision = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned))
+        if decision is None:
+            self.exhausted = True
+            return None
+        decision = Decision(**{**decision.__dict__, "chatter_index": chatter_index,
+                               "threshold": threshold})
+        self.changes.append(decision)
+        target = decision.rpm_after
+        self._hold_until_s = (t_s + ramp_time_s(rpm, target, self.limits.accel_rpm_per_s)
+                              + self.settle_revs * 60 / target)
+        if decision.variation is not None:
+            # modulating: there is nothing further to select for this part
+            self.exhausted = True
+        return decision

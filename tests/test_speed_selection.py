@@ -1,0 +1,140 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.modal import Mode
+from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
+                                             SpindleLimits, SuppressionPolicy, VariationSelection)
+from lathed.analysis.speed_variation import SpeedVariation
+
+LIMITS = SpindleLimits()
+MODE = Mode(250, 0.03, 2e7)
+LOBES = StabilityLobes([MODE], 1e9)
+
+
+def _cut(depth_m, kt=1.4e9):
+    return Cut(depth_m=depth_m, feed_m_per_rev=0.3e-3, diameter_m=0.030, kt_n_per_m2=kt)
+
+
+def test_torque_curve_peaks_at_base_speed_then_constant_power():
+    t = LIMITS.torque_available(np.array([500, 1500, 3000, 6000]))
+    assert np.allclose(t, [35.8, 35.8, 17.9, 8.95])
+    assert LIMITS.power_w == pytest.approx(35.8 * 1500 * 2 * math.pi / 60)
+
+
+def test_cut_torque_and_removal_rate():
+    c = _cut(3e-3)
+    assert c.torque_nm == pytest.approx(1.4e9 * 3e-3 * 0.3e-3 * 0.015)
+    assert c.removal_rate_mm3_s(2000) == pytest.approx(3 * 0.3 * math.pi * 30 * 2000 / 60)
+    # 18.9 N*m needed: constant power runs out at 35.8*1500/18.9 = 2841 r/min
+    assert c.drivable(2800, LIMITS) and not c.drivable(2900, LIMITS)
+
+
+def test_frequency_selection_puts_revolution_at_chatter_over_integer():
+    sel = FrequencySelection(LIMITS)
+    d = sel.select(2000, 250.0)
+    assert d.rpm_after == pytest.approx(60 * 250 / 3)        # 5000: highest below 6000
+    # torque caps it: 3 mm needs 18.9 N*m, good to 2841 r/min -> 60*250/6 = 2500
+    d = FrequencySelection(LIMITS, _cut(3e-3)).select(2000, 250.0)
+    assert d.rpm_after == pytest.approx(2500)
+    assert d.removal_rate_ratio == pytest.approx(1.25)
+    d = FrequencySelection(LIMITS, _cut(3e-3)).select(2000, 250.0, avoid=[(2400, 2600)])
+    assert d.rpm_after == pytest.approx(60 * 250 / 7)
+    assert sel.select(2000, None) is None
+
+
+def test_lobe_selection_is_stable_and_highest():
+    depth = 1.5 * LOBES.b_lim_min_m
+    cut = _cut(depth)
+    sel = LobeSelection(LOBES, cut, LIMITS)
+    d = sel.select(2000, 260.0)
+    assert d.expected_stable
+    band = np.linspace(d.rpm_after * 0.97, d.rpm_after * 1.03, 301)
+    assert LOBES.b_lim_at(band)[0].min() >= 1.15 * depth * (1 - 2e-3)
+    # no drivable speed above it has a robustly stable band
+    for n in np.linspace(d.rpm_after * 1.01, LIMITS.max_rpm, 60):
+        if not cut.drivable(n, LIMITS):
+            continue
+        b = LOBES.b_lim_at(np.linspace(n * 0.97, min(n * 1.03, 6000), 301))[0]
+        assert b.min() < 1.15 * depth * (1 + 2e-3)
+
+
+def test_lobe_selection_without_a_stable_speed_says_so():
+    d = LobeSelection(LOBES, _cut(20 * LOBES.b_lim_min_m, kt=1e7), LIMITS).select(2000, 260.0)
+    assert d.expected_stable is False
+    assert "no stable speed" in d.reason
+
+
+def test_rated_speed_and_variation_strategies():
+    d = RatedSpeed(750, LOBES, _cut(3e-3)).select(2500, 260.0)
+    assert d.rpm_after == 750 and d.removal_rate_ratio == pytest.approx(0.3)
+    assert d.expected_stable is False          # 3 mm is far above this model's limit
+    sv = SpeedVariation("sine", 0.1, 1.0, 2000)
+    d = VariationSelection(sv).select(2500, 260.0)
+    assert d.variation is sv and d.rpm_after == 2500
+    assert d.record()["variation"]["kind"] == "sine"
+
+
+def _policy(**kw):
+    return SuppressionPolicy(FrequencySelection(LIMITS), LIMITS, fallback=RatedSpeed(750), **kw)
+
+
+def test_policy_acts_on_alarm_then_holds_for_ramp_and_settling():
+    p = _policy(settle_revs=20)
+    assert p.observe(0.0, 2000, alarm=False, chatter_frequency_hz=250) is None
+    d = p.observe(0.1, 2000, alarm=True, chatter_frequency_hz=250, chatter_index=3.2, threshold=1.0)
+    assert d is not None and d.rpm_after == pytest.approx(5000)
+    assert d.chatter_index == 3.2 and d.threshold == 1.0
+    hold = 0.1 + (5000 - 2000) / LIMITS.accel_rpm_per_s + 20 * 60 / 5000
+    assert p.hold_until() == pytest.approx(hold)
+    assert p.observe(hold - 1e-3, 5000, alarm=True, chatter_frequency_hz=250) is None
+    d2 = p.observe(hold + 1e-3, 5000, alarm=True, chatter_frequency_hz=250)
+    assert d2 is not None and d2.rpm_after < 5000
+
+
+def test_policy_needs_consecutive_alarms_when_confirm_is_set():
+    p = _policy(confirm=3)
+    for t, alarm in enumerate([True, True, False, True, True]):
+        assert p.observe(float(t), 2000, alarm, 250) is None
+    assert p.observe(5.0, 2000, True, 250) is not None
+
+
+def test_policy_never_oscillates_between_two_speeds():
+    # a strategy that would bounce between two speeds if it were allowed to
+    class Bounce:
+        name = "bounce"
+
+        def select(self, rpm_now, fc, avoid=()):
+            target = 3000.0 if rpm_now < 2500 else 2000.0      # ignores the bans
+            return Decision(self.name, rpm_now, target, fc, None, None, target / rpm_now, "")
+
+    p = SuppressionPolicy(Bounce(), LIMITS, fallback=RatedSpeed(750), settle_revs=5)
+    rpm, speeds, t = 2000.0, [2000.0], 0.0
+    for _ in range(50):                      # chatter never stops
+        d = p.observe(t, rpm, alarm=True, chatter_frequency_hz=250)
+        if d is not None:
+            rpm = d.rpm_after
+            speeds.append(rpm)
+        t += 1.0
+    assert speeds == [2000.0, 3000.0, 750.0]   # 2000 is banned: no return; then the rule
+    assert p.exhausted
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.booleans(), st.floats(120, 900)), min_size=1, max_size=80))
+def test_policy_never_revisits_a_speed_it_left(events):
+    p = _policy(settle_revs=3, max_changes=4)
+    rpm, left, t, n_changes = 2500.0, [], 0.0, 0
+    for alarm, fc in events:
+        d = p.observe(t, rpm, alarm, fc)
+        if d is not None:
+            left.append(rpm)
+            assert all(abs(d.rpm_after - s) > 0.04 * s * 0.99 for s in left)
+            rpm = d.rpm_after
+            n_changes += 1
+        t += 0.5
+    assert n_changes <= 5
