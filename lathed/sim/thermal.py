@@ -20,7 +20,8 @@ regression lacks:
 - ``lag``:        a heavy shaft warmed through the front bearing grows the
                   nose; it lags the front-bearing sensor by ~30 min.
 - ``rate``:       while the front bearing heats, the radial gradient across
-                  its housing adds growth in proportion to dT/dt.
+                  its housing adds growth in proportion to dT/dt (the
+                  gradient builds up over ~2 min, the wall's diffusion time).
 - ``speed``:      centrifugal (and gyroscopic) shortening ~ n², instantaneous.
 - ``nonlinear``:  growth rises with the square of the front bearing's rise
                   (preload grows with temperature).
@@ -47,8 +48,8 @@ CSV_COLUMNS = ("time_s", "spindle_rpm", "t_front_bearing_c", "t_rear_bearing_c",
                "t_motor_c", "t_room_c", "displacement_um")
 
 # State vector order.
-FB, RB, MOT, BODY, SHAFT, S_FB, S_RB, S_MOT = range(8)
-_N = 8
+FB, RB, MOT, BODY, SHAFT, S_FB, S_RB, S_MOT, GRAD = range(9)
+_N = 9
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class ThermalParams:
     c_fb: float = 6000.0
     c_rb: float = 5000.0
     c_mot: float = 15000.0
-    c_body: float = 300.0           # small: the body follows its neighbours in ~1 min
+    c_body: float = 15.0            # small: the body follows its neighbours within seconds
     c_shaft: float = 6000.0
     g_fb_room: float = 3.0
     g_rb_room: float = 3.0
@@ -68,7 +69,7 @@ class ThermalParams:
     g_rb_body: float = 1.5
     g_mot_body: float = 1.0
     g_fb_shaft: float = 3.0
-    tau_sensor_s: float = 20.0
+    tau_sensor_s: float = 5.0
     q_fb_w: float = 60.0            # bearing friction at 4000 r/min
     q_rb_w: float = 30.0
     q_mot_lin_w: float = 20.0       # iron losses ~ n
@@ -82,7 +83,8 @@ class ThermalParams:
     k_room: float = -1.0
     # Effects.
     k_lag_um_per_c: float = 6.0          # shaft
-    k_rate_um_per_c_min: float = 15.0    # front bearing dT/dt
+    k_rate_um_per_c_min: float = 15.0    # front bearing dT/dt ...
+    tau_gradient_s: float = 120.0        # ... as the housing's radial gradient builds up
     k_speed_um_per_krpm2: float = -0.6
     k_nonlinear_um_per_c2: float = 0.15  # front bearing rise squared
     k_hyst_um_per_c: float = 4.0
@@ -118,6 +120,11 @@ def _system(p: ThermalParams) -> tuple[np.ndarray, np.ndarray]:
     for s, body in ((S_FB, FB), (S_RB, RB), (S_MOT, MOT)):
         A[s, s] = -1.0 / p.tau_sensor_s
         A[s, body] = 1.0 / p.tau_sensor_s
+    # Radial gradient across the front housing (°C/s): follows the bearing's
+    # heating rate with the wall's own diffusion time.
+    A[GRAD] = A[FB] / p.tau_gradient_s
+    A[GRAD, GRAD] = -1.0 / p.tau_gradient_s
+    B[GRAD] = B[FB] / p.tau_gradient_s
     return A, B
 
 
@@ -143,6 +150,7 @@ class SpindleThermal:
         self.rpm = 0.0
         t0 = self.room_temp(0.0)
         self.x = np.full(_N, t0)
+        self.x[GRAD] = 0.0
         self.x0 = self.x.copy()
         self.room0 = t0
         self._play = t0           # hysteresis state on the front bearing
@@ -197,9 +205,7 @@ class SpindleThermal:
         if "lag" in e:
             d += p.k_lag_um_per_c * self._rise(SHAFT)
         if "rate" in e:
-            u = np.array([*self.heat_w(self.rpm), self.room_temp(self.t_s)])
-            dfb_dt = float(self._A[FB] @ self.x + self._B[FB] @ u)     # °C/s
-            d += p.k_rate_um_per_c_min * dfb_dt * 60.0
+            d += p.k_rate_um_per_c_min * self.x[GRAD] * 60.0
         if "speed" in e:
             d += p.k_speed_um_per_krpm2 * (self.rpm / 1000.0) ** 2
         if "nonlinear" in e:
@@ -265,7 +271,7 @@ class Run:
 
 
 def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str] = (), seed: int = 0,
-                 dt_s: float = 6.0, room_c: float = 20.0, noise_um: float = 0.3,
+                 dt_s: float = 6.0, room_c: float = 20.0, noise_um: float = 0.5,
                  params: ThermalParams | None = None) -> Run:
     """Simulate ``schedule`` from a cold start and sample every ``dt_s``:
     sensor readings, speed, and the displacement a probe measures (true growth
