@@ -306,20 +306,24 @@ class Recording:
         return len(self.signal) / self.rate_hz
 
 
-def surface_waviness(y_m: np.ndarray, theta: np.ndarray, in_cut: np.ndarray) -> np.ndarray:
+def surface_waviness(y_m: np.ndarray, theta: np.ndarray, in_cut: np.ndarray,
+                     rate_hz: float = DEFAULT_RATE_HZ) -> np.ndarray:
     """Per-sample rms over the last revolution of y(theta) - y(theta - 2 pi) over
-    in-cut samples: the pass-to-pass surface difference chatter leaves."""
+    in-cut samples: the pass-to-pass surface difference chatter leaves.  A
+    moving mean over 1/200 s is removed first, so the static deflection step
+    at cut entry (form, not waviness) does not count."""
     d = y_m - np.interp(theta - 2 * np.pi, theta, y_m, left=np.nan)
-    d = np.where(in_cut & np.isfinite(d), d, 0.0)
+    d = np.where(np.isfinite(d), d, 0.0)
+    k = max(1, int(rate_hz / 200))
+    d = d - np.convolve(d, np.ones(k) / k, mode="same")
+    d = np.where(in_cut, d, 0.0)
     spr = 2 * np.pi / np.maximum(np.gradient(theta), 1e-12)
     win = int(max(1, np.median(spr)))
     c = np.cumsum(np.r_[0.0, d * d])
-    cnt = np.cumsum(np.r_[0, (in_cut & np.isfinite(d)).astype(np.int64)])
+    cnt = np.cumsum(np.r_[0, in_cut.astype(np.int64)])
     idx = np.arange(1, len(d) + 1)
     lo = np.maximum(idx - win, 0)
-    num = c[idx] - c[lo]
-    den = np.maximum(cnt[idx] - cnt[lo], 1)
-    return np.sqrt(num / den)
+    return np.sqrt((c[idx] - c[lo]) / np.maximum(cnt[idx] - cnt[lo], 1))
 
 
 def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: float = DEFAULT_KF,
@@ -331,8 +335,8 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
 
     ``unstable_at_s``: first instant the (depth, speed) pair lies above the
     stability lobe limit.  ``visible_at_s``: first instant at or after it
-    where the surface waviness (``surface_waviness``) reaches
-    VISIBLE_WAVINESS_M; label "chatter" iff that happens.
+    from which the surface waviness (``surface_waviness``) stays at or above
+    VISIBLE_WAVINESS_M for a whole revolution; label "chatter" iff that happens.
     """
     segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
     sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,
@@ -371,9 +375,14 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     unstable_at = float(np.flatnonzero(unstable)[0] * block / rate_hz) if unstable.any() else None
     visible_at = None
     if unstable_at is not None:
-        wav = surface_waviness(y, theta, in_cut)
+        wav = surface_waviness(y, theta, in_cut, rate_hz)
         i0 = int(unstable_at * rate_hz)
-        hit = np.flatnonzero(wav[i0:] >= VISIBLE_WAVINESS_M)
+        # visible: waviness at or above the level for one whole revolution
+        # (the echo of a cut-entry ringing is over within a fraction of one)
+        above = (wav[i0:] >= VISIBLE_WAVINESS_M).astype(np.int64)
+        rev = int(rate_hz * 60.0 / float(np.max(rpm_arr)))
+        run = np.convolve(above, np.ones(rev, dtype=np.int64), mode="valid")
+        hit = np.flatnonzero(run == rev)
         if hit.size:
             visible_at = (i0 + int(hit[0])) / rate_hz
     return Recording(name, signal, rate_hz, rpm_arr, dep, y, in_cut,

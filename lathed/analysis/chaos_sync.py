@@ -1,0 +1,108 @@
+"""The paper's chatter detector: fractional-order Lorenz chaos synchronisation.
+
+Master and slave are fed from the signal (PAPER.md, Loop 1, our reading):
+the slave gets three consecutive samples of the current signal, the master
+the same three samples one spindle revolution earlier (or, with a reference
+recording, nothing changes here: the reference only sets the baseline).  The
+dynamic error is then the revolution difference d[n] = x[n] - x[n - rev],
+small for anything that repeats every revolution and large for chatter.
+
+    e~  = GL derivative of order p of d (finite memory L), divided by the
+          baseline rms of e~ so the features do not depend on the gain
+    e   = (e~[n], e~[n+1], e~[n+2])
+    phi1 = -a e1 + a e2
+    phi2 =  b e1 - e2 - e1 e3
+    phi3 = -c e3 + e1 e2
+
+The (phi1, phi2) scatter is the chaos eye.  Its size about the origin,
+R = sqrt(mean(phi1^2 + phi2^2)) (spread and centroid offset together), over
+the baseline R is the chatter index.  The bilinear terms grow with the square
+of the amplitude, which is what sharpens chatter against a stable cut.
+"""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.signal import lfilter
+
+from lathed.analysis.detectors import RevolutionDetector
+from lathed.analysis.fracdiff import gl_weights
+
+
+def lorenz_features(e: np.ndarray, a: float = 10.0, b: float = 28.0, c: float = 8.0 / 3.0) -> np.ndarray:
+    """phi (n-2, 3) from a normalised error sequence: e_i are three consecutive samples."""
+    e1, e2, e3 = e[:-2], e[1:-1], e[2:]
+    return np.stack([-a * e1 + a * e2, b * e1 - e2 - e1 * e3, -c * e3 + e1 * e2], axis=1)
+
+
+def eye_radius(phi1: np.ndarray, phi2: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(phi1 * phi1 + phi2 * phi2)))
+
+
+class ChaosSyncDetector(RevolutionDetector):
+    name = "chaos_sync"
+    PARAMS = {
+        "a": (10.0, 0.01, 1000.0, "Lorenz a (the paper prints 28; chaotic set is 10)"),
+        "b": (28.0, 0.01, 1000.0, "Lorenz b (the paper prints 10; chaotic set is 28)"),
+        "c": (8.0 / 3.0, 0.01, 100.0, "Lorenz c (the paper prints 2.66)"),
+        "p": (0.5, 0.0, 1.0, "Grünwald–Letnikov order of the error derivative (0 = none)"),
+        "memory": (64, 0, 4096, "GL memory L in samples (short-memory principle)"),
+        "threshold": (4.0, 1.05, 1000.0, "eye-size index above which a window counts as chatter"),
+        "eye_windows": (8, 1, 1000, "recent windows whose chaos-eye points are kept for plotting"),
+        "eye_points": (256, 16, 100000, "points kept per window for plotting"),
+    }
+
+    def _reset_extra(self) -> None:
+        self._w = gl_weights(self.params["p"], int(self.params["memory"]))
+        if self._fixed_baseline is None:
+            self.sigma = None
+        self._sig_learn: list[float] = []
+        self.eye: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=int(self.params["eye_windows"]))
+        self.eye_baseline: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _lead(self) -> int:
+        return int(self.params["memory"])
+
+    def _error(self, start: int, end: int) -> np.ndarray:
+        """GL derivative of the revolution difference over the window (warm-up discarded)."""
+        lead = self._lead()
+        d = self._x[start - lead:end] - self._delayed(start - lead, end)
+        return lfilter(self._w, [1.0], d)[lead:]
+
+    def _measure(self, start: int, end: int, rpm: float) -> float:
+        e = self._error(start, end)
+        rms = float(np.sqrt(np.mean(e * e))) or 1e-300
+        if self.sigma is None:
+            # still learning: normalise by what has been seen so far
+            self._sig_learn.append(rms)
+            sigma = float(np.median(self._sig_learn))
+        else:
+            sigma = self.sigma
+        phi = lorenz_features(e / sigma, self.params["a"], self.params["b"], self.params["c"])
+        r = eye_radius(phi[:, 0], phi[:, 1])
+        step = max(1, len(phi) // int(self.params["eye_points"]))
+        pts = (phi[::step, 0].copy(), phi[::step, 1].copy())
+        t_s = (self._total - (self._n - end)) / self.rate
+        self.eye.append((t_s, *pts))
+        if self.sigma is None and self.eye_baseline is None:
+            self.eye_baseline = pts
+        return r
+
+    def _on_learned(self) -> None:
+        self.sigma = float(np.median(self._sig_learn))
+
+    def _ref_hook(self) -> None:
+        self._fixed_sigma = float(np.median(self._sig_learn))
+
+    def reset(self) -> None:  # keep a reference's sigma with its baseline
+        fixed = getattr(self, "_fixed_sigma", None)
+        super().reset()
+        if self._fixed_baseline is not None and fixed is not None:
+            self.sigma = fixed
+
+    def eye_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """(phi1, phi2) of the recent windows, concatenated, for the chaos-eye plot."""
+        if not self.eye:
+            return np.empty(0), np.empty(0)
+        return (np.concatenate([p[1] for p in self.eye]), np.concatenate([p[2] for p in self.eye]))

@@ -1,0 +1,367 @@
+"""Streaming chatter detectors behind one interface, and their registry.
+
+Every detector works on windows a fixed number of spindle revolutions long,
+hopping by a fraction of a revolution, with the same signal one revolution
+earlier *in spindle angle* at hand (the angle is integrated from the ``rpm``
+given with each block, so speed changes are followed).  Each window gives a
+raw measure; the detector learns a baseline from the first ``learn_windows``
+windows of a cut (median, so a cut-entry transient does not inflate it) or
+from a reference recording (``learn_reference``), and reports
+
+    index = raw / baseline
+
+which does not depend on the signal's gain.  The alarm turns on after
+``on_windows`` consecutive windows above ``threshold`` and off after
+``off_windows`` consecutive windows below ``off_ratio * threshold``
+(hysteresis).  While the speed is changing and for ``settle_revs``
+revolutions after, no alarm is raised (the revolution-to-revolution
+comparison is not meaningful across a ramp).
+
+Built-in detectors (``DETECTORS``):
+  sync_residual      robust rms of x(theta) - x(theta - 2 pi): everything that
+                     repeats every revolution (runout, a flat's ringing)
+                     cancels; chatter does not.
+  spectral_ratio     largest non-harmonic spectral peak over the band's
+                     median level (chatter energy away from spindle harmonics).
+  chaos_sync         the paper's fractional-order Lorenz chaos-synchronisation
+                     detector (lathed.analysis.chaos_sync).
+
+Parameters (``make_detector(name, rate_hz, **params)``), with allowed ranges,
+are listed in each class's ``PARAMS``: ``describe_params(name)`` prints them.
+No asyncio and no pluggy here: plugin detectors arrive as the ``extra`` dict.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from scipy import fft as sfft
+
+_HIST = 1 << 20   # samples of history kept (20 s at 51.2 kS/s)
+
+
+@dataclass
+class Window:
+    t_s: float                          # end of the window, seconds since reset
+    index: float                        # raw / baseline (nan while nothing learned yet)
+    threshold: float                    # index level that counts as chatter
+    alarm: bool                         # alarm state after this window (hysteresis applied)
+    chatter_frequency_hz: float | None = None   # only while alarm
+    learning: bool = False              # window used to learn the baseline
+
+
+# name -> (default, min, max, meaning)
+BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
+    "window_revs": (1.0, 0.25, 16.0, "window length in spindle revolutions"),
+    "hop_revs": (0.5, 0.1, 4.0, "hop between windows in revolutions"),
+    "min_window_s": (0.02, 0.002, 1.0, "window never shorter than this (high speeds)"),
+    "min_hop_s": (0.01, 0.001, 1.0, "hop never shorter than this (bounds the cost)"),
+    "learn_windows": (4, 2, 1000, "windows at the start of a cut used to learn the baseline"),
+    "learn_quantile": (0.25, 0.0, 1.0, "quantile of the learning windows taken as baseline "
+                       "(low: ignores the cut-entry transient and chatter already growing)"),
+    "threshold": (3.0, 1.05, 1000.0, "index above which a window counts as chatter"),
+    "on_windows": (2, 1, 50, "consecutive windows above threshold to raise the alarm"),
+    "off_windows": (4, 1, 1000, "consecutive windows below off_ratio*threshold to clear it"),
+    "off_ratio": (0.7, 0.1, 1.0, "hysteresis: clear level as a fraction of threshold"),
+    "settle_revs": (2.0, 0.0, 50.0, "no new alarm this many revolutions after a speed change"),
+    "fmin_hz": (50.0, 0.0, 20000.0, "lower edge of the chatter band"),
+    "fmax_hz": (5000.0, 10.0, 25600.0, "upper edge of the chatter band"),
+}
+
+
+class RevolutionDetector:
+    """Windowing, revolution delay, baseline, hysteresis; subclasses give ``_measure``."""
+
+    name = "base"
+    PARAMS: dict[str, tuple[float, float, float, str]] = {}
+
+    def __init__(self, rate_hz: float, **params: Any) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"sample rate must be > 0 Hz, got {rate_hz}")
+        self.rate = float(rate_hz)
+        spec = {**BASE_PARAMS, **self.PARAMS}
+        unknown = sorted(set(params) - set(spec))
+        if unknown:
+            raise ValueError(f"detector {self.name!r}: unknown parameter(s) {', '.join(unknown)}; "
+                             f"allowed: {', '.join(sorted(spec))}")
+        self.params: dict[str, float] = {}
+        for key, (default, lo, hi, _) in spec.items():
+            v = params.get(key, default)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"detector {self.name!r}: {key} must be a number, got {v!r}") from None
+            if not lo <= v <= hi:
+                raise ValueError(f"detector {self.name!r}: {key} = {v:g} is outside [{lo:g}, {hi:g}]")
+            self.params[key] = v
+        if self.params["fmin_hz"] >= self.params["fmax_hz"]:
+            raise ValueError(f"detector {self.name!r}: fmin_hz must be below fmax_hz")
+        self.threshold = self.params["threshold"]
+        self._x = np.empty(_HIST)
+        self._th = np.empty(_HIST)
+        self._fixed_baseline: float | None = None
+        self.reset()
+
+    # -- state --------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the cut (history, alarm, learned baseline unless fixed by a reference)."""
+        self._n = 0                 # valid samples in the buffer
+        self._total = 0             # samples seen since reset
+        self._theta = 0.0
+        self._next_end: int | None = None
+        self._rpm: float | None = None
+        self._rpm_since = 0
+        self._settle_until = 0
+        self._learn: list[float] = []
+        self.baseline = self._fixed_baseline
+        self.alarm = False
+        self._on = 0
+        self._off = 0
+        self._reset_extra()
+
+    def _reset_extra(self) -> None:
+        pass
+
+    @property
+    def learned(self) -> bool:
+        return self.baseline is not None
+
+    def set_baseline(self, raw: float) -> None:
+        """Fix the baseline raw measure (e.g. stored from an earlier stable cut)."""
+        if not raw > 0:
+            raise ValueError(f"baseline must be > 0, got {raw}")
+        self._fixed_baseline = self.baseline = float(raw)
+
+    def learn_reference(self, signal: np.ndarray, rpm: float, block: int = 4096) -> float:
+        """Learn the baseline from a recording of a stable cut at ``rpm``; it is
+        then kept across ``reset``.  Returns the baseline raw measure."""
+        self._fixed_baseline = None
+        self.reset()
+        raws: list[float] = []
+        self._collect = raws
+        try:
+            sig = np.asarray(signal, dtype=float)
+            for i in range(0, len(sig), block):
+                self.process(sig[i:i + block], rpm)
+        finally:
+            self._collect = None
+        if not raws:
+            raise ValueError("reference recording is shorter than one window plus one revolution")
+        self.set_baseline(float(np.median(raws)))
+        self._ref_hook()
+        self.reset()
+        return self.baseline
+
+    _collect: list[float] | None = None
+
+    def _ref_hook(self) -> None:
+        pass
+
+    # -- streaming ----------------------------------------------------------------
+    def _append(self, x: np.ndarray, rpm: float) -> None:
+        k = len(x)
+        if self._n + k > _HIST:
+            keep = min(self._n, _HIST // 2)
+            self._x[:keep] = self._x[self._n - keep:self._n]
+            self._th[:keep] = self._th[self._n - keep:self._n]
+            self._n = keep
+        dth = 2 * np.pi * rpm / 60.0 / self.rate
+        self._x[self._n:self._n + k] = x
+        self._th[self._n:self._n + k] = self._theta + dth * np.arange(1, k + 1)
+        self._theta += dth * k
+        self._n += k
+        self._total += k
+
+    def process(self, block: np.ndarray, rpm: float) -> list[Window]:
+        """Feed consecutive samples at spindle speed ``rpm``; returns the windows completed."""
+        if not rpm > 0:
+            raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
+        x = np.asarray(block, dtype=float).ravel()
+        spr = self.rate * 60.0 / rpm
+        if self._rpm is not None and abs(rpm - self._rpm) > 0.002 * self._rpm:
+            self._settle_until = self._total + len(x) + int(self.params["settle_revs"] * spr)
+        if self._rpm is None or rpm != self._rpm:
+            self._rpm_since = self._total   # first sample at this exact speed
+        self._rpm = rpm
+        p = self.params
+        w_len = int(max(p["window_revs"] * spr, p["min_window_s"] * self.rate))
+        hop = int(max(p["hop_revs"] * spr, p["min_hop_s"] * self.rate))
+        need = w_len + int(spr) + 2 + self._lead()
+        if need > _HIST // 2:
+            raise ValueError(f"window of {w_len} samples plus one revolution at {rpm:g} r/min "
+                             f"exceeds the detector's history; raise the speed or shorten the window")
+        self._append(x, rpm)
+        if self._next_end is None:
+            self._next_end = need
+        out: list[Window] = []
+        while self._next_end <= self._total:
+            end = self._n - (self._total - self._next_end)
+            start = end - w_len
+            if start - int(spr) - 2 - self._lead() < 0:   # history trimmed: restart the count
+                self._next_end += hop
+                continue
+            out.append(self._window(start, end, rpm))
+            self._next_end += hop
+        return out
+
+    def _lead(self) -> int:
+        """Extra samples before the window a subclass needs (filter warm-up)."""
+        return 0
+
+    def _delayed(self, start: int, end: int) -> np.ndarray:
+        """The signal one revolution earlier (in angle) for samples start..end."""
+        spr = self.rate * 60.0 / self._rpm
+        di = int(spr)
+        first = start - di - 1
+        if first >= 0 and self._total - (self._n - first) >= self._rpm_since:
+            # constant speed over the span: a fixed fractional delay, two slices
+            fr = spr - di
+            return (1.0 - fr) * self._x[start - di:end - di] + fr * self._x[start - di - 1:end - di - 1]
+        q = self._th[start:end] - 2 * np.pi
+        lo = int(np.searchsorted(self._th[:start], q[0])) - 1
+        lo = max(lo, 0)
+        return np.interp(q, self._th[lo:end], self._x[lo:end])
+
+    def _window(self, start: int, end: int, rpm: float) -> Window:
+        raw = float(self._measure(start, end, rpm))
+        t_s = self._next_end / self.rate
+        settling = self._next_end < self._settle_until
+        if self._collect is not None:
+            self._collect.append(raw)
+            return Window(t_s, float("nan"), self.threshold, False, None, True)
+        if self.baseline is None:
+            if not settling:
+                self._learn.append(raw)
+            if len(self._learn) >= self.params["learn_windows"]:
+                self.baseline = max(float(np.quantile(self._learn, self.params["learn_quantile"])), 1e-300)
+                self._on_learned()
+            med = float(np.median(self._learn)) if self._learn else float("nan")
+            return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True)
+        index = raw / self.baseline
+        p = self.params
+        if not self.alarm:
+            self._on = self._on + 1 if (index > self.threshold and not settling) else 0
+            if self._on >= p["on_windows"]:
+                self.alarm, self._off = True, 0
+        else:
+            self._off = self._off + 1 if index < p["off_ratio"] * self.threshold else 0
+            if self._off >= p["off_windows"]:
+                self.alarm, self._on = False, 0
+        freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
+        return Window(t_s, index, self.threshold, self.alarm, freq)
+
+    def _on_learned(self) -> None:
+        pass
+
+    def _measure(self, start: int, end: int, rpm: float) -> float:
+        raise NotImplementedError
+
+    def _chatter_frequency(self, start: int, end: int, rpm: float) -> float | None:
+        """Strongest peak of the non-synchronous part, refined by a parabola."""
+        d = self._x[start:end] - self._delayed(start, end)
+        return spectral_peak_hz(d, self.rate, self.params["fmin_hz"], self.params["fmax_hz"])
+
+
+def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> float | None:
+    n = len(x)
+    if n < 8:
+        return None
+    nf = sfft.next_fast_len(n, real=True)
+    spec = np.abs(sfft.rfft(x * np.hanning(n), nf))
+    f = np.arange(len(spec)) * rate / nf
+    band = np.flatnonzero((f >= fmin) & (f <= min(fmax, rate / 2)))
+    if band.size < 3:
+        return None
+    i = int(band[np.argmax(spec[band])])
+    if 0 < i < len(spec) - 1:
+        a, b, c = np.log(spec[i - 1:i + 2] + 1e-300)
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den < 0 else 0.0
+        return float((i + off) * rate / nf)
+    return float(f[i])
+
+
+class SyncResidualDetector(RevolutionDetector):
+    """Robust rms (1.4826 * median |d|) of the revolution difference
+    d = x(theta) - x(theta - 2 pi).  The median ignores a short burst such as
+    the ringing at cut entry; continuous chatter moves it."""
+
+    name = "sync_residual"
+
+    def _measure(self, start: int, end: int, rpm: float) -> float:
+        d = self._x[start:end] - self._delayed(start, end)
+        return 1.4826 * float(np.median(np.abs(d)))
+
+
+class SpectralRatioDetector(RevolutionDetector):
+    """Largest spectral peak away from the spindle harmonics, over the median
+    level of the band.  Needs several revolutions per window so that bins lie
+    between the harmonics."""
+
+    name = "spectral_ratio"
+    PARAMS = {
+        "window_revs": (4.0, 2.0, 16.0, "window length in revolutions (>= 2 to resolve harmonics)"),
+        "hop_revs": (1.0, 0.1, 4.0, "hop between windows in revolutions"),
+        "min_window_s": (0.05, 0.01, 1.0, "window never shorter than this"),
+        "harmonic_halfwidth_bins": (1.5, 0.5, 10.0, "bins masked either side of each spindle harmonic"),
+    }
+
+    def _measure(self, start: int, end: int, rpm: float) -> float:
+        x = self._x[start:end]
+        n = len(x)
+        nf = sfft.next_fast_len(n, real=True)
+        ps = np.abs(sfft.rfft((x - x.mean()) * np.hanning(n), nf)) ** 2
+        df = self.rate / nf
+        f = np.arange(len(ps)) * df
+        frot = rpm / 60.0
+        band = (f >= self.params["fmin_hz"]) & (f <= min(self.params["fmax_hz"], self.rate / 2))
+        harm = np.abs(f / frot - np.round(f / frot)) * frot <= self.params["harmonic_halfwidth_bins"] * df
+        sel = band & ~harm
+        if not sel.any():
+            return 0.0
+        floor = float(np.median(ps[band])) or 1e-300
+        self._last_peak = float(f[sel][np.argmax(ps[sel])])
+        return float(ps[sel].max()) / floor
+
+    def _chatter_frequency(self, start: int, end: int, rpm: float) -> float | None:
+        return getattr(self, "_last_peak", None)
+
+
+Factory = Callable[..., Any]
+
+
+def _chaos(rate_hz: float, **params: Any):
+    from lathed.analysis.chaos_sync import ChaosSyncDetector
+    return ChaosSyncDetector(rate_hz, **params)
+
+
+DETECTORS: dict[str, Factory] = {
+    "sync_residual": SyncResidualDetector,
+    "spectral_ratio": SpectralRatioDetector,
+    "chaos_sync": _chaos,
+}
+
+# Chosen from bench/bench_chatter.py (zero false alarms on stable and trap
+# cases, no miss, lowest delay); see the README table.
+DEFAULT_DETECTOR = "sync_residual"
+
+
+def make_detector(name: str, rate_hz: float, extra: dict[str, Factory] | None = None, **params: Any):
+    """Build detector ``name``; ``extra`` (from the lathed_chatter_detectors
+    hook) is merged over the built-ins."""
+    table = {**DETECTORS, **(extra or {})}
+    if name not in table:
+        raise ValueError(f"unknown chatter detector {name!r}; allowed: {', '.join(sorted(table))}")
+    return table[name](rate_hz, **params)
+
+
+def describe_params(name: str) -> dict[str, tuple[float, float, float, str]]:
+    """Parameters of a built-in detector: name -> (default, min, max, meaning)."""
+    if name == "chaos_sync":
+        from lathed.analysis.chaos_sync import ChaosSyncDetector as cls
+    elif name in DETECTORS:
+        cls = DETECTORS[name]
+    else:
+        raise ValueError(f"unknown chatter detector {name!r}; allowed: {', '.join(sorted(DETECTORS))}")
+    return {**BASE_PARAMS, **cls.PARAMS}
