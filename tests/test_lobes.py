@@ -74,3 +74,24 @@ def test_is_stable_and_errors():
         StabilityLobes([Mode(250, 0.03, 2e7, 90)], 1e9)
     with pytest.raises(ValueError, match="speed range"):
         lobes.lobes(3000, 1000)
+
+
+@pytest.mark.parametrize("rpm", [1500.0, 2000.0, 2500.0])
+def test_time_domain_agrees_with_lobes(rpm):
+    """5 % below the computed limit the cut-entry transient dies out in the
+    regenerative simulator; 5 % above it grows."""
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES, RegenerativeTurning
+
+    lobes = StabilityLobes(DEFAULT_MODES, DEFAULT_KF)
+    b_lim = lobes.b_lim_at(rpm)[0][0]
+    rate = 20000.0
+    growth = {}
+    for factor in (0.95, 1.05):
+        sim = RegenerativeTurning(DEFAULT_MODES, DEFAULT_KF, rate_hz=rate, noise_rms=0.0,
+                                  process_noise=0.0, seed=0)
+        y = sim.run(int(rate * 1.0), rpm, factor * b_lim * 1e3, 0.1).y_m
+        w = int(0.1 * rate)
+        early = np.std(y[int(0.3 * rate):int(0.3 * rate) + w])
+        growth[factor] = np.std(y[-w:]) / early
+    assert growth[0.95] < 0.6, growth
+    assert growth[1.05] > 2.0, growth
