@@ -56,7 +56,7 @@ _N = 9
 class ThermalParams:
     """Lumped parameters; C in J/K, G in W/K, heat in W at 4000 r/min."""
     c_fb: float = 6000.0
-    c_rb: float = 5000.0
+    c_rb: float = 9000.0
     c_mot: float = 15000.0
     c_body: float = 15.0            # small: the body follows its neighbours within seconds
     c_shaft: float = 6000.0
@@ -83,13 +83,13 @@ class ThermalParams:
     k_room: float = -1.0
     # Effects.
     k_lag_um_per_c: float = 6.0          # shaft
-    k_rate_um_per_c_min: float = 15.0    # front bearing dT/dt ...
-    tau_gradient_s: float = 120.0        # ... as the housing's radial gradient builds up
+    k_rate_um_per_c_min: float = 30.0    # front bearing dT/dt ...
+    tau_gradient_s: float = 240.0        # ... as the housing's radial gradient builds up
     k_speed_um_per_krpm2: float = -0.6
-    k_nonlinear_um_per_c2: float = 0.15  # front bearing rise squared
+    k_nonlinear_um_per_c2: float = 0.3   # front bearing rise squared
     k_hyst_um_per_c: float = 4.0
     hyst_width_c: float = 1.0
-    drift_um_per_h: float = 2.0
+    drift_um_per_h: float = 3.0
     # Room.
     room_daily_amp_c: float = 1.0
     room_drift_c_per_h: float = 0.05

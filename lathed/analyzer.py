@@ -1,0 +1,52 @@
+"""The base of every analyzer: reads the bus, decides, asks for commands.
+
+Analyzers never talk to hardware: every command goes through
+``ctx.command()``, i.e. the safety guard and the machine's driver.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Awaitable, Callable
+
+from lathed.config import Section
+
+if TYPE_CHECKING:
+    import structlog
+
+    from lathed.bus import Bus
+    from lathed.command import Command
+
+
+class AnalyzerContext:
+    def __init__(self, bus: Bus, log: structlog.typing.FilteringBoundLogger, record,
+                 command: Callable[[Command], Awaitable[dict]],
+                 register_control: Callable[[str, Callable[[dict], Awaitable[Any]]], None],
+                 store, machine_status: Callable[[str], dict | None], config_dir):
+        self.bus = bus
+        self.log = log
+        self.record = record                  # record(kind, payload) -> None
+        self.command = command                # await command(Command) -> {"sent": bool, "reason": ...}
+        self.register_control = register_control  # expose a control-socket command
+        self.store = store
+        self.machine_status = machine_status
+        self.config_dir = config_dir
+
+
+class Analyzer:
+    def __init__(self, name: str, section: Section):
+        self.name = name
+        self.ctx: AnalyzerContext | None = None
+
+    def inputs(self) -> list[str]:
+        """Instance names of the drivers this analyzer reads (checked at start)."""
+        return []
+
+    def machines(self) -> list[str]:
+        """Instance names of the machines this analyzer may command."""
+        return []
+
+    async def run(self) -> None:
+        """Analyse until cancelled; an exception is reported and the analyzer restarted."""
+        raise NotImplementedError
+
+    def status(self) -> dict[str, Any]:
+        return {}

@@ -1,0 +1,66 @@
+"""The client side of the control socket, for lathectl and tests."""
+from __future__ import annotations
+
+import json
+import os
+import socket
+import sys
+from pathlib import Path
+from typing import Any
+
+SOCKET_NAME = "lathed.sock"
+
+
+class DaemonUnavailable(Exception):
+    pass
+
+
+class RemoteError(Exception):
+    pass
+
+
+def default_runtime_dir() -> Path:
+    """Where the daemon puts its socket unless the config says otherwise:
+    systemd's RuntimeDirectory, else a directory inside this environment,
+    so `lathectl` from the same venv finds a `make run` daemon."""
+    if os.environ.get("RUNTIME_DIRECTORY"):
+        return Path(os.environ["RUNTIME_DIRECTORY"].split(":")[0])
+    return Path(sys.prefix) / "var" / "run" / "lathed"
+
+
+def default_socket() -> Path:
+    if os.environ.get("LATHED_SOCKET"):
+        return Path(os.environ["LATHED_SOCKET"])
+    service = Path("/run/lathed") / SOCKET_NAME
+    if service.exists():
+        return service
+    return default_runtime_dir() / SOCKET_NAME
+
+
+def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | None = None,
+         timeout: float = 10.0) -> Any:
+    path = Path(sock_path) if sock_path else default_socket()
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout)
+    try:
+        try:
+            s.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError):
+            raise DaemonUnavailable(f"lathed is not running (no daemon listening on {path})") from None
+        except PermissionError:
+            raise DaemonUnavailable(f"permission denied on {path}: join the lathed group") from None
+        s.sendall(json.dumps({"cmd": cmd, "args": args or {}}).encode() + b"\n")
+        buf = b""
+        while not buf.endswith(b"\n"):
+            chunk = s.recv(1 << 16)
+            if not chunk:
+                raise DaemonUnavailable(f"lathed closed the connection on {path} without a reply")
+            buf += chunk
+    except socket.timeout:
+        raise DaemonUnavailable(f"lathed did not answer within {timeout:g} s on {path}") from None
+    finally:
+        s.close()
+    reply = json.loads(buf)
+    if not reply.get("ok"):
+        raise RemoteError(reply.get("error", "unknown error"))
+    return reply.get("result")

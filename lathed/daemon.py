@@ -1,0 +1,192 @@
+"""lathed: the daemon's entry point and lifecycle."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from lathed import __version__
+from lathed import config as configmod
+from lathed import log as logmod
+from lathed.bus import Bus
+from lathed.client import SOCKET_NAME, default_runtime_dir
+from lathed.control import ControlServer, RequestError
+from lathed.plugins import PluginLoader, load_all
+from lathed.sdnotify import notify, watchdog_interval
+from lathed.store import Store
+from lathed.supervisor import Plan, Supervisor, build
+
+log = structlog.get_logger("lathed")
+
+
+def default_state_dir() -> Path:
+    if os.environ.get("STATE_DIRECTORY"):
+        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+    return Path(sys.prefix) / "var" / "lib" / "lathed"
+
+
+class Settings:
+    """The [daemon] table."""
+
+    def __init__(self, cfg: configmod.Config):
+        sec = cfg.daemon
+        base = cfg.path.parent
+        self.name = sec.getstr("name", socket.gethostname())
+        self.state_dir = _path(base, sec.getstr("state_dir", ""), default_state_dir())
+        self.runtime_dir = _path(base, sec.getstr("runtime_dir", ""), default_runtime_dir())
+        self.plugin_dirs = [_path(base, d, None) for d in sec.getlist("plugin_dirs", [])]
+        self.log_level = sec.getstr("log_level", "info", choices=("debug", "info", "warning", "error"))
+        sec.check_unused()
+
+    @property
+    def socket_path(self) -> Path:
+        return self.runtime_dir / SOCKET_NAME
+
+
+def _path(base: Path, text: str, default: Path | None) -> Path:
+    if not text:
+        return default
+    p = Path(text)
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings, PluginLoader, Plan, Any]:
+    """Load and validate everything; raises ConfigError with every problem, one per line."""
+    cfg = configmod.load(path)
+    settings = Settings(cfg)
+    loader = load_all(settings.plugin_dirs)
+    plan = build(cfg, loader, strict=strict)
+    sim = None
+    if cfg.simulator is not None:
+        from lathed.sim.launch import SimulatorSettings
+        try:
+            sim = SimulatorSettings(cfg.simulator, settings.runtime_dir)
+        except configmod.ConfigError as e:
+            plan.errors.append(str(e))
+    if plan.errors:
+        raise configmod.ConfigError("\n".join(plan.errors))
+    return cfg, settings, loader, plan, sim
+
+
+class Daemon:
+    def __init__(self, cfg, settings: Settings, loader: PluginLoader, plan: Plan, sim):
+        self.cfg, self.settings, self.loader, self.plan, self.sim_settings = cfg, settings, loader, plan, sim
+        self.started = time.monotonic()
+        self.state = "starting"
+        self.bus = Bus()
+        self.store: Store | None = None
+        self.control = ControlServer(settings.socket_path)
+        self.supervisor: Supervisor | None = None
+        self.sim_process = None
+        self._stop = asyncio.Event()
+
+    async def run(self) -> int:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._stop.set)
+        self.store = Store(self.settings.state_dir / "lathed.db", machine_id=self.settings.name)
+        self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
+        for name in ("status", "plugins", "events", "ping"):
+            self.control.register(name, getattr(self, f"_cmd_{name}"))
+        await self.control.start()
+        if self.sim_settings is not None:
+            from lathed.sim.launch import spawn
+            self.sim_process = await spawn(self.sim_settings)
+        self.supervisor.start()
+        self.state = "running"
+        self.supervisor.record("daemon_started", "lathed", {"version": __version__, "pid": os.getpid()})
+        log.info("ready", socket=str(self.settings.socket_path), version=__version__,
+                 startup_s=round(time.monotonic() - self.started, 3))
+        notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")
+        watchdog = asyncio.create_task(self._watchdog())
+        await self._stop.wait()
+        self.state = "stopping"
+        notify("STOPPING=1")
+        log.info("stopping")
+        watchdog.cancel()
+        await self.supervisor.stop()
+        await self.control.close()
+        if self.sim_process is not None:
+            from lathed.sim.launch import stop
+            await stop(self.sim_process)
+        self.supervisor.record("daemon_stopped", "lathed", {})
+        await asyncio.to_thread(self.store.close)
+        return 0
+
+    async def _watchdog(self) -> None:
+        # Pinged from the event loop itself: if the loop hangs, the pings stop
+        # and systemd restarts us.
+        interval = watchdog_interval()
+        while True:
+            await asyncio.sleep(interval or 5.0)
+            if interval:
+                notify("WATCHDOG=1")
+            status = self.supervisor.status()
+            up = sum(m["state"] == "connected" for m in status["machines"] + status["sensors"])
+            total = len(status["machines"]) + len(status["sensors"])
+            notify(f"STATUS=running: {up}/{total} drivers connected")
+
+    # -- control commands -------------------------------------------------------
+    async def _cmd_ping(self, args: dict) -> Any:
+        return "pong"
+
+    async def _cmd_status(self, args: dict) -> Any:
+        return {"daemon": {"state": self.state, "uptime_s": round(time.monotonic() - self.started, 3),
+                           "version": __version__, "pid": os.getpid(), "name": self.settings.name,
+                           "config": str(self.cfg.path), "store": self.store.stats(),
+                           "simulator": None if self.sim_process is None else
+                           {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode}},
+                **self.supervisor.status()}
+
+    async def _cmd_plugins(self, args: dict) -> Any:
+        return self.loader.summary()
+
+    async def _cmd_events(self, args: dict) -> Any:
+        limit = args.get("limit", 50)
+        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= 100_000:
+            raise RequestError("limit must be an integer in [1, 100000]")
+        kind, source = args.get("kind"), args.get("source")
+        return await asyncio.to_thread(self.store.events, limit, kind, source, int(args.get("since_id", 0)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="lathed", description="Monitoring and control daemon for CNC lathes.")
+    p.add_argument("--config", "-c", default=os.environ.get("LATHED_CONFIG", "/etc/lathed/lathed.toml"),
+                   help="config file (default: $LATHED_CONFIG or /etc/lathed/lathed.toml)")
+    p.add_argument("--check-config", metavar="FILE", help="validate FILE and exit 0, or 78 with the problems")
+    p.add_argument("--version", action="version", version=f"lathed {__version__}")
+    args = p.parse_args(argv)
+
+    logmod.setup("info")
+    path = args.check_config or args.config
+    try:
+        cfg, settings, loader, plan, sim = prepare(path, strict=bool(args.check_config))
+    except configmod.ConfigError as e:
+        for line in str(e).splitlines():
+            print(f"lathed: {line}", file=sys.stderr)
+        return configmod.EX_CONFIG
+    if args.check_config:
+        failed = [p for p in loader.plugins if p.error]
+        for pl in failed:
+            print(f"lathed: warning: plugin {pl.name} ({pl.origin}) failed to load: {pl.error}", file=sys.stderr)
+        print(f"{path}: ok ({len(plan.drivers)} drivers, {len(plan.analyzers)} analyzers)")
+        return 0
+    logmod.setup(settings.log_level)
+    for pl in loader.plugins:
+        if pl.error:
+            log.error("plugin_failed", plugin=pl.name, origin=pl.origin, error=pl.error)
+    for key, (_, reason) in plan.skipped.items():
+        log.error("instance_skipped", instance=key, reason=reason)
+    return asyncio.run(Daemon(cfg, settings, loader, plan, sim).run())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

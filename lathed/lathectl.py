@@ -1,0 +1,155 @@
+"""lathectl: the operator's command line.
+
+Commands that ask the running daemon go over its control socket; the
+``analyze`` commands run offline on files. Subcommands live in
+``lathed/cli/``: a module there defines ``register(sub)`` for top-level
+commands and/or ``register_analyze(sub)`` for ``lathectl analyze WHAT``.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import pkgutil
+import sys
+from typing import Any
+
+from lathed import __version__
+from lathed import cli as cli_pkg
+from lathed.client import DaemonUnavailable, RemoteError, call
+
+EX_UNAVAILABLE = 69
+
+
+def remote(args: argparse.Namespace, cmd: str, cmd_args: dict | None = None) -> Any:
+    """Ask the daemon; errors propagate to main() which prints one line."""
+    return call(cmd, cmd_args, sock_path=args.socket)
+
+
+def print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, default=str))
+
+
+def _age(s: float | None) -> str:
+    return "-" if s is None else (f"{s:.1f} s" if s < 120 else f"{s / 60:.0f} min")
+
+
+def _fmt_value(v: Any) -> str:
+    if isinstance(v, dict):
+        return " ".join(f"{k}={_fmt_value(x)}" for k, x in v.items())
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return "-" if v is None else str(v)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    st = remote(args, "status")
+    if args.json:
+        print_json(st)
+        return 0
+    d = st["daemon"]
+    up = d["uptime_s"]
+    print(f"lathed {d['version']} {d['state']}, up {int(up // 3600)}h{int(up % 3600 // 60):02d}m{int(up % 60):02d}s "
+          f"(name {d['name']}, pid {d['pid']})")
+    print("machines:")
+    for m in st["machines"] or [{"name": "(none)"}]:
+        if "state" not in m:
+            print("  (none)")
+            continue
+        rpm = "-" if m.get("spindle_rpm") is None else f"{m['spindle_rpm']:.0f} r/min"
+        print(f"  {m['name']:<12} {m.get('kind') or '-':<10} {rpm:>12}  {m['detail']}")
+    print("sensors:")
+    for s in st["sensors"]:
+        print(f"  {s['name']:<12} {s['detail']:<12} age {_age(s.get('age_s')):<8} {_fmt_value(s.get('last_value'))}")
+    if not st["sensors"]:
+        print("  (none)")
+    print("analyzers:")
+    for a in st["analyzers"]:
+        summary = a.get("summary", "")
+        print(f"  {a['name']:<12} {a['detail']:<12} {summary}")
+    if not st["analyzers"]:
+        print("  (none)")
+    return 0
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    plugins = remote(args, "plugins")
+    if args.json:
+        print_json(plugins)
+        return 0
+    for p in plugins:
+        if p["state"] == "loaded":
+            print(f"loaded  {p['name']:<20} {', '.join(p['provides']) or '-'}   ({p['origin']})")
+        else:
+            print(f"FAILED  {p['name']:<20} {p['error']}   ({p['origin']})")
+    return 0
+
+
+def cmd_events(args: argparse.Namespace) -> int:
+    rows = remote(args, "events", {"limit": args.limit, "kind": args.kind, "source": args.source})
+    if args.json:
+        print_json(rows)
+        return 0
+    import datetime as dt
+    for r in rows:
+        t = dt.datetime.fromtimestamp(r["t"]).strftime("%Y-%m-%d %H:%M:%S")
+        print(f"{r['id']:>7} {t} {r['source']:<12} {r['kind']:<22} {_fmt_value(r['payload'])}")
+    if not rows:
+        print("(no events)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lathectl", description="Operate and query lathed.")
+    p.add_argument("--socket", help="control socket of the daemon (default: $LATHED_SOCKET, "
+                                    "/run/lathed/lathed.sock, or the one in this environment)")
+    p.add_argument("--version", action="version", version=f"lathectl {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    s = sub.add_parser("status", help="daemon, machines, sensors and analyzers")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_status)
+    s = sub.add_parser("plugins", help="loaded and failed plugins")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_plugins)
+    s = sub.add_parser("events", help="recent recorded events")
+    s.add_argument("--limit", type=int, default=30)
+    s.add_argument("--kind")
+    s.add_argument("--source")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_events)
+
+    an = sub.add_parser("analyze", help="offline analyses of recorded files")
+    asub = an.add_subparsers(dest="what", metavar="WHAT", required=True)
+    for mod in pkgutil.iter_modules(cli_pkg.__path__):
+        try:
+            m = importlib.import_module(f"lathed.cli.{mod.name}")
+        except Exception as e:   # one broken subcommand must not take lathectl down
+            print(f"lathectl: warning: subcommand module {mod.name} failed to load: {type(e).__name__}: {e}",
+                  file=sys.stderr)
+            continue
+        if hasattr(m, "register"):
+            m.register(sub)
+        if hasattr(m, "register_analyze"):
+            m.register_analyze(asub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not hasattr(args, "socket"):
+        args.socket = None
+    try:
+        return args.func(args)
+    except DaemonUnavailable as e:
+        print(f"lathectl: {e}", file=sys.stderr)
+        return EX_UNAVAILABLE
+    except RemoteError as e:
+        print(f"lathectl: lathed refused: {e}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

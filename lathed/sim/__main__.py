@@ -1,0 +1,191 @@
+"""lathed-sim: the simulated lathe as a separate process with real peers.
+
+It serves the machine over the same protocols a real one uses: the CNC on
+Modbus TCP, the Arduino's DS18B20 line on a pseudo-terminal, the
+accelerometer DAQ as a framed TCP stream. A JSON-lines control socket lets
+an operator or a test change the cut or take a peer down:
+
+    {"cmd": "status"}
+    {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
+    {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
+
+Prints one line ``READY {...endpoints...}`` on stdout when all peers listen.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from lathed.sim.lathe import SimLathe
+from lathed.sim.modbus_peer import ModbusPeer
+from lathed.sim.registers import LATHE_MAP, N_REGISTERS
+from lathed.sim.serial_peer import SerialPeer
+from lathed.sim.vibration_peer import VibrationPeer
+
+BLOCK = 1024              # samples per vibration frame: 20 ms at 51.2 kS/s
+READING_PERIOD_S = 6.0    # the Arduino reads its DS18B20s every 6 s (sim time)
+
+
+class Simulator:
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self.lathe = SimLathe(rate_hz=args.rate, time_scale=args.time_scale, seed=args.seed,
+                              depth_override_mm=args.depth_mm)
+        self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self.lathe.write)
+        self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
+        self.serial = SerialPeer(Path(args.serial_link))
+        self.produced = 0
+        self.overruns = 0
+        self.booted = time.monotonic()
+        self._outages: set[asyncio.Task] = set()
+        self._stop = asyncio.Event()
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._stop.set)
+        tty = self.serial.open()
+        await self.modbus.start()
+        await self.vibration.start()
+        control = None
+        if self.args.control:
+            Path(self.args.control).parent.mkdir(parents=True, exist_ok=True)
+            if os.path.exists(self.args.control):
+                os.unlink(self.args.control)
+            control = await asyncio.start_unix_server(self._control_client, path=self.args.control)
+        self.modbus.block.update(self.lathe.registers())
+        print("READY " + json.dumps({"modbus": [self.args.host, self.args.modbus_port],
+                                     "vibration": [self.args.host, self.args.vibration_port],
+                                     "serial": self.args.serial_link, "tty": tty,
+                                     "control": self.args.control}), flush=True)
+        parent = os.getppid()
+        tasks = [asyncio.create_task(self._vibration_loop()), asyncio.create_task(self._serial_loop())]
+        while not self._stop.is_set():
+            try:
+                await asyncio.wait_for(self._stop.wait(), 1.0)
+            except asyncio.TimeoutError:
+                pass
+            if self.args.exit_with_parent and os.getppid() != parent:
+                break   # the daemon that spawned us is gone
+        for t in tasks + list(self._outages):
+            t.cancel()
+        await self.modbus.stop()
+        await self.vibration.stop()
+        self.serial.close()
+        if control:
+            control.close()
+
+    async def _vibration_loop(self) -> None:
+        start = time.time()
+        rate = self.args.rate
+        while True:
+            due = int((time.time() - start) * rate)
+            if due - self.produced > rate:        # more than 1 s behind: skip, and count it
+                self.overruns += 1
+                self.produced = due - BLOCK
+            while self.produced + BLOCK <= due:
+                t0 = start + self.produced / rate
+                rpm = self.lathe.rpm
+                data = self.lathe.step(BLOCK)
+                self.vibration.send(t0, rpm, data)
+                self.produced += BLOCK
+            if self.modbus.up:
+                self.modbus.block.update(self.lathe.registers())
+            await asyncio.sleep(max(0.0, start + (self.produced + BLOCK) / rate - time.time()))
+
+    async def _serial_loop(self) -> None:
+        period = READING_PERIOD_S / self.args.time_scale
+        while True:
+            r = self.lathe.thermal.readings()
+            uptime_ms = int((time.monotonic() - self.booted) * 1000)
+            self.serial.send(uptime_ms, {k: r[k] for k in ("front_bearing", "rear_bearing", "motor", "room")})
+            await asyncio.sleep(period)
+
+    # -- control ----------------------------------------------------------------
+    async def _control_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            while line := await reader.readline():
+                try:
+                    req = json.loads(line)
+                    result = await self._command(req["cmd"], req.get("args") or {})
+                    reply = {"ok": True, "result": result}
+                except Exception as e:   # a bad control request never stops the simulator
+                    reply = {"ok": False, "error": f"{type(e).__name__}: {e}"}
+                writer.write(json.dumps(reply).encode() + b"\n")
+                await writer.drain()
+        except ConnectionError:
+            pass
+        finally:
+            writer.close()
+
+    async def _command(self, cmd: str, args: dict) -> object:
+        if cmd == "status":
+            return {"t": self.lathe.t, "phase": self.lathe.phase, "part": self.lathe.part_index,
+                    "registers": self.lathe.registers(), "temperatures": self.lathe.thermal.readings(),
+                    "displacement_um": self.lathe.thermal.displacement_um, "overruns": self.overruns,
+                    "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,
+                              "serial": self.serial.master is not None}}
+        if cmd == "set":
+            if "depth_mm" in args:
+                d = args["depth_mm"]
+                if d is not None and not (isinstance(d, (int, float)) and 0 <= d <= 10):
+                    raise ValueError("depth_mm must be null or in [0, 10]")
+                self.lathe.depth_override_mm = d
+            return {"depth_mm": self.lathe.depth_mm}
+        if cmd == "outage":
+            peer, seconds = args.get("peer"), float(args.get("seconds", 10))
+            fn = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
+                  "serial": self._serial_outage}.get(peer)
+            if fn is None:
+                raise ValueError("peer must be modbus, vibration or serial")
+            task = asyncio.create_task(fn(seconds))
+            self._outages.add(task)
+            task.add_done_callback(self._outages.discard)
+            return {"peer": peer, "seconds": seconds}
+        raise ValueError(f"unknown command {cmd!r}")
+
+    async def _vibration_outage(self, seconds: float) -> None:
+        await self.vibration.stop()
+        await asyncio.sleep(seconds)
+        await self.vibration.start()
+
+    async def _serial_outage(self, seconds: float) -> None:
+        self.serial.close()              # the USB cable pulled: the tty vanishes
+        self.serial.link.unlink(missing_ok=True)
+        await asyncio.sleep(seconds)
+        self.serial.open()
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="lathed-sim", description="Simulated lathe with real protocol peers.")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--modbus-port", type=int, default=15020)
+    p.add_argument("--vibration-port", type=int, default=15021)
+    p.add_argument("--serial-link", default="/tmp/lathed-sim/ttyARDUINO",
+                   help="path of the symlink to the simulated Arduino's tty")
+    p.add_argument("--control", help="path of the simulator's control socket")
+    p.add_argument("--rate", type=int, default=51200, help="accelerometer sample rate, Hz")
+    p.add_argument("--time-scale", type=float, default=1.0, help="speed-up of the thermal clock")
+    p.add_argument("--depth-mm", type=float, default=None, help="override every part's depth of cut")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--exit-with-parent", action="store_true")
+    args = p.parse_args(argv)
+    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        p.error("--time-scale must be > 0")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    asyncio.run(Simulator(parse_args(argv)).run())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""Starting the simulated lathe from the daemon's [simulator] table.
+
+The simulator runs as its own process, so the daemon reaches it only
+through its drivers and real protocols, as it would a machine.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+from pathlib import Path
+
+import structlog
+
+from lathed.config import Section
+
+log = structlog.get_logger("lathed.sim")
+
+
+class SimulatorSettings:
+    def __init__(self, sec: Section, runtime_dir: Path):
+        self.spawn = sec.getbool("spawn", True)
+        self.host = sec.getstr("host", "127.0.0.1")
+        self.modbus_port = sec.getint("modbus_port", 15020, minval=1, maxval=65535)
+        self.vibration_port = sec.getint("vibration_port", 15021, minval=1, maxval=65535)
+        self.serial_link = sec.getstr("serial_link", "/tmp/lathed-sim/ttyARDUINO")
+        self.control = sec.getstr("control", str(runtime_dir / "sim.sock"))
+        self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
+        self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=10.0)
+        self.seed = sec.getint("seed", 0, minval=0)
+        sec.check_unused()
+
+    def argv(self) -> list[str]:
+        a = [sys.executable, "-m", "lathed.sim", "--host", self.host, "--modbus-port", str(self.modbus_port),
+             "--vibration-port", str(self.vibration_port), "--serial-link", self.serial_link,
+             "--control", self.control, "--time-scale", str(self.time_scale), "--seed", str(self.seed),
+             "--exit-with-parent"]
+        if self.depth_mm >= 0:
+            a += ["--depth-mm", str(self.depth_mm)]
+        return a
+
+
+async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subprocess.Process | None:
+    if not s.spawn:
+        return None
+    proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE)
+    try:
+        line = await asyncio.wait_for(proc.stdout.readline(), timeout)
+    except asyncio.TimeoutError:
+        line = b""
+    if not line.startswith(b"READY "):
+        log.error("simulator_failed", returncode=proc.returncode, output=line.decode(errors="replace").strip())
+        return proc
+    log.info("simulator_ready", pid=proc.pid, **json.loads(line[6:]))
+    asyncio.create_task(_drain(proc))
+    return proc
+
+
+async def _drain(proc: asyncio.subprocess.Process) -> None:
+    while await proc.stdout.readline():
+        pass
+
+
+async def stop(proc: asyncio.subprocess.Process) -> None:
+    if proc.returncode is not None:
+        return
+    proc.terminate()
+    try:
+        await asyncio.wait_for(proc.wait(), 5.0)
+    except asyncio.TimeoutError:
+        proc.kill()
+        await proc.wait()

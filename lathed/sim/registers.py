@@ -1,0 +1,29 @@
+"""The simulated CNC's Modbus holding-register map (unit id 1).
+
+The default etc/lathed.toml declares the same map for the modbus_cnc
+driver; a real controller's map is declared the same way. 32-bit values
+take two registers, high word first ("big" word order).
+"""
+from __future__ import annotations
+
+# name: (address, type, writable, unit)
+LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
+    "spindle_rpm_cmd":       (0, "float32", True, "r/min"),
+    "spindle_rpm":           (2, "float32", False, "r/min"),
+    "spindle_override_pct":  (4, "float32", False, "%"),
+    "x_mm":                  (6, "float32", False, "mm"),
+    "y_mm":                  (8, "float32", False, "mm"),
+    "b_deg":                 (10, "float32", False, "deg"),
+    "part_count":            (12, "int32", False, ""),
+    "cycle_time_s":          (14, "float32", False, "s"),
+    "program_state":         (16, "uint16", False, ""),   # 0 idle, 1 running, 2 alarm
+    "program_number":        (17, "uint16", False, ""),
+    "offset_x_um":           (18, "float32", True, "µm"),
+    "depth_of_cut_mm":       (20, "float32", False, "mm"),
+    "feed_mm_rev":           (22, "float32", False, "mm/rev"),
+    "alarm_code":            (24, "uint16", False, ""),
+    "tool_number":           (25, "uint16", False, ""),
+    "probe_displacement_um": (26, "float32", False, "µm"),
+    "probe_seq":             (28, "uint16", False, ""),
+}
+N_REGISTERS = 32

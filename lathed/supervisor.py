@@ -1,0 +1,304 @@
+"""The one place that wires sensors -> analyzers -> actuators.
+
+``build()`` turns the config into driver and analyzer objects (constructors
+validate, no I/O). ``Supervisor`` runs each in its own supervised task,
+retries failures with capped backoff and jitter, and routes every command
+through the safety guard to the machine's driver.
+"""
+from __future__ import annotations
+
+import asyncio
+import random
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import structlog
+
+from lathed.analyzer import Analyzer, AnalyzerContext
+from lathed.bus import Bus
+from lathed.command import Command
+from lathed.config import Config, ConfigError, Instance
+from lathed.driver import Driver, DriverContext
+from lathed.plugins import PluginLoader, _one_line
+from lathed.safety import Limits, SafetyGuard
+
+log = structlog.get_logger("lathed.supervisor")
+
+
+@dataclass
+class Plan:
+    """Everything built from a config, before anything runs."""
+    drivers: dict[str, tuple[Instance, Driver]] = field(default_factory=dict)
+    analyzers: dict[str, tuple[Instance, Analyzer]] = field(default_factory=dict)
+    limits: dict[str, Limits] = field(default_factory=dict)
+    skipped: dict[str, tuple[Instance, str]] = field(default_factory=dict)   # name -> reason
+    errors: list[str] = field(default_factory=list)
+
+
+def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
+    """Build every instance. Config errors are collected in ``plan.errors``.
+
+    An instance whose plugin type is unknown while some plugin failed to load
+    is skipped (``strict=False``, the running daemon) or an error
+    (``strict=True``, ``--check-config``): the broken plugin may be the one
+    that would have provided it.
+    """
+    plan = Plan()
+    drivers, analyzers = loader.driver_types(), loader.analyzer_types()
+    failed = [p.name for p in loader.plugins if p.error]
+    for inst in cfg.instances:
+        key = f"{inst.category}.{inst.name}"
+        types = analyzers if inst.category == "analyzer" else drivers
+        cls = types.get(inst.plugin)
+        if cls is None:
+            allowed = ", ".join(sorted(types)) or "none loaded"
+            msg = f"{cfg.path}: [{key}] plugin: unknown {('analyzer' if inst.category == 'analyzer' else 'driver')} " \
+                  f"type {inst.plugin!r}; allowed: {allowed}"
+            if failed and not strict:
+                plan.skipped[key] = (inst, f"plugin type {inst.plugin!r} not available "
+                                           f"(failed plugins: {', '.join(failed)})")
+            else:
+                plan.errors.append(msg + (f" (failed plugins: {', '.join(failed)})" if failed else ""))
+            continue
+        try:
+            if not inst.framework.getbool("enabled", True):
+                continue
+            limits = None
+            if inst.category != "machine" and "limits" in inst.framework:
+                raise inst.framework.error("limits", "safety limits apply to machines only")
+            if inst.category == "machine":
+                limits = Limits.from_section(inst.framework.getsection("limits", required=False))
+            inst.framework.getduration("retry_initial", 0.5, minval=0.01, maxval=60)
+            inst.framework.getduration("retry_max", 10.0, minval=0.01, maxval=3600)
+            obj = cls(inst.name, inst.section)
+            inst.section.check_unused()
+            if inst.category == "machine" and getattr(obj, "role", None) != "machine":
+                raise inst.section.error("plugin", f"{inst.plugin!r} is a {obj.role} driver; "
+                                                   "use it under [sensor.*]")
+        except ConfigError as e:
+            plan.errors.append(str(e))
+            continue
+        except Exception as e:   # a plugin bug in a constructor is reported, not fatal
+            if strict:
+                plan.errors.append(f"{cfg.path}: [{key}]: plugin {inst.plugin!r} failed to start: {_one_line(e)}")
+            else:
+                plan.skipped[key] = (inst, f"failed to start: {_one_line(e)}")
+            continue
+        if inst.category == "analyzer":
+            plan.analyzers[inst.name] = (inst, obj)
+        else:
+            if inst.name in plan.drivers:
+                plan.errors.append(f"{cfg.path}: [{key}]: name {inst.name!r} is already used by another "
+                                   "machine or sensor")
+                continue
+            plan.drivers[inst.name] = (inst, obj)
+            if limits is not None:
+                plan.limits[inst.name] = limits
+    # wiring: analyzers may only read and command instances that exist
+    for name, (inst, an) in plan.analyzers.items():
+        for src in an.inputs():
+            if src not in plan.drivers and f"machine.{src}" not in plan.skipped \
+                    and f"sensor.{src}" not in plan.skipped:
+                plan.errors.append(f"{cfg.path}: [analyzer.{name}]: input {src!r} is not a configured "
+                                   f"machine or sensor; configured: {', '.join(plan.drivers) or 'none'}")
+        for m in an.machines():
+            if m not in plan.limits and f"machine.{m}" not in plan.skipped:
+                plan.errors.append(f"{cfg.path}: [analyzer.{name}]: machine {m!r} is not a configured machine")
+    return plan
+
+
+class Runner:
+    """A supervised task for one driver or analyzer."""
+
+    def __init__(self, category: str, name: str, obj: Any, retry_initial: float, retry_max: float,
+                 record):
+        self.category, self.name, self.obj = category, name, obj
+        self.retry_initial, self.retry_max = retry_initial, retry_max
+        self.state = "starting"
+        self.last_error: str | None = None
+        self.retry_at: float | None = None
+        self.connected_since: float | None = None
+        self.failures = 0
+        self.task: asyncio.Task | None = None
+        self._record = record
+        self.log = log.bind(**{category: name})
+
+    def describe(self) -> str:
+        if self.state == "retrying" and self.retry_at is not None:
+            return f"retrying in {max(0.0, self.retry_at - time.monotonic()):.1f} s ({self.last_error})"
+        if self.state == "failed":
+            return f"failed: {self.last_error}"
+        return self.state
+
+    async def _start(self) -> None:
+        if isinstance(self.obj, Driver):
+            await self.obj.connect()
+
+    async def _close(self) -> None:
+        if isinstance(self.obj, Driver):
+            try:
+                await asyncio.wait_for(self.obj.close(), 5.0)
+            except Exception as e:   # close must not take the supervisor down
+                self.log.warning("close_failed", error=_one_line(e))
+
+    async def loop(self) -> None:
+        delay = self.retry_initial
+        while True:
+            started = time.monotonic()
+            try:
+                self.state = "connecting" if isinstance(self.obj, Driver) else "starting"
+                await self._start()
+                self.state = "connected" if isinstance(self.obj, Driver) else "running"
+                self.connected_since = time.time()
+                if self.failures:
+                    self.log.info("recovered", after_failures=self.failures)
+                    self._record(f"{self.category}_recovered", self.name,
+                                 {"after_failures": self.failures})
+                await self.obj.run()
+                raise RuntimeError("stopped without an error")
+            except asyncio.CancelledError:
+                self.state = "stopped"
+                await self._close()
+                raise
+            except Exception as e:
+                self.failures += 1
+                self.last_error = _one_line(e)
+                self.connected_since = None
+                await self._close()      # safe state: link released, commands refused
+                if time.monotonic() - started > self.retry_max:
+                    delay = self.retry_initial   # it ran a while: not a tight failure loop
+                wait = min(delay, self.retry_max) * random.uniform(0.8, 1.2)
+                self.retry_at = time.monotonic() + wait
+                self.state = "retrying"
+                self.log.warning(f"{self.category}_fault", error=self.last_error, retry_in_s=round(wait, 2))
+                self._record(f"{self.category}_fault", self.name, {"error": self.last_error,
+                                                                   "retry_in_s": round(wait, 2)})
+                await asyncio.sleep(wait)
+                delay = min(delay * 2, self.retry_max)
+
+
+class Supervisor:
+    def __init__(self, cfg: Config, plan: Plan, bus: Bus, store, register_control):
+        self.cfg, self.plan, self.bus, self.store = cfg, plan, bus, store
+        self.guard = SafetyGuard(plan.limits)
+        self.runners: dict[str, Runner] = {}
+        self.analyzer_runners: dict[str, Runner] = {}
+        self._cmd_locks: dict[str, asyncio.Lock] = {}
+        self._register_control = register_control
+        for name, (inst, drv) in plan.drivers.items():
+            drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name))
+            self.runners[name] = Runner(inst.category, name, drv, *self._retry(inst), self.record)
+        for name, (inst, an) in plan.analyzers.items():
+            an.ctx = AnalyzerContext(bus, log.bind(analyzer=name), self._recorder(name), self.command,
+                                     register_control, store, self.machine_status, cfg.path.parent)
+            self.analyzer_runners[name] = Runner("analyzer", name, an, *self._retry(inst), self.record)
+
+    @staticmethod
+    def _retry(inst: Instance) -> tuple[float, float]:
+        fw = inst.framework
+        return fw.getduration("retry_initial", 0.5), fw.getduration("retry_max", 10.0)
+
+    # -- records ------------------------------------------------------------
+    def record(self, kind: str, source: str, payload: dict | None = None) -> None:
+        """Record an event durably; a failure to record is logged, never silent."""
+        try:
+            fut = self.store.record_future(kind, source, payload)
+        except Exception as e:
+            log.error("record_failed", kind=kind, source=source, error=_one_line(e))
+            return
+        fut.add_done_callback(lambda f: f.exception() and log.error(
+            "record_failed", kind=kind, source=source, error=str(f.exception())))
+
+    def _recorder(self, source: str):
+        return lambda kind, payload=None: self.record(kind, source, payload)
+
+    # -- running --------------------------------------------------------------
+    def start(self) -> None:
+        for r in (*self.runners.values(), *self.analyzer_runners.values()):
+            r.task = asyncio.create_task(r.loop(), name=f"{r.category}:{r.name}")
+
+    async def stop(self) -> None:
+        # analyzers first, so no command is asked for while drivers close
+        for group in (self.analyzer_runners, self.runners):
+            tasks = [r.task for r in group.values() if r.task]
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    # -- commands -------------------------------------------------------------
+    async def command(self, cmd: Command) -> dict:
+        """Send a command through the safety guard. Never raises."""
+        runner = self.runners.get(cmd.machine)
+        drv = runner.obj if runner else None
+        reason = None
+        if drv is None or getattr(drv, "role", None) != "machine":
+            reason = f"no machine named {cmd.machine!r}"
+        elif runner.state != "connected":
+            reason = f"machine {cmd.machine} is {runner.describe()}: held in safe state"
+        elif cmd.action not in drv.actions:
+            reason = f"machine {cmd.machine} does not take {cmd.action!r} (takes: {', '.join(drv.actions) or 'none'})"
+        lock = self._cmd_locks.setdefault(cmd.machine, asyncio.Lock())
+        async with lock:
+            if reason is None:
+                reason = self.guard.check(cmd, drv.current(cmd.action))
+            payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
+                       "reason": cmd.reason, "by": cmd.source, **cmd.context}
+            if reason is not None:
+                log.warning("command_refused", command=cmd.describe(), why=reason)
+                self.record("command_refused", cmd.source, {**payload, "refused": reason})
+                return {"sent": False, "reason": reason}
+            try:
+                await asyncio.wait_for(drv.execute(cmd), 5.0)
+            except Exception as e:
+                err = _one_line(e)
+                log.error("command_failed", command=cmd.describe(), error=err)
+                self.record("command_failed", cmd.source, {**payload, "error": err})
+                return {"sent": False, "reason": f"write failed: {err}"}
+            self.guard.passed(cmd)
+            log.info("command_sent", command=cmd.describe())
+            self.record("command_sent", cmd.source, payload)
+            return {"sent": True, "reason": None}
+
+    # -- status ---------------------------------------------------------------
+    def machine_status(self, name: str) -> dict | None:
+        r = self.runners.get(name)
+        if r is None:
+            return None
+        return {"state": r.state, "describe": r.describe(), **r.obj.status()}
+
+    def status(self) -> dict[str, Any]:
+        now = time.time()
+        machines, sensors, analyzers = [], [], []
+        for name, r in self.runners.items():
+            drv: Driver = r.obj
+            age = None if drv.last_data_t is None else round(now - drv.last_data_t, 3)
+            base = {"name": name, "plugin": self.plan.drivers[name][0].plugin, "state": r.state,
+                    "detail": r.describe(), "last_error": r.last_error, "failures": r.failures,
+                    "age_s": age}
+            extra = _safe(drv.status)
+            if drv.role == "machine":
+                machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"), **extra})
+            else:
+                last = {q: s.value for q, s in self.bus.latest_of(name).items()}
+                sensors.append({**base, "kind": drv.kind, "last_value": last or None, **extra})
+        for key, (inst, reason) in self.plan.skipped.items():
+            entry = {"name": inst.name, "plugin": inst.plugin, "state": "failed",
+                     "detail": f"failed: {reason}", "last_error": reason}
+            if inst.category == "machine":
+                machines.append({**entry, "kind": None, "spindle_rpm": None})
+            elif inst.category == "sensor":
+                sensors.append({**entry, "last_value": None, "age_s": None})
+            else:
+                analyzers.append(entry)
+        for name, r in self.analyzer_runners.items():
+            analyzers.append({"name": name, "plugin": self.plan.analyzers[name][0].plugin, "state": r.state,
+                              "detail": r.describe(), "last_error": r.last_error, **_safe(r.obj.status)})
+        return {"machines": machines, "sensors": sensors, "analyzers": analyzers}
+
+
+def _safe(fn) -> dict:
+    try:
+        return fn() or {}
+    except Exception as e:   # a status bug must not break `lathectl status`
+        return {"status_error": _one_line(e)}

@@ -1,0 +1,114 @@
+"""Wire formats shared by the drivers and the simulator.
+
+Vibration stream (TCP, one direction, server -> client), little-endian frames:
+
+    magic    4s   b"LVIB"
+    version  B    1
+    channels B    number of interleaved channels (1 here)
+    n        H    samples per channel in this frame
+    rate     I    sample rate, Hz
+    seq      Q    index of the frame's first sample since the stream began
+    t0       d    time of the first sample, s since the Unix epoch
+    rpm      f    actual spindle speed at the frame's start, r/min
+    data     n*channels float32, acceleration in m/s²
+
+``seq`` lets a reader see a gap (lost samples) or a restarted stream.
+
+Temperature line (serial, 115200 8N1, the Arduino with DS18B20 sensors), one
+line per read cycle of all sensors:
+
+    T,<seq>,<uptime_ms>,<name>=<celsius>[,<name>=<celsius>...]*<XX>\\r\\n
+
+``seq`` counts read cycles since the Arduino booted; ``XX`` is the XOR of
+every byte from ``T`` up to (not including) ``*``, two hex digits. A
+DS18B20 reads 85.0 on its first conversion after power-on and -127.0 when
+it is disconnected; the Arduino sends what the sensor gave and the driver
+rejects those.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+VIB_HEADER = struct.Struct("<4sBBHIQdf")
+VIB_MAGIC = b"LVIB"
+VIB_VERSION = 1
+
+
+def pack_vibration(seq: int, t0: float, rpm: float, rate_hz: int, data: np.ndarray) -> bytes:
+    samples = np.asarray(data, dtype="<f4")
+    channels = 1 if samples.ndim == 1 else samples.shape[1]
+    n = samples.shape[0]
+    return VIB_HEADER.pack(VIB_MAGIC, VIB_VERSION, channels, n, rate_hz, seq, t0, rpm) + samples.tobytes()
+
+
+@dataclass(frozen=True)
+class VibrationFrame:
+    seq: int
+    t0: float
+    rpm: float
+    rate_hz: int
+    data: np.ndarray    # shape (n,) for one channel, else (n, channels)
+
+
+class FrameError(ValueError):
+    pass
+
+
+def unpack_vibration_header(head: bytes) -> tuple[int, int, int, int, float, float]:
+    """(channels, n, rate, seq, t0, rpm) from a header; FrameError if it is not one."""
+    magic, version, channels, n, rate, seq, t0, rpm = VIB_HEADER.unpack(head)
+    if magic != VIB_MAGIC:
+        raise FrameError(f"bad frame magic {magic!r} (stream out of step or not a lathed vibration stream)")
+    if version != VIB_VERSION:
+        raise FrameError(f"unsupported frame version {version}")
+    if channels < 1 or n < 1 or rate < 1:
+        raise FrameError(f"malformed frame header: channels={channels} n={n} rate={rate}")
+    return channels, n, rate, seq, t0, rpm
+
+
+def xor_checksum(body: bytes) -> int:
+    c = 0
+    for b in body:
+        c ^= b
+    return c
+
+
+def format_temperature_line(seq: int, uptime_ms: int, readings: dict[str, float]) -> bytes:
+    body = f"T,{seq},{uptime_ms}," + ",".join(f"{k}={v:.4f}" for k, v in readings.items())
+    raw = body.encode("ascii")
+    return raw + b"*%02X\r\n" % xor_checksum(raw)
+
+
+class LineError(ValueError):
+    pass
+
+
+def parse_temperature_line(line: bytes) -> tuple[int, int, dict[str, float]]:
+    """(seq, uptime_ms, {name: celsius}); LineError naming what is wrong."""
+    line = line.strip()
+    if not line.startswith(b"T,"):
+        raise LineError("does not start with 'T,'")
+    body, star, check = line.rpartition(b"*")
+    if not star:
+        raise LineError("no '*' checksum")
+    try:
+        want = int(check, 16)
+    except ValueError:
+        raise LineError(f"checksum {check!r} is not hex") from None
+    if xor_checksum(body) != want:
+        raise LineError("checksum mismatch (noise on the line?)")
+    try:
+        fields = body.decode("ascii").split(",")
+        seq, uptime = int(fields[1]), int(fields[2])
+        readings = {}
+        for f in fields[3:]:
+            name, _, value = f.partition("=")
+            if not name or not _:
+                raise ValueError(f"field {f!r}")
+            readings[name] = float(value)
+    except (UnicodeDecodeError, ValueError, IndexError) as e:
+        raise LineError(f"malformed fields ({e})") from None
+    return seq, uptime, readings

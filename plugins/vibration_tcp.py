@@ -1,0 +1,83 @@
+"""An accelerometer DAQ streaming framed samples over TCP (format: lathed.wire).
+
+    [sensor.accel]
+    plugin = "vibration_tcp"
+    host = "127.0.0.1"
+    port = 15021
+    timeout = "2s"          # no frame for this long: the link is re-opened
+
+Publishes each frame as a Block (quantity "acceleration", m/s²) and its RMS
+as a Sample. Gaps in the stream's sample counter are counted, never hidden.
+"""
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from lathed import hookimpl
+from lathed.bus import Block, Sample
+from lathed.config import Section
+from lathed.driver import Driver
+from lathed.wire import VIB_HEADER, unpack_vibration_header
+
+MAX_FRAME_SAMPLES = 1 << 16
+
+
+class VibrationTCP(Driver):
+    role = "sensor"
+    kind = "accelerometer"
+
+    def __init__(self, name: str, section: Section):
+        super().__init__(name, section)
+        self.host = section.getstr("host")
+        self.port = section.getint("port", minval=1, maxval=65535)
+        self.timeout = section.getduration("timeout", 2.0, minval=0.05, maxval=600)
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.frames = 0
+        self.samples = 0
+        self.lost_samples = 0
+        self.rate_hz: float | None = None
+        self._next_seq: int | None = None
+
+    async def connect(self) -> None:
+        try:
+            self.reader, self.writer = await asyncio.wait_for(
+                asyncio.open_connection(self.host, self.port), self.timeout)
+        except (OSError, asyncio.TimeoutError) as e:
+            raise ConnectionError(f"no vibration stream at {self.host}:{self.port} ({e or 'timeout'})") from None
+        self._next_seq = None
+
+    async def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = self.reader = None
+
+    async def run(self) -> None:
+        while True:
+            head = await asyncio.wait_for(self.reader.readexactly(VIB_HEADER.size), self.timeout)
+            channels, n, rate, seq, t0, rpm = unpack_vibration_header(head)
+            if n * channels > MAX_FRAME_SAMPLES:
+                raise ValueError(f"frame of {n}x{channels} samples is larger than {MAX_FRAME_SAMPLES}")
+            body = await asyncio.wait_for(self.reader.readexactly(4 * n * channels), self.timeout)
+            data = np.frombuffer(body, dtype="<f4").reshape(n, channels)[:, 0].astype(np.float64)
+            if self._next_seq is not None and seq != self._next_seq:
+                if seq > self._next_seq:
+                    self.lost_samples += seq - self._next_seq
+                self.ctx.log.warning("vibration_gap", expected_seq=self._next_seq, got_seq=seq)
+            self._next_seq = seq + n
+            self.rate_hz = float(rate)
+            self.frames += 1
+            self.samples += n
+            self.mark_data()
+            self.ctx.bus.publish(Block(self.name, "acceleration", float(rate), t0, seq, data, float(rpm)))
+            self.ctx.bus.publish(Sample(self.name, "rms", float(np.sqrt(np.mean(data * data))), "m/s²", t0))
+
+    def status(self) -> dict:
+        return {"rate_hz": self.rate_hz, "frames": self.frames, "lost_samples": self.lost_samples}
+
+
+@hookimpl
+def lathed_driver_types():
+    return {"vibration_tcp": VibrationTCP}
