@@ -789,7 +789,7 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray) -> ResidualReport:
 def analyze(train: ThermalData, test: ThermalData | None = None, *,
             candidates: Sequence[Candidate] | None = None, extra_candidates: Sequence[Candidate] = (),
             max_effects: int = 4, n_blocks: int = 5, gap_rows: int = 10,
-            min_gain: float = 0.05, min_z: float = 3.0) -> Analysis:
+            min_gain: float = 0.05, min_z: float = 2.0) -> Analysis:
     """Fit the linear baseline on ``train``, then add candidate effects while
     one lowers the held-out error by at least ``min_gain`` (relative) with a
     Diebold-Mariano z of at least ``min_z``. Effects are chosen on held-out
