@@ -814,8 +814,9 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
             for term in cand.propose(train):
                 if (term.effect, term.sensor) in have:
                     continue
-                if test is not None and term.sensor and term.sensor not in test.temps_c:
-                    continue
+                if test is not None and (term.sensor and term.sensor not in test.temps_c
+                                         or isinstance(term, SpeedTerm) and test.rpm is None):
+                    continue     # could not be evaluated on the test run
                 F = np.asarray(term.features(train), float).reshape(len(train), -1)
                 if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
                     continue
