@@ -48,13 +48,15 @@ class ChaosSyncDetector(RevolutionDetector):
         "c": (8.0 / 3.0, 0.01, 100.0, "Lorenz c (the paper prints 2.66)"),
         "p": (0.5, 0.0, 1.0, "Grünwald–Letnikov order of the error derivative (0 = none)"),
         "memory": (64, 0, 4096, "GL memory L in samples (short-memory principle)"),
-        "threshold": (4.0, 1.05, 1000.0, "eye-size index above which a window counts as chatter"),
+        "threshold": (1.8, 1.05, 1000.0, "eye-size index above which a window counts as chatter"),
         "eye_windows": (8, 1, 1000, "recent windows whose chaos-eye points are kept for plotting"),
         "eye_points": (256, 16, 100000, "points kept per window for plotting"),
     }
 
     def _reset_extra(self) -> None:
         self._w = gl_weights(self.params["p"], int(self.params["memory"]))
+        self._zi = np.zeros(len(self._w) - 1)
+        self._buffers()
         if self._fixed_baseline is None:
             self.sigma = None
         self._sig_learn: list[float] = []
@@ -64,11 +66,18 @@ class ChaosSyncDetector(RevolutionDetector):
     def _lead(self) -> int:
         return int(self.params["memory"])
 
+    def _buffers(self) -> list[np.ndarray]:
+        if not hasattr(self, "_e"):
+            self._e = np.empty_like(self._x)
+        return super()._buffers() + [self._e]
+
+    def _new_samples(self, start: int, end: int) -> None:
+        # the GL derivative of the revolution difference, once per sample, state carried
+        d = np.nan_to_num(self._d[start:end])
+        self._e[start:end], self._zi = lfilter(self._w, [1.0], d, zi=self._zi)
+
     def _error(self, start: int, end: int) -> np.ndarray:
-        """GL derivative of the revolution difference over the window (warm-up discarded)."""
-        lead = self._lead()
-        d = self._x[start - lead:end] - self._delayed(start - lead, end)
-        return lfilter(self._w, [1.0], d)[lead:]
+        return self._e[start:end]
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
         e = self._error(start, end)

@@ -38,7 +38,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy import fft as sfft
 
-_HIST = 1 << 20   # samples of history kept (20 s at 51.2 kS/s)
+_HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
 
 
 @dataclass
@@ -60,7 +60,7 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
     "learn_windows": (4, 2, 1000, "windows at the start of a cut used to learn the baseline"),
     "learn_quantile": (0.25, 0.0, 1.0, "quantile of the learning windows taken as baseline "
                        "(low: ignores the cut-entry transient and chatter already growing)"),
-    "threshold": (3.0, 1.05, 1000.0, "index above which a window counts as chatter"),
+    "threshold": (2.0, 1.05, 1000.0, "index above which a window counts as chatter"),
     "on_windows": (2, 1, 50, "consecutive windows above threshold to raise the alarm"),
     "off_windows": (4, 1, 1000, "consecutive windows below off_ratio*threshold to clear it"),
     "off_ratio": (0.7, 0.1, 1.0, "hysteresis: clear level as a fraction of threshold"),
@@ -100,6 +100,7 @@ class RevolutionDetector:
         self.threshold = self.params["threshold"]
         self._x = np.empty(_HIST)
         self._th = np.empty(_HIST)
+        self._d = np.empty(_HIST)     # revolution difference x(theta) - x(theta - 2 pi)
         self._fixed_baseline: float | None = None
         self.reset()
 
@@ -111,7 +112,7 @@ class RevolutionDetector:
         self._theta = 0.0
         self._next_end: int | None = None
         self._rpm: float | None = None
-        self._rpm_since = 0
+        self._since_idx = 0
         self._settle_until = 0
         self._learn: list[float] = []
         self.baseline = self._fixed_baseline
@@ -163,15 +164,27 @@ class RevolutionDetector:
         k = len(x)
         if self._n + k > _HIST:
             keep = min(self._n, _HIST // 2)
-            self._x[:keep] = self._x[self._n - keep:self._n]
-            self._th[:keep] = self._th[self._n - keep:self._n]
+            cut = self._n - keep
+            for buf in self._buffers():
+                buf[:keep] = buf[cut:self._n]
             self._n = keep
+            self._since_idx = max(self._since_idx - cut, -1)
         dth = 2 * np.pi * rpm / 60.0 / self.rate
-        self._x[self._n:self._n + k] = x
-        self._th[self._n:self._n + k] = self._theta + dth * np.arange(1, k + 1)
+        n0 = self._n
+        self._x[n0:n0 + k] = x
+        self._th[n0:n0 + k] = self._theta + dth * np.arange(1, k + 1)
         self._theta += dth * k
         self._n += k
         self._total += k
+        self._d[n0:self._n] = self._x[n0:self._n] - self._delayed(n0, self._n)
+        self._new_samples(n0, self._n)
+
+    def _buffers(self) -> list[np.ndarray]:
+        """Per-sample history arrays kept aligned (subclasses add theirs)."""
+        return [self._x, self._th, self._d]
+
+    def _new_samples(self, start: int, end: int) -> None:
+        """Hook: samples start..end (buffer indices) were appended, with ``_d``."""
 
     def process(self, block: np.ndarray, rpm: float) -> list[Window]:
         """Feed consecutive samples at spindle speed ``rpm``; returns the windows completed."""
@@ -182,7 +195,7 @@ class RevolutionDetector:
         if self._rpm is not None and abs(rpm - self._rpm) > 0.002 * self._rpm:
             self._settle_until = self._total + len(x) + int(self.params["settle_revs"] * spr)
         if self._rpm is None or rpm != self._rpm:
-            self._rpm_since = self._total   # first sample at this exact speed
+            self._since_idx = self._n   # buffer index of the first sample at this speed
         self._rpm = rpm
         p = self.params
         w_len = int(max(p["window_revs"] * spr, p["min_window_s"] * self.rate))
@@ -214,14 +227,15 @@ class RevolutionDetector:
         spr = self.rate * 60.0 / self._rpm
         di = int(spr)
         first = start - di - 1
-        if first >= 0 and self._total - (self._n - first) >= self._rpm_since:
+        if first >= 0 and first >= self._since_idx:
             # constant speed over the span: a fixed fractional delay, two slices
             fr = spr - di
             return (1.0 - fr) * self._x[start - di:end - di] + fr * self._x[start - di - 1:end - di - 1]
         q = self._th[start:end] - 2 * np.pi
         lo = int(np.searchsorted(self._th[:start], q[0])) - 1
         lo = max(lo, 0)
-        return np.interp(q, self._th[lo:end], self._x[lo:end])
+        # before any history: no difference (windows never reach back there)
+        return np.interp(q, self._th[lo:end], self._x[lo:end], left=np.nan)
 
     def _window(self, start: int, end: int, rpm: float) -> Window:
         raw = float(self._measure(start, end, rpm))
@@ -259,7 +273,7 @@ class RevolutionDetector:
 
     def _chatter_frequency(self, start: int, end: int, rpm: float) -> float | None:
         """Strongest peak of the non-synchronous part, refined by a parabola."""
-        d = self._x[start:end] - self._delayed(start, end)
+        d = self._d[start:end]
         return spectral_peak_hz(d, self.rate, self.params["fmin_hz"], self.params["fmax_hz"])
 
 
@@ -290,8 +304,7 @@ class SyncResidualDetector(RevolutionDetector):
     name = "sync_residual"
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
-        d = self._x[start:end] - self._delayed(start, end)
-        return 1.4826 * float(np.median(np.abs(d)))
+        return 1.4826 * float(np.median(np.abs(self._d[start:end])))
 
 
 class SpectralRatioDetector(RevolutionDetector):
@@ -305,6 +318,7 @@ class SpectralRatioDetector(RevolutionDetector):
         "hop_revs": (1.0, 0.1, 4.0, "hop between windows in revolutions"),
         "min_window_s": (0.05, 0.01, 1.0, "window never shorter than this"),
         "harmonic_halfwidth_bins": (1.5, 0.5, 10.0, "bins masked either side of each spindle harmonic"),
+        "threshold": (3.0, 1.05, 1000.0, "peak-ratio index above which a window counts as chatter"),
     }
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
