@@ -34,8 +34,10 @@ _REF_ROWS = 10  # rows in the line fitted for the starting temperature (see _sta
 
 
 def sensor_column(key: str) -> str:
-    """``front_bearing`` or ``t_front_bearing_c`` -> ``t_front_bearing_c``."""
-    return key if key.startswith("t_") and key.endswith("_c") else f"t_{key}_c"
+    """``front_bearing``, ``t_front_bearing`` or ``t_front_bearing_c`` -> ``t_front_bearing_c``."""
+    if key.startswith("t_"):
+        return key if key.endswith("_c") else f"{key}_c"
+    return f"t_{key}_c"
 
 
 # -- data -----------------------------------------------------------------

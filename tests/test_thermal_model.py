@@ -1,0 +1,140 @@
+"""The thermal regression, its terms, save/load and live prediction."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lathed.analysis.thermal import (DriftTerm, HysteresisTerm, LagTerm, LinearTerm, NonlinearTerm, RateTerm,
+                                     SpeedTerm, ThermalData, ThermalModel, baseline_terms, eq14_model,
+                                     fit_coefficients, heldout_errors, lag_filter, load_model, play_operator,
+                                     save_model)
+
+EQ14_TOML = Path("/work/shared/data/paper_tables/eq14_thermal_model.toml")
+
+
+def _synthetic(n=600, seed=0, dt=6.0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * dt
+    a = 5 * (1 - np.exp(-t / 2000)) + 0.02 * rng.standard_normal(n)
+    b = 3 * np.sin(t / 1500) ** 2 + 0.02 * rng.standard_normal(n)
+    c = 0.5 * t / t[-1] + 0.02 * rng.standard_normal(n)
+    temps = {"t_a_c": 20 + a, "t_b_c": 21 + b, "t_c_c": 19 + c}
+    return t, temps, rng
+
+
+def test_least_squares_recovers_known_coefficients():
+    t, temps, rng = _synthetic()
+    d = ThermalData(t, temps)
+    X = np.column_stack([d.rise(s) for s in d.sensors])
+    y = X @ np.array([2.0, -1.5, 4.0]) + 3.0 + 0.01 * rng.standard_normal(len(t))
+    coef, icpt = fit_coefficients(X, y)
+    assert coef == pytest.approx([2.0, -1.5, 4.0], abs=0.05)
+    assert icpt == pytest.approx(3.0, abs=0.05)
+
+
+def test_duplicate_sensor_is_reported_and_does_not_blow_up():
+    t, temps, rng = _synthetic()
+    temps["t_a_copy_c"] = temps["t_a_c"].copy()            # two sensors on the same part
+    temps["t_still_c"] = np.full(len(t), 22.0)             # a sensor that never moved
+    d0 = ThermalData(t, {k: temps[k] for k in ("t_a_c", "t_b_c", "t_c_c")})
+    y = 2 * d0.rise("t_a_c") - d0.rise("t_b_c") + 0.05 * rng.standard_normal(len(t))
+    d = ThermalData(t, temps, y)
+    terms, notes = baseline_terms(d)
+    names = [tm.sensor for tm in terms]
+    assert "t_still_c" not in names and any("t_still_c never changed" in n for n in notes)
+    assert any("t_a_copy_c moves with t_a_c" in n for n in notes)
+    X = np.column_stack([tm.features(d)[:, 0] for tm in terms])
+    coef, _ = fit_coefficients(X, y)
+    assert np.all(np.abs(coef) < 10)
+    # Even both copies kept, the exact collinearity gives a finite split, not a blow-up.
+    X2 = np.column_stack([d.rise("t_a_c"), d.rise("t_a_copy_c"), d.rise("t_b_c")])
+    coef2, _ = fit_coefficients(X2, y)
+    assert coef2[0] + coef2[1] == pytest.approx(2.0, abs=0.05) and np.all(np.abs(coef2) < 10)
+
+
+def test_heldout_errors_match_a_plain_refit_per_block():
+    t, temps, rng = _synthetic(n=300)
+    d = ThermalData(t, temps)
+    X = np.column_stack([d.rise(s) for s in d.sensors])
+    y = X @ [1.0, 2.0, 3.0] + 0.3 * rng.standard_normal(len(t))
+    e = heldout_errors(X, y, n_blocks=3, gap=5)
+    for lo, hi in ((0, 100), (100, 200), (200, 300)):
+        keep = np.ones(300, bool)
+        keep[max(lo - 5, 0):hi + 5] = False
+        A = np.column_stack([X, np.ones(300)])
+        beta = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+        assert e[lo:hi] == pytest.approx(y[lo:hi] - A[lo:hi] @ beta, abs=1e-3)   # tiny ridge
+
+
+def test_lag_filter_even_and_uneven_steps_agree():
+    t = np.arange(500) * 6.0
+    x = np.where(t > 300, 5.0, 0.0) + np.sin(t / 400)
+    even = lag_filter(t, x, 600.0)
+    t2 = t.copy()
+    t2[-1] += 1e-3                                  # forces the uneven-step path
+    uneven = lag_filter(t2, x, 600.0)
+    assert even[:-1] == pytest.approx(uneven[:-1], abs=1e-9)
+    # A step settles with the right time constant.
+    step = lag_filter(t, np.r_[0.0, np.ones(499)], 600.0)
+    assert step[100] == pytest.approx(1 - np.exp(-600 / 600), abs=1e-9)
+
+
+def test_play_operator():
+    x = np.array([0, 1, 2, 3, 2.5, 2, 1, 0, 0.5])
+    assert play_operator(x, 1.0).tolist() == [0, 0, 1, 2, 2, 2, 2, 1, 1]
+
+
+def _model_with_every_term():
+    terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), LagTerm("t_a_c", 900.0), RateTerm("t_b_c", 120.0),
+             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm()]
+    coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5])
+    return ThermalModel(terms, coef, 7.0)
+
+
+def test_streaming_predictor_equals_batch_prediction_on_uneven_time():
+    t, temps, rng = _synthetic(n=400)
+    t = t + np.cumsum(rng.uniform(0, 3, len(t)))        # uneven steps, as after rejected rows
+    rpm = np.repeat([0.0, 3000, 1500, 4000], 100)
+    d = ThermalData(t, {k: temps[k] for k in ("t_a_c", "t_b_c")}, rpm=rpm)
+    m = _model_with_every_term()
+    batch = m.predict(d)
+    pred = m.predictor(reference_c=d.reference_c)
+    live = [pred.update({"a": temps["t_a_c"][k], "t_b_c": temps["t_b_c"][k]}, rpm=rpm[k], t_s=t[k])
+            for k in range(len(t))]
+    assert live == pytest.approx(batch, abs=1e-8)
+
+
+def test_save_and_load_round_trip(tmp_path):
+    t, temps, _ = _synthetic(n=200)
+    d = ThermalData(t, {k: temps[k] for k in ("t_a_c", "t_b_c")}, rpm=np.full(200, 2000.0))
+    m = _model_with_every_term()
+    path = tmp_path / "model.toml"
+    save_model(m, path, meta={"fitted_rows": 200})
+    m2 = load_model(path)
+    assert m2.names == m.names
+    assert m2.predict(d) == pytest.approx(m.predict(d))
+    path.write_text(path.read_text().replace('effect = "lag"', 'effect = "wobble"'))
+    with pytest.raises(ValueError, match="wobble"):
+        load_model(path)
+
+
+def test_eq14_default_in_micrometres():
+    m = eq14_model()
+    assert m.source == "eq14"
+    p = m.predictor(reference_c={"front_bearing": 20, "rear_bearing": 20, "motor": 20, "room": 20})
+    got = p.update({"front_bearing": 30, "rear_bearing": 28, "motor": 35, "room": 21})
+    expect = 1000 * (-0.00911 * 10 + 0.00606 * 8 + 0.009833 * 15 + 0.000548 * 1 - 0.22194)
+    assert got == pytest.approx(expect)
+
+
+@pytest.mark.skipif(not EQ14_TOML.exists(), reason="shared paper tables not present")
+def test_eq14_constants_match_the_paper_table():
+    a, b = eq14_model(), eq14_model(EQ14_TOML)
+    assert dict(zip(a.names, a.coef)) == pytest.approx(dict(zip(b.names, b.coef)))
+    assert a.intercept_um == pytest.approx(b.intercept_um)
+
+
+def test_predictor_names_a_missing_sensor():
+    p = eq14_model().predictor()
+    with pytest.raises(ValueError, match="t_motor_c"):
+        p.update({"front_bearing": 30, "rear_bearing": 28, "room": 21})
