@@ -1,0 +1,228 @@
+"""Reading vibration recordings: WAV (PCM 8/16/24/32-bit, float 32/64,
+WAVE_FORMAT_EXTENSIBLE) and CSV, with clipped-sample detection.
+
+The standard library's ``wave`` cannot read float WAV, so the RIFF chunks are
+parsed here.  Errors are ``RecordingError`` carrying a one-line message that
+says what is wrong and where, and whether the file was unreadable
+(``missing=True``, exit 66 in lathectl) or its content invalid (exit 65).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+_PCM, _FLOAT, _EXTENSIBLE = 1, 3, 0xFFFE
+
+
+class RecordingError(Exception):
+    def __init__(self, message: str, missing: bool = False) -> None:
+        super().__init__(message)
+        self.missing = missing
+
+
+@dataclass
+class Signal:
+    data: np.ndarray            # float64, one channel; PCM scaled to +-1 full scale
+    rate_hz: float
+    source: str
+    channels: int = 1
+    clipped: int = 0            # samples at the converter's full scale
+    first_clip_s: float | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def duration_s(self) -> float:
+        return len(self.data) / self.rate_hz
+
+
+def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None) -> Signal:
+    """Read ``path`` (.wav, or anything else as CSV) and return one channel."""
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except FileNotFoundError:
+        raise RecordingError(f"no such file: {p}", missing=True) from None
+    except IsADirectoryError:
+        raise RecordingError(f"{p} is a directory, not a recording", missing=True) from None
+    except OSError as e:
+        raise RecordingError(f"cannot read {p}: {e.strerror}", missing=True) from None
+    if not raw.strip():
+        raise RecordingError(f"{p} is empty")
+    if raw[:4] == b"RIFF" or p.suffix.lower() == ".wav":
+        sig = _read_wav(raw, str(p), channel)
+        if rate_hz is not None and abs(rate_hz - sig.rate_hz) > 1e-6 * sig.rate_hz:
+            sig.notes.append(f"--rate {rate_hz:g} ignored: the WAV header says {sig.rate_hz:g} Hz")
+    else:
+        sig = _read_csv(raw, str(p), channel, rate_hz)
+    _check_values(sig)
+    return sig
+
+
+# -- WAV -----------------------------------------------------------------------------
+def _read_wav(raw: bytes, src: str, channel: int) -> Signal:
+    if len(raw) < 12 or raw[:4] != b"RIFF" or raw[8:12] != b"WAVE":
+        raise RecordingError(f"{src} is not a RIFF/WAVE file (header bytes 0-11)")
+    fmt = data = None
+    pos = 12
+    while pos + 8 <= len(raw):
+        cid, size = raw[pos:pos + 4], struct.unpack("<I", raw[pos + 4:pos + 8])[0]
+        body = raw[pos + 8:pos + 8 + size]
+        if cid == b"fmt ":
+            fmt = body
+        elif cid == b"data":
+            data = body     # a truncated last chunk keeps what is there
+        pos += 8 + size + (size & 1)
+    if fmt is None or len(fmt) < 16:
+        raise RecordingError(f"{src}: WAV has no valid 'fmt ' chunk")
+    if data is None:
+        raise RecordingError(f"{src}: WAV has no 'data' chunk")
+    tag, nch, rate, _, align, bits = struct.unpack("<HHIIHH", fmt[:16])
+    if tag == _EXTENSIBLE and len(fmt) >= 26:
+        tag = struct.unpack("<H", fmt[24:26])[0]
+    if nch < 1 or rate < 1 or bits < 8:
+        raise RecordingError(f"{src}: WAV header has {nch} channels, {rate} Hz, {bits} bits: not a signal")
+    if not 0 <= channel < nch:
+        raise RecordingError(f"{src}: channel {channel} does not exist (file has {nch}, numbered from 0)")
+    width = bits // 8
+    if align != width * nch:
+        raise RecordingError(f"{src}: WAV block align {align} does not match {nch} x {bits}-bit samples")
+    nframes = len(data) // align
+    if nframes == 0:
+        raise RecordingError(f"{src}: WAV data chunk holds no samples")
+    buf = np.frombuffer(data[:nframes * align], dtype=np.uint8).reshape(nframes, nch, width)[:, channel, :]
+    full = None
+    if tag == _FLOAT and width in (4, 8):
+        x = np.ascontiguousarray(buf).view("<f4" if width == 4 else "<f8").ravel().astype(float)
+        clip_mask = np.abs(x) >= 1.0
+    elif tag == _PCM and width in (1, 2, 3, 4):
+        if width == 1:
+            ints = buf[:, 0].astype(np.int64) - 128          # 8-bit WAV is unsigned
+        elif width == 3:
+            b = buf.astype(np.int32)
+            ints = (b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16)).astype(np.int64)
+            ints = np.where(ints >= 1 << 23, ints - (1 << 24), ints)
+        else:
+            ints = np.ascontiguousarray(buf).view("<i2" if width == 2 else "<i4").ravel().astype(np.int64)
+        full = 1 << (8 * width - 1)
+        clip_mask = (ints >= full - 1) | (ints <= -full)
+        x = ints / float(full)
+    else:
+        raise RecordingError(f"{src}: WAV format tag {tag} with {bits}-bit samples is not supported "
+                             "(PCM 8/16/24/32-bit or IEEE float 32/64)")
+    return _with_clips(Signal(x, float(rate), src, nch), clip_mask)
+
+
+def _with_clips(sig: Signal, mask: np.ndarray) -> Signal:
+    n = int(mask.sum())
+    if n:
+        sig.clipped = n
+        sig.first_clip_s = float(np.argmax(mask)) / sig.rate_hz
+    return sig
+
+
+# -- CSV -------------------------------------------------------------------------------
+def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Signal:
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        raise RecordingError(f"{src} is neither a WAV file nor UTF-8 text (CSV)") from None
+    lines = text.splitlines()
+    sample = "\n".join(lines[:5])
+    try:
+        delim = csv.Sniffer().sniff(sample, delimiters=",;\t ").delimiter
+    except csv.Error:
+        delim = ","
+    first = [c.strip() for c in next(csv.reader([lines[0]], delimiter=delim))]
+    header = any(not _is_number(c) for c in first if c)
+    names = first if header else [f"column {i + 1}" for i in range(len(first))]
+    body_start = 1 if header else 0
+    if header and "time_s" in names:
+        t_col = names.index("time_s")
+        sig_cols = [i for i in range(len(names)) if i != t_col]
+    else:
+        t_col = None
+        sig_cols = list(range(len(names)))
+    if not sig_cols:
+        raise RecordingError(f"{src}: CSV has a time_s column but no signal column (line 1)")
+    if not 0 <= channel < len(sig_cols):
+        raise RecordingError(f"{src}: signal column {channel} does not exist "
+                             f"(signal columns: {', '.join(names[i] for i in sig_cols)})")
+    col = sig_cols[channel]
+    if t_col is None and rate_hz is None:
+        raise RecordingError(f"{src}: CSV has no time_s column, so the sample rate is unknown "
+                             "(give --rate HZ)")
+    body = [ln for ln in lines[body_start:] if ln.strip()]
+    if not body:
+        raise RecordingError(f"{src}: CSV has a header but no data rows")
+    want = [col] if t_col is None else [t_col, col]
+    try:
+        arr = np.loadtxt(io.StringIO("\n".join(body)), delimiter=None if delim == " " else delim,
+                         usecols=want, ndmin=2)
+    except (ValueError, IndexError):
+        _locate_csv_error(body, body_start, delim, want, names, src)
+        raise RecordingError(f"{src}: CSV could not be parsed") from None
+    x = arr[:, -1].astype(float)
+    notes: list[str] = []
+    if t_col is not None:
+        t = arr[:, 0]
+        if len(t) < 2:
+            raise RecordingError(f"{src}: CSV needs at least two rows to know the sample rate")
+        dt = np.diff(t)
+        step = float(np.median(dt))
+        if not step > 0:
+            raise RecordingError(f"{src}: column time_s does not increase (line {body_start + 2})")
+        bad = np.flatnonzero(np.abs(dt - step) > 0.01 * step)
+        if bad.size:
+            raise RecordingError(f"{src}: samples are not evenly spaced in time_s "
+                                 f"(line {body_start + int(bad[0]) + 2}: step {dt[bad[0]]:g} s, "
+                                 f"median {step:g} s)")
+        rate = 1.0 / step
+        if rate_hz is not None and abs(rate - rate_hz) > 0.01 * rate:
+            notes.append(f"--rate {rate_hz:g} ignored: time_s gives {rate:g} Hz")
+    else:
+        rate = float(rate_hz)
+    return Signal(x, rate, src, len(sig_cols), notes=notes)
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _locate_csv_error(body, start, delim, want, names, src) -> None:
+    for i, row in enumerate(csv.reader(body, delimiter=delim)):
+        cells = [c for c in row if c != ""] if delim == " " else row
+        for c in want:
+            line = start + i + 1
+            if c >= len(cells):
+                raise RecordingError(f"{src}: line {line} has {len(cells)} fields, "
+                                     f"column '{names[c]}' is missing")
+            if not _is_number(cells[c].strip()):
+                raise RecordingError(f"{src}: line {line}, column '{names[c]}': "
+                                     f"{cells[c].strip()!r} is not a number")
+
+
+def _check_values(sig: Signal) -> None:
+    x = sig.data
+    if x.size == 0:
+        raise RecordingError(f"{sig.source}: no samples")
+    finite = np.isfinite(x)
+    if not finite.any():
+        raise RecordingError(f"{sig.source}: every sample is NaN or infinite")
+    if not finite.all():
+        n = int((~finite).sum())
+        i = np.arange(len(x))
+        sig.data = np.interp(i, i[finite], x[finite])
+        sig.notes.append(f"{n} NaN/infinite samples filled by interpolation "
+                         f"(first at {np.argmin(finite) / sig.rate_hz:.6g} s)")
+    if np.ptp(sig.data) == 0:
+        raise RecordingError(f"{sig.source}: the signal is constant ({sig.data[0]:g}); "
+                             "sensor disconnected or the wrong column?")

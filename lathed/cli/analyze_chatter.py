@@ -1,0 +1,185 @@
+"""``lathectl analyze chatter``: run a chatter detector over a recording.
+
+    lathectl analyze chatter FILE --rpm N [--rate HZ] [--channel K]
+        [--reference REF] [--detector NAME] [--json] [--plot OUT.png]
+
+``--json`` prints one object: verdict ("chatter"|"stable"), first_alarm_s,
+chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
+clipped_samples, rate_hz, duration_s and notes.
+Exit: 0 ok, 2 usage, 66 file missing/unreadable, 65 data invalid, 73 plot
+cannot be written.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+import numpy as np
+
+from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
+from lathed.analysis.recording import RecordingError, read_signal
+
+EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
+BLOCK = 4096
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return v
+
+
+def _channel(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a channel number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"channel {v} must be >= 0 (channels count from 0)")
+    return v
+
+
+def register_analyze(sub) -> None:
+    p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV or CSV)",
+                       description="Run a chatter detector over a recorded accelerometer signal. "
+                                   "The baseline is learned from the first revolutions of the "
+                                   "recording, or from --reference (a stable cut).")
+    p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float) or CSV "
+                   "(time_s plus one signal column, or one column with --rate)")
+    p.add_argument("--rpm", type=_positive, required=True, help="spindle speed in r/min")
+    p.add_argument("--rate", type=_positive, metavar="HZ", help="sample rate of a CSV without time_s")
+    p.add_argument("--channel", type=_channel, default=0, metavar="K",
+                   help="WAV channel / CSV signal column, from 0 (default 0)")
+    p.add_argument("--reference", metavar="REF", help="recording of a stable cut at the same speed "
+                   "to learn the baseline from")
+    p.add_argument("--detector", default=DEFAULT_DETECTOR, metavar="NAME",
+                   help=f"one of {', '.join(sorted(DETECTORS))} (default {DEFAULT_DETECTOR})")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="OUT.png", help="write chaos eye and index over time")
+    p.set_defaults(func=run)
+
+
+def _err(msg: str) -> None:
+    print(f"lathectl: {msg}", file=sys.stderr)
+
+
+def _run_detector(det, x: np.ndarray, rpm: float):
+    wins = []
+    for i in range(0, len(x), BLOCK):
+        wins += det.process(x[i:i + BLOCK], rpm)
+    return wins
+
+
+def run(args, extra_detectors: dict | None = None) -> int:
+    if not (args.rpm > 0 and math.isfinite(args.rpm)):
+        _err(f"spindle speed must be > 0 r/min, got {args.rpm} (--rpm)")
+        return 2
+    try:
+        sig = read_signal(args.file, args.channel, args.rate)
+        ref = read_signal(args.reference, args.channel, args.rate) if args.reference else None
+    except RecordingError as e:
+        _err(str(e))
+        return EX_NOINPUT if e.missing else EX_DATAERR
+    try:
+        det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors)
+    except ValueError as e:
+        _err(f"{e} (--detector)")
+        return 2
+    try:
+        if ref is not None:
+            if abs(ref.rate_hz - sig.rate_hz) > 1e-6 * sig.rate_hz:
+                _err(f"reference rate {ref.rate_hz:g} Hz differs from the recording's "
+                     f"{sig.rate_hz:g} Hz ({args.reference})")
+                return EX_DATAERR
+            det.learn_reference(ref.data, args.rpm)
+        wins = _run_detector(det, sig.data, args.rpm)
+    except ValueError as e:
+        _err(f"{e} ({args.file})")
+        return EX_DATAERR
+    if not wins:
+        rev = 60.0 / args.rpm
+        _err(f"recording is too short: {sig.duration_s:.3g} s holds no complete window at "
+             f"{args.rpm:g} r/min (one revolution is {rev:.3g} s; several are needed) ({args.file})")
+        return EX_DATAERR
+
+    alarms = [w for w in wins if w.alarm]
+    freqs = [w.chatter_frequency_hz for w in alarms if w.chatter_frequency_hz]
+    out = {
+        "verdict": "chatter" if alarms else "stable",
+        "first_alarm_s": round(alarms[0].t_s, 6) if alarms else None,
+        "chatter_frequency_hz": round(float(np.median(freqs)), 2) if freqs else None,
+        "detector": det.name,
+        "windows": [{"t_s": round(w.t_s, 6), "index": None if not math.isfinite(w.index) else
+                     round(float(w.index), 4), "alarm": w.alarm} for w in wins],
+        "clipped_samples": sig.clipped,
+        "rate_hz": sig.rate_hz,
+        "duration_s": round(sig.duration_s, 6),
+        "notes": sig.notes,
+    }
+    if sig.clipped:
+        msg = (f"{sig.clipped} clipped samples (first at {sig.first_clip_s:.6g} s): the sensor or "
+               f"converter saturated, amplitudes there are wrong ({args.file})")
+        out["notes"] = out["notes"] + [msg]
+        _err(f"warning: {msg}")
+    if args.plot:
+        code = _plot(args, sig, det, wins)
+        if code:
+            return code
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"{args.file}: {out['verdict']}  ({det.name}, {len(wins)} windows, "
+              f"{sig.duration_s:.3g} s at {sig.rate_hz:g} Hz, {args.rpm:g} r/min)")
+        if alarms:
+            f = out["chatter_frequency_hz"]
+            print(f"first alarm at {out['first_alarm_s']:.4f} s"
+                  + (f", chatter frequency {f:.1f} Hz" if f else ""))
+        for n in sig.notes:
+            print(f"note: {n}")
+    return 0
+
+
+def _plot(args, sig, det, wins) -> int:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    # the chaos eye is drawn whatever detector decided
+    eye = det if det.name == "chaos_sync" else make_detector("chaos_sync", sig.rate_hz)
+    if eye is not det:
+        _run_detector(eye, sig.data, args.rpm)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.5))
+    if eye.eye_baseline is not None:
+        a1.scatter(*eye.eye_baseline, s=3, c="tab:blue", label="start of cut (baseline)")
+    p1, p2 = eye.eye_points()
+    if p1.size:
+        a1.scatter(p1, p2, s=3, c="tab:red", alpha=0.5, label="last windows")
+    a1.set_xlabel("φ1")
+    a1.set_ylabel("φ2")
+    a1.set_title("chaos eye")
+    a1.legend(loc="upper right", fontsize=8)
+    t = [w.t_s for w in wins]
+    a2.semilogy(t, [w.index if math.isfinite(w.index) and w.index > 0 else np.nan for w in wins],
+                label="index")
+    a2.axhline(det.threshold, color="k", ls="--", lw=0.8, label="threshold")
+    on = [w.t_s for w in wins if w.alarm]
+    if on:
+        a2.axvspan(on[0], t[-1], color="tab:red", alpha=0.1, label="alarm")
+    a2.set_xlabel("time (s)")
+    a2.set_ylabel(f"{det.name} index")
+    a2.legend(fontsize=8)
+    fig.tight_layout()
+    try:
+        fig.savefig(args.plot, dpi=110)
+    except OSError as e:
+        _err(f"cannot write the plot: {e.strerror} ({args.plot})")
+        return EX_CANTCREAT
+    finally:
+        plt.close(fig)
+    return 0
