@@ -1,0 +1,128 @@
+"""The residual loop on simulated runs: fit on one run, test on another with a
+different speed schedule, and check the effect the simulator put in is the
+one named, and that none is claimed where there is none."""
+import numpy as np
+import pytest
+
+from lathed.analysis.thermal import ThermalData, analyze, refit
+from lathed.sim.thermal import EFFECTS, generate_run, random_schedule
+
+NOISE_UM = 0.5
+TRAIN_SEED, TEST_SEED = 7, 107      # bench/bench_thermal.py sweeps many seeds
+
+
+def data(run) -> ThermalData:
+    c = run.columns
+    return ThermalData(c["time_s"], {k: v for k, v in c.items() if k.startswith("t_")},
+                       c["displacement_um"], c["spindle_rpm"])
+
+
+def pair(effects, extra=None):
+    tr = generate_run(random_schedule(TRAIN_SEED), effects, seed=TRAIN_SEED, noise_um=NOISE_UM)
+    te = generate_run(random_schedule(TEST_SEED), effects, seed=TEST_SEED, noise_um=NOISE_UM)
+    tr, te = data(tr), data(te)
+    if extra is not None:
+        tr.displacement_um = tr.displacement_um + extra(tr.time_s)
+        te.displacement_um = te.displacement_um + extra(te.time_s)
+    return tr, te
+
+
+def test_schedules_differ():
+    assert random_schedule(TRAIN_SEED) != random_schedule(TEST_SEED)
+
+
+@pytest.mark.parametrize("effect", EFFECTS)
+def test_the_effect_in_the_data_is_named_and_the_test_error_falls(effect):
+    tr, te = pair((effect,))
+    a = analyze(tr, te)
+    assert a.effects, f"nothing found; residual: {a.residual.note}"
+    assert a.effects[0].term.effect == effect
+    fall = 1 - a.final.test_rmse_um / a.baseline.test_rmse_um
+    assert fall >= 0.60, f"{effect}: {a.baseline.test_rmse_um:.2f} -> {a.final.test_rmse_um:.2f} µm"
+    assert not a.residual.structured, a.residual.note
+
+
+def test_lag_time_constant_is_found():
+    tr, te = pair(("lag",))
+    a = analyze(tr, te)
+    first = a.effects[0]
+    assert first.term.sensor == "t_front_bearing_c"
+    # The shaft's own time constant (C / sum of G) is ~1700 s; the grid is ~30 % apart.
+    assert 900 < first.term.params["tau_s"] < 3000
+
+
+def test_no_effect_is_claimed_on_data_without_one():
+    tr, te = pair(())
+    a = analyze(tr, te)
+    assert a.effects == []
+    assert a.final.test_rmse_um <= 1.10 * NOISE_UM
+    assert not a.residual.structured
+
+
+def test_pure_noise_gets_no_effect():
+    rng = np.random.default_rng(3)
+    tr, te = pair(())
+    tr.displacement_um = rng.normal(0, 1, len(tr))
+    a = analyze(tr)
+    assert a.effects == []
+
+
+def test_unexplained_periodicity_is_reported_with_its_period():
+    # A 20-min coolant-pump cycle no candidate can explain.
+    tr, te = pair((), extra=lambda t: 3.0 * np.sin(2 * np.pi * t / 1200.0))
+    a = analyze(tr, te)
+    assert a.residual.structured
+    assert "periodicity of 20.0 min" in a.residual.note, a.residual.note
+
+
+class CoolantCycle:
+    """A plugin's candidate: a periodic term at a known pump period."""
+    name = "coolant_cycle"
+
+    def propose(self, data):
+        return [CoolantTerm()]
+
+    def make_term(self, sensor, params):
+        return CoolantTerm()
+
+
+class CoolantTerm:
+    effect, sensor, params = "coolant_cycle", None, {"period_s": 1200.0}
+    names = ("coolant_sin", "coolant_cos")
+
+    def features(self, data):
+        w = 2 * np.pi * data.time_s / 1200.0
+        return np.column_stack([np.sin(w), np.cos(w)])
+
+    def stream(self):
+        return lambda t, rises, rpm: (np.sin(2 * np.pi * t / 1200.0), np.cos(2 * np.pi * t / 1200.0))
+
+
+def test_a_plugin_candidate_is_tried_and_named():
+    tr, te = pair((), extra=lambda t: 3.0 * np.sin(2 * np.pi * t / 1200.0))
+    a = analyze(tr, te, extra_candidates=[CoolantCycle()])
+    assert [e.term.effect for e in a.effects] == ["coolant_cycle"]
+    assert a.final.test_rmse_um <= 1.2 * NOISE_UM
+    js = a.to_json()
+    assert js["effects"][0]["effect"] == "coolant_cycle" and js["effects"][0]["sensor"] is None
+
+
+def test_json_contract():
+    tr, te = pair(("speed",))
+    js = analyze(tr, te).to_json()
+    assert set(js["baseline"]) == {"terms", "rmse_um", "test_rmse_um"}
+    assert set(js["final"]) == {"terms", "rmse_um", "test_rmse_um"}
+    assert set(js["residual"]) == {"structured", "note"}
+    e = js["effects"][0]
+    assert set(e) == {"effect", "sensor", "params", "test_rmse_um"}
+    assert e["effect"] == "speed" and e["sensor"] is None and "form" in e["params"]
+
+
+def test_refit_keeps_the_better_model():
+    tr, _ = pair(("hysteresis",))
+    r = refit(tr)                          # against eq. 14, which does not fit this spindle
+    assert r.better and r.model is r.candidate
+    assert r.after_rmse_um < r.before_rmse_um
+    # A second refit against the model just fitted finds no real improvement.
+    r2 = refit(tr, current=r.model)
+    assert not r2.better and r2.model is r.model
