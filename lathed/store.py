@@ -5,6 +5,12 @@ queued while the last commit ran goes in the next transaction. A record is
 acknowledged (its future resolves) only after its transaction has committed
 with synchronous=FULL, so an acknowledged record survives the daemon being
 killed.
+
+Every record row carries a stable uuid and the daemon's identity
+(``machine_id``), so a central copy can tell records of many daemons apart
+and a resend is recognised. Inserting into a forwarded table also appends
+to ``outbox`` (by trigger, in the same transaction): the one global order in
+which sinks forward, each keeping its progress in ``forward_progress``.
 """
 from __future__ import annotations
 
@@ -32,7 +38,136 @@ MIGRATIONS: list[tuple[int, str]] = [
     );
     CREATE INDEX events_kind ON events(kind, id);
     """),
+    (2, """
+    ALTER TABLE events ADD COLUMN machine_id TEXT;
+
+    -- one row per workpiece, written when it is finished (or aborted)
+    CREATE TABLE workpieces (
+        id                   INTEGER PRIMARY KEY AUTOINCREMENT,
+        uuid                 TEXT NOT NULL UNIQUE,
+        machine_id           TEXT NOT NULL,
+        machine              TEXT NOT NULL,
+        part_no              INTEGER,
+        program              INTEGER,
+        start_t              REAL NOT NULL,
+        end_t                REAL NOT NULL,
+        outcome              TEXT NOT NULL,        -- finished | aborted | partial
+        max_chatter_index    REAL,
+        chatter_threshold    REAL,
+        chatter_alarms       INTEGER NOT NULL,
+        chatter_frequency_hz REAL,
+        compensation_um      REAL,
+        rpm                  REAL,
+        depth_mm             REAL,
+        feed_mm_rev          REAL,
+        tool                 TEXT,
+        material             TEXT,
+        abnormal             INTEGER NOT NULL,
+        reason               TEXT
+    );
+    CREATE INDEX workpieces_abnormal ON workpieces(abnormal, id);
+
+    -- post-process inspection: the second of the two-time quality detection
+    CREATE TABLE inspections (
+        id                INTEGER PRIMARY KEY AUTOINCREMENT,
+        uuid              TEXT NOT NULL UNIQUE,
+        machine_id        TEXT NOT NULL,
+        t                 REAL NOT NULL,
+        part_uuid         TEXT NOT NULL,
+        ra_um             REAL,
+        diameter_error_um REAL,
+        measured          TEXT NOT NULL,          -- JSON: other measured values
+        inspector         TEXT
+    );
+    CREATE INDEX inspections_part ON inspections(part_uuid, id);
+
+    -- parts sent to sampling inspection; pending while no inspection joins
+    CREATE TABLE sampling_queue (
+        id         INTEGER PRIMARY KEY AUTOINCREMENT,
+        uuid       TEXT NOT NULL UNIQUE,
+        machine_id TEXT NOT NULL,
+        t          REAL NOT NULL,
+        part_uuid  TEXT NOT NULL UNIQUE,
+        reason     TEXT NOT NULL
+    );
+
+    -- trials of designed (Taguchi) experiments, per tool holder and material
+    CREATE TABLE experiments (
+        id                INTEGER PRIMARY KEY AUTOINCREMENT,
+        uuid              TEXT NOT NULL UNIQUE,
+        machine_id        TEXT NOT NULL,
+        t                 REAL NOT NULL,
+        tool              TEXT NOT NULL,
+        material          TEXT NOT NULL,
+        run               INTEGER,
+        levels            TEXT NOT NULL,          -- JSON {factor: level number}
+        settings          TEXT NOT NULL,          -- JSON {factor: value}
+        ra_um             REAL,
+        diameter_error_um REAL,
+        removal_rate      REAL,
+        part_uuid         TEXT
+    );
+    CREATE INDEX experiments_tool ON experiments(tool, material, id);
+
+    CREATE TABLE outbox (
+        id     INTEGER PRIMARY KEY AUTOINCREMENT,
+        tbl    TEXT NOT NULL,
+        row_id INTEGER NOT NULL
+    );
+    INSERT INTO outbox(tbl, row_id) SELECT 'events', id FROM events ORDER BY id;
+    CREATE TABLE forward_progress (
+        sink      TEXT PRIMARY KEY,
+        outbox_id INTEGER NOT NULL,
+        t         REAL NOT NULL
+    );
+
+    CREATE TRIGGER events_outbox AFTER INSERT ON events
+    BEGIN INSERT INTO outbox(tbl, row_id) VALUES ('events', NEW.id); END;
+    CREATE TRIGGER workpieces_outbox AFTER INSERT ON workpieces
+    BEGIN INSERT INTO outbox(tbl, row_id) VALUES ('workpieces', NEW.id); END;
+    CREATE TRIGGER inspections_outbox AFTER INSERT ON inspections
+    BEGIN INSERT INTO outbox(tbl, row_id) VALUES ('inspections', NEW.id); END;
+    CREATE TRIGGER sampling_queue_outbox AFTER INSERT ON sampling_queue
+    BEGIN INSERT INTO outbox(tbl, row_id) VALUES ('sampling_queue', NEW.id); END;
+    CREATE TRIGGER experiments_outbox AFTER INSERT ON experiments
+    BEGIN INSERT INTO outbox(tbl, row_id) VALUES ('experiments', NEW.id); END;
+
+    -- The analyzers record these as events (payloads agreed with them); the
+    -- views give them columns without a second copy to keep in step.
+    CREATE VIEW chatter_events AS
+    SELECT id, uuid, machine_id, t, source, kind,
+           json_extract(payload, '$.machine') AS machine,
+           json_extract(payload, '$.index') AS chatter_index,
+           json_extract(payload, '$.threshold') AS threshold,
+           json_extract(payload, '$.chatter_frequency_hz') AS chatter_frequency_hz,
+           json_extract(payload, '$.rpm') AS rpm,
+           json_extract(payload, '$.depth_mm') AS depth_mm,
+           json_extract(payload, '$.tool') AS tool,
+           json_extract(payload, '$.material') AS material
+    FROM events WHERE kind IN ('chatter_alarm', 'chatter_cleared');
+    CREATE VIEW suppression_actions AS
+    SELECT id, uuid, machine_id, t, source,
+           json_extract(payload, '$.strategy') AS strategy,
+           json_extract(payload, '$.rpm_before') AS rpm_before,
+           json_extract(payload, '$.rpm_after') AS rpm_after,
+           json_extract(payload, '$.index') AS chatter_index,
+           json_extract(payload, '$.threshold') AS threshold,
+           json_extract(payload, '$.chatter_frequency_hz') AS chatter_frequency_hz,
+           json_extract(payload, '$.sent') AS sent,
+           json_extract(payload, '$.reason') AS reason
+    FROM events WHERE kind = 'suppression_action';
+    CREATE VIEW compensations AS
+    SELECT id, uuid, machine_id, t, source,
+           json_extract(payload, '$.predicted_um') AS predicted_um,
+           json_extract(payload, '$.offset_um') AS offset_um,
+           json_extract(payload, '$.model') AS model
+    FROM events WHERE kind = 'compensation';
+    """),
 ]
+
+# Tables whose rows are forwarded to sinks, and their JSON-valued columns.
+FORWARDED = ("events", "workpieces", "inspections", "sampling_queue", "experiments")
+JSON_COLUMNS = frozenset({"payload", "measured", "levels", "settings"})
 
 
 def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
@@ -46,15 +181,27 @@ def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
     return con
 
 
+def statements(sql: str) -> list[str]:
+    """Split a script into statements; a trigger body's ';' does not end one."""
+    out, buf = [], ""
+    for line in sql.splitlines(keepends=True):
+        buf += line
+        if sqlite3.complete_statement(buf):
+            out.append(buf.strip())
+            buf = ""
+    if buf.strip():
+        raise ValueError(f"incomplete SQL statement: {buf.strip()[:60]}")
+    return out
+
+
 def migrate(con: sqlite3.Connection) -> int:
     version = con.execute("PRAGMA user_version").fetchone()[0]
     for v, sql in MIGRATIONS:
         if v > version:
             con.execute("BEGIN IMMEDIATE")
             try:
-                for stmt in (s.strip() for s in sql.split(";")):
-                    if stmt:
-                        con.execute(stmt)
+                for stmt in statements(sql):
+                    con.execute(stmt)
                 con.execute(f"PRAGMA user_version={v}")
                 con.execute("COMMIT")
             except BaseException:
@@ -142,8 +289,64 @@ class Store:
                       t: float | None = None) -> Future:
         body = json.dumps(payload or {}, default=_json_default)
         return self.submit(
-            "INSERT INTO events(uuid, t, source, kind, payload) VALUES (?,?,?,?,?)",
-            (str(uuidlib.uuid4()), time.time() if t is None else t, source, kind, body))
+            "INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)",
+            (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
+
+    def insert(self, table: str, row: dict[str, Any]) -> Future:
+        """Insert a record row; uuid and machine_id are filled in unless given,
+        JSON columns are serialised. The future resolves to the row id."""
+        if table not in FORWARDED:
+            raise ValueError(f"{table!r} is not a record table; record tables: {', '.join(FORWARDED)}")
+        row = {"uuid": str(uuidlib.uuid4()), "machine_id": self.machine_id, **row}
+        for k in JSON_COLUMNS & row.keys():
+            row[k] = json.dumps(row[k], default=_json_default)
+        cols = ", ".join(row)
+        return self.submit(f"INSERT INTO {table}({cols}) VALUES ({', '.join('?' * len(row))})",
+                           tuple(row.values()))
+
+    async def add(self, table: str, row: dict[str, Any]) -> int:
+        """Insert a record row; returns its id once durably committed."""
+        return await asyncio.wrap_future(self.insert(table, row))
+
+    # -- forwarding -----------------------------------------------------
+    def columns(self, table: str) -> list[tuple[str, str]]:
+        """(name, declared type) of a record table, for a sink to mirror it."""
+        return [(r["name"], r["type"]) for r in self.query(f"PRAGMA table_info({table})")]
+
+    def progress(self, sink: str) -> int:
+        rows = self.query("SELECT outbox_id FROM forward_progress WHERE sink = ?", (sink,))
+        return rows[0]["outbox_id"] if rows else 0
+
+    def backlog(self, sink: str) -> int:
+        last = self.query("SELECT max(id) AS m FROM outbox")[0]["m"] or 0
+        return last - self.progress(sink)
+
+    def pending(self, sink: str, limit: int) -> list[tuple[int, str, dict[str, Any]]]:
+        """The next records a sink has not forwarded: (outbox id, table, row), in order."""
+        after = self.progress(sink)
+        entries = self.query("SELECT id, tbl, row_id FROM outbox WHERE id > ? ORDER BY id LIMIT ?",
+                             (after, limit))
+        by_table: dict[str, list[int]] = {}
+        for e in entries:
+            by_table.setdefault(e["tbl"], []).append(e["row_id"])
+        rows: dict[tuple[str, int], dict] = {}
+        for tbl, ids in by_table.items():
+            for r in self.query(f"SELECT * FROM {tbl} WHERE id IN ({','.join('?' * len(ids))})", tuple(ids)):
+                rows[(tbl, r["id"])] = r
+        out = []
+        for e in entries:
+            r = rows.get((e["tbl"], e["row_id"]))
+            if r is None:   # cannot happen while record rows are never deleted; say so if it does
+                raise RuntimeError(f"outbox entry {e['id']} points at missing {e['tbl']} row {e['row_id']}")
+            if r.get("machine_id") is None:   # events written before schema 2
+                r["machine_id"] = self.machine_id
+            out.append((e["id"], e["tbl"], r))
+        return out
+
+    def set_progress(self, sink: str, outbox_id: int) -> Future:
+        return self.submit("INSERT INTO forward_progress(sink, outbox_id, t) VALUES (?,?,?) "
+                           "ON CONFLICT(sink) DO UPDATE SET outbox_id = excluded.outbox_id, t = excluded.t",
+                           (sink, outbox_id, time.time()))
 
     def close(self) -> None:
         self._q.put(None)
