@@ -133,7 +133,7 @@ def turn_part(strategy, rpm0: float, seed: int, rate: float, name: str) -> Part:
     dd = surf.diameter_deviation_m(z_of(40.0)) - surf.diameter_deviation_m(z_of(10.0))
     # chattering at the end: the last revolutions' surface differs pass to pass
     spr = int(rate * 60 / rpm)
-    wav = surface_waviness(y[-4 * spr:], th[-4 * spr:], ic[-4 * spr:])
+    wav = surface_waviness(y[-4 * spr:], th[-4 * spr:], ic[-4 * spr:], rate_hz=rate)
     chatter_end = bool(np.median(wav[-spr:]) >= VISIBLE_WAVINESS_M)
     t_prog = revs_total * 60 / rpm0
     return Part(name, rpm0, seed, rpm, ra * 1e6, dd * 1e6, t, chatter_end, first_alarm, n_dec, t_prog / t)

@@ -138,3 +138,41 @@ def test_policy_never_revisits_a_speed_it_left(events):
             n_changes += 1
         t += 0.5
     assert n_changes <= 5
+
+
+def test_closed_loop_on_the_simulator_restabilises_the_cut():
+    """Policy + lobe strategy + a spindle ramping at its limit, on the
+    regenerative simulator; the alarm is the surface waviness the simulator
+    itself reports, so this checks the loop, not a detector."""
+    from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, surface_waviness
+
+    modes = (Mode(190.0, 0.03, 7.5e7), Mode(620.0, 0.035, 4.0e8, 30.0))
+    kf, rate, depth_mm, block = 2e9, 10_000.0, 3.0, 200
+    lobes = StabilityLobes(modes, kf)
+    cut = Cut(depth_mm * 1e-3, 0.3e-3, 0.030, 1.5e9)
+    assert not lobes.is_stable(2500.0, cut.depth_m)[0]
+    policy = SuppressionPolicy(LobeSelection(lobes, cut, LIMITS), LIMITS, fallback=RatedSpeed(750),
+                               settle_revs=10)
+    sim = RegenerativeTurning(modes, kf, rate_hz=rate, seed=2)
+    rpm = cmd = 2500.0
+    t, y, th, inc, decisions = 0.0, [], [], [], []
+    while t < 2.5:
+        out = sim.run(block, rpm, depth_mm, 0.3)
+        y.append(out.y_m), th.append(out.theta_rad), inc.append(out.in_cut)
+        t += block / rate
+        spr = int(rate * 60 / rpm)
+        wav = surface_waviness(np.concatenate(y[-8:]), np.concatenate(th[-8:]), np.concatenate(inc[-8:]),
+                              rate_hz=rate)
+        d = policy.observe(t, rpm, bool(wav[-1] > VISIBLE_WAVINESS_M), 195.0)
+        if d is not None:
+            decisions.append(d)
+            cmd = d.rpm_after
+        rpm += float(np.clip(cmd - rpm, -LIMITS.accel_rpm_per_s * block / rate,
+                             LIMITS.accel_rpm_per_s * block / rate))
+    y, th, inc = np.concatenate(y), np.concatenate(th), np.concatenate(inc)
+    assert len(decisions) == 1 and decisions[0].expected_stable
+    assert decisions[0].removal_rate_ratio >= 0.6
+    wav = surface_waviness(y, th, inc, rate_hz=rate)
+    tail = np.median(wav[-spr:])
+    assert tail < VISIBLE_WAVINESS_M
+    assert tail < 0.2 * wav.max(), (tail, wav.max())     # chatter had been well visible
