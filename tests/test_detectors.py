@@ -1,0 +1,116 @@
+import numpy as np
+import pytest
+
+from lathed.analysis.detectors import (
+    DEFAULT_DETECTOR, DETECTORS, SyncResidualDetector, describe_params, make_detector)
+from lathed.analysis.regen import Segment, simulate_cut
+
+RATE = 51200.0
+
+
+def _run(det, x, rpm, block=4096):
+    rpm_arr = np.broadcast_to(np.asarray(rpm, dtype=float), x.shape)
+    out = []
+    for i in range(0, len(x), block):
+        out += det.process(x[i:i + block], float(rpm_arr[i]))
+    return out
+
+
+def test_registry_and_unknown_name():
+    assert {"sync_residual", "spectral_ratio", "chaos_sync"} <= set(DETECTORS)
+    assert DEFAULT_DETECTOR in DETECTORS
+    with pytest.raises(ValueError, match="allowed: chaos_sync, spectral_ratio, sync_residual"):
+        make_detector("nope", RATE)
+
+
+def test_extra_factories_merge_over_builtins():
+    made = []
+
+    def factory(rate_hz, **params):
+        made.append((rate_hz, params))
+        return "plugin"
+
+    assert make_detector("mine", RATE, extra={"mine": factory}, window_revs=2) == "plugin"
+    assert made == [(RATE, {"window_revs": 2})]
+    assert make_detector("sync_residual", RATE, extra={"sync_residual": factory}) == "plugin"
+
+
+def test_params_validated_with_range():
+    with pytest.raises(ValueError, match=r"threshold = 0.5 is outside \[1.05, 1000\]"):
+        make_detector("sync_residual", RATE, threshold=0.5)
+    with pytest.raises(ValueError, match="unknown parameter.*bogus"):
+        make_detector("chaos_sync", RATE, bogus=1)
+    assert "p" in describe_params("chaos_sync")
+    assert all(len(v) == 4 for v in describe_params("spectral_ratio").values())
+
+
+def test_block_size_does_not_change_windows():
+    rec = simulate_cut([Segment(0.5, 2500, 1.0)], seed=5)
+    a = _run(SyncResidualDetector(RATE), rec.signal, 2500, block=4096)
+    b = _run(SyncResidualDetector(RATE), rec.signal, 2500, block=777)
+    assert [w.t_s for w in a] == [w.t_s for w in b]
+    np.testing.assert_allclose([w.index for w in a], [w.index for w in b], rtol=1e-9)
+
+
+def test_revolution_difference_cancels_periodic_signal():
+    # anything repeating every revolution (runout harmonics, a flat's ringing) cancels
+    rpm = 1500.0
+    t = np.arange(int(RATE)) / RATE
+    f1 = rpm / 60
+    x = np.sin(2 * np.pi * f1 * t) + 0.5 * np.sin(2 * np.pi * 23 * f1 * t + 1)
+    det = SyncResidualDetector(RATE)
+    det.process(x, rpm)
+    spr = int(RATE * 60 / rpm)
+    d = det._d[spr + 2:det._n]
+    assert np.max(np.abs(d)) < 0.02
+
+
+def test_hysteresis_on_and_off():
+    rng = np.random.default_rng(1)
+    rpm, n = 3000.0, int(RATE)
+    t = np.arange(n) / RATE
+    noise = rng.normal(0, 1, 3 * n)
+    burst = np.r_[np.zeros(n), 20 * np.sin(2 * np.pi * 655 * t), np.zeros(n)]
+    det = SyncResidualDetector(RATE)
+    wins = _run(det, noise + burst, rpm)
+    alarm = np.array([w.alarm for w in wins])
+    ts = np.array([w.t_s for w in wins])
+    assert not alarm[ts < 1.0].any()
+    assert alarm[(ts > 1.1) & (ts < 1.9)].all()
+    assert not alarm[ts > 2.2].any()
+    # one noisy window over threshold does not raise it
+    det2 = SyncResidualDetector(RATE, on_windows=2)
+    spike = noise.copy()
+    spike[n:n + 200] += 50
+    assert not any(w.alarm for w in _run(det2, spike, rpm))
+
+
+@pytest.mark.parametrize("name", sorted(DETECTORS))
+def test_chatter_detected_after_onset(name):
+    rec = simulate_cut([Segment(0.6, 1500, 1.0), Segment(0.8, 1500, 3.0)], seed=21)
+    wins = _run(make_detector(name, RATE), rec.signal, 1500)
+    first = next((w.t_s for w in wins if w.alarm), None)
+    assert first is not None and first >= rec.unstable_at_s
+
+
+TRAPS = {
+    "flat": ([Segment(1.2, 1000, 1.2)], {"flat_fraction": 0.15}),
+    "speed change": ([Segment(0.6, 2000, 1.2), Segment(0.6, 2600, 1.2, 0.3)], {}),
+    "runout": ([Segment(1.2, 2500, 1.2)], {"runout_um": 40.0}),
+    "cut entry": ([Segment(1.2, 1500, 1.4)], {"seed": 7}),
+}
+
+
+@pytest.mark.parametrize("trap", sorted(TRAPS))
+@pytest.mark.parametrize("name", [DEFAULT_DETECTOR, "chaos_sync"])
+def test_no_alarm_on_traps(trap, name):
+    segs, kw = TRAPS[trap]
+    rec = simulate_cut(segs, trap, **{"seed": 3, **kw})
+    assert rec.label == "stable"
+    wins = _run(make_detector(name, RATE), rec.signal, rec.rpm)
+    assert wins and not any(w.alarm for w in wins)
+
+
+def test_bad_rpm():
+    with pytest.raises(ValueError, match="spindle speed"):
+        SyncResidualDetector(RATE).process(np.zeros(10), 0.0)
