@@ -1,0 +1,232 @@
+"""Workpiece records: which part was cut when, under what vibration, and how
+it measured afterwards ("two-time quality detection").
+
+:class:`PartTracker` turns the lathe's samples (part counter, program state,
+cutting conditions) and the analyzers' samples (chatter index and alarm,
+thermal compensation) into one :class:`Part` per workpiece. A part cut under
+abnormal vibration is flagged so it goes to sampling inspection. The queries
+below join each part with its inspection. No asyncio here: the records
+plugin drives this from the bus.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+# program_state register values (lathed/sim/registers.py)
+IDLE, RUNNING, ALARM = 0, 1, 2
+
+
+@dataclass
+class Part:
+    machine: str
+    start_t: float
+    end_t: float | None = None
+    part_no: int | None = None
+    program: int | None = None
+    outcome: str = "finished"            # finished | aborted | partial (start not seen)
+    max_chatter_index: float | None = None
+    chatter_threshold: float | None = None
+    chatter_alarms: int = 0
+    chatter_frequency_hz: float | None = None
+    compensation_um: float | None = None
+    rpm: float | None = None             # speed when the cut began
+    depth_mm: float | None = None        # deepest cut
+    feed_mm_rev: float | None = None
+    tool: str | None = None
+    material: str | None = None
+    reasons: list[str] = field(default_factory=list)
+
+    @property
+    def abnormal(self) -> bool:
+        return bool(self.reasons)
+
+    def row(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["reason"] = "; ".join(d.pop("reasons")) or None
+        d["abnormal"] = int(self.abnormal)
+        return d
+
+
+class PartTracker:
+    """Feed it samples in bus order; it returns the parts they complete.
+
+    A part starts when the program runs and ends when the part counter
+    steps (finished) or the program stops first (aborted, kept only if it
+    cut). The part in progress when tracking began is marked ``partial``.
+    """
+
+    def __init__(self, machine: str, chatter: str | None = None, thermal: str | None = None,
+                 tool: str | None = None, material: str | None = None):
+        self.machine, self.chatter, self.thermal = machine, chatter, thermal
+        self.tool, self.material = tool, material
+        self.count: int | None = None
+        self.state = RUNNING          # assumed running until the machine says otherwise
+        self.program: int | None = None
+        self.threshold: float | None = None
+        self.compensation: float | None = None
+        self.alarm_on = False
+        self.chatter_hz: float | None = None
+        self.rpm: float | None = None
+        self.feed: float | None = None
+        self.part: Part | None = None
+        self._partial = True
+
+    def _open(self, t: float) -> None:
+        self.part = Part(self.machine, start_t=t, program=self.program, tool=self.tool,
+                         material=self.material, chatter_threshold=self.threshold,
+                         compensation_um=self.compensation)
+        if self._partial:
+            self.part.outcome = "partial"
+            self._partial = False
+        if self.alarm_on:   # an alarm still standing from the last part covers this one too
+            self._alarm(self.part)
+
+    def _close(self, t: float, outcome: str | None = None) -> Part | None:
+        p, self.part = self.part, None
+        if p is None:
+            return None
+        p.end_t = t
+        if outcome is not None:
+            p.outcome = outcome
+        if p.outcome == "aborted" and not p.depth_mm:
+            return None          # the program stopped before anything was cut
+        if (p.max_chatter_index is not None and p.chatter_threshold is not None
+                and p.max_chatter_index >= p.chatter_threshold and not p.chatter_alarms):
+            p.reasons.append(f"chatter index {p.max_chatter_index:.3g} reached the threshold "
+                             f"{p.chatter_threshold:.3g} during the cut")
+        return p
+
+    def _alarm(self, p: Part) -> None:
+        p.chatter_alarms += 1
+        if p.chatter_alarms == 1:
+            hz = f" at {self.chatter_hz:.0f} Hz" if self.chatter_hz else ""
+            p.reasons.append(f"chatter alarm during the cut{hz}: cut under abnormal vibration")
+
+    def feed_sample(self, source: str, quantity: str, value: float, t: float) -> list[Part]:
+        done: list[Part] = []
+        if source == self.machine:
+            self._machine(quantity, value, t, done)
+        elif source == self.chatter:
+            self._chatter(quantity, value)
+        elif source == self.thermal and quantity == "compensation_um":
+            self.compensation = value
+            if self.part is not None:
+                self.part.compensation_um = value
+        return done
+
+    def _machine(self, q: str, v: float, t: float, done: list[Part]) -> None:
+        if q == "part_count":
+            n = int(v)
+            if self.count is not None and n > self.count:
+                p = self._close(t, None)
+                if p is not None:
+                    p.part_no = n
+                    done.append(p)
+                if self.state != IDLE:
+                    self._open(t)
+            elif self.count is None and self.state != IDLE:
+                self._open(t)
+            self.count = n          # a counter reset (n < count) just rebases
+        elif q == "program_state":
+            s = int(v)
+            if s == IDLE and self.state != IDLE:
+                p = self._close(t, "aborted")
+                if p is not None:
+                    done.append(p)
+            elif s != IDLE and self.state == IDLE and self.count is not None:
+                self._partial = False
+                self._open(t)
+            if s == ALARM and self.part is not None and self.state != ALARM:
+                self.part.reasons.append("machine alarm (program state 2) during the part")
+            self.state = s
+        elif q == "program_number":
+            self.program = int(v)
+            if self.part is not None:
+                self.part.program = int(v)
+        elif q == "spindle_rpm":
+            self.rpm = v
+        elif q == "feed_mm_rev":
+            self.feed = v
+        elif q == "depth_of_cut_mm" and self.part is not None and v > 0:
+            p = self.part
+            if p.rpm is None:
+                p.rpm, p.feed_mm_rev = self.rpm, self.feed
+            p.depth_mm = max(p.depth_mm or 0.0, v)
+
+    def _chatter(self, q: str, v: float) -> None:
+        p = self.part
+        if q == "chatter_index":
+            if p is not None:
+                p.max_chatter_index = v if p.max_chatter_index is None else max(p.max_chatter_index, v)
+        elif q == "chatter_threshold":
+            self.threshold = v
+            if p is not None:
+                p.chatter_threshold = v
+        elif q == "chatter_frequency_hz":
+            self.chatter_hz = v
+            if p is not None and self.alarm_on:
+                p.chatter_frequency_hz = v
+        elif q == "chatter_alarm":
+            on = v >= 0.5
+            if on and not self.alarm_on and p is not None:
+                p.chatter_frequency_hz = self.chatter_hz
+                self._alarm(p)
+            self.alarm_on = on
+
+
+# -- queries ------------------------------------------------------------------
+Query = Callable[[str, tuple], list[dict[str, Any]]]
+
+# The latest inspection of each part, joined to it; a part may be measured again.
+_PARTS = """
+SELECT w.id, w.uuid, w.machine_id, w.machine, w.part_no, w.program, w.start_t, w.end_t, w.outcome,
+       w.max_chatter_index, w.chatter_threshold, w.chatter_alarms, w.chatter_frequency_hz,
+       w.compensation_um, w.rpm, w.depth_mm, w.feed_mm_rev, w.tool, w.material, w.abnormal, w.reason,
+       q.t AS queued_t, i.t AS inspected_t, i.ra_um, i.diameter_error_um, i.measured, i.inspector
+FROM workpieces w
+LEFT JOIN sampling_queue q ON q.part_uuid = w.uuid
+LEFT JOIN inspections i ON i.id = (SELECT max(id) FROM inspections WHERE part_uuid = w.uuid)
+"""
+
+
+def _decode(rows: list[dict]) -> list[dict]:
+    for r in rows:
+        if r.get("measured") is not None:
+            r["measured"] = json.loads(r["measured"])
+    return rows
+
+
+def parts(query: Query, abnormal: bool = False, pending: bool = False, limit: int = 100) -> list[dict]:
+    """Parts, newest last, each with its latest inspection. ``pending``: only
+    parts in the sampling queue not yet inspected."""
+    where = []
+    if abnormal:
+        where.append("w.abnormal = 1")
+    if pending:
+        where.append("q.id IS NOT NULL AND i.id IS NULL")
+    sql = _PARTS + (f" WHERE {' AND '.join(where)}" if where else "") + " ORDER BY w.id DESC LIMIT ?"
+    return _decode(query(sql, (limit,)))[::-1]
+
+
+def find_part(query: Query, ref: str) -> dict | None:
+    """A part by its number in this store (``12``) or by uuid (or a unique prefix of it)."""
+    if ref.isdigit():
+        rows = query(_PARTS + " WHERE w.id = ?", (int(ref),))
+    else:
+        rows = query(_PARTS + " WHERE w.uuid LIKE ? LIMIT 2", (ref.replace("%", "") + "%",))
+        if len(rows) > 1:
+            return None
+    return _decode(rows)[0] if rows else None
+
+
+def inspections(query: Query, limit: int = 100_000) -> list[dict]:
+    return _decode(query("SELECT * FROM inspections ORDER BY id DESC LIMIT ?", (limit,)))[::-1]
+
+
+def experiments(query: Query, tool: str, material: str) -> list[dict]:
+    rows = query("SELECT * FROM experiments WHERE tool = ? AND material = ? ORDER BY id", (tool, material))
+    for r in rows:
+        r["levels"], r["settings"] = json.loads(r["levels"]), json.loads(r["settings"])
+    return rows
