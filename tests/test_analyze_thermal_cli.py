@@ -1,0 +1,123 @@
+"""``lathectl analyze thermal``: output contract, plots, bad input."""
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lathed.cli import analyze_thermal
+from lathed.sim.thermal import generate_run, random_schedule
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("thermal")
+    # 2.5 h runs keep the tests quick; the effect is large enough to find.
+    tr = generate_run(random_schedule(7, total_s=9000), ("speed",), seed=7)
+    te = generate_run(random_schedule(107, total_s=9000), ("speed",), seed=107)
+    tr.write_csv(d / "train.csv")
+    te.write_csv(d / "test.csv")
+    return d
+
+
+def _run(argv, capsys):
+    p = argparse.ArgumentParser(prog="lathectl analyze")
+    sub = p.add_subparsers(dest="what", required=True)
+    analyze_thermal.register_analyze(sub)
+    args = p.parse_args(["thermal", *map(str, argv)])
+    code = args.func(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_json_contract_with_test_file(runs, capsys):
+    code, out, err = _run([runs / "train.csv", "--test", runs / "test.csv", "--json"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    assert {"baseline", "effects", "final", "residual", "rows"} <= set(doc)
+    assert [e["effect"] for e in doc["effects"]][:1] == ["speed"]
+    assert doc["final"]["test_rmse_um"] < 0.4 * doc["baseline"]["test_rmse_um"]
+    n_train = len((runs / "train.csv").read_text().splitlines()) - 1
+    n_test = len((runs / "test.csv").read_text().splitlines()) - 1
+    assert doc["rows"]["used"] == n_train and doc["rows"]["rejected"] == {}
+    assert doc["rows"]["test"]["used"] == n_test
+    assert isinstance(doc["residual"]["structured"], bool) and doc["residual"]["note"]
+
+
+def test_human_output_is_two_lines(runs, capsys):
+    code, out, err = _run([runs / "train.csv"], capsys)
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("before:") and "held-out" in lines[0]
+    assert lines[1].startswith("found: speed") and "after:" in lines[1]
+
+
+def test_plot_is_written(runs, tmp_path, capsys):
+    png = tmp_path / "thermal.png"
+    code, _, err = _run([runs / "train.csv", "--test", runs / "test.csv", "--plot", png], capsys)
+    assert code == 0, err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rejected_rows_are_reported(runs, tmp_path, capsys):
+    lines = (runs / "train.csv").read_text().splitlines()
+    cells = lines[6].split(",")
+    cells[2] = "85.0"                                 # front bearing at power-on, file line 7
+    lines[6] = ",".join(cells)
+    lines[9] = lines[8]                               # a repeated time stamp
+    p = tmp_path / "glitchy.csv"
+    p.write_text("\n".join(lines) + "\n")
+    code, out, err = _run([p, "--json"], capsys)
+    assert code == 0
+    rows = json.loads(out)["rows"]
+    assert rows["used"] == len(lines) - 1 - 2 and rows["rejected"] == {"sensor_power_on_85": 1, "duplicate_time": 1}
+    assert "2 row(s)" in err and "line 7" in err
+
+
+def test_missing_column_is_one_line_and_65(tmp_path, capsys):
+    p = tmp_path / "bad.csv"
+    p.write_text("time_s,t_motor_c\n0,20\n6,21\n")
+    code, out, err = _run([p], capsys)
+    assert code == 65 and out == ""
+    assert err.count("\n") == 1 and err.startswith("lathectl: missing required column 'displacement_um'")
+    assert str(p) in err
+
+
+def test_missing_file_is_66(tmp_path, capsys):
+    code, _, err = _run([tmp_path / "absent.csv"], capsys)
+    assert code == 66 and "absent.csv" in err and err.count("\n") == 1
+
+
+def test_test_file_without_a_training_sensor_is_65(runs, tmp_path, capsys):
+    lines = (runs / "test.csv").read_text().splitlines()
+    cut = [",".join(c for i, c in enumerate(l.split(",")) if i != 4) for l in lines]   # drop t_motor_c
+    p = tmp_path / "test_nomotor.csv"
+    p.write_text("\n".join(cut) + "\n")
+    code, _, err = _run([runs / "train.csv", "--test", p], capsys)
+    assert code == 65 and "t_motor_c" in err and err.count("\n") == 1
+
+
+def test_too_few_rows_is_65(tmp_path, capsys):
+    p = tmp_path / "short.csv"
+    p.write_text("time_s,t_motor_c,displacement_um\n" + "".join(f"{6 * k},{20 + k / 16},{k}\n" for k in range(12)))
+    code, _, err = _run([p], capsys)
+    assert code == 65 and "too few" in err and "Traceback" not in err
+
+
+@pytest.mark.skipif(not (ROOT / "lathed" / "lathectl.py").exists(), reason="lathectl not present")
+def test_through_lathectl(runs):
+    env = dict(os.environ, MPLBACKEND="Agg")
+    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "thermal",
+                        str(runs / "train.csv"), "--test", str(runs / "test.csv"), "--json"],
+                       capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["effects"][0]["effect"] == "speed"
+    bad = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "thermal", "/nonexistent.csv"],
+                         capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
+    assert bad.returncode == 66 and "Traceback" not in bad.stderr
