@@ -1,0 +1,138 @@
+"""Store-and-forward of every record to one central PostgreSQL database.
+
+    [analyzer.central]
+    plugin = "postgres_sink"
+    dsn = "host=db.plant port=5432 dbname=lathed user=lathed"
+    batch = 500              # records per PostgreSQL transaction
+    interval = "1s"          # how often to look for new records when caught up
+    timeout = "30s"          # a statement that takes longer counts as an outage
+
+Records are committed to the local SQLite store first; this sink forwards
+them in outbox order. Each row keeps the daemon's identity and its uuid, the
+central tables' primary key, and is inserted with ON CONFLICT DO NOTHING: a
+batch resent after a crash between the central commit and the local progress
+update is not duplicated. Progress (forwarded up to outbox id N) lives in
+SQLite, so it survives restarts. When PostgreSQL is down, ``run()`` raises;
+the supervisor retries with backoff while records wait locally.
+"""
+from __future__ import annotations
+
+import asyncio
+import itertools
+import time
+from typing import Any
+
+import psycopg
+from psycopg import sql
+from psycopg.conninfo import conninfo_to_dict
+
+from lathed import hookimpl
+from lathed.analyzer import Analyzer
+from lathed.config import Section
+from lathed.store import FORWARDED, JSON_COLUMNS
+
+_PG_TYPES = {"INTEGER": "bigint", "REAL": "double precision", "TEXT": "text"}
+_DDL_LOCK = 0x6C617468   # advisory lock: daemons starting together create the tables once
+
+
+class PostgresSink(Analyzer):
+    def __init__(self, name: str, section: Section):
+        super().__init__(name, section)
+        self.dsn = section.getstr("dsn")
+        try:
+            info = conninfo_to_dict(self.dsn)
+        except psycopg.ProgrammingError as e:
+            raise section.error("dsn", f"not a PostgreSQL connection string: {e}") from None
+        self.where = f"{info.get('host', 'localhost')}:{info.get('port', 5432)}/{info.get('dbname', '')}"
+        self.batch = section.getint("batch", 500, minval=1, maxval=10_000)
+        self.interval = section.getduration("interval", 1.0, minval=0.01, maxval=3600)
+        self.timeout = section.getduration("timeout", 30.0, minval=1, maxval=3600)
+        self.forwarded = 0
+        self.connected = False
+        self.last_error: str | None = None
+        self.last_forward_t: float | None = None
+
+    async def run(self) -> None:
+        try:
+            await self._forward()
+        except (psycopg.Error, OSError, asyncio.TimeoutError) as e:
+            self.last_error = _cause(e, self.where)
+            raise ConnectionError(self.last_error) from None
+        finally:
+            self.connected = False
+
+    async def _forward(self) -> None:
+        store = self.ctx.store
+        con = await asyncio.wait_for(psycopg.AsyncConnection.connect(
+            self.dsn, connect_timeout=max(1, int(self.timeout))), self.timeout)
+        async with con:
+            inserts = await asyncio.wait_for(self._schema(con), self.timeout)
+            self.connected, self.last_error = True, None
+            self.ctx.log.info("postgres_connected", server=self.where, backlog=store.backlog(self.name))
+            while True:
+                batch = await asyncio.to_thread(store.pending, self.name, self.batch)
+                if not batch:
+                    await asyncio.sleep(self.interval)
+                    continue
+                await asyncio.wait_for(self._send(con, inserts, batch), self.timeout)
+                # After the central commit: a crash here only causes a resend, which the keys absorb.
+                await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
+                self.forwarded += len(batch)
+                self.last_forward_t = time.time()
+
+    async def _schema(self, con: psycopg.AsyncConnection) -> dict[str, tuple[sql.Composed, list[str]]]:
+        """Create or extend the central tables from the local schema; returns the inserts."""
+        inserts = {}
+        async with con.transaction():
+            await con.execute("SELECT pg_advisory_xact_lock(%s)", (_DDL_LOCK,))
+            for table in FORWARDED:
+                cols = [(n, t) for n, t in await asyncio.to_thread(self.ctx.store.columns, table)
+                        if n not in ("id", "uuid", "machine_id")]
+                await con.execute(sql.SQL(
+                    "CREATE TABLE IF NOT EXISTS {} (machine_id text NOT NULL, uuid text NOT NULL, "
+                    "local_id bigint NOT NULL, received_at timestamptz NOT NULL DEFAULT now(), "
+                    "PRIMARY KEY (machine_id, uuid))").format(sql.Identifier(table)))
+                for n, t in cols:   # columns added by later local migrations appear centrally too
+                    pgtype = "jsonb" if n in JSON_COLUMNS else _PG_TYPES.get(t.upper(), "text")
+                    await con.execute(sql.SQL("ALTER TABLE {} ADD COLUMN IF NOT EXISTS {} {}").format(
+                        sql.Identifier(table), sql.Identifier(n), sql.SQL(pgtype)))
+                names = ["machine_id", "uuid", "local_id"] + [n for n, _ in cols]
+                values = [sql.SQL("%s::jsonb" if n in JSON_COLUMNS else "%s") for n in names]
+                inserts[table] = (sql.SQL("INSERT INTO {} ({}) VALUES ({}) ON CONFLICT (machine_id, uuid) "
+                                          "DO NOTHING").format(sql.Identifier(table),
+                                                               sql.SQL(", ").join(map(sql.Identifier, names)),
+                                                               sql.SQL(", ").join(values)),
+                                  [n for n, _ in cols])
+        return inserts
+
+    async def _send(self, con, inserts, batch: list[tuple[int, str, dict]]) -> None:
+        async with con.transaction():
+            async with con.cursor() as cur:
+                # consecutive rows of one table go as one pipelined executemany; order is kept
+                for table, group in itertools.groupby(batch, key=lambda e: e[1]):
+                    stmt, cols = inserts[table]
+                    await cur.executemany(stmt, [(r["machine_id"], r["uuid"], r["id"], *(r[c] for c in cols))
+                                                 for _, _, r in group])
+
+    def status(self) -> dict[str, Any]:
+        backlog = self.ctx.store.backlog(self.name) if self.ctx else None
+        state = "forwarding" if self.connected else "waiting for PostgreSQL"
+        return {"server": self.where, "connected": self.connected, "backlog": backlog,
+                "forwarded": self.forwarded, "last_error": self.last_error,
+                "last_forward_t": self.last_forward_t,
+                "summary": f"{state} ({self.where}), backlog {backlog}"
+                           + (f", last error: {self.last_error}" if self.last_error else "")}
+
+
+def _cause(e: BaseException, where: str) -> str:
+    if isinstance(e, asyncio.TimeoutError):
+        return f"PostgreSQL at {where} did not answer in time (server overloaded or network down)"
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    if isinstance(e, (psycopg.OperationalError, OSError)):
+        return f"PostgreSQL at {where} unreachable (server down, network, or credentials): {msg}"
+    return f"PostgreSQL at {where} refused the records: {type(e).__name__}: {msg}"
+
+
+@hookimpl
+def lathed_analyzer_types():
+    return {"postgres_sink": PostgresSink}
