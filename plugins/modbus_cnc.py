@@ -1,44 +1,65 @@
-"""CNC machines (lathe, mill, grinder) over Modbus TCP, with the register map in the config.
+"""CNC machines (lathe, mill, grinder) over Modbus TCP or RTU, register map in the config.
 
     [machine.lathe]
     plugin = "modbus_cnc"
     kind = "lathe"                  # lathe | mill | grinder
+    transport = "tcp"               # tcp: host, port | rtu: device, baudrate, parity, stopbits
     host = "127.0.0.1"
     port = 502
     unit = 1                        # Modbus unit (device) id
-    poll = "100ms"                  # how often the map is read
+    poll = "100ms"                  # how often registers without their own poll are read
     timeout = "1s"
     stale_after = "2s"              # a value older than this is shown as stale
+
     [machine.lathe.registers]
     spindle_rpm = { address = 2, type = "float32", unit = "r/min" }
     spindle_rpm_cmd = { address = 0, type = "float32", writable = true }
+    part_count = { address = 12, type = "int32", poll = "1s" }
 
-A register entry: ``address`` (0-65535), ``type`` (int16 | uint16 | int32 |
-uint32 | float32), ``word_order`` ("big": high word first, or "little"),
-``scale`` (value = raw * scale), ``unit``, ``writable`` (default false).
-Commands write only to writable registers: the ``spindle_rpm`` action writes
-``spindle_rpm_cmd``, the ``offset_x_um`` action writes ``offset_x_um``.
+For RTU (RS-485): ``transport = "rtu"``, ``device = "/dev/ttyUSB0"``,
+``baudrate`` (19200), ``parity`` ("N" | "E" | "O"), ``stopbits`` (1 | 2).
+
+A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
+uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
+or "little"), ``scale`` (value = raw * scale), ``unit``, ``writable``
+(default false), ``poll`` (its own read period; registers with the same
+period are read together, in as few requests as the protocol allows).
+
+Commands write only to registers declared writable, and only commands the
+supervisor passed through the safety guard reach ``execute``: the
+``spindle_rpm`` action writes ``spindle_rpm_cmd``, ``offset_x_um`` writes
+``offset_x_um``; nothing else is ever written.
+
+The machine model (lathed.machine) is filled from registers by name:
+``spindle_rpm``, ``part_count``, ``cycle_time_s``, ``program_number``
+(program), ``program_state`` (0 idle, 1 running, 2 alarm), ``alarm_code``
+(0: none), and ``<axis>_mm`` / ``<axis>_deg`` for axis positions (x_mm, b_deg).
 """
 from __future__ import annotations
 
 import asyncio
+import re
 import time
+from collections import Counter
 from dataclasses import dataclass
 
-from pymodbus.client import AsyncModbusTcpClient
-from pymodbus.exceptions import ModbusException
+from pymodbus import FramerType
+from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
 from lathed import hookimpl
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
 from lathed.driver import Driver
+from lathed.machine import MachineModel
 
 DT = AsyncModbusTcpClient.DATATYPE
 TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2),
          "uint32": (DT.UINT32, 2), "float32": (DT.FLOAT32, 2)}
 ACTION_REGISTERS = {"spindle_rpm": "spindle_rpm_cmd", "offset_x_um": "offset_x_um"}
 MAX_READ = 125   # registers per Modbus read request (protocol limit)
+AXIS = re.compile(r"^([a-z])_(mm|deg)$")
 
 
 @dataclass(frozen=True)
@@ -50,6 +71,7 @@ class Register:
     scale: float
     unit: str
     writable: bool
+    poll: float
 
     @property
     def count(self) -> int:
@@ -66,7 +88,7 @@ class Register:
         return AsyncModbusTcpClient.convert_to_registers(raw, TYPES[self.type][0], word_order=self.word_order)
 
 
-def read_register_map(sec: Section) -> dict[str, Register]:
+def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
     regs = {}
     for sub in sec.subsections():
         reg = Register(
@@ -77,9 +99,12 @@ def read_register_map(sec: Section) -> dict[str, Register]:
             scale=sub.getfloat("scale", 1.0),
             unit=sub.getstr("unit", ""),
             writable=sub.getbool("writable", False),
+            poll=sub.getduration("poll", default_poll, minval=0.01, maxval=3600),
         )
         if reg.scale == 0:
             raise sub.error("scale", "must not be 0")
+        if reg.address + reg.count > 65536:
+            raise sub.error("address", f"a {reg.type} at {reg.address} runs past register 65535")
         sub.check_unused()
         regs[reg.name] = reg
     if not regs:
@@ -93,16 +118,22 @@ def read_register_map(sec: Section) -> dict[str, Register]:
     return regs
 
 
-def read_plan(regs: dict[str, Register]) -> list[tuple[int, int, list[Register]]]:
+def read_plan(regs) -> list[tuple[int, int, list[Register]]]:
     """Group registers into as few contiguous read requests as the protocol allows."""
     plan: list[tuple[int, int, list[Register]]] = []
-    for r in sorted(regs.values(), key=lambda r: r.address):
+    for r in sorted(regs, key=lambda r: r.address):
         if plan and r.address + r.count - plan[-1][0] <= MAX_READ and r.address - (plan[-1][0] + plan[-1][1]) <= 8:
             start, _, members = plan[-1]
             plan[-1] = (start, r.address + r.count - start, members + [r])
         else:
             plan.append((r.address, r.count, [r]))
     return plan
+
+
+def poll_groups(regs: dict[str, Register]) -> dict[float, list[tuple[int, int, list[Register]]]]:
+    """One read plan per poll period."""
+    periods = sorted({r.poll for r in regs.values()})
+    return {p: read_plan([r for r in regs.values() if r.poll == p]) for p in periods}
 
 
 class ModbusCNC(Driver):
@@ -112,57 +143,125 @@ class ModbusCNC(Driver):
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
         self.kind = section.getstr("kind", "lathe", choices=("lathe", "mill", "grinder"))
-        self.host = section.getstr("host")
-        self.port = section.getint("port", 502, minval=1, maxval=65535)
+        self.transport = section.getstr("transport", "tcp", choices=("tcp", "rtu"))
+        if self.transport == "tcp":
+            self.host = section.getstr("host")
+            self.port = section.getint("port", 502, minval=1, maxval=65535)
+            self.where = f"{self.host}:{self.port}"
+        else:
+            self.device = section.getstr("device")
+            self.baudrate = section.getint("baudrate", 19200, minval=300, maxval=4_000_000)
+            self.parity = section.getstr("parity", "N", choices=("N", "E", "O"))
+            self.stopbits = section.getint("stopbits", 1, minval=1, maxval=2)
+            self.where = self.device
         self.unit = section.getint("unit", 1, minval=0, maxval=247)
         self.poll = section.getduration("poll", 0.1, minval=0.01, maxval=60)
         self.timeout = section.getduration("timeout", 1.0, minval=0.05, maxval=60)
-        self.stale_after = section.getduration("stale_after", max(2.0, 5 * self.poll), minval=0.05)
-        self.registers = read_register_map(section.getsection("registers"))
-        self.plan = read_plan(self.registers)
+        self.registers = read_register_map(section.getsection("registers"), self.poll)
+        slowest = max(r.poll for r in self.registers.values())
+        self.stale_after = section.getduration("stale_after", max(2.0, 3 * slowest), minval=0.05)
+        if self.stale_after <= slowest:
+            raise section.error("stale_after", f"must be longer than the slowest poll ({slowest:g} s), "
+                                               "or every value of that group is always stale")
+        self.groups = poll_groups(self.registers)
         self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
                              if reg in self.registers and self.registers[reg].writable)
-        self.client: AsyncModbusTcpClient | None = None
+        self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
+        self.model = MachineModel(self.kind, self.stale_after, self._record)
         self.polls = 0
-        self.errors = 0
+        self.errors: Counter = Counter()
+
+    def _record(self, kind: str, payload: dict) -> None:
+        if self.ctx is not None:
+            self.ctx.record(kind, payload)
 
     async def connect(self) -> None:
         # pymodbus's own reconnect is off: the supervisor owns retries and backoff
-        self.client = AsyncModbusTcpClient(self.host, port=self.port, timeout=self.timeout, retries=0,
-                                           reconnect_delay=0)
-        if not await self.client.connect():
-            raise ConnectionError(f"no Modbus server at {self.host}:{self.port} (machine off or network down?)")
+        if self.transport == "tcp":
+            self.client = AsyncModbusTcpClient(self.host, port=self.port, timeout=self.timeout, retries=0,
+                                               reconnect_delay=0)
+        else:
+            self.client = AsyncModbusSerialClient(self.device, framer=FramerType.RTU, baudrate=self.baudrate,
+                                                  parity=self.parity, stopbits=self.stopbits,
+                                                  timeout=self.timeout, retries=0, reconnect_delay=0)
+        try:
+            ok = await asyncio.wait_for(self.client.connect(), self.timeout + 1)
+        except asyncio.TimeoutError:
+            ok = False
+        if not ok:
+            self.errors["connect"] += 1
+            hint = "machine off or network down?" if self.transport == "tcp" else "adapter unplugged?"
+            raise ConnectionError(f"no Modbus {self.transport.upper()} link to {self.where} ({hint})")
+        # the first read proves the controller answers: an open port is not a machine
+        await self._read_group(self.groups[min(self.groups)])
+        self.model.link_up()
 
     async def close(self) -> None:
+        self.model.link_down()
         if self.client is not None:
             self.client.close()
             self.client = None
 
-    async def _read_all(self) -> None:
+    async def _read_group(self, plan) -> None:
         now = time.time()
-        for start, count, members in self.plan:
-            rr = await self.client.read_holding_registers(start, count=count, device_id=self.unit)
+        for start, count, members in plan:
+            try:
+                rr = await asyncio.wait_for(
+                    self.client.read_holding_registers(start, count=count, device_id=self.unit),
+                    self.timeout + 1)
+            except (asyncio.TimeoutError, ModbusIOException) as e:
+                self.errors["timeout"] += 1
+                raise TimeoutError(f"no answer from unit {self.unit} at {self.where} within {self.timeout:g} s "
+                                   f"(controller hung, wrong unit id or cable?)") from e
+            except ConnectionException as e:
+                self.errors["connection"] += 1
+                raise ConnectionError(f"Modbus link to {self.where} lost: {e}") from e
             if rr.isError():
-                raise ModbusException(f"read of registers {start}..{start + count - 1} refused: {rr}")
+                self.errors["refused"] += 1
+                raise ModbusException(f"read of registers {start}..{start + count - 1} refused by unit "
+                                      f"{self.unit}: {rr} (register map wrong for this controller?)")
             for r in members:
                 off = r.address - start
                 v = r.decode(rr.registers[off:off + r.count])
                 self.values[r.name] = (v, now)
+                self._to_model(r.name, v, now)
                 self.ctx.bus.publish(Sample(self.name, r.name, v, r.unit, now))
         self.polls += 1
         self.mark_data()
 
+    def _to_model(self, name: str, v: float, t: float) -> None:
+        m = self.model
+        if name in ("spindle_rpm", "cycle_time_s"):
+            m.set(name, v, t)
+        elif name == "part_count":
+            m.set("part_count", int(v), t)
+        elif name == "program_number":
+            m.set("program", int(v), t)
+        elif name == "program_state":
+            m.set_running(int(v) == 1, t)
+            if "alarm_code" not in self.registers:
+                m.set_alarms(["controller_alarm"] if int(v) == 2 else [], t)
+        elif name == "alarm_code":
+            m.set_alarms([int(v)] if int(v) else [], t)
+        elif (ax := AXIS.match(name)) is not None:
+            m.set_axis(ax.group(1), v, t)
+
     async def run(self) -> None:
+        due = {p: time.monotonic() + p for p in self.groups}
         while True:
-            t0 = time.monotonic()
-            await self._read_all()
-            await asyncio.sleep(max(0.0, self.poll - (time.monotonic() - t0)))
+            for p, plan in self.groups.items():
+                now = time.monotonic()
+                if now >= due[p]:
+                    await self._read_group(plan)
+                    due[p] = max(due[p] + p, now)   # after a stall: no burst of catch-up reads
+            await asyncio.sleep(max(0.0, min(due.values()) - time.monotonic()))
 
     async def execute(self, cmd: Command) -> None:
-        reg = self.registers[ACTION_REGISTERS[cmd.action]]
-        if not reg.writable:   # belt and braces: actions only list writable registers
-            raise PermissionError(f"register {reg.name} is read-only")
+        reg = self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
+        if cmd.action not in self.actions or reg is None or not reg.writable:
+            # only the supervisor calls this, after the guard; anything else is a bug
+            raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
         if self.client is None:
             raise ConnectionError("not connected")
         rr = await self.client.write_registers(reg.address, reg.encode(cmd.value), device_id=self.unit)
@@ -172,13 +271,15 @@ class ModbusCNC(Driver):
 
     def _fresh(self, name: str) -> float | None:
         v = self.values.get(name)
-        if v is None or time.time() - v[1] > self.stale_after:
+        if v is None or self.client is None or time.time() - v[1] > self.stale_after:
             return None
         return v[0]
 
     def current(self, action: str) -> float | None:
         if action == "spindle_rpm":
-            return self._fresh("spindle_rpm_cmd") if "spindle_rpm_cmd" in self.registers else None
+            if "spindle_rpm_cmd" in self.registers:
+                return self._fresh("spindle_rpm_cmd")
+            return self._fresh("spindle_rpm")
         if action == "offset_x_um":
             return self._fresh("offset_x_um")
         return None
@@ -186,12 +287,11 @@ class ModbusCNC(Driver):
     def status(self) -> dict:
         now = time.time()
         values = {n: {"value": v, "unit": self.registers[n].unit, "age_s": round(now - t, 3),
-                      "stale": now - t > self.stale_after} for n, (v, t) in self.values.items()}
-        spindle = self._fresh("spindle_rpm")
-        state = self._fresh("program_state")
-        return {"spindle_rpm": spindle,
-                "machine_state": None if state is None else self.STATES.get(int(state), f"code {int(state)}"),
-                "values": values, "polls": self.polls}
+                      "stale": self.client is None or now - t > self.stale_after}
+                  for n, (v, t) in self.values.items()}
+        return {"spindle_rpm": self.model.live("spindle_rpm"), "machine_state": self.model.state(),
+                "model": self.model.snapshot(), "values": values, "polls": self.polls,
+                "link": {"transport": self.transport, "where": self.where, "errors": dict(self.errors)}}
 
 
 @hookimpl

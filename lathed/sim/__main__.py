@@ -1,13 +1,20 @@
-"""lathed-sim: the simulated lathe as a separate process with real peers.
+"""lathed-sim: the simulated lathe (and its line) as a separate process with real peers.
 
 It serves the machine over the same protocols a real one uses: the CNC on
 Modbus TCP, the Arduino's DS18B20 line on a pseudo-terminal, the
-accelerometer DAQ as a framed TCP stream. A JSON-lines control socket lets
-an operator or a test change the cut or take a peer down:
+accelerometer DAQ as a framed TCP stream. Optionally its neighbours: a mill
+on Modbus TCP (``--mill-port``), a grinder on Modbus RTU over a null-modem
+pseudo-terminal pair (``--grinder-link``), a robot arm on CAN through a
+serial-line CAN adapter (slcan) on a pseudo-terminal (``--robot-link``).
+A JSON-lines control socket lets an operator or a test change the cut,
+take a peer down or raise an alarm:
 
     {"cmd": "status"}
     {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
     {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
+        peer: modbus | vibration | serial (the lathe's), mill, grinder
+        (server gone, RS-485 line cut), robot (the arm powered off: CAN silent)
+    {"cmd": "alarm", "args": {"machine": "mill", "code": 42}}   (0 clears)
 
 Prints one line ``READY {...endpoints...}`` on stdout when all peers listen.
 """
@@ -23,14 +30,17 @@ import sys
 import time
 from pathlib import Path
 
+from lathed.sim.can_peer import CanPeer
 from lathed.sim.lathe import SimLathe
+from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
-from lathed.sim.registers import LATHE_MAP, N_REGISTERS
-from lathed.sim.serial_peer import SerialPeer
+from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
+from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
 
 BLOCK = 1024              # samples per vibration frame: 20 ms at 51.2 kS/s
 READING_PERIOD_S = 6.0    # the Arduino reads its DS18B20s every 6 s (sim time)
+LINE_PERIOD_S = 0.05      # the neighbours' physics step, and the robot's CAN frame period
 
 
 class Simulator:
@@ -41,6 +51,19 @@ class Simulator:
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self.lathe.write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.serial = SerialPeer(Path(args.serial_link))
+        self.mill = self.grinder = self.robot = None
+        self.mill_peer = self.grinder_peer = self.robot_peer = None
+        if args.mill_port:
+            self.mill = SimCycleMachine(MILL_PROGRAM)
+            self.mill_peer = ModbusPeer(args.host, args.mill_port, CELL_MAP, N_CELL_REGISTERS, self.mill.write)
+        if args.grinder_link:
+            self.grinder = SimCycleMachine(GRINDER_PROGRAM)
+            self.grinder_peer = ModbusPeer(args.host, 0, CELL_MAP, N_CELL_REGISTERS, self.grinder.write,
+                                           null_modem=NullModem(Path(args.grinder_link)))
+        if args.robot_link:
+            self.robot = SimRobotArm()
+            self.robot_peer = CanPeer(Path(args.robot_link))
+        self.robot_silent = False
         self.produced = 0
         self.overruns = 0
         self.booted = time.monotonic()
@@ -54,6 +77,11 @@ class Simulator:
         tty = self.serial.open()
         await self.modbus.start()
         await self.vibration.start()
+        for peer in (self.mill_peer, self.grinder_peer):
+            if peer is not None:
+                await peer.start()
+        if self.robot_peer is not None:
+            self.robot_peer.open()
         control = None
         if self.args.control:
             Path(self.args.control).parent.mkdir(parents=True, exist_ok=True)
@@ -61,12 +89,21 @@ class Simulator:
                 os.unlink(self.args.control)
             control = await asyncio.start_unix_server(self._control_client, path=self.args.control)
         self.modbus.block.update(self.lathe.registers())
-        print("READY " + json.dumps({"modbus": [self.args.host, self.args.modbus_port],
-                                     "vibration": [self.args.host, self.args.vibration_port],
-                                     "serial": self.args.serial_link, "tty": tty,
-                                     "control": self.args.control}), flush=True)
+        self._update_line(0.0)
+        ready = {"modbus": [self.args.host, self.args.modbus_port],
+                 "vibration": [self.args.host, self.args.vibration_port],
+                 "serial": self.args.serial_link, "tty": tty, "control": self.args.control}
+        if self.mill_peer:
+            ready["mill"] = [self.args.host, self.args.mill_port]
+        if self.grinder_peer:
+            ready["grinder"] = self.args.grinder_link
+        if self.robot_peer:
+            ready["robot"] = self.args.robot_link
+        print("READY " + json.dumps(ready), flush=True)
         parent = os.getppid()
         tasks = [asyncio.create_task(self._vibration_loop()), asyncio.create_task(self._serial_loop())]
+        if self.mill or self.grinder or self.robot:
+            tasks.append(asyncio.create_task(self._line_loop()))
         while not self._stop.is_set():
             try:
                 await asyncio.wait_for(self._stop.wait(), 1.0)
@@ -79,6 +116,11 @@ class Simulator:
         await self.modbus.stop()
         await self.vibration.stop()
         self.serial.close()
+        for peer in (self.mill_peer, self.grinder_peer):
+            if peer is not None:
+                await peer.stop()
+        if self.robot_peer is not None:
+            self.robot_peer.close()
         if control:
             control.close()
 
@@ -108,6 +150,27 @@ class Simulator:
             self.serial.send(uptime_ms, {k: r[k] for k in ("front_bearing", "rear_bearing", "motor", "room")})
             await asyncio.sleep(period)
 
+    def _update_line(self, dt: float) -> None:
+        for m, peer in ((self.mill, self.mill_peer), (self.grinder, self.grinder_peer)):
+            if m is not None:
+                if dt:
+                    m.step(dt)
+                if peer.up:
+                    peer.block.update(m.registers())
+        if self.robot is not None:
+            if dt:
+                self.robot.step(dt)
+            if not self.robot_silent:
+                self.robot_peer.send_arm(self.robot)
+
+    async def _line_loop(self) -> None:
+        last = time.monotonic()
+        while True:
+            await asyncio.sleep(LINE_PERIOD_S)
+            now = time.monotonic()
+            self._update_line(now - last)
+            last = now
+
     # -- control ----------------------------------------------------------------
     async def _control_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         try:
@@ -131,7 +194,14 @@ class Simulator:
                     "registers": self.lathe.registers(), "temperatures": self.lathe.thermal.readings(),
                     "displacement_um": self.lathe.thermal.displacement_um, "overruns": self.overruns,
                     "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,
-                              "serial": self.serial.master is not None}}
+                              "serial": self.serial.master is not None,
+                              **({"mill": self.mill_peer.up} if self.mill_peer else {}),
+                              **({"grinder": self.grinder_peer.up} if self.grinder_peer else {}),
+                              **({"robot": not self.robot_silent} if self.robot_peer else {})},
+                    "line": {n: {"part_count": m.part_count, "alarm_code": m.alarm_code}
+                             for n, m in (("mill", self.mill), ("grinder", self.grinder)) if m}
+                            | ({"robot": {"cycle_count": self.robot.cycle_count,
+                                          "alarm_code": self.robot.alarm_code}} if self.robot else {})}
         if cmd == "set":
             if "depth_mm" in args:
                 d = args["depth_mm"]
@@ -141,20 +211,41 @@ class Simulator:
             return {"depth_mm": self.lathe.depth_mm}
         if cmd == "outage":
             peer, seconds = args.get("peer"), float(args.get("seconds", 10))
-            fn = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
-                  "serial": self._serial_outage}.get(peer)
+            fns = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
+                   "serial": self._serial_outage}
+            if self.mill_peer:
+                fns["mill"] = self.mill_peer.outage
+            if self.grinder_peer:
+                fns["grinder"] = self.grinder_peer.outage
+            if self.robot_peer:
+                fns["robot"] = self._robot_outage
+            fn = fns.get(peer)
             if fn is None:
-                raise ValueError("peer must be modbus, vibration or serial")
+                raise ValueError(f"peer must be one of {', '.join(fns)}")
             task = asyncio.create_task(fn(seconds))
             self._outages.add(task)
             task.add_done_callback(self._outages.discard)
             return {"peer": peer, "seconds": seconds}
+        if cmd == "alarm":
+            m = {"mill": self.mill, "grinder": self.grinder, "robot": self.robot}.get(args.get("machine"))
+            code = args.get("code", 0)
+            if m is None:
+                raise ValueError("machine must be a running neighbour: mill, grinder or robot")
+            if not (isinstance(code, int) and 0 <= code <= 65535):
+                raise ValueError("code must be an integer in [0, 65535] (0 clears)")
+            m.alarm_code = code
+            return {"machine": args["machine"], "code": code}
         raise ValueError(f"unknown command {cmd!r}")
 
     async def _vibration_outage(self, seconds: float) -> None:
         await self.vibration.stop()
         await asyncio.sleep(seconds)
         await self.vibration.start()
+
+    async def _robot_outage(self, seconds: float) -> None:
+        self.robot_silent = True         # the arm powered off; the adapter stays plugged in
+        await asyncio.sleep(seconds)
+        self.robot_silent = False
 
     async def _serial_outage(self, seconds: float) -> None:
         self.serial.close()              # the USB cable pulled: the tty vanishes
@@ -176,6 +267,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--depth-mm", type=float, default=None, help="override every part's depth of cut")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--exit-with-parent", action="store_true")
+    p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
+    p.add_argument("--grinder-link", default="",
+                   help="serve the grinder on Modbus RTU; path of the symlink to its tty (empty: no grinder)")
+    p.add_argument("--robot-link", default="",
+                   help="serve the robot arm on slcan; path of the symlink to its tty (empty: no robot)")
     args = p.parse_args(argv)
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         p.error("--time-scale must be > 0")

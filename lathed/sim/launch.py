@@ -28,6 +28,10 @@ class SimulatorSettings:
         self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
         self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=10.0)
         self.seed = sec.getint("seed", 0, minval=0)
+        # the lathe's neighbours; each off unless configured
+        self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
+        self.grinder_link = sec.getstr("grinder_link", "")
+        self.robot_link = sec.getstr("robot_link", "")
         sec.check_unused()
 
     def argv(self) -> list[str]:
@@ -35,6 +39,12 @@ class SimulatorSettings:
              "--vibration-port", str(self.vibration_port), "--serial-link", self.serial_link,
              "--control", self.control, "--time-scale", str(self.time_scale), "--seed", str(self.seed),
              "--exit-with-parent"]
+        if self.mill_port:
+            a += ["--mill-port", str(self.mill_port)]
+        if self.grinder_link:
+            a += ["--grinder-link", self.grinder_link]
+        if self.robot_link:
+            a += ["--robot-link", self.robot_link]
         if self.depth_mm >= 0:
             a += ["--depth-mm", str(self.depth_mm)]
         return a

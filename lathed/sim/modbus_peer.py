@@ -1,4 +1,5 @@
-"""The simulated CNC's Modbus TCP server (a real pymodbus server on loopback)."""
+"""The simulated CNCs' Modbus servers (real pymodbus servers): TCP on loopback,
+or RTU on a null-modem pseudo-terminal pair (lathed.sim.serial_peer.NullModem)."""
 from __future__ import annotations
 
 import asyncio
@@ -8,7 +9,10 @@ from typing import Callable
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusDeviceContext, ModbusSequentialDataBlock, ModbusServerContext
-from pymodbus.server import ModbusTcpServer
+from pymodbus import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+
+from lathed.sim.serial_peer import NullModem
 
 log = logging.getLogger("lathed.sim.modbus")
 DT = AsyncModbusTcpClient.DATATYPE
@@ -63,15 +67,22 @@ class _Registers(ModbusSequentialDataBlock):
 
 
 class ModbusPeer:
-    def __init__(self, host: str, port: int, regmap: dict, size: int, on_write):
+    def __init__(self, host: str, port: int, regmap: dict, size: int, on_write,
+                 null_modem: NullModem | None = None, baudrate: int = 115200):
         self.host, self.port = host, port
+        self.null_modem, self.baudrate = null_modem, baudrate
         self.block = _Registers(regmap, size, on_write)
         self.context = ModbusServerContext(devices=ModbusDeviceContext(hr=self.block), single=True)
-        self.server: ModbusTcpServer | None = None
+        self.server: ModbusTcpServer | ModbusSerialServer | None = None
         self.up = False
 
     async def start(self) -> None:
-        self.server = ModbusTcpServer(self.context, address=(self.host, self.port))
+        if self.null_modem is not None:
+            inner = self.null_modem.open()
+            self.server = ModbusSerialServer(self.context, framer=FramerType.RTU, port=inner,
+                                             baudrate=self.baudrate)
+        else:
+            self.server = ModbusTcpServer(self.context, address=(self.host, self.port))
         await self.server.serve_forever(background=True)
         self.up = True
 
@@ -79,6 +90,8 @@ class ModbusPeer:
         if self.server is not None:
             await self.server.shutdown()
             self.server = None
+        if self.null_modem is not None:
+            self.null_modem.close()      # the RS-485 cable pulled
         self.up = False
 
     async def outage(self, seconds: float) -> None:

@@ -27,3 +27,19 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     "probe_seq":             (28, "uint16", False, ""),
 }
 N_REGISTERS = 32
+
+# The mill (Modbus TCP) and the grinder (Modbus RTU on a pseudo-terminal,
+# unit id 1, 115200 8N1) share one map: holding registers, big word order.
+CELL_MAP: dict[str, tuple[int, str, bool, str]] = {
+    "spindle_rpm_cmd": (0, "float32", True, "r/min"),
+    "spindle_rpm":     (2, "float32", False, "r/min"),
+    "x_mm":            (4, "float32", False, "mm"),
+    "y_mm":            (6, "float32", False, "mm"),
+    "z_mm":            (8, "float32", False, "mm"),
+    "part_count":      (10, "int32", False, ""),
+    "cycle_time_s":    (12, "float32", False, "s"),
+    "program_state":   (14, "uint16", False, ""),   # 0 idle, 1 running, 2 alarm
+    "program_number":  (15, "uint16", False, ""),
+    "alarm_code":      (16, "uint16", False, ""),
+}
+N_CELL_REGISTERS = 20

@@ -1,4 +1,5 @@
-"""The simulated Arduino: DS18B20 readings on a pseudo-terminal.
+"""The simulated Arduino: DS18B20 readings on a pseudo-terminal; and a null
+modem of two pseudo-terminals for the grinder's Modbus RTU line.
 
 The pty's slave end is what a real USB-serial Arduino would be
 (/dev/ttyACM0); a symlink at a stable path points to it so the config
@@ -6,6 +7,7 @@ can name it.
 """
 from __future__ import annotations
 
+import asyncio
 import os
 import tty
 from pathlib import Path
@@ -27,12 +29,7 @@ class SerialPeer:
         tty.setraw(self._slave)              # a serial port does no line editing or echo
         os.set_blocking(self.master, False)  # an Arduino never waits for its reader
         name = os.ttyname(self._slave)
-        self.link.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.link.with_name(self.link.name + ".new")
-        if tmp.is_symlink() or tmp.exists():
-            tmp.unlink()
-        tmp.symlink_to(name)
-        tmp.replace(self.link)
+        _symlink(self.link, name)
         return name
 
     def close(self) -> None:
@@ -55,3 +52,56 @@ class SerialPeer:
             # nobody reading and the tty buffer is full: a real Arduino's
             # bytes are lost the same way
             self.dropped += 1
+
+
+class NullModem:
+    """Two pseudo-terminals joined back to back, as two RS-485 adapters on
+    one cable: a server opens ``inner`` (the machine's port), the driver
+    opens the symlink ``link`` (the PC's adapter). Needed because a serial
+    Modbus server, like a client, wants a tty path of its own to open."""
+
+    def __init__(self, link: Path):
+        self.link = link
+        self.fds: list[int] = []
+        self.inner: str | None = None
+
+    def open(self) -> str:
+        ma, sa = os.openpty()
+        mb, sb = os.openpty()
+        for s in (sa, sb):
+            tty.setraw(s)
+        for m in (ma, mb):
+            os.set_blocking(m, False)
+        self.fds = [ma, sa, mb, sb]
+        self.inner = os.ttyname(sa)
+        loop = asyncio.get_running_loop()
+        loop.add_reader(ma, self._pump, ma, mb)
+        loop.add_reader(mb, self._pump, mb, ma)
+        _symlink(self.link, os.ttyname(sb))
+        return self.inner
+
+    @staticmethod
+    def _pump(src: int, dst: int) -> None:
+        try:
+            os.write(dst, os.read(src, 4096))
+        except OSError:
+            pass   # the far side is not open: bytes on a dead line are lost
+
+    def close(self) -> None:
+        if self.fds:
+            loop = asyncio.get_running_loop()
+            loop.remove_reader(self.fds[0])
+            loop.remove_reader(self.fds[2])
+            for fd in self.fds:
+                os.close(fd)
+        self.fds = []
+        self.inner = None
+
+
+def _symlink(link: Path, target: str) -> None:
+    link.parent.mkdir(parents=True, exist_ok=True)
+    tmp = link.with_name(link.name + ".new")
+    if tmp.is_symlink() or tmp.exists():
+        tmp.unlink()
+    tmp.symlink_to(target)
+    tmp.replace(link)   # atomic: a reader never sees the link missing mid-swap
