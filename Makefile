@@ -16,6 +16,7 @@ run: $(STAMP)
 	$(BIN)/lathed --config etc/lathed.toml
 
 test: $(STAMP)
+	bash tests/ensure_postgres.sh
 	$(BIN)/python -m pytest
 
 .PHONY: venv run test

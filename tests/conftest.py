@@ -1,0 +1,181 @@
+"""Shared test helpers: free ports, condition polling, a daemon on the simulator."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_until(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
+    """Poll ``pred`` until it returns something truthy; fail at the deadline."""
+    deadline = time.monotonic() + timeout
+    last_exc = None
+    while time.monotonic() < deadline:
+        try:
+            v = pred()
+            if v:
+                return v
+        except AssertionError:
+            raise
+        except Exception as e:   # the condition may not be observable yet
+            last_exc = e
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}"
+                         + (f" (last error: {last_exc})" if last_exc else ""))
+
+
+def sim_call(path: str | Path, cmd: str, args: dict | None = None) -> object:
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(10)
+        s.connect(str(path))
+        s.sendall(json.dumps({"cmd": cmd, "args": args or {}}).encode() + b"\n")
+        buf = b""
+        while not buf.endswith(b"\n"):
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            buf += chunk
+    reply = json.loads(buf)
+    assert reply["ok"], reply
+    return reply["result"]
+
+
+REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.registers]", 1)[1].split("\n[", 1)[0]
+
+
+def sim_config(tmp: Path, extra: str = "", analyzers: str = "", time_scale: float = 30.0,
+               daemon: str = "") -> tuple[Path, dict]:
+    """A config running the simulator on free ports in a private directory."""
+    mport, vport = free_port(), free_port()
+    link = tmp / "ttyARDUINO"
+    paths = {"modbus_port": mport, "vibration_port": vport, "link": link, "sim": tmp / "run" / "sim.sock",
+             "socket": tmp / "run" / "lathed.sock", "state": tmp / "state"}
+    text = f"""
+[daemon]
+name = "test-cell"
+state_dir = "{tmp / 'state'}"
+runtime_dir = "{tmp / 'run'}"
+{daemon}
+
+[simulator]
+modbus_port = {mport}
+vibration_port = {vport}
+serial_link = "{link}"
+control = "{paths['sim']}"
+time_scale = {time_scale}
+
+[machine.lathe]
+plugin = "modbus_cnc"
+kind = "lathe"
+host = "127.0.0.1"
+port = {mport}
+poll = "100ms"
+retry_initial = "200ms"
+retry_max = "1s"
+
+[machine.lathe.limits]
+spindle_rpm_min = 300.0
+spindle_rpm_max = 6000.0
+offset_max_um = 60.0
+offset_rate_max_um_s = 5.0
+
+[machine.lathe.registers]
+{REGISTERS}
+
+[sensor.temps]
+plugin = "ds18b20_serial"
+port = "{link}"
+stale_after = "5s"
+retry_initial = "200ms"
+retry_max = "1s"
+
+[sensor.accel]
+plugin = "vibration_tcp"
+host = "127.0.0.1"
+port = {vport}
+retry_initial = "200ms"
+retry_max = "1s"
+{extra}
+{analyzers}
+"""
+    cfg = tmp / "lathed.toml"
+    cfg.write_text(text)
+    return cfg, paths
+
+
+class Daemon:
+    def __init__(self, cfg: Path, socket_path: Path, env: dict | None = None):
+        self.cfg = cfg
+        self.socket = socket_path
+        self.log = open(cfg.with_suffix(".log"), "wb")
+        self.proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=self.log,
+                                     stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+
+    def ctl(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+        r = subprocess.run([str(BIN / "lathectl"), "--socket", str(self.socket), *args],
+                           capture_output=True, text=True, timeout=60)
+        if check and r.returncode != 0:
+            raise AssertionError(f"lathectl {' '.join(args)} exited {r.returncode}: {r.stderr.strip()}")
+        return r
+
+    def status(self) -> dict:
+        return json.loads(self.ctl("status", "--json").stdout)
+
+    def item(self, group: str, name: str) -> dict:
+        return next(x for x in self.status()[group] if x["name"] == name)
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        def up():
+            assert self.proc.poll() is None, f"daemon exited {self.proc.returncode}: {self.output()}"
+            return self.ctl("status", "--json", check=False).returncode == 0
+        wait_until(up, timeout, what="daemon control socket")
+
+    def output(self) -> str:
+        self.log.flush()
+        return self.cfg.with_suffix(".log").read_text(errors="replace")[-4000:]
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+        return self.proc.returncode
+
+
+@pytest.fixture
+def sim_daemon(tmp_path):
+    """The daemon with its simulator, on free ports; stopped at the end."""
+    started = []
+
+    def start(extra: str = "", analyzers: str = "", env: dict | None = None, time_scale: float = 30.0,
+              daemon: str = ""):
+        cfg, paths = sim_config(tmp_path, extra, analyzers, time_scale, daemon)
+        d = Daemon(cfg, paths["socket"], env)
+        d.paths = paths
+        started.append(d)
+        d.wait_ready()
+        return d
+
+    yield start
+    for d in started:
+        d.stop()

@@ -1,0 +1,148 @@
+"""Config validation: every refusal is one line naming file, table, key and what is allowed."""
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from lathed.config import ConfigError, Section, load, parse_duration
+from lathed.daemon import prepare
+from tests.conftest import BIN, ROOT
+
+BASE = """
+[daemon]
+name = "t"
+state_dir = "state"
+runtime_dir = "run"
+
+[machine.lathe]
+plugin = "modbus_cnc"
+host = "127.0.0.1"
+port = 15020
+[machine.lathe.registers]
+spindle_rpm = { address = 2, type = "float32" }
+spindle_rpm_cmd = { address = 0, type = "float32", writable = true }
+"""
+
+
+def check(tmp_path, text: str) -> tuple[int, str]:
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(text)
+    r = subprocess.run([str(BIN / "lathed"), "--check-config", str(cfg)], capture_output=True, text=True)
+    return r.returncode, r.stderr.replace(str(cfg), "FILE").strip()
+
+
+def test_default_config_is_valid():
+    r = subprocess.run([str(BIN / "lathed"), "--check-config", str(ROOT / "etc" / "lathed.toml")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "ok" in r.stdout
+
+
+def test_valid_minimal(tmp_path):
+    assert check(tmp_path, BASE) == (0, "")
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("port = 15020", 'port = "15020"'),
+     "lathed: FILE: [machine.lathe] port: expected an integer in [1, 65535], got '15020'"),
+    (("port = 15020", "port = 70000"),
+     "lathed: FILE: [machine.lathe] port: 70000 is out of range; allowed: an integer in [1, 65535]"),
+    (("port = 15020", "port = 15020\nprot = 1"),
+     "lathed: FILE: [machine.lathe] prot: unknown key; allowed keys here: host, *port, *registers"),
+    (('host = "127.0.0.1"\n', ""),
+     "lathed: FILE: [machine.lathe] host: missing required key"),
+    (('plugin = "modbus_cnc"', 'plugin = "modbus_cn"'),
+     "lathed: FILE: [machine.lathe] plugin: unknown driver type 'modbus_cn'; allowed: *modbus_cnc, "),
+    (('name = "t"', 'name = "t"\nflavour = 1'),
+     "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: log_level, name, plugin_dirs, "
+     "runtime_dir, state_dir"),
+    (("[daemon]", "[deamon]"),
+     "lathed: FILE: [deamon]: unknown table; allowed: daemon, simulator, store, machine, sensor, analyzer"),
+    (("port = 15020", "port = 15020\n[machine.lathe.limits]\nspindle_rpm_max = -5.0"),
+     "lathed: FILE: [machine.lathe.limits] spindle_rpm_max: -5 is out of range; allowed: a number in [0.0, 100000.0]"),
+    (('type = "float32" }', 'type = "float64" }'),
+     "lathed: FILE: [machine.lathe.registers.spindle_rpm] type: 'float64' is not allowed; allowed: int16, "
+     "uint16, int32, uint32, float32"),
+])
+def test_refusals_name_file_table_key(tmp_path, edit, message):
+    old, new = edit
+    text = BASE.replace(old, new, 1)
+    assert text != BASE
+    code, err = check(tmp_path, text)
+    assert code == 78
+    # "*" stands for a list that grows as plugins add keys or types
+    first = err.splitlines()[0]
+    parts = message.split("*")
+    assert first.startswith(parts[0]), first
+    for p in parts[1:]:
+        assert p in first, first
+
+
+def test_bad_toml_is_one_line(tmp_path):
+    code, err = check(tmp_path, BASE + "\nthis is not toml\n")
+    assert code == 78
+    assert len(err.splitlines()) == 1
+    assert err.startswith("lathed: FILE: not valid TOML:") and "line" in err
+
+
+def test_missing_file(tmp_path):
+    r = subprocess.run([str(BIN / "lathed"), "--check-config", str(tmp_path / "nope.toml")],
+                       capture_output=True, text=True)
+    assert r.returncode == 78
+    assert r.stderr.strip() == f"lathed: {tmp_path / 'nope.toml'}: no such config file"
+
+
+def test_analyzer_input_must_exist(tmp_path):
+    plugin = tmp_path / "plugins"
+    plugin.mkdir()
+    (plugin / "reader.py").write_text(
+        "from lathed import hookimpl\nfrom lathed.analyzer import Analyzer\n"
+        "class Reader(Analyzer):\n"
+        "    def __init__(self, name, sec):\n"
+        "        super().__init__(name, sec)\n"
+        "        self.src = sec.getstr('input')\n"
+        "    def inputs(self):\n        return [self.src]\n"
+        "@hookimpl\ndef lathed_analyzer_types():\n    return {'reader': Reader}\n")
+    text = BASE.replace('name = "t"', f'name = "t"\nplugin_dirs = ["{plugin}"]') + \
+        '\n[analyzer.a]\nplugin = "reader"\ninput = "accelerometer"\n'
+    code, err = check(tmp_path, text)
+    assert code == 78
+    assert err == ("lathed: FILE: [analyzer.a]: input 'accelerometer' is not a configured machine or sensor; "
+                   "configured: lathe")
+
+
+def test_getters_ranges_and_durations():
+    s = Section("f.toml", "t", {"d": "50ms", "m": "2min", "n": 3, "x": 1.5, "b": True, "l": [1, 2.5]})
+    assert s.getduration("d") == pytest.approx(0.05)
+    assert s.getduration("m") == 120
+    assert s.getduration("n") == 3
+    assert s.getfloat("x", minval=1, maxval=2) == 1.5
+    assert s.getbool("b") is True
+    assert s.getlist("l", item=float) == [1, 2.5]
+    with pytest.raises(ConfigError, match=r"^f.toml: \[t\] x: 1.5 is out of range; allowed: a number >= 2$"):
+        s.getfloat("x", minval=2)
+    with pytest.raises(ConfigError, match="expected true or false"):
+        Section("f", "t", {"b": 1}).getbool("b")
+    with pytest.raises(ConfigError, match="expected a duration"):
+        Section("f", "t", {"d": "fast"}).getduration("d")
+    with pytest.raises(ValueError):
+        parse_duration("5 parsecs")
+
+
+def test_prepare_collects_every_error(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(BASE.replace("port = 15020", "port = 0") + '\n[sensor.t]\nplugin = "ds18b20_serial"\n')
+    with pytest.raises(ConfigError) as e:
+        prepare(cfg, strict=True)
+    lines = str(e.value).splitlines()
+    assert len(lines) == 2
+    assert "[machine.lathe] port" in lines[0] and "[sensor.t] port: missing required key" in lines[1]
+
+
+def test_load_structures_instances(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(BASE)
+    c = load(cfg)
+    inst = c.instance("machine", "lathe")
+    assert inst.plugin == "modbus_cnc" and "plugin" not in inst.section
