@@ -121,3 +121,10 @@ def test_through_lathectl(runs):
     bad = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "thermal", "/nonexistent.csv"],
                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
     assert bad.returncode == 66 and "Traceback" not in bad.stderr
+
+
+def test_temperatures_that_never_change_are_65(tmp_path, capsys):
+    p = tmp_path / "flat.csv"
+    p.write_text("time_s,t_motor_c,displacement_um\n" + "".join(f"{6 * k},20.0,{k % 3}\n" for k in range(100)))
+    code, out, err = _run([p], capsys)
+    assert code == 65 and out == "" and "no temperature column changed" in err and err.count("\n") == 1

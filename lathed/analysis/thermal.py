@@ -775,7 +775,7 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray) -> ResidualReport:
         share = float(band / p[1:].sum())
         if share > 0.2 and p[k] > 20 * np.median(p[1:]):
             period = 1.0 / f[k]
-    ratio = total / noise if noise > 0 else math.inf
+    ratio = total / noise if noise > 0 else (1.0 if total < 1e-12 else math.inf)
     structured = ratio > 1.3 or period is not None
     if not structured:
         note = (f"residual looks like measurement noise: rms {total:.2f} µm vs {noise:.2f} µm "
