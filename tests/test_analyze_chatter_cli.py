@@ -1,0 +1,154 @@
+import argparse
+import json
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io.wavfile as wavfile
+
+from lathed.analysis.recording import read_signal
+from lathed.analysis.regen import Segment, simulate_cut
+from lathed.cli import analyze_chatter
+
+RATE = 51200
+
+
+def _parser():
+    ap = argparse.ArgumentParser(prog="lathectl analyze")
+    analyze_chatter.register_analyze(ap.add_subparsers(dest="what"))
+    return ap
+
+
+def _cli(argv, capsys):
+    args = _parser().parse_args(["chatter", *argv])
+    code = args.func(args)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _wav_pcm24(path: Path, x: np.ndarray, channels: int = 1) -> None:
+    """24-bit PCM WAV written by hand (scipy cannot write 24-bit)."""
+    ints = np.clip(np.round(x * (2 ** 23 - 1)), -2 ** 23, 2 ** 23 - 1).astype(np.int32)
+    frames = np.repeat(ints[:, None], channels, axis=1).ravel()
+    b = frames.astype("<i4").view(np.uint8).reshape(-1, 4)[:, :3].tobytes()
+    fmt = struct.pack("<HHIIHH", 1, channels, RATE, RATE * 3 * channels, 3 * channels, 24)
+    body = b"WAVE" + b"fmt " + struct.pack("<I", len(fmt)) + fmt + b"data" + struct.pack("<I", len(b)) + b
+    path.write_bytes(b"RIFF" + struct.pack("<I", len(body)) + body)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rec")
+    ch = simulate_cut([Segment(0.6, 2000, 1.0), Segment(0.6, 2000, 3.0)], seed=31)
+    st = simulate_cut([Segment(1.0, 2000, 1.0)], seed=32)
+    chs = ch.signal / np.abs(ch.signal).max() * 0.9
+    sts = st.signal / np.abs(st.signal).max() * 0.5
+    wavfile.write(d / "chatter_f32.wav", RATE, chs.astype(np.float32))
+    _wav_pcm24(d / "stable_24.wav", sts)
+    stereo = np.c_[np.zeros_like(chs) + 1e-3 * np.sin(np.arange(len(chs))), chs]
+    wavfile.write(d / "stereo_i16.wav", RATE, (stereo * 32767).astype(np.int16))
+    clipped = np.clip(chs * 3, -1, 1)
+    wavfile.write(d / "clipped_i16.wav", RATE, np.round(clipped * 32767).astype(np.int16))
+    t = np.arange(len(sts)) / RATE
+    np.savetxt(d / "stable.csv", np.c_[t, sts], delimiter=",", header="time_s,accel_g", comments="")
+    np.savetxt(d / "bare.csv", sts[:20000])
+    (d / "empty.csv").write_text("")
+    (d / "nan.csv").write_text("time_s,a\n" + "".join(f"{i / RATE},nan\n" for i in range(100)))
+    (d / "badcell.csv").write_text("time_s,a\n0,1\n0.0001,x2\n")
+    return d, ch, st
+
+
+def test_json_contract_chatter(files, capsys):
+    d, ch, _ = files
+    code, out, err = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"], capsys)
+    assert code == 0
+    obj = json.loads(out)
+    assert {"verdict", "first_alarm_s", "chatter_frequency_hz", "detector", "windows"} <= set(obj)
+    assert obj["verdict"] == "chatter"
+    assert ch.unstable_at_s <= obj["first_alarm_s"] <= ch.visible_at_s + 0.1
+    assert 550 < obj["chatter_frequency_hz"] < 750
+    assert obj["detector"] == analyze_chatter.DEFAULT_DETECTOR
+    w = obj["windows"][0]
+    assert set(w) == {"t_s", "index", "alarm"}
+    assert any(w["alarm"] for w in obj["windows"])
+
+
+def test_stable_24bit_and_csv(files, capsys):
+    d, _, _ = files
+    for f in ("stable_24.wav", "stable.csv"):
+        code, out, _ = _cli([str(d / f), "--rpm", "2000", "--json", "--detector", "chaos_sync"], capsys)
+        obj = json.loads(out)
+        assert code == 0 and obj["verdict"] == "stable"
+        assert obj["first_alarm_s"] is None and obj["chatter_frequency_hz"] is None
+
+
+def test_24bit_reader_matches_values(files):
+    d, _, st = files
+    sig = read_signal(d / "stable_24.wav")
+    ref = st.signal / np.abs(st.signal).max() * 0.5
+    np.testing.assert_allclose(sig.data, ref, atol=2 ** -22)
+    assert sig.rate_hz == RATE and sig.clipped == 0
+
+
+def test_channel_selection(files, capsys):
+    d, _, _ = files
+    code, out, _ = _cli([str(d / "stereo_i16.wav"), "--rpm", "2000", "--channel", "1", "--json"], capsys)
+    assert code == 0 and json.loads(out)["verdict"] == "chatter"
+    code, _, err = _cli([str(d / "stereo_i16.wav"), "--rpm", "2000", "--channel", "2"], capsys)
+    assert code == 65 and "channel 2 does not exist (file has 2" in err
+
+
+def test_clipping_reported(files, capsys):
+    d, _, _ = files
+    code, out, err = _cli([str(d / "clipped_i16.wav"), "--rpm", "2000", "--json"], capsys)
+    assert code == 0
+    assert json.loads(out)["clipped_samples"] > 0
+    assert err.startswith("lathectl: warning:") and "clipped samples" in err
+
+
+@pytest.mark.parametrize("name,argv,code,msg", [
+    ("missing.wav", ["--rpm", "2000"], 66, "no such file"),
+    ("empty.csv", ["--rpm", "2000"], 65, "is empty"),
+    ("nan.csv", ["--rpm", "2000"], 65, "every sample is NaN"),
+    ("bare.csv", ["--rpm", "2000"], 65, "give --rate"),
+    ("badcell.csv", ["--rpm", "2000"], 65, "line 3, column 'a': 'x2' is not a number"),
+    ("bare.csv", ["--rpm", "2000", "--rate", "51200", "--detector", "nope"], 2, "unknown chatter detector"),
+])
+def test_bad_input_one_line(files, capsys, name, argv, code, msg):
+    d, _, _ = files
+    got, out, err = _cli([str(d / name), *argv], capsys)
+    assert got == code
+    assert msg in err and err.startswith("lathectl: ") and err.count("\n") == 1
+    assert "Traceback" not in err and out == ""
+
+
+def test_rpm_must_be_positive(files, capsys):
+    d, _, _ = files
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", str(d / "bare.csv"), "--rpm", "0"])
+    assert e.value.code == 2
+    assert "must be > 0" in capsys.readouterr().err
+
+
+def test_plot_written(files, capsys, tmp_path):
+    d, _, _ = files
+    out_png = tmp_path / "eye.png"
+    code, _, _ = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000", "--plot", str(out_png)], capsys)
+    assert code == 0 and out_png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_through_lathectl(files):
+    d, _, _ = files
+    if not (Path(analyze_chatter.__file__).parents[1] / "lathectl.py").exists():
+        pytest.skip("lathectl not present")
+    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "chatter",
+                        str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["verdict"] == "chatter"
+    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "chatter",
+                        str(d / "nothere.wav"), "--rpm", "2000"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 66 and r.stderr.startswith("lathectl: no such file")
