@@ -1,0 +1,231 @@
+"""``lathectl parts|inspect|experiment|recommend|export``: production records.
+
+Asks the daemon's records analyzer (``[analyzer.records]``) over the control
+socket.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import math
+import sys
+
+from lathed.lathectl import print_json, remote
+
+EX_CANTCREAT = 73
+
+
+def _num(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return v
+
+
+def _pair(text: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected NAME=NUMBER")
+    return name, _num(value)
+
+
+def _levels(text: str) -> dict[str, int]:
+    out = {}
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        if not sep or not name or not value.isdigit() or int(value) < 1:
+            raise argparse.ArgumentTypeError(f"{item!r}: expected FACTOR=LEVEL with LEVEL 1, 2, 3...")
+        out[name.strip()] = int(value)
+    return out
+
+
+def _t(t: float | None) -> str:
+    return "-" if t is None else dt.datetime.fromtimestamp(t).strftime("%m-%d %H:%M:%S")
+
+
+def _f(v, fmt: str = ".3g") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("parts", help="workpieces with their in-process and inspection records",
+                       description="Workpieces the daemon tracked, newest last: cutting conditions, the "
+                                   "largest chatter index and alarms during the cut, the compensation "
+                                   "applied, and the post-process inspection joined to each.")
+    p.add_argument("--abnormal", action="store_true", help="only parts cut under abnormal vibration")
+    p.add_argument("--queue", action="store_true", help="only parts waiting for sampling inspection")
+    p.add_argument("--limit", type=int, default=100)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_parts)
+
+    p = sub.add_parser("inspect", help="record a part's post-process inspection",
+                       description="Record the post-process measurement of a part (the second of the "
+                                   "two-time quality detection). PART is the number shown by "
+                                   "`lathectl parts` or a unique prefix of its uuid.")
+    p.add_argument("part", metavar="PART")
+    p.add_argument("--ra", type=_num, metavar="UM", help="surface roughness Ra, µm")
+    p.add_argument("--diameter-error", type=_num, metavar="UM", help="diameter error, µm (signed)")
+    p.add_argument("--value", type=_pair, action="append", default=[], metavar="NAME=V",
+                   help="another measured value (repeatable)")
+    p.add_argument("--by", metavar="WHO", help="inspector")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("experiment", help="record and list Taguchi experiment trials",
+                       description="Trials of a designed experiment (e.g. an L9 orthogonal array over "
+                                   "speed, feed and depth of cut) per tool holder and material; "
+                                   "`lathectl recommend` analyses them.")
+    esub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    a = esub.add_parser("add", help="record one trial (repeat a run's levels for replicates)",
+                        description="Example, run 4 of an L9 over speed, feed, depth: lathectl experiment add "
+                                    "--tool T0101 --material C45 --run 4 --levels speed=2,feed=1,depth=2 "
+                                    "--setting speed=2000 --setting feed=0.1 --setting depth=1.0 "
+                                    "--ra 1.8 --diameter-error -6 --removal-rate 1885")
+    a.add_argument("--tool", help="tool holder (default: the records analyzer's tool)")
+    a.add_argument("--material", help="work material (default: the records analyzer's material)")
+    a.add_argument("--run", type=int, help="run number in the array (for reference)")
+    a.add_argument("--levels", type=_levels, required=True, metavar="F=L,...",
+                   help="level number of every factor, e.g. speed=1,feed=2,depth=3")
+    a.add_argument("--setting", type=_pair, action="append", default=[], metavar="F=VALUE",
+                   help="the physical value of a factor's level (repeatable), shown with recommendations")
+    a.add_argument("--ra", type=_num, metavar="UM", help="measured Ra, µm (surface)")
+    a.add_argument("--diameter-error", type=_num, metavar="UM", help="measured diameter error, µm (precision)")
+    a.add_argument("--removal-rate", type=_num, metavar="MM3_MIN", help="material removal rate (efficiency)")
+    a.set_defaults(func=cmd_experiment_add)
+    ls = esub.add_parser("list", help="the trials recorded for a tool holder and material")
+    ls.add_argument("--tool")
+    ls.add_argument("--material")
+    ls.add_argument("--json", action="store_true")
+    ls.set_defaults(func=cmd_experiment_list)
+
+    p = sub.add_parser("recommend", help="cutting parameters from Taguchi experiments",
+                       description="Recommended factor levels for best precision (smaller-the-better "
+                                   "|diameter error|), best surface (smaller-the-better Ra) and best "
+                                   "efficiency (larger-the-better removal rate), from the main effects "
+                                   "of the S/N ratios of the recorded trials.")
+    p.add_argument("--tool", required=True)
+    p.add_argument("--material", required=True)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_recommend)
+
+    p = sub.add_parser("export", help="export records as CSV")
+    p.add_argument("what", choices=("events", "parts", "inspections", "experiments"))
+    p.add_argument("--out", metavar="FILE.csv", help="write here instead of standard output")
+    p.add_argument("--limit", type=int, default=100_000)
+    p.set_defaults(func=cmd_export)
+
+
+def cmd_parts(args: argparse.Namespace) -> int:
+    rows = remote(args, "parts", {"abnormal": args.abnormal, "pending": args.queue, "limit": args.limit})
+    if args.json:
+        print_json(rows)
+        return 0
+    if not rows:
+        print("(no parts)")
+        return 0
+    print(f"{'part':>5} {'no':>5} {'prog':>5} {'ended':<14} {'outcome':<8} {'r/min':>6} {'depth':>5} "
+          f"{'chatter':>8} {'alarms':>6} {'comp µm':>7}  {'Ra µm':>6} {'dD µm':>6}  state")
+    for r in rows:
+        if r["inspected_t"] is not None:
+            state = f"inspected {_t(r['inspected_t'])}" + (f" by {r['inspector']}" if r["inspector"] else "")
+        elif r["queued_t"] is not None:
+            state = "QUEUED for sampling inspection"
+        else:
+            state = "-"
+        if r["abnormal"]:
+            state = f"ABNORMAL: {r['reason']}; {state}"
+        print(f"{r['id']:>5} {_f(r['part_no'], 'd'):>5} {_f(r['program'], 'd'):>5} {_t(r['end_t']):<14} "
+              f"{r['outcome']:<8} {_f(r['rpm'], '.0f'):>6} {_f(r['depth_mm'], '.2g'):>5} "
+              f"{_f(r['max_chatter_index']):>8} {r['chatter_alarms']:>6} {_f(r['compensation_um'], '.1f'):>7}  "
+              f"{_f(r['ra_um'], '.2f'):>6} {_f(r['diameter_error_um'], '.1f'):>6}  {state}")
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    values = dict(args.value)
+    part = remote(args, "inspect", {"part": args.part, "ra_um": args.ra, "diameter_error_um": args.diameter_error,
+                                    "values": values, "by": args.by})
+    if args.json:
+        print_json(part)
+    else:
+        print(f"part {part['id']} ({part['uuid'][:8]}): Ra {_f(part['ra_um'], '.2f')} µm, "
+              f"diameter error {_f(part['diameter_error_um'], '.1f')} µm recorded"
+              + (" (was queued for sampling inspection)" if part["queued_t"] else ""))
+    return 0
+
+
+def cmd_experiment_add(args: argparse.Namespace) -> int:
+    settings = dict(args.setting)
+    unknown = set(settings) - set(args.levels)
+    if unknown:
+        print(f"lathectl: --setting for {', '.join(sorted(unknown))}, which --levels does not name",
+              file=sys.stderr)
+        return 2
+    res = remote(args, "experiment_add", {"tool": args.tool, "material": args.material, "run": args.run,
+                                          "levels": args.levels, "settings": settings, "ra_um": args.ra,
+                                          "diameter_error_um": args.diameter_error,
+                                          "removal_rate": args.removal_rate})
+    print(f"trial {res['id']} recorded")
+    return 0
+
+
+def cmd_experiment_list(args: argparse.Namespace) -> int:
+    rows = remote(args, "experiments", {"tool": args.tool, "material": args.material})
+    if args.json:
+        print_json(rows)
+        return 0
+    for r in rows:
+        lv = ",".join(f"{k}={v}" for k, v in sorted(r["levels"].items()))
+        print(f"{r['id']:>5} run {_f(r['run'], 'd'):>3} {lv:<30} Ra {_f(r['ra_um'])} dD {_f(r['diameter_error_um'])} "
+              f"MRR {_f(r['removal_rate'])}")
+    if not rows:
+        print("(no trials)")
+    return 0
+
+
+def cmd_recommend(args: argparse.Namespace) -> int:
+    rec = remote(args, "recommend", {"tool": args.tool, "material": args.material})
+    if args.json:
+        print_json(rec)
+        return 0
+    print(f"tool {rec['tool']}, material {rec['material']}: {rec['trials']} trials, factors "
+          f"{', '.join(rec['factors'])}")
+    for obj, res in rec["objectives"].items():
+        if res is None:
+            print(f"best {obj}: no trials measured it")
+            continue
+        parts = []
+        for f in rec["factors"]:
+            lv = "/".join(str(x) for x in res["best"][f])
+            vals = [v for v in res["best_settings"][f] if v is not None]
+            parts.append(f"{f}={lv}" + (f" ({'/'.join(map(str, vals))})" if vals else ""))
+        note = "" if res["balanced"] else "  [unbalanced: some runs missing]"
+        print(f"best {obj:<10} {'  '.join(parts)}   ({res['sn']} {res['response']}, "
+              f"{res['runs']} runs; influence: {' > '.join(res['rank'])}){note}")
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    rows = remote(args, "export", {"what": args.what, "limit": args.limit})
+    try:
+        out = open(args.out, "w", newline="", encoding="utf-8") if args.out else sys.stdout
+    except OSError as e:
+        print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
+        return EX_CANTCREAT
+    try:
+        fields = list(rows[0]) if rows else []
+        w = csv.DictWriter(out, fieldnames=fields)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
+    finally:
+        if args.out:
+            out.close()
+    if args.out:
+        print(f"{len(rows)} {args.what} written to {args.out}", file=sys.stderr)
+    return 0
