@@ -21,6 +21,7 @@ of the amplitude, which is what sharpens chatter against a stable cut.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -81,17 +82,21 @@ class ChaosSyncDetector(RevolutionDetector):
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
         e = self._error(start, end)
-        rms = float(np.sqrt(np.mean(e * e))) or 1e-300
+        rms = math.sqrt(float(e @ e) / len(e)) or 1e-300
         if self.sigma is None:
             # still learning: normalise by what has been seen so far
             self._sig_learn.append(rms)
             sigma = float(np.median(self._sig_learn))
         else:
             sigma = self.sigma
-        phi = lorenz_features(e / sigma, self.params["a"], self.params["b"], self.params["c"])
-        r = eye_radius(phi[:, 0], phi[:, 1])
-        step = max(1, len(phi) // int(self.params["eye_points"]))
-        pts = (phi[::step, 0].copy(), phi[::step, 1].copy())
+        # phi1, phi2 of lorenz_features written out: the eye needs only these two
+        s = e * (1.0 / sigma)
+        e1, e2, e3 = s[:-2], s[1:-1], s[2:]
+        phi1 = self.params["a"] * (e2 - e1)
+        phi2 = self.params["b"] * e1 - e2 - e1 * e3
+        r = math.sqrt((float(phi1 @ phi1) + float(phi2 @ phi2)) / len(phi1))
+        step = max(1, len(phi1) // int(self.params["eye_points"]))
+        pts = (phi1[::step].copy(), phi2[::step].copy())
         t_s = (self._total - (self._n - end)) / self.rate
         self.eye.append((t_s, *pts))
         if self.sigma is None and self.eye_baseline is None:
