@@ -342,8 +342,9 @@ class DriftTerm:
 class Candidate(Protocol):
     """An effect the model may lack. ``propose`` yields the terms to try
     (typically one per sensor and parameter value); ``make_term`` rebuilds a
-    term from a saved model's ``sensor`` and ``params``. Supplied by plugins
-    through the ``lathed_thermal_candidates`` hook."""
+    term from a saved model's ``sensor`` and ``params``. Optionally
+    ``refine(term) -> list[Term]`` gives a finer grid around the best one.
+    Supplied by plugins through the ``lathed_thermal_candidates`` hook."""
     name: str
 
     def propose(self, data: ThermalData) -> Iterable[Term]: ...
@@ -362,6 +363,11 @@ class LagCandidate:
 
     def propose(self, data):
         return [LagTerm(s, tau) for s in data.sensors for tau in self.taus_s]
+
+    def refine(self, term: LagTerm) -> list[LagTerm]:
+        """A finer grid between the coarse neighbours of the best time constant."""
+        step = self.taus_s[1] / self.taus_s[0]
+        return [LagTerm(term.sensor, float(t)) for t in np.geomspace(term.tau_s / step, term.tau_s * step, 9)]
 
     def make_term(self, sensor, params):
         return LagTerm(sensor, float(params["tau_s"]))
@@ -410,6 +416,11 @@ class HysteresisCandidate:
             span = np.ptp(data.rise(s))
             out += [HysteresisTerm(s, w) for w in self.widths_c if w < span / 2]
         return out
+
+    def refine(self, term: HysteresisTerm) -> list[HysteresisTerm]:
+        step = self.widths_c[1] / self.widths_c[0]
+        return [HysteresisTerm(term.sensor, float(w))
+                for w in np.geomspace(term.width_c / step, term.width_c * step, 7)]
 
     def make_term(self, sensor, params):
         return HysteresisTerm(sensor, float(params["width_c"]))
@@ -812,23 +823,34 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
         X = _design(train, stage.model.terms)
         have = {(t.effect, t.sensor) for t in stage.model.terms}
         best = None
+
+        def consider(term, cand):
+            nonlocal best
+            if (term.effect, term.sensor) in have:
+                return
+            if test is not None and (term.sensor and term.sensor not in test.temps_c
+                                     or isinstance(term, SpeedTerm) and test.rpm is None):
+                return       # could not be evaluated on the test run
+            F = np.asarray(term.features(train), float).reshape(len(train), -1)
+            if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
+                return
+            e = heldout_errors(np.hstack([X, F]), y, n_blocks, gap)
+            r = rmse(e)
+            if best is None or r < best[0]:
+                best = (r, term, e, cand)
+
         for cand in cands:
             for term in cand.propose(train):
-                if (term.effect, term.sensor) in have:
-                    continue
-                if test is not None and (term.sensor and term.sensor not in test.temps_c
-                                         or isinstance(term, SpeedTerm) and test.rpm is None):
-                    continue     # could not be evaluated on the test run
-                F = np.asarray(term.features(train), float).reshape(len(train), -1)
-                if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
-                    continue
-                e = heldout_errors(np.hstack([X, F]), y, n_blocks, gap)
-                r = rmse(e)
-                if best is None or r < best[0]:
-                    best = (r, term, e)
+                consider(term, cand)
         if best is None:
             break
-        r, term, e = best
+        # A parameter on a coarse grid leaves a misfit that a second, spurious
+        # term would soak up: refine it where the candidate knows how.
+        refine = getattr(best[3], "refine", None)
+        if refine is not None:
+            for term in refine(best[1]):
+                consider(term, best[3])
+        r, term, e, _ = best
         gain = 1.0 - r / rmse(e_cur)
         z = improvement_z(e_cur, e)
         if gain < min_gain or z < min_z:
