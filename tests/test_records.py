@@ -1,0 +1,129 @@
+"""The workpiece tracker and the part queries, with synthetic samples."""
+from __future__ import annotations
+
+import asyncio
+
+from lathed import records
+from lathed.records import PartTracker
+from lathed.store import Store
+
+
+class Feed:
+    """Samples in bus order with a clock, as the lathe driver and analyzers publish them."""
+
+    def __init__(self, tracker: PartTracker):
+        self.tr, self.t, self.done = tracker, 1000.0, []
+
+    def lathe(self, **values):
+        self.t += 0.1
+        for q, v in values.items():
+            self.done += self.tr.feed_sample("lathe", q, v, self.t)
+
+    def chatter(self, index, alarm, threshold=1.0, hz=312.0):
+        for q, v in (("chatter_threshold", threshold), ("chatter_index", index),
+                     ("chatter_frequency_hz", hz), ("chatter_alarm", alarm)):
+            self.done += self.tr.feed_sample("chatter", q, v, self.t)
+
+    def cut(self, depth, rpm, index, alarm=0.0):
+        self.lathe(spindle_rpm=rpm, feed_mm_rev=0.3, depth_of_cut_mm=0.0)
+        for _ in range(3):
+            self.lathe(spindle_rpm=rpm, feed_mm_rev=0.3, depth_of_cut_mm=depth)
+            self.chatter(index, alarm)
+        self.chatter(0.1, 0.0)
+        self.lathe(depth_of_cut_mm=0.0)
+
+
+def tracker():
+    return PartTracker("lathe", "chatter", "thermal", "T0101", "C45")
+
+
+def test_parts_split_on_the_counter_and_chatter_flags_abnormal():
+    f = Feed(tracker())
+    f.lathe(part_count=7, program_state=1, program_number=1000)
+    f.cut(1.0, 1500, 0.2)                   # the part in progress when tracking began
+    f.lathe(part_count=8)
+    f.cut(3.0, 2500, 2.7, alarm=1.0)        # chatters
+    f.tr.feed_sample("thermal", "compensation_um", -12.5, f.t)
+    f.lathe(part_count=9)
+    f.cut(1.0, 2000, 0.3)
+    f.lathe(part_count=10)
+    assert [p.part_no for p in f.done] == [8, 9, 10]
+    first, chat, calm = f.done
+    assert first.outcome == "partial" and not first.abnormal
+    assert chat.outcome == "finished" and chat.abnormal and chat.chatter_alarms == 1
+    assert chat.max_chatter_index == 2.7 and chat.chatter_threshold == 1.0 and chat.chatter_frequency_hz == 312.0
+    assert chat.rpm == 2500 and chat.depth_mm == 3.0 and chat.feed_mm_rev == 0.3 and chat.program == 1000
+    assert chat.compensation_um == -12.5 and calm.compensation_um == -12.5   # the offset stays applied
+    assert "chatter alarm" in chat.row()["reason"] and chat.row()["abnormal"] == 1
+    assert not calm.abnormal and calm.row()["reason"] is None and calm.tool == "T0101"
+
+
+def test_index_over_threshold_without_alarm_is_abnormal_too():
+    f = Feed(tracker())
+    f.lathe(part_count=0, program_state=1)
+    f.lathe(part_count=1)
+    f.cut(2.0, 2000, 1.4, alarm=0.0)
+    f.lathe(part_count=2)
+    partial, p = f.done
+    assert partial.outcome == "partial" and not partial.abnormal
+    assert p.abnormal and "reached the threshold" in p.row()["reason"]
+
+
+def test_program_stop_aborts_a_part_that_cut_and_drops_one_that_did_not():
+    f = Feed(tracker())
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=0)                 # operator stopped mid-part
+    f.lathe(program_state=1)                 # restarted
+    f.lathe(program_state=0)                 # stopped again before cutting
+    f.lathe(program_state=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=5)
+    assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("aborted", None), ("finished", 5)]
+
+
+def test_machine_alarm_during_a_part_flags_it():
+    f = Feed(tracker())
+    f.lathe(part_count=0, program_state=1)
+    f.lathe(part_count=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=2)
+    f.lathe(program_state=1)
+    f.lathe(part_count=2)
+    assert f.done[-1].abnormal and "machine alarm" in f.done[-1].row()["reason"]
+
+
+def test_parts_join_their_inspection_and_leave_the_queue(tmp_path):
+    store = Store(tmp_path / "r.db", machine_id="cell")
+    f = Feed(tracker())
+    f.lathe(part_count=0, program_state=1)
+    f.lathe(part_count=1)
+    f.cut(3.0, 2500, 2.5, alarm=1.0)
+    f.lathe(part_count=2)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=3)
+
+    async def write():
+        for p in f.done:
+            row = p.row()
+            await store.add("workpieces", {"uuid": f"u{p.part_no}", **row})
+            if p.abnormal:
+                await store.add("sampling_queue", {"t": p.end_t, "part_uuid": f"u{p.part_no}",
+                                                   "reason": row["reason"]})
+    asyncio.run(write())
+    q = store.query
+    assert [r["part_no"] for r in records.parts(q, abnormal=True)] == [2]
+    assert [r["part_no"] for r in records.parts(q, pending=True)] == [2]
+    part = records.find_part(q, "u2")
+    asyncio.run(store.add("inspections", {"t": 1.0, "part_uuid": part["uuid"], "ra_um": 4.5,
+                                          "diameter_error_um": -32.0, "measured": {"roundness_um": 4},
+                                          "inspector": "anna"}))
+    assert records.parts(q, pending=True) == []
+    joined = records.find_part(q, str(part["id"]))
+    assert (joined["ra_um"], joined["diameter_error_um"], joined["measured"], joined["inspector"]) == \
+        (4.5, -32.0, {"roundness_um": 4}, "anna")
+    assert joined["max_chatter_index"] == 2.5 and joined["queued_t"] is not None
+    assert records.find_part(q, "u") is None          # ambiguous prefix
+    assert [r["part_no"] for r in records.parts(q)] == [1, 2, 3]
+    store.close()
