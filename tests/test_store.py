@@ -1,0 +1,94 @@
+"""The embedded store: migrations, record identity, outbox, views."""
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+
+import pytest
+
+from lathed import store as storemod
+from lathed.store import FORWARDED, MIGRATIONS, Store
+
+
+def test_migrations_are_appended_in_order_and_rerun_is_a_no_op(tmp_path):
+    versions = [v for v, _ in MIGRATIONS]
+    assert versions == list(range(1, len(versions) + 1))
+    s = Store(tmp_path / "a.db")
+    s.close()
+    again = Store(tmp_path / "a.db")
+    assert again.schema_version == versions[-1]
+    again.close()
+
+
+def test_version_1_database_is_upgraded_and_its_events_will_be_forwarded(tmp_path):
+    con = sqlite3.connect(tmp_path / "old.db", isolation_level=None)
+    con.executescript(MIGRATIONS[0][1] + "PRAGMA user_version=1;")
+    con.execute("INSERT INTO events(uuid, t, source, kind, payload) VALUES ('u-old', 1.0, 'x', 'k', '{}')")
+    con.close()
+    s = Store(tmp_path / "old.db", machine_id="cell-9")
+    assert s.schema_version == MIGRATIONS[-1][0]
+    ((_, tbl, row),) = s.pending("central", 10)
+    assert (tbl, row["uuid"], row["machine_id"]) == ("events", "u-old", "cell-9")
+    s.close()
+
+
+def test_statement_splitter_keeps_trigger_bodies_whole():
+    stmts = storemod.statements("CREATE TABLE a(x);\nCREATE TRIGGER t AFTER INSERT ON a\n"
+                                "BEGIN INSERT INTO a VALUES (1); INSERT INTO a VALUES (2); END;\n")
+    assert len(stmts) == 2 and stmts[1].endswith("END;")
+    with pytest.raises(ValueError, match="incomplete"):
+        storemod.statements("CREATE TABLE a(x)")
+
+
+def test_every_record_has_uuid_identity_and_an_outbox_entry_in_commit_order(tmp_path):
+    s = Store(tmp_path / "a.db", machine_id="cell-1")
+
+    async def main():
+        await s.record("chatter_alarm", "chatter", {"machine": "lathe", "index": 2.5, "threshold": 1.0,
+                                                    "chatter_frequency_hz": 312.0, "rpm": 2500.0,
+                                                    "depth_mm": 3.0, "tool": "T0101", "material": "C45"})
+        await s.record("suppression_action", "sss", {"strategy": "sss", "rpm_before": 2500.0,
+                                                     "rpm_after": 750.0, "sent": True})
+        await s.record("compensation", "thermal", {"predicted_um": 12.0, "offset_um": -12.0, "model": "mlr"})
+        await s.add("workpieces", {"machine": "lathe", "start_t": 1.0, "end_t": 2.0, "outcome": "finished",
+                                   "chatter_alarms": 0, "abnormal": 0})
+        await s.add("inspections", {"t": 1.0, "part_uuid": "p", "measured": {"ovality_um": 2.0}})
+    asyncio.run(main())
+
+    pending = s.pending("x", 100)
+    assert [tbl for _, tbl, _ in pending] == ["events"] * 3 + ["workpieces", "inspections"]
+    assert [oid for oid, _, _ in pending] == sorted(oid for oid, _, _ in pending)
+    assert all(r["machine_id"] == "cell-1" and len(r["uuid"]) == 36 for _, _, r in pending)
+    assert len({r["uuid"] for _, _, r in pending}) == 5
+
+    (c,) = s.query("SELECT * FROM chatter_events")
+    assert (c["chatter_index"], c["threshold"], c["chatter_frequency_hz"], c["rpm"], c["depth_mm"],
+            c["tool"], c["material"], c["machine"]) == (2.5, 1.0, 312.0, 2500.0, 3.0, "T0101", "C45", "lathe")
+    (a,) = s.query("SELECT * FROM suppression_actions")
+    assert (a["rpm_before"], a["rpm_after"], a["sent"]) == (2500.0, 750.0, 1)
+    (k,) = s.query("SELECT * FROM compensations")
+    assert (k["predicted_um"], k["offset_um"], k["model"]) == (12.0, -12.0, "mlr")
+
+    assert s.backlog("x") == 5
+    s.set_progress("x", pending[2][0]).result(5)
+    assert s.backlog("x") == 2 and [t for _, t, _ in s.pending("x", 100)] == ["workpieces", "inspections"]
+    assert s.backlog("other") == 5     # each sink keeps its own progress
+    s.close()
+
+
+def test_insert_refuses_non_record_tables_and_bad_rows_do_not_sink_the_batch(tmp_path):
+    s = Store(tmp_path / "a.db")
+    with pytest.raises(ValueError, match="not a record table"):
+        s.insert("outbox", {"tbl": "x"})
+    bad = s.insert("sampling_queue", {"t": 1.0, "part_uuid": "p"})          # reason is NOT NULL
+    good = s.insert("sampling_queue", {"t": 1.0, "part_uuid": "q", "reason": "chatter"})
+    with pytest.raises(sqlite3.IntegrityError):
+        bad.result(5)
+    assert good.result(5) >= 1
+    dup = s.insert("sampling_queue", {"t": 2.0, "part_uuid": "q", "reason": "again"})  # queued once only
+    with pytest.raises(sqlite3.IntegrityError):
+        dup.result(5)
+    assert set(FORWARDED) == {r["row_tbl"] for r in s.query(
+        "SELECT DISTINCT substr(name, 1, length(name) - 7) AS row_tbl FROM sqlite_master "
+        "WHERE type = 'trigger' AND name LIKE '%_outbox'")}
+    s.close()
