@@ -193,7 +193,8 @@ class RevolutionDetector:
         x = np.asarray(block, dtype=float).ravel()
         spr = self.rate * 60.0 / rpm
         if self._rpm is not None and abs(rpm - self._rpm) > 0.002 * self._rpm:
-            self._settle_until = self._total + len(x) + int(self.params["settle_revs"] * spr)
+            # the block is at the new speed from its first sample
+            self._settle_until = self._total + int(self.params["settle_revs"] * spr)
         if self._rpm is None or rpm != self._rpm:
             self._since_idx = self._n   # buffer index of the first sample at this speed
         self._rpm = rpm
