@@ -157,11 +157,12 @@ def check_line(d: Daemon) -> None:
     assert robot["gripper"]["value"] in ("open", "closed", "moving")
     table = d.ctl("machines").stdout
     assert all(n in table for n in ("lathe", "mill", "grinder", "robot")) and "?" not in table
-    sim_call(d.paths["sim"], "outage", {"peer": "robot", "seconds": 3})
+    sim_call(d.paths["sim"], "outage", {"peer": "robot", "seconds": 6})
     r = wait_until(lambda: (m := machines()[3])["model"]["state"] == "disconnected" and m, timeout=5,
                    what="robot shown disconnected")
     assert r["model"]["axes"]["j1"]["stale"] and r["spindle_rpm"] is None
-    assert "?" in d.ctl("machines").stdout
+    robot_line = next(x for x in d.ctl("machines").stdout.splitlines() if x.startswith("robot"))
+    assert "disconnected" in robot_line and "?" in robot_line
     wait_until(lambda: machines()[3]["model"]["state"] == "running", timeout=8, what="robot back")
     sim_call(d.paths["sim"], "alarm", {"machine": "mill", "code": 1042})
     wait_until(lambda: machines()[1]["model"]["state"] == "alarm", timeout=5, what="mill alarm")
