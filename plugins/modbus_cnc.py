@@ -170,6 +170,7 @@ class ModbusCNC(Driver):
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
         self.model = MachineModel(self.kind, self.stale_after, self._record)
         self.polls = 0
+        self.reads: Counter = Counter()    # poll period -> reads of that group
         self.errors: Counter = Counter()
 
     def _record(self, kind: str, payload: dict) -> None:
@@ -254,6 +255,7 @@ class ModbusCNC(Driver):
                 now = time.monotonic()
                 if now >= due[p]:
                     await self._read_group(plan)
+                    self.reads[p] += 1
                     due[p] = max(due[p] + p, now)   # after a stall: no burst of catch-up reads
             await asyncio.sleep(max(0.0, min(due.values()) - time.monotonic()))
 
@@ -291,6 +293,7 @@ class ModbusCNC(Driver):
                   for n, (v, t) in self.values.items()}
         return {"spindle_rpm": self.model.live("spindle_rpm"), "machine_state": self.model.state(),
                 "model": self.model.snapshot(), "values": values, "polls": self.polls,
+                "reads_by_period_s": {f"{p:g}": n for p, n in sorted(self.reads.items())},
                 "link": {"transport": self.transport, "where": self.where, "errors": dict(self.errors)}}
 
 
