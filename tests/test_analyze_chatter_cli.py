@@ -152,3 +152,14 @@ def test_through_lathectl(files):
     r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "chatter",
                         str(d / "nothere.wav"), "--rpm", "2000"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 66 and r.stderr.startswith("lathectl: no such file")
+
+
+def test_csv_flat_tops_reported_as_clipping(tmp_path):
+    x = np.sin(np.linspace(0, 40 * np.pi, 4000)) * 1.5
+    x = np.clip(x, -1.0, 1.0)
+    f = tmp_path / "clip.csv"
+    np.savetxt(f, x)
+    sig = read_signal(f, rate_hz=RATE)
+    assert sig.clipped > 100 and sig.first_clip_s is not None
+    np.savetxt(f, np.sin(np.linspace(0, 40 * np.pi, 4001)))
+    assert read_signal(f, rate_hz=RATE).clipped == 0

@@ -186,7 +186,24 @@ def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Sign
             notes.append(f"--rate {rate_hz:g} ignored: time_s gives {rate:g} Hz")
     else:
         rate = float(rate_hz)
-    return Signal(x, rate, src, len(sig_cols), notes=notes)
+    return _with_clips(Signal(x, rate, src, len(sig_cols), notes=notes), _flat_tops(x))
+
+
+def _flat_tops(x: np.ndarray, run: int = 3) -> np.ndarray:
+    """Samples in runs of >= ``run`` equal values at the recording's max or min:
+    what a saturated converter leaves when the full scale is not known (CSV)."""
+    fin = np.isfinite(x)
+    if not fin.any():
+        return np.zeros(len(x), dtype=bool)
+    hi, lo = np.max(x[fin]), np.min(x[fin])
+    at = (x == hi) | (x == lo)
+    if at.sum() < run:
+        return np.zeros(len(x), dtype=bool)
+    edges = np.flatnonzero(np.r_[True, x[1:] != x[:-1], True])
+    starts, lengths = edges[:-1], np.diff(edges)
+    keep = at[starts] & (lengths >= run)
+    return np.repeat(keep, lengths)
+
 
 
 def _is_number(s: str) -> bool:
