@@ -205,7 +205,6 @@ def _flat_tops(x: np.ndarray, run: int = 3) -> np.ndarray:
     return np.repeat(keep, lengths)
 
 
-
 def _is_number(s: str) -> bool:
     try:
         float(s)
