@@ -31,10 +31,17 @@ from lathed.analysis.detectors import RevolutionDetector
 from lathed.analysis.fracdiff import gl_weights
 
 
+def eye_features(e: np.ndarray, a: float = 10.0, b: float = 28.0) -> tuple[np.ndarray, np.ndarray]:
+    """(phi1, phi2), the chaos-eye coordinates, from a normalised error sequence."""
+    e1, e2, e3 = e[:-2], e[1:-1], e[2:]
+    return a * (e2 - e1), b * e1 - e2 - e1 * e3
+
+
 def lorenz_features(e: np.ndarray, a: float = 10.0, b: float = 28.0, c: float = 8.0 / 3.0) -> np.ndarray:
     """phi (n-2, 3) from a normalised error sequence: e_i are three consecutive samples."""
+    phi1, phi2 = eye_features(e, a, b)
     e1, e2, e3 = e[:-2], e[1:-1], e[2:]
-    return np.stack([-a * e1 + a * e2, b * e1 - e2 - e1 * e3, -c * e3 + e1 * e2], axis=1)
+    return np.stack([phi1, phi2, -c * e3 + e1 * e2], axis=1)
 
 
 def eye_radius(phi1: np.ndarray, phi2: np.ndarray) -> float:
@@ -89,11 +96,8 @@ class ChaosSyncDetector(RevolutionDetector):
             sigma = float(np.median(self._sig_learn))
         else:
             sigma = self.sigma
-        # phi1, phi2 of lorenz_features written out: the eye needs only these two
-        s = e * (1.0 / sigma)
-        e1, e2, e3 = s[:-2], s[1:-1], s[2:]
-        phi1 = self.params["a"] * (e2 - e1)
-        phi2 = self.params["b"] * e1 - e2 - e1 * e3
+        # the eye needs only phi1, phi2 (phi3 is not computed)
+        phi1, phi2 = eye_features(e * (1.0 / sigma), self.params["a"], self.params["b"])
         r = math.sqrt((float(phi1 @ phi1) + float(phi2 @ phi2)) / len(phi1))
         step = max(1, len(phi1) // int(self.params["eye_points"]))
         pts = (phi1[::step].copy(), phi2[::step].copy())

@@ -31,7 +31,6 @@ the tests share it.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
