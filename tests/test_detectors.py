@@ -114,3 +114,12 @@ def test_no_alarm_on_traps(trap, name):
 def test_bad_rpm():
     with pytest.raises(ValueError, match="spindle speed"):
         SyncResidualDetector(RATE).process(np.zeros(10), 0.0)
+
+
+def test_too_slow_blocks_dropped_then_followed():
+    det = SyncResidualDetector(RATE)
+    assert 10 < det.min_rpm < 60
+    assert det.process(np.ones(4096), det.min_rpm / 2) == [] and det.too_slow
+    rng = np.random.default_rng(3)
+    wins = _run(det, rng.normal(0, 1, int(RATE)), 1800.0)
+    assert wins and not det.too_slow

@@ -107,6 +107,7 @@ class RevolutionDetector:
     # -- state --------------------------------------------------------------------
     def reset(self) -> None:
         """Forget the cut (history, alarm, learned baseline unless fixed by a reference)."""
+        self.too_slow = False
         self._n = 0                 # valid samples in the buffer
         self._total = 0             # samples seen since reset
         self._theta = 0.0
@@ -203,8 +204,14 @@ class RevolutionDetector:
         hop = int(max(p["hop_revs"] * spr, p["min_hop_s"] * self.rate))
         need = w_len + int(spr) + 2 + self._lead()
         if need > _HIST // 2:
-            raise ValueError(f"window of {w_len} samples plus one revolution at {rpm:g} r/min "
-                             f"exceeds the detector's history; raise the speed or shorten the window")
+            # too slow for a window plus a revolution of history (spindle
+            # spinning up or down): drop the stream, keep baseline and alarm
+            self.too_slow = True
+            self._n = 0
+            self._next_end = None
+            self._rpm = None
+            return []
+        self.too_slow = False
         self._append(x, rpm)
         if self._next_end is None:
             self._next_end = need
@@ -218,6 +225,12 @@ class RevolutionDetector:
             out.append(self._window(start, end, rpm))
             self._next_end += hop
         return out
+
+    @property
+    def min_rpm(self) -> float:
+        """Lowest speed this detector can follow (below it blocks are dropped)."""
+        p = self.params
+        return self.rate * 60.0 * (p["window_revs"] + 1.0) / (_HIST // 2 - self._lead() - 4)
 
     def _lead(self) -> int:
         """Extra samples before the window a subclass needs (filter warm-up)."""

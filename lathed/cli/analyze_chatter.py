@@ -102,6 +102,10 @@ def run(args, extra_detectors: dict | None = None) -> int:
     except ValueError as e:
         _err(f"{e} ({args.file})")
         return EX_DATAERR
+    if not wins and det.too_slow:
+        _err(f"spindle speed {args.rpm:g} r/min is below the lowest the {det.name} detector "
+             f"follows ({det.min_rpm:.0f} r/min at {sig.rate_hz:g} Hz) (--rpm)")
+        return EX_DATAERR
     if not wins:
         rev = 60.0 / args.rpm
         _err(f"recording is too short: {sig.duration_s:.3g} s holds no complete window at "
