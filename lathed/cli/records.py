@@ -34,6 +34,16 @@ def _pair(text: str) -> tuple[str, float]:
     return name, _num(value)
 
 
+def _setting(text: str) -> tuple[str, float | str]:
+    name, sep, value = text.partition("=")
+    if not sep or not name or not value:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FACTOR=VALUE")
+    try:
+        return name, _num(value)
+    except argparse.ArgumentTypeError:
+        return name, value          # a named level, e.g. a cleaning method or an insert grade
+
+
 def _levels(text: str) -> dict[str, int]:
     out = {}
     for item in text.split(","):
@@ -91,7 +101,7 @@ def register(sub) -> None:
     a.add_argument("--run", type=int, help="run number in the array (for reference)")
     a.add_argument("--levels", type=_levels, required=True, metavar="F=L,...",
                    help="level number of every factor, e.g. speed=1,feed=2,depth=3")
-    a.add_argument("--setting", type=_pair, action="append", default=[], metavar="F=VALUE",
+    a.add_argument("--setting", type=_setting, action="append", default=[], metavar="F=VALUE",
                    help="the physical value of a factor's level (repeatable), shown with recommendations")
     a.add_argument("--ra", type=_num, metavar="UM", help="measured Ra, µm (surface)")
     a.add_argument("--diameter-error", type=_num, metavar="UM", help="measured diameter error, µm (precision)")

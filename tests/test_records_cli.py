@@ -1,0 +1,135 @@
+"""lathectl parts / inspect / experiment / recommend / export against the daemon
+on the simulated lathe, with a stand-in chatter analyzer on the bus contract."""
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from lathed import lathectl
+from tests.conftest import Daemon, sim_config, wait_until
+from tests.test_taguchi import FACTORS, PHADKE_BEST, phadke_trials
+
+HERE = Path(__file__).resolve().parent
+
+ANALYZERS = """
+[analyzer.chatter]
+plugin = "fake_chatter"
+depth_mm = 2.0
+
+[analyzer.records]
+plugin = "records"
+machine = "lathe"
+chatter = "chatter"
+thermal = "thermal"
+tool = "T0101"
+material = "C45"
+"""
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    # one daemon for the module: the recommendation test runs while the lathe cuts parts
+    tmp_path = tmp_path_factory.mktemp("records_cli")
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    shutil.copy(HERE / "fake_chatter_plugin.py", plugins / "fake_chatter.py")
+    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS)
+    cfg.write_text(cfg.read_text().replace("[daemon]\n", f'[daemon]\nplugin_dirs = ["{plugins}"]\n', 1))
+    d = Daemon(cfg, paths["socket"])
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.stop()
+
+
+class Result:
+    def __init__(self, returncode: int, stdout: str, stderr: str):
+        self.returncode, self.stdout, self.stderr = returncode, stdout, stderr
+
+
+def ctl(d: Daemon, *args: str, check: bool = True) -> Result:
+    """lathectl in this process (a subprocess per call costs a second of imports)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = lathectl.main(["--socket", str(d.socket), *args])
+        except SystemExit as e:   # argparse errors
+            code = e.code
+    r = Result(code, out.getvalue(), err.getvalue())
+    if check and code != 0:
+        raise AssertionError(f"lathectl {' '.join(args)} exited {code}: {r.stderr.strip()}")
+    return r
+
+
+def _json(d: Daemon, *args: str):
+    return json.loads(ctl(d, *args, "--json").stdout)
+
+
+def test_recommend_reproduces_the_worked_example(daemon):
+    d = daemon
+    r = ctl(d, "recommend", "--tool", "T0101", "--material", "C45", check=False)
+    assert r.returncode == 1 and "no experiment records" in r.stderr
+    for run, trial in enumerate(phadke_trials("ra_um"), 1):
+        levels = ",".join(f"{f}={lv}" for f, lv in trial["levels"].items())
+        ctl(d, "experiment", "add", "--tool", "T0101", "--material", "C45", "--run", str(run),
+              "--levels", levels, "--setting", f"temperature={[0, 'T0-25C', 'T0', 'T0+25C'][trial['levels']['temperature']]}",
+              "--ra", repr(trial["ra_um"]))
+    assert len(_json(d, "experiment", "list", "--tool", "T0101", "--material", "C45")) == 9
+    rec = _json(d, "recommend", "--tool", "T0101", "--material", "C45")
+    surface = rec["objectives"]["surface"]
+    assert {f: surface["best"][f] for f in FACTORS} == PHADKE_BEST
+    assert surface["effects"]["temperature"] == pytest.approx({"1": -20.0, "2": -45.0, "3": -60.0})
+    assert surface["best_settings"]["temperature"] == ["T0-25C"]
+    text = ctl(d, "recommend", "--tool", "T0101", "--material", "C45").stdout
+    assert "best surface" in text and "temperature=1 (T0-25C)" in text and "cleaning=2/3" in text
+    bad = ctl(d, "experiment", "add", "--tool", "T0101", "--material", "C45", "--levels", "speed=1",
+                "--ra", "1", check=False)
+    assert bad.returncode == 1 and "use the factors" in bad.stderr
+
+
+def test_chattered_part_is_queued_inspected_and_joined(daemon, tmp_path):
+    d = daemon
+    # every third simulated part is cut 3 mm deep and chatters
+    abnormal = wait_until(lambda: _json(d, "parts", "--abnormal"), 90, interval=0.5,
+                          what="a part cut under chatter")
+    part = abnormal[0]
+    assert part["abnormal"] == 1 and part["depth_mm"] == pytest.approx(3.0)
+    assert part["chatter_alarms"] >= 1 and part["max_chatter_index"] > 1.0 and "chatter" in part["reason"]
+    assert part["machine_id"] == "test-cell" and part["tool"] == "T0101" and part["material"] == "C45"
+    assert part["id"] in [p["id"] for p in _json(d, "parts", "--queue")]
+    text = ctl(d, "parts", "--abnormal").stdout
+    assert "QUEUED for sampling inspection" in text
+
+    out = ctl(d, "inspect", str(part["id"]), "--ra", "4.49", "--diameter-error", "-32",
+                "--value", "roundness_um=3.5", "--by", "qa-anna").stdout
+    assert "recorded" in out
+    joined = next(p for p in _json(d, "parts") if p["id"] == part["id"])
+    assert (joined["ra_um"], joined["diameter_error_um"], joined["measured"], joined["inspector"]) == \
+        (4.49, -32.0, {"roundness_um": 3.5}, "qa-anna")
+    assert joined["max_chatter_index"] == part["max_chatter_index"]      # both records, one row
+    assert part["id"] not in [p["id"] for p in _json(d, "parts", "--queue")]
+    assert "inspected" in ctl(d, "parts").stdout
+
+    r = ctl(d, "inspect", "99999", "--ra", "1", check=False)
+    assert r.returncode == 1 and r.stderr.count("\n") == 1 and "no part '99999'" in r.stderr
+
+    out_csv = tmp_path / "parts.csv"
+    ctl(d, "export", "parts", "--out", str(out_csv))
+    rows = list(csv.DictReader(out_csv.open()))
+    row = next(r for r in rows if r["id"] == str(part["id"]))
+    assert row["ra_um"] == "4.49" and json.loads(row["measured"]) == {"roundness_um": 3.5}
+    events = ctl(d, "export", "events").stdout.splitlines()
+    assert events[0].startswith("id,uuid,machine_id,t,source,kind,payload")
+    assert any(",part_abnormal," in ln for ln in events) and any(",chatter_alarm," in ln for ln in events)
+
+
+def test_no_daemon_exits_69(tmp_path):
+    from lathed.lathectl import main
+    assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69
