@@ -27,8 +27,15 @@ Built-in detectors (``DETECTORS``):
                      detector (lathed.analysis.chaos_sync).
 
 Parameters (``make_detector(name, rate_hz, **params)``), with allowed ranges,
-are listed in each class's ``PARAMS``: ``describe_params(name)`` prints them.
-No asyncio and no pluggy here: plugin detectors arrive as the ``extra`` dict.
+are listed in ``BASE_PARAMS`` and each class's ``PARAMS``:
+``describe_params(name)`` returns name -> (default, min, max, meaning).
+
+Use in a daemon: one detector per channel; call ``reset()`` when a cut
+starts (the baseline is learned from the first windows after it, so feeding
+air-cutting first would make the cut itself look like chatter), feed blocks
+with the current speed, read ``Window``s.  Blocks below ``min_rpm`` are
+dropped (``too_slow``); rpm <= 0 is a ValueError.  No asyncio and no pluggy
+here: plugin detectors arrive as the ``extra`` dict.
 """
 from __future__ import annotations
 
