@@ -268,45 +268,66 @@ class Store:
                 pass
             self.failed += len(batch)
             self.last_error = str(e)
-            for _, _, fut in batch:
-                fut.set_exception(e)
-            return
+            results = [(fut, None, e) for _, _, fut in batch]
+        else:
+            for _, _, err in results:
+                if err is None:
+                    self.written += 1
+                else:
+                    self.failed += 1
+                    self.last_error = str(err)
+        # Event-loop futures are settled with one wake-up of their loop per
+        # batch, not one per record: at thousands of records a second the
+        # per-record wake-ups are what would delay the loop.
+        by_loop: dict[asyncio.AbstractEventLoop, list] = {}
         for fut, rowid, err in results:
-            if err is None:
-                self.written += 1
+            if isinstance(fut, asyncio.Future):
+                by_loop.setdefault(fut.get_loop(), []).append((fut, rowid, err))
+            elif err is None:
                 fut.set_result(rowid)
             else:
-                self.failed += 1
-                self.last_error = str(err)
                 fut.set_exception(err)
+        for loop, items in by_loop.items():
+            try:
+                loop.call_soon_threadsafe(_settle, items)
+            except RuntimeError:   # that loop has closed: nobody is waiting any more
+                pass
+
+    def _submit_async(self, sql: str, params: tuple) -> asyncio.Future:
+        fut = asyncio.get_running_loop().create_future()
+        self._q.put((sql, params, fut))
+        return fut
 
     async def record(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                      t: float | None = None) -> int:
         """Record an event; returns its id once durably committed."""
-        return await asyncio.wrap_future(self.record_future(kind, source, payload, t))
+        return await self._submit_async(*self._event(kind, source, payload, t))
 
     def record_future(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                       t: float | None = None) -> Future:
+        return self.submit(*self._event(kind, source, payload, t))
+
+    def _event(self, kind: str, source: str, payload: dict[str, Any] | None, t: float | None) -> tuple[str, tuple]:
         body = json.dumps(payload or {}, default=_json_default)
-        return self.submit(
-            "INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)",
-            (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
+        return ("INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)",
+                (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
 
     def insert(self, table: str, row: dict[str, Any]) -> Future:
         """Insert a record row; uuid and machine_id are filled in unless given,
         JSON columns are serialised. The future resolves to the row id."""
+        return self.submit(*self._row(table, row))
+
+    def _row(self, table: str, row: dict[str, Any]) -> tuple[str, tuple]:
         if table not in FORWARDED:
             raise ValueError(f"{table!r} is not a record table; record tables: {', '.join(FORWARDED)}")
         row = {"uuid": str(uuidlib.uuid4()), "machine_id": self.machine_id, **row}
         for k in JSON_COLUMNS & row.keys():
             row[k] = json.dumps(row[k], default=_json_default)
-        cols = ", ".join(row)
-        return self.submit(f"INSERT INTO {table}({cols}) VALUES ({', '.join('?' * len(row))})",
-                           tuple(row.values()))
+        return f"INSERT INTO {table}({', '.join(row)}) VALUES ({', '.join('?' * len(row))})", tuple(row.values())
 
     async def add(self, table: str, row: dict[str, Any]) -> int:
         """Insert a record row; returns its id once durably committed."""
-        return await asyncio.wrap_future(self.insert(table, row))
+        return await self._submit_async(*self._row(table, row))
 
     # -- forwarding -----------------------------------------------------
     def columns(self, table: str) -> list[tuple[str, str]]:
@@ -377,6 +398,16 @@ class Store:
     def stats(self) -> dict[str, Any]:
         return {"path": str(self.path), "schema_version": self.schema_version, "written": self.written,
                 "failed": self.failed, "queued": self._q.qsize(), "last_error": self.last_error}
+
+
+def _settle(items: list) -> None:
+    for fut, rowid, err in items:
+        if fut.done():          # the waiter was cancelled; the record is committed all the same
+            continue
+        if err is None:
+            fut.set_result(rowid)
+        else:
+            fut.set_exception(err)
 
 
 def _json_default(o: Any) -> Any:
