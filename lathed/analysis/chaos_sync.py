@@ -68,6 +68,7 @@ class ChaosSyncDetector(RevolutionDetector):
         if self._fixed_baseline is None:
             self.sigma = None
         self._sig_learn: list[float] = []
+        self._e_learn: list[np.ndarray] = []
         self.eye: deque[tuple[float, np.ndarray, np.ndarray]] = deque(maxlen=int(self.params["eye_windows"]))
         self.eye_baseline: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -93,6 +94,7 @@ class ChaosSyncDetector(RevolutionDetector):
         if self.sigma is None:
             # still learning: normalise by what has been seen so far
             self._sig_learn.append(rms)
+            self._e_learn.append(e.copy())
             sigma = float(np.median(self._sig_learn))
         else:
             sigma = self.sigma
@@ -108,7 +110,17 @@ class ChaosSyncDetector(RevolutionDetector):
         return r
 
     def _on_learned(self) -> None:
-        self.sigma = float(np.median(self._sig_learn))
+        # scale and eye size from the same low quantile of the learning windows,
+        # so chatter already growing at the start of the cut does not set them
+        q = self.params["learn_quantile"]
+        self.sigma = float(np.quantile(self._sig_learn, q)) or 1e-300
+        a, b = self.params["a"], self.params["b"]
+        radii = []
+        for e in self._e_learn:
+            phi1, phi2 = eye_features(e / self.sigma, a, b)
+            radii.append(eye_radius(phi1, phi2))
+        self.baseline = max(float(np.quantile(radii, q)), 1e-300)
+        self._e_learn = []
 
     def _ref_hook(self) -> None:
         self._fixed_sigma = float(np.median(self._sig_learn))
