@@ -123,7 +123,12 @@ class ChaosSyncDetector(RevolutionDetector):
         self._e_learn = []
 
     def _ref_hook(self) -> None:
-        self._fixed_sigma = float(np.median(self._sig_learn))
+        # a reference is a stable cut throughout: its median scale and eye size
+        self._fixed_sigma = self.sigma = float(np.median(self._sig_learn)) or 1e-300
+        a, b = self.params["a"], self.params["b"]
+        radii = [eye_radius(*eye_features(e / self.sigma, a, b)) for e in self._e_learn]
+        self.set_baseline(max(float(np.median(radii)), 1e-300))
+        self._e_learn = []
 
     def reset(self) -> None:  # keep a reference's sigma with its baseline
         fixed = getattr(self, "_fixed_sigma", None)
