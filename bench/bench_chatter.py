@@ -87,10 +87,12 @@ def run_detector(det, rec):
     return wins
 
 
-def score(name, recs, params, per_case=None):
+def score(name, recs, params, per_case=None, refs=None):
     fa, miss, delays, fa_cases = 0, 0, [], []
-    for rec, kind in recs:
+    for i, (rec, kind) in enumerate(recs):
         det = make_detector(name, rec.rate_hz, **params)
+        if refs is not None:
+            det.learn_reference(refs[i].signal, float(refs[i].rpm[0]))
         wins = run_detector(det, rec)
         onsets = [w.t_s for w in wins if w.alarm]
         first = onsets[0] if onsets else None
@@ -130,6 +132,9 @@ def main(argv=None) -> int:
     ap.add_argument("--detectors", default=",".join(DETECTORS), help="comma-separated names")
     ap.add_argument("--json", help="also write the results to this file")
     ap.add_argument("--cases", action="store_true", help="per-case delays on stderr")
+    ap.add_argument("--with-reference", action="store_true",
+                    help="also rows with the baseline learned from a reference: a stable "
+                         "1 mm cut at the case's starting speed (another seed)")
     ap.add_argument("--no-ablation", action="store_true", help="skip the chaos_sync p=0 / p=1 rows")
     ap.add_argument("--seed-base", type=int, default=1000,
                     help="case i uses seed BASE+i (thresholds were set looking at base 100; "
@@ -140,6 +145,8 @@ def main(argv=None) -> int:
     variants = [(n, {}) for n in names]
     if "chaos_sync" in names and not args.no_ablation:
         variants += [("chaos_sync", {"p": 0.0}), ("chaos_sync", {"p": 1.0})]
+    if args.with_reference:
+        variants += [(n, {"_reference": True}) for n in names if n != "spectral_ratio"]
 
     t0 = time.time()
     recs = []
@@ -173,10 +180,17 @@ def main(argv=None) -> int:
         sim_cost[label] = statistics.median(runs)
 
     rows, results = [], {}
+    refs = None
+    if args.with_reference:
+        refs = [simulate_cut([S(1.0, float(r.rpm[0]), 1.0)], "reference", seed=args.seed_base + 5000 + i)
+                for i, (r, _) in enumerate(recs)]
     for name, params in variants:
+        params = dict(params)
+        use_ref = params.pop("_reference", False)
         label = name + "".join(f" {k}={v:g}" for k, v in params.items())
+        label += ", reference baseline" if use_ref else ""
         cases: list = []
-        fa, miss, delays, fa_cases = score(name, recs, params, cases)
+        fa, miss, delays, fa_cases = score(name, recs, params, cases, refs if use_ref else None)
         if args.cases:
             print(f"{label}: " + "; ".join(f"{n}: {d:+.1f}" for n, d in cases), file=sys.stderr)
         tp = throughput(name, params, tp_rec.signal, 2000.0, tp_rec.rate_hz)
@@ -186,7 +200,7 @@ def main(argv=None) -> int:
         results[label] = {"false_alarms": fa, "misses": miss, "median_delay_rev": med,
                          "worst_delay_rev": worst, "x_real_time": tp, "false_alarm_cases": fa_cases,
                          "meets_targets": ok}
-        default = name == DEFAULT_DETECTOR and not params
+        default = name == DEFAULT_DETECTOR and not params and not use_ref
         rows.append(f"| {label}{' (default)' if default else ''} | {fa} | {miss} "
                     f"| {med:.1f} | {worst:.1f} | {tp:.0f}x | {'yes' if ok else 'no'} |")
 
