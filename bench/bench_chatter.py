@@ -1,6 +1,7 @@
 """Chatter detector benchmark on simulated labelled cuts.
 
     .venv/bin/python bench/bench_chatter.py [--quick] [--detectors a,b] [--json OUT]
+        [--seed-base N] [--with-reference] [--no-ablation] [--cases]
 
 Corpus: lathed.analysis.regen.simulate_cut with the default lathe structure
 (limit ~1.5-2.6 mm over 500-6000 r/min), stable cuts, chatter cuts, and the
