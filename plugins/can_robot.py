@@ -80,6 +80,7 @@ class CanRobot(Driver):
         self._counters: dict[int, int] = {}
         self._cycles: int | None = None       # cycle_count unwrapped past 16 bits
         self._last_frame = 0.0
+        self._cycle_t: float | None = None    # when cycle_count last stepped by one
 
     def _record(self, kind: str, payload: dict) -> None:
         if self.ctx is not None:
@@ -183,7 +184,15 @@ class CanRobot(Driver):
             elif name == "alarm_code":
                 m.set_alarms([int(v)] if int(v) else [], t)
             elif name == "cycle_count":
-                m.set("part_count", self._unwrap(int(v)), t)
+                last, count = self._cycles, self._unwrap(int(v))
+                if last is not None and count == last + 1:
+                    # the arm reports no cycle time: the time between two counts is one
+                    if self._cycle_t is not None:
+                        m.set("cycle_time_s", t - self._cycle_t, t)
+                    self._cycle_t = t
+                elif count != last:
+                    self._cycle_t = None   # a jump or a restart: the next full cycle tells
+                m.set("part_count", count, t)
             elif name == "program":
                 m.set("program", int(v), t)
             self.ctx.bus.publish(Sample(self.name, name, v, "", t))

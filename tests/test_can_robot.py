@@ -59,14 +59,20 @@ def test_counters_wraps_gaps_and_bad_frames():
     d._handle(msgs(arm, 0))
     arm.cycle_count = 1                       # wrapped past 65535: three cycles, not a reset
     d._handle(msgs(arm, 3))                   # counters 1 and 2 never arrived
+    arm.cycle_count = 2
+    d._handle(msgs(arm, 4))
+    assert d.model.snapshot()["cycle_time_s"] is None     # one full cycle not yet seen
+    arm.cycle_count = 3
+    d._handle(msgs(arm, 5))
+    assert 0 <= d.model.snapshot()["cycle_time_s"]["value"] < 1
     parts = [p["part_count"] for k, p in events if k == "part_completed"]
-    assert parts == [65535, 65536, 65537]
+    assert parts == [65535, 65536, 65537, 65538, 65539]
     assert d.counts["lost_frames"] == 4 * 2
     d._handle([can.Message(arbitration_id=0x103, data=b"\x01\x02", is_extended_id=False),
                can.Message(arbitration_id=0x555, data=b"", is_extended_id=False)])
     assert d.counts["malformed"] == 1 and d.counts["unknown_id"] == 1
     arm.alarm_code = 9
-    d._handle(msgs(arm, 4))
+    d._handle(msgs(arm, 6))
     assert d.model.state() == "alarm" and ("alarm_raised", {"kind": "robot_arm", "alarm": "9"}) in events
 
 
