@@ -34,6 +34,20 @@ from lathed.store import FORWARDED, JSON_COLUMNS
 _PG_TYPES = {"INTEGER": "bigint", "REAL": "double precision", "TEXT": "text"}
 _DDL_LOCK = 0x6C617468   # advisory lock: daemons starting together create the tables once
 
+# The central counterparts of the local views over the analyzers' events.
+_VIEWS = {
+    "chatter_events": ("kind IN ('chatter_alarm', 'chatter_cleared')", [
+        ("machine", "text"), ("index", "double precision"), ("threshold", "double precision"),
+        ("chatter_frequency_hz", "double precision"), ("rpm", "double precision"),
+        ("depth_mm", "double precision"), ("tool", "text"), ("material", "text")]),
+    "suppression_actions": ("kind = 'suppression_action'", [
+        ("strategy", "text"), ("rpm_before", "double precision"), ("rpm_after", "double precision"),
+        ("index", "double precision"), ("threshold", "double precision"),
+        ("chatter_frequency_hz", "double precision"), ("sent", "boolean"), ("reason", "text")]),
+    "compensations": ("kind = 'compensation'", [
+        ("predicted_um", "double precision"), ("offset_um", "double precision"), ("model", "text")]),
+}
+
 
 class PostgresSink(Analyzer):
     def __init__(self, name: str, section: Section):
@@ -103,6 +117,14 @@ class PostgresSink(Analyzer):
                                                                sql.SQL(", ").join(map(sql.Identifier, names)),
                                                                sql.SQL(", ").join(values)),
                                   [n for n, _ in cols])
+            for view, (where, fields) in _VIEWS.items():
+                cols_sql = sql.SQL(", ").join(
+                    sql.SQL("(payload->>{})::{} AS {}").format(
+                        sql.Literal(f), sql.SQL(t), sql.Identifier("chatter_index" if f == "index" else f))
+                    for f, t in fields)
+                await con.execute(sql.SQL("CREATE OR REPLACE VIEW {} AS SELECT machine_id, uuid, local_id, t, "
+                                          "source, kind, {} FROM events WHERE {}").format(
+                    sql.Identifier(view), cols_sql, sql.SQL(where)))
         return inserts
 
     async def _send(self, con, inserts, batch: list[tuple[int, str, dict]]) -> None:

@@ -52,8 +52,16 @@ async def _drain(sink: PostgresSink, store: Store, timeout: float = 20) -> None:
 def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  # noqa: F811
     store = Store(tmp_path / "a.db", machine_id="cell-a")
 
+    async def s_chatter():
+        await store.record("chatter_alarm", "chatter", {"machine": "lathe", "index": 2.5, "threshold": 1.8,
+                                                        "chatter_frequency_hz": 197.0, "rpm": 2500.0,
+                                                        "depth_mm": 3.0, "tool": "T0101", "material": "C45"})
+        await store.record("suppression_action", "suppress", {"strategy": "lobes", "rpm_before": 2500.0,
+                                                              "rpm_after": 3250.0, "sent": True})
+
     async def main():
-        for i in range(250):
+        await s_chatter()
+        for i in range(248):
             await asyncio.wrap_future(store.record_future("tick", "w", {"seq": i, "arr": [1, 2]}))
         part = "00000000-0000-0000-0000-000000000001"
         await store.add("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1.0, "end_t": 2.0,
@@ -79,7 +87,10 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
         assert counts == {"events": 250, "workpieces": 1, "inspections": 1, "sampling_queue": 1,
                           "experiments": 1}
         assert con.execute("SELECT count(DISTINCT payload->>'seq') FROM events WHERE machine_id = 'cell-a'"
-                           ).fetchone()[0] == 250
+                           ).fetchone()[0] == 248
+        assert con.execute("SELECT chatter_index, chatter_frequency_hz, tool FROM chatter_events").fetchall() == \
+            [(2.5, 197.0, "T0101")]
+        assert con.execute("SELECT rpm_after, sent FROM suppression_actions").fetchall() == [(3250.0, True)]
         ra, measured = con.execute("SELECT ra_um, measured FROM inspections").fetchone()
         assert ra == 4.2 and measured == {"roundness_um": 3.0}   # jsonb, not text
     store.close()
