@@ -3,7 +3,6 @@ against a real PostgreSQL server (tests/pg_fixtures.py)."""
 from __future__ import annotations
 
 import asyncio
-import json
 import shutil
 import sqlite3
 from pathlib import Path
