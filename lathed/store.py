@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import queue
 import sqlite3
 import threading
@@ -308,7 +309,7 @@ class Store:
         return self.submit(*self._event(kind, source, payload, t))
 
     def _event(self, kind: str, source: str, payload: dict[str, Any] | None, t: float | None) -> tuple[str, tuple]:
-        body = json.dumps(payload or {}, default=_json_default)
+        body = dumps(payload or {})
         return ("INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)",
                 (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
 
@@ -322,7 +323,7 @@ class Store:
             raise ValueError(f"{table!r} is not a record table; record tables: {', '.join(FORWARDED)}")
         row = {"uuid": str(uuidlib.uuid4()), "machine_id": self.machine_id, **row}
         for k in JSON_COLUMNS & row.keys():
-            row[k] = json.dumps(row[k], default=_json_default)
+            row[k] = dumps(row[k])
         return f"INSERT INTO {table}({', '.join(row)}) VALUES ({', '.join('?' * len(row))})", tuple(row.values())
 
     async def add(self, table: str, row: dict[str, Any]) -> int:
@@ -408,6 +409,25 @@ def _settle(items: list) -> None:
             fut.set_result(rowid)
         else:
             fut.set_exception(err)
+
+
+def dumps(obj: Any) -> str:
+    """JSON for a record. NaN and infinities become null: they are not JSON,
+    and SQLite's json_extract and PostgreSQL's jsonb both refuse them."""
+    try:
+        return json.dumps(obj, default=_json_default, allow_nan=False)
+    except ValueError:
+        return json.dumps(_finite(json.loads(json.dumps(obj, default=_json_default))), allow_nan=False)
+
+
+def _finite(o: Any) -> Any:
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _json_default(o: Any) -> Any:

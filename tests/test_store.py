@@ -92,3 +92,14 @@ def test_insert_refuses_non_record_tables_and_bad_rows_do_not_sink_the_batch(tmp
         "SELECT DISTINCT substr(name, 1, length(name) - 7) AS row_tbl FROM sqlite_master "
         "WHERE type = 'trigger' AND name LIKE '%_outbox'")}
     s.close()
+
+
+def test_non_finite_numbers_are_recorded_as_null_so_the_views_still_read(tmp_path):
+    s = Store(tmp_path / "a.db")
+    asyncio.run(s.record("chatter_alarm", "chatter", {"index": float("nan"), "threshold": 1.8,
+                                                      "spectrum": [1.0, float("inf")], "nested": {"x": float("-inf")}}))
+    (row,) = s.query("SELECT chatter_index, threshold FROM chatter_events")
+    assert row == {"chatter_index": None, "threshold": 1.8}
+    assert s.events(kind="chatter_alarm")[0]["payload"] == {"index": None, "threshold": 1.8,
+                                                           "spectrum": [1.0, None], "nested": {"x": None}}
+    s.close()
