@@ -37,16 +37,15 @@ import numpy as np
 
 from lathed.analysis.detectors import DEFAULT_DETECTOR, make_detector
 from lathed.analysis.lobes import StabilityLobes
-from lathed.analysis.modal import Mode
 from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, surface_waviness
 from lathed.analysis.speed_selection import (Cut, FrequencySelection, LobeSelection, RatedSpeed,
                                              SpindleLimits, SuppressionPolicy, VariationSelection)
 from lathed.analysis.speed_variation import SpeedVariation
 from lathed.analysis.surface import ideal_ra_m, turned_surface
+from lathed.sim.lathe import LATHE_KF, LATHE_KT, LATHE_MODES
 
-MODES = (Mode(190.0, 0.03, 7.5e7, 0.0), Mode(620.0, 0.035, 4.0e8, 30.0))
-KF = 2.0e9                  # N/m^2 along the chip-thickness direction (regen's default)
-KT = 1.5e9                  # N/m^2 tangential, for spindle torque (paper's 2500 r/min cut must fit)
+# The simulated lathe's structure (the one the daemon's default run cuts on).
+MODES, KF, KT = LATHE_MODES, LATHE_KF, LATHE_KT
 DEPTH_MM = 3.0
 FEED_MM = 0.3
 DIAMETER_M = 0.030

@@ -20,7 +20,7 @@ class AnalyzerContext:
     def __init__(self, bus: Bus, log: structlog.typing.FilteringBoundLogger, record,
                  command: Callable[[Command], Awaitable[dict]],
                  register_control: Callable[[str, Callable[[dict], Awaitable[Any]]], None],
-                 store, machine_status: Callable[[str], dict | None], config_dir):
+                 store, machine_status: Callable[[str], dict | None], config_dir, plugins=None):
         self.bus = bus
         self.log = log
         self.record = record                  # record(kind, payload) -> None
@@ -29,6 +29,7 @@ class AnalyzerContext:
         self.store = store
         self.machine_status = machine_status
         self.config_dir = config_dir
+        self.plugins = plugins                # the PluginLoader: plugin-supplied detectors, candidates
 
 
 class Analyzer:

@@ -97,10 +97,9 @@ class Daemon:
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
         await self.control.start()
-        if self.sim_settings is not None:
-            from lathed.sim.launch import spawn
-            self.sim_process = await spawn(self.sim_settings)
-        self.supervisor.start()
+        # READY as soon as we serve; the drivers start once the simulator (an
+        # outside peer, however local) listens, so they do not begin in retry.
+        starting = asyncio.create_task(self._start_drivers())
         self.state = "running"
         self.supervisor.record("daemon_started", "lathed", {"version": __version__, "pid": os.getpid()})
         log.info("ready", socket=str(self.settings.socket_path), version=__version__,
@@ -112,6 +111,8 @@ class Daemon:
         notify("STOPPING=1")
         log.info("stopping")
         watchdog.cancel()
+        starting.cancel()
+        await asyncio.gather(starting, return_exceptions=True)
         await self.supervisor.stop()
         await self.control.close()
         if self.sim_process is not None:
@@ -121,18 +122,26 @@ class Daemon:
         await asyncio.to_thread(self.store.close)
         return 0
 
+    async def _start_drivers(self) -> None:
+        if self.sim_settings is not None:
+            from lathed.sim.launch import spawn
+            self.sim_process = await spawn(self.sim_settings)
+        self.supervisor.start()
+
     async def _watchdog(self) -> None:
         # Pinged from the event loop itself: if the loop hangs, the pings stop
         # and systemd restarts us.
         interval = watchdog_interval()
+        last = None
         while True:
             await asyncio.sleep(interval or 5.0)
             if interval:
                 notify("WATCHDOG=1")
-            status = self.supervisor.status()
-            up = sum(m["state"] == "connected" for m in status["machines"] + status["sensors"])
-            total = len(status["machines"]) + len(status["sensors"])
-            notify(f"STATUS=running: {up}/{total} drivers connected")
+            runners = self.supervisor.runners.values()
+            text = f"STATUS=running: {sum(r.state == 'connected' for r in runners)}/{len(runners)} drivers connected"
+            if text != last:
+                notify(text)
+                last = text
 
     # -- control commands -------------------------------------------------------
     async def _cmd_ping(self, args: dict) -> Any:

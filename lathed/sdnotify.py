@@ -13,8 +13,11 @@ def notify(message: str) -> bool:
     if addr.startswith("@"):          # abstract namespace
         addr = "\0" + addr[1:]
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
-        s.connect(addr)
-        s.sendall(message.encode())
+        try:
+            # never block the event loop on a listener that does not read
+            s.sendto(message.encode(), socket.MSG_DONTWAIT, addr)
+        except (BlockingIOError, ConnectionRefusedError, FileNotFoundError):
+            return False
     return True
 
 

@@ -34,6 +34,7 @@ class Plan:
     limits: dict[str, Limits] = field(default_factory=dict)
     skipped: dict[str, tuple[Instance, str]] = field(default_factory=dict)   # name -> reason
     errors: list[str] = field(default_factory=list)
+    loader: PluginLoader | None = None
 
 
 def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
@@ -44,7 +45,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     (``strict=True``, ``--check-config``): the broken plugin may be the one
     that would have provided it.
     """
-    plan = Plan()
+    plan = Plan(loader=loader)
     drivers, analyzers = loader.driver_types(), loader.analyzer_types()
     failed = [p.name for p in loader.plugins if p.error]
     for inst in cfg.instances:
@@ -189,10 +190,34 @@ class Supervisor:
         for name, (inst, drv) in plan.drivers.items():
             drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name))
             self.runners[name] = Runner(inst.category, name, drv, *self._retry(inst), self.record)
+        self._controls: dict[str, dict[str, Any]] = {}
         for name, (inst, an) in plan.analyzers.items():
             an.ctx = AnalyzerContext(bus, log.bind(analyzer=name), self._recorder(name), self.command,
-                                     register_control, store, self.machine_status, cfg.path.parent)
+                                     self._control_registrar(name), store, self.machine_status,
+                                     cfg.path.parent, plugins=plan.loader)
             self.analyzer_runners[name] = Runner("analyzer", name, an, *self._retry(inst), self.record)
+
+    def _control_registrar(self, analyzer: str):
+        """Analyzers add control commands; two analyzers offering the same
+        command (two lathes, two suppressors) are told apart by the
+        request's ``analyzer`` argument. Registering again (after a restart)
+        replaces the handler."""
+        def register(cmd: str, handler) -> None:
+            if cmd not in self._controls:
+                self._controls[cmd] = {}
+                self._register_control(cmd, lambda args, cmd=cmd: self._dispatch(cmd, args))
+            self._controls[cmd][analyzer] = handler
+        return register
+
+    async def _dispatch(self, cmd: str, args: dict) -> Any:
+        from lathed.control import RequestError
+        handlers = self._controls[cmd]
+        target = args.get("analyzer")
+        if target is None and len(handlers) == 1:
+            target = next(iter(handlers))
+        if target not in handlers:
+            raise RequestError(f"{cmd}: name the analyzer (--analyzer); one of {', '.join(sorted(handlers))}")
+        return await handlers[target](args)
 
     @staticmethod
     def _retry(inst: Instance) -> tuple[float, float]:

@@ -1,0 +1,30 @@
+"""lathectl suppress auto|manual|off|now|status: the chatter suppression switch."""
+from __future__ import annotations
+
+import argparse
+
+from lathed.lathectl import print_json, remote
+
+
+def run(args: argparse.Namespace) -> int:
+    r = remote(args, "suppress", {"action": args.action, "analyzer": args.analyzer, "by": args.by})
+    if args.json:
+        print_json(r)
+    elif args.action == "now":
+        verb = "sent" if r["sent"] else f"REFUSED ({r['refused']})"
+        print(f"{r['strategy']}: {r['rpm_before']:.0f} -> {r['rpm_after']:.0f} r/min {verb}")
+    else:
+        last = r.get("last_action")
+        print(f"mode {r['mode']}, strategy {r['strategy']}, chatter alarm {'ON' if r['chatter_alarm'] else 'off'}, "
+              f"{r['actions']} action(s)" + (f"; last {last['rpm_before']:.0f} -> {last['rpm_after']:.0f} r/min"
+                                           if last else ""))
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("suppress", help="chatter suppression: auto | manual | off, or act now")
+    p.add_argument("action", choices=("auto", "manual", "off", "now", "status"), nargs="?", default="status")
+    p.add_argument("--analyzer", help="which suppression analyzer (when there are several)")
+    p.add_argument("--by", default="operator", help="who acts, for the record")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=run)

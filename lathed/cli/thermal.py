@@ -1,0 +1,30 @@
+"""lathectl thermal status|refit: the live thermal compensation."""
+from __future__ import annotations
+
+import argparse
+
+from lathed.lathectl import print_json, remote
+
+
+def run(args: argparse.Namespace) -> int:
+    r = remote(args, "thermal", {"action": args.action, "analyzer": args.analyzer})
+    if args.json:
+        print_json(r)
+    elif args.action == "refit":
+        effects = ", ".join(f"{e['effect']}({e['sensor']})" if e["sensor"] else e["effect"]
+                            for e in r["effects"]) or "none"
+        print(f"before: {r['model_before']}, held-out error {r['before_rmse_um']:.2f} µm")
+        print(f"after:  {r['model_after']}, held-out error {r['after_rmse_um']:.2f} µm "
+              f"({'kept' if r['better'] else 'not better: old model kept'}); effects found: {effects}; "
+              f"{r['rows']} probe measurements")
+    else:
+        print(r["summary"] + (f"; last refused: {r['refused']}" if r.get("refused") else ""))
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("thermal", help="thermal compensation: status, or refit the model on stored probe data")
+    p.add_argument("action", choices=("status", "refit"), nargs="?", default="status")
+    p.add_argument("--analyzer", help="which thermal analyzer (when there are several)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=run)

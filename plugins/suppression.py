@@ -1,0 +1,265 @@
+"""Chatter suppression: on a chatter alarm, change the spindle speed (numeric core:
+lathed.analysis.speed_selection, lathed.analysis.speed_variation).
+
+    [analyzer.suppress]
+    plugin = "suppression"
+    chatter = "chatter"          # the chatter analyzer it listens to
+    machine = "lathe"            # the machine it commands (through the safety guard)
+    mode = "auto"                # auto: act on alarms | manual: operator acts | off
+    strategy = "lobes"           # lobes | frequency | rated | variation
+    rated_rpm = 750.0            # the paper's rule; also the fallback of lobes/frequency
+    modes = ["190,0.03,7.5e7,0"] # modal model FN,ZETA,K[,THETA] (a tap test); needed by "lobes"
+    kf = 2.0e9                   # cutting coefficient along the chip thickness, N/m²
+    kt = 1.5e9                   # tangential coefficient (spindle torque), N/m²
+    diameter_mm = 30.0           # workpiece diameter, for torque and removal rate
+    max_rpm = 6000.0             # the spindle's envelope
+    max_speed_ratio = 1.3        # never more than this times the programmed speed (tool life)
+    peak_torque_nm = 35.8
+    base_rpm = 1500.0
+    accel_rpm_s = 3000.0
+    settle_revs = 20.0           # revolutions at a new speed before judging again
+    ssv = "sine"                 # variation: sine | triangle | square
+    ssv_amplitude = 0.1          # variation: amplitude / mean speed
+    ssv_period = "500ms"
+
+Every action is recorded as ``suppression_action`` with its critical values
+(index and threshold, chatter frequency, speed before and after, strategy,
+whether the guard let it through). ``lathectl suppress auto|manual|off``
+changes the mode; ``lathectl suppress now`` acts on the present chatter
+(manual mode). Policy: see SuppressionPolicy (never oscillates).
+"""
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from lathed import hookimpl
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.modal import parse_mode
+from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
+                                             SpindleLimits, SuppressionPolicy, VariationSelection)
+from lathed.analysis.speed_variation import KINDS, SpeedVariation
+from lathed.analyzer import Analyzer
+from lathed.bus import Sample
+from lathed.command import Command
+from lathed.config import Section
+from lathed.control import RequestError
+
+MODES = ("auto", "manual", "off")
+STRATEGIES = ("lobes", "frequency", "rated", "variation")
+SSV_STEP_S = 0.05     # speed commands while modulating
+
+
+class SuppressionAnalyzer(Analyzer):
+    def __init__(self, name: str, section: Section):
+        super().__init__(name, section)
+        self.chatter = section.getstr("chatter")
+        self.machine = section.getstr("machine")
+        self.mode = section.getstr("mode", "auto", choices=MODES)
+        self.strategy_name = section.getstr("strategy", "frequency", choices=STRATEGIES)
+        self.rated_rpm = section.getfloat("rated_rpm", 750.0, above=0)
+        texts = section.getlist("modes", [])
+        try:
+            modes = tuple(parse_mode(t) for t in texts)
+        except ValueError as e:
+            raise section.error("modes", str(e)) from None
+        kf = section.getfloat("kf", 2.0e9, above=0)
+        self.kt = section.getfloat("kt", 1.5e9, above=0)
+        self.diameter_m = section.getfloat("diameter_mm", 30.0, above=0) / 1000
+        self.limits = SpindleLimits(
+            max_rpm=section.getfloat("max_rpm", 6000.0, above=0),
+            min_rpm=section.getfloat("min_rpm", 100.0, minval=0),
+            peak_torque_nm=section.getfloat("peak_torque_nm", 35.8, above=0),
+            base_rpm=section.getfloat("base_rpm", 1500.0, above=0),
+            accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
+        self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
+        self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
+        try:
+            self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
+                                            section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
+                                            section.getduration("ssv_period", 0.5, minval=0.05, maxval=60),
+                                            self.limits.accel_rpm_per_s)
+        except ValueError as e:
+            raise section.error("ssv", str(e)) from None
+        if self.strategy_name == "lobes" and not modes:
+            raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
+        self.lobes = StabilityLobes(modes, kf) if modes else None
+        self.policy: SuppressionPolicy | None = None
+        self.depth_mm = 0.0
+        self.feed_mm = 0.3
+        self.rpm: float | None = None
+        self.part_count: float | None = None
+        self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
+        self.actions: list[dict] = []
+        self.pending: Decision | None = None
+        self._ssv_task: asyncio.Task | None = None
+        self.alarm_wall_t: float | None = None
+        self.latency_ms: list[float] = []
+
+    def inputs(self) -> list[str]:
+        return [self.machine]
+
+    def machines(self) -> list[str]:
+        return [self.machine]
+
+    # -- strategy ----------------------------------------------------------------
+    def _cut(self) -> Cut:
+        return Cut(max(self.depth_mm, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
+
+    def _policy(self) -> SuppressionPolicy:
+        cut = self._cut()
+        limits = self.limits
+        if self.rpm:
+            # the cutting speed the tool and material were programmed for bounds how far up we go
+            limits = replace(limits, max_rpm=min(limits.max_rpm, self.max_speed_ratio * self.rpm))
+        rated = RatedSpeed(self.rated_rpm, self.lobes, cut)
+        strategy = {"lobes": lambda: LobeSelection(self.lobes, cut, limits),
+                    "frequency": lambda: FrequencySelection(limits, cut),
+                    "rated": lambda: rated,
+                    "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
+        fallback = None if self.strategy_name in ("rated", "variation") else rated
+        return SuppressionPolicy(strategy, limits, fallback=fallback, settle_revs=self.settle_revs)
+
+    # -- running -----------------------------------------------------------------
+    async def run(self) -> None:
+        self.ctx.register_control("suppress", self._control)
+        sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
+        try:
+            while True:
+                s = await sub.get()
+                if not isinstance(s, Sample):
+                    continue
+                if s.source == self.machine:
+                    self._on_machine(s)
+                elif s.source == self.chatter:
+                    await self._on_chatter(s)
+        finally:
+            self.ctx.bus.unsubscribe(sub)
+            self._stop_ssv()
+
+    def _on_machine(self, s: Sample) -> None:
+        if s.quantity == "spindle_rpm":
+            self.rpm = s.value
+        elif s.quantity == "feed_mm_rev" and s.value > 0:
+            self.feed_mm = s.value
+        elif s.quantity == "depth_of_cut_mm":
+            was, self.depth_mm = self.depth_mm, s.value
+            if s.value > 0 and was <= 0:
+                self.policy = self._policy()    # a new cut: bans and budget start afresh
+                self.pending = None
+            if s.value <= 0 and was > 0:
+                self._stop_ssv()
+
+    async def _on_chatter(self, s: Sample) -> None:
+        key = {"chatter_index": "index", "chatter_threshold": "threshold",
+               "chatter_frequency_hz": "frequency"}.get(s.quantity)
+        if key:
+            self.chat[key] = s.value
+            return
+        if s.quantity != "chatter_alarm":
+            return
+        alarm = s.value > 0.5
+        if alarm and not self.chat["alarm"]:
+            self.alarm_wall_t = s.t
+        self.chat["alarm"], self.chat["t"] = alarm, s.t
+        if self.mode == "off" or self.policy is None or self.rpm is None:
+            return
+        d = self.policy.observe(time.monotonic(), self.rpm, alarm, self.chat["frequency"] if alarm else None,
+                                self.chat["index"], self.chat["threshold"])
+        if d is None:
+            return
+        if self.mode == "auto":
+            await self._act(d)
+        else:
+            self.pending = d
+            self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual"})
+
+    async def _act(self, d: Decision, by: str | None = None) -> dict:
+        source = by or self.name
+        payload = {**d.record(), "machine": self.machine, "mode": self.mode}
+        if d.variation is not None:
+            self._start_ssv(d)
+            result = {"sent": True, "reason": "modulating"}
+        else:
+            result = await self.ctx.command(Command(self.machine, "spindle_rpm", float(d.rpm_after), source,
+                                                    reason=f"chatter suppression ({d.strategy})",
+                                                    context={"strategy": d.strategy}))
+            if not result["sent"] and self.policy is not None:
+                # refused by the guard: never ask for that speed again this part
+                band = self.policy.ban_band
+                self.policy.banned.append((d.rpm_after * (1 - band), d.rpm_after * (1 + band)))
+            if result["sent"] and self.alarm_wall_t is not None:
+                # from the first alarm window's sample time to the write's return
+                self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
+                payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
+        payload.update(sent=result["sent"], refused=result["reason"], by=source)
+        self.actions.append(payload)
+        self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,
+                          rpm_after=d.rpm_after, sent=result["sent"])
+        self.ctx.record("suppression_action", payload)
+        return payload
+
+    # -- spindle speed variation ---------------------------------------------------
+    def _start_ssv(self, d: Decision) -> None:
+        self._stop_ssv()
+        self._ssv_task = asyncio.create_task(self._ssv(d.rpm_before, d.variation))
+
+    def _stop_ssv(self) -> None:
+        if self._ssv_task is not None:
+            self._ssv_task.cancel()
+            self._ssv_task = None
+
+    async def _ssv(self, n0: float, var: SpeedVariation) -> None:
+        t0 = time.monotonic()
+        while True:
+            n = float(np.asarray(var.profile(time.monotonic() - t0, n0)))
+            r = await self.ctx.command(Command(self.machine, "spindle_rpm", n, self.name,
+                                               reason=f"speed variation ({var.kind})"))
+            if not r["sent"]:
+                self.ctx.log.warning("ssv_stopped", reason=r["reason"])
+                return
+            await asyncio.sleep(SSV_STEP_S)
+
+    # -- operator ------------------------------------------------------------------
+    async def _control(self, args: dict) -> dict:
+        action = args.get("action", "status")
+        if action in MODES:
+            old, self.mode = self.mode, action
+            self.ctx.record("suppression_mode", {"machine": self.machine, "from": old, "to": action,
+                                                 "by": args.get("by", "operator")})
+            if action == "off":
+                self._stop_ssv()
+            return self.status()
+        if action == "now":
+            d = self.pending
+            if d is None:
+                if not self.chat["alarm"]:
+                    raise RequestError("no chatter alarm on this machine now; nothing to suppress")
+                if self.rpm is None or self.policy is None:
+                    raise RequestError("the machine is not cutting (no spindle speed or depth of cut known)")
+                d = self.policy.observe(time.monotonic(), self.rpm, True, self.chat["frequency"],
+                                        self.chat["index"], self.chat["threshold"])
+                if d is None:
+                    raise RequestError("no admissible speed: every candidate is banned for this part or "
+                                       "the policy is holding after a change")
+            self.pending = None
+            return await self._act(d, by=args.get("by", "operator"))
+        if action == "status":
+            return self.status()
+        raise RequestError(f"unknown suppress action {action!r}; allowed: auto, manual, off, now, status")
+
+    def status(self) -> dict:
+        lat = sorted(self.latency_ms)
+        return {"mode": self.mode, "strategy": self.strategy_name, "chatter_alarm": self.chat["alarm"],
+                "pending": None if self.pending is None else self.pending.record(),
+                "actions": len(self.actions), "last_action": self.actions[-1] if self.actions else None,
+                "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
+                "summary": f"mode {self.mode}, strategy {self.strategy_name}, {len(self.actions)} action(s)"}
+
+
+@hookimpl
+def lathed_analyzer_types():
+    return {"suppression": SuppressionAnalyzer}

@@ -1,0 +1,236 @@
+"""Thermal compensation: predict the spindle's growth from live temperatures and
+write it to the CNC as an X offset (numeric core: lathed.analysis.thermal).
+
+    [analyzer.thermal]
+    plugin = "thermal"
+    input = "temps"            # the temperature sensor instance (t_<place> samples)
+    machine = "lathe"          # spindle speed, probe results, and where the offset goes
+    model = ""                 # a model TOML; default: the newest saved fit, else the paper's eq. 14
+    tolerance_um = 2.0         # act when the offset lags the prediction by more than this
+    rate_um_s = 2.0            # phase the offset in at most this fast
+    step = "1s"                # how often the prediction is evaluated
+    sign = -1.0                # offset = sign * growth since the tool was touched off
+
+The growth is taken relative to the first prediction after start (the
+machine is assumed cold and touched off then). Each probe result the
+machine reports (``probe_seq`` changing) is stored as a
+``thermal_measurement`` with the temperatures of the moment; ``lathectl
+thermal refit`` runs the residual loop on them, keeps the new model only if
+it is better on the newest, held-out part of the data, saves it as a new
+version (TOML) and records before/after.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from lathed import hookimpl
+from lathed.analysis.thermal import ThermalData, ThermalModel, eq14_model, load_model, refit, save_model
+from lathed.analyzer import Analyzer
+from lathed.bus import Sample
+from lathed.command import Command
+from lathed.config import Section
+from lathed.control import RequestError
+
+
+class ThermalAnalyzer(Analyzer):
+    def __init__(self, name: str, section: Section):
+        super().__init__(name, section)
+        self.input = section.getstr("input")
+        self.machine = section.getstr("machine")
+        self.model_path = section.getstr("model", "")
+        self.tolerance = section.getfloat("tolerance_um", 2.0, above=0, maxval=1000)
+        self.rate = section.getfloat("rate_um_s", 2.0, above=0, maxval=1000)
+        self.step = section.getduration("step", 1.0, minval=0.05, maxval=600)
+        self.sign = section.getfloat("sign", -1.0, minval=-1.0, maxval=1.0)
+        if self.model_path:
+            p = Path(self.model_path)
+            if not p.is_absolute():
+                p = Path(section.file).parent / p
+            try:
+                self.model = load_model(p)
+            except (OSError, ValueError, KeyError) as e:
+                raise section.error("model", f"cannot load thermal model {p}: {e}") from None
+            self.model_name = p.name
+        else:
+            self.model, self.model_name = eq14_model(), "eq14"
+        self.temps: dict[str, float] = {}
+        self.rpm: float | None = None
+        self.prediction: float | None = None
+        self.pred0: float | None = None
+        self.applied: float = 0.0
+        self.target: float = 0.0
+        self.writes = 0
+        self.refused: str | None = None
+        self.last_refit: dict | None = None
+        self._probe_seq: float | None = None
+        self._probe_value: float | None = None
+        self._phasing = False
+        self._predictor = None
+
+    def inputs(self) -> list[str]:
+        return [self.input, self.machine]
+
+    def machines(self) -> list[str]:
+        return [self.machine]
+
+    @property
+    def models_dir(self) -> Path:
+        return self.ctx.store.path.parent / "thermal-models"
+
+    def _candidates(self) -> list:
+        try:
+            return self.ctx.plugins.thermal_candidates() if self.ctx.plugins else []
+        except Exception as e:   # a broken plugin candidate must not stop compensation
+            self.ctx.log.error("thermal_candidates_failed", error=str(e))
+            return []
+
+    def _load_newest(self) -> None:
+        if self.model_path or not self.models_dir.is_dir():
+            return
+        versions = sorted(self.models_dir.glob("thermal-v*.toml"), key=lambda p: int(p.stem.split("-v")[1]))
+        if versions:
+            self.model = load_model(versions[-1], self._candidates())
+            self.model_name = versions[-1].name
+
+    async def run(self) -> None:
+        self.ctx.register_control("thermal", self._control)
+        self._load_newest()
+        self._predictor = self.model.predictor()
+        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096)
+        ticker = asyncio.create_task(self._tick())
+        try:
+            while True:
+                s = await sub.get()
+                if not isinstance(s, Sample):
+                    continue
+                if s.source == self.input and s.quantity.startswith("t_"):
+                    self.temps[s.quantity[2:]] = s.value
+                elif s.source == self.machine:
+                    if s.quantity == "spindle_rpm":
+                        self.rpm = s.value
+                    elif s.quantity == "offset_x_um":
+                        self.applied = s.value
+                    elif s.quantity == "probe_seq":
+                        if self._probe_seq is not None and s.value != self._probe_seq:
+                            self._measured()
+                        self._probe_seq = s.value
+                    elif s.quantity == "probe_displacement_um":
+                        self._probe_value = s.value
+        finally:
+            ticker.cancel()
+            self.ctx.bus.unsubscribe(sub)
+
+    def _measured(self) -> None:
+        value = self._probe_value
+        if value is None or not self.temps:
+            return
+        self.ctx.record("thermal_measurement", {"machine": self.machine, "t": time.time(),
+                                                "displacement_um": value, "rpm": self.rpm,
+                                                "temps_c": dict(self.temps)})
+
+    async def _tick(self) -> None:
+        while True:
+            await asyncio.sleep(self.step)
+            if not all(k in self.temps for k in self._sensor_places()):
+                continue
+            try:
+                pred = self._predictor.update(self.temps, self.rpm, time.time())
+            except ValueError as e:
+                self.ctx.log.warning("thermal_prediction_failed", error=str(e))
+                continue
+            if self.pred0 is None:
+                self.pred0 = pred
+            self.prediction = pred
+            self.ctx.bus.publish(Sample(self.name, "predicted_growth_um", pred - self.pred0, "µm", time.time()))
+            self.target = self.sign * (pred - self.pred0)
+            gap = self.target - self.applied
+            # hysteresis: start phasing in past the tolerance, stop once caught up
+            if abs(gap) > self.tolerance:
+                self._phasing = True
+            if not self._phasing or abs(gap) < 0.1:
+                self._phasing = False
+                continue
+            # phase in: never more than rate * step per write
+            move = math.copysign(min(abs(gap), self.rate * self.step), gap)
+            value = round(self.applied + move, 2)
+            r = await self.ctx.command(Command(self.machine, "offset_x_um", value, self.name,
+                                               reason="thermal compensation"))
+            if r["sent"]:
+                self.applied, self.writes, self.refused = value, self.writes + 1, None
+                self.ctx.bus.publish(Sample(self.name, "compensation_um", value, "µm", time.time()))
+                self.ctx.record("compensation", {"machine": self.machine, "predicted_um": pred - self.pred0,
+                                                 "offset_um": value, "target_um": self.target,
+                                                 "model": self.model_name})
+            else:
+                self.refused = r["reason"]
+
+    def _sensor_places(self) -> list[str]:
+        return [s[2:-2] if s.startswith("t_") and s.endswith("_c") else s for s in self.model.sensors]
+
+    # -- refit -----------------------------------------------------------------------
+    def _measurements(self) -> ThermalData:
+        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_measurement' "
+                                    "AND source = ? ORDER BY id", (self.name,))
+        pts = [json.loads(r["payload"]) for r in rows]
+        if len(pts) < 20:
+            raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least 20")
+        places = sorted(set.intersection(*(set(p["temps_c"]) for p in pts)))
+        t = np.array([p["t"] for p in pts])
+        return ThermalData(t - t[0], {f"t_{k}_c": np.array([p["temps_c"][k] for p in pts]) for k in places},
+                           np.array([p["displacement_um"] for p in pts]),
+                           np.array([p["rpm"] or 0.0 for p in pts]))
+
+    def _refit(self) -> tuple[dict, object]:
+        data = self._measurements()
+        res = refit(data, current=self.model, extra_candidates=self._candidates())
+        out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
+               "better": res.better, "rows": len(data), "model_before": self.model_name,
+               "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
+               "residual": res.analysis.residual.note}
+        if res.better:
+            self.models_dir.mkdir(parents=True, exist_ok=True)
+            n = 1 + max((int(p.stem.split("-v")[1]) for p in self.models_dir.glob("thermal-v*.toml")), default=0)
+            path = self.models_dir / f"thermal-v{n}.toml"
+            save_model(res.model, path, meta={"created": time.time(), "rows": len(data),
+                                              "before_rmse_um": res.before_rmse_um,
+                                              "after_rmse_um": res.after_rmse_um})
+            out["model_after"] = path.name
+        else:
+            out["model_after"] = self.model_name
+        return out, res
+
+    async def _control(self, args: dict) -> dict:
+        action = args.get("action", "status")
+        if action == "status":
+            return self.status()
+        if action != "refit":
+            raise RequestError(f"unknown thermal action {action!r}; allowed: status, refit")
+        out, res = await asyncio.to_thread(self._refit)
+        if res.better:
+            # swap the model; the prediction keeps its zero (the growth since touch-off)
+            old = self.prediction
+            self.model, self.model_name = res.model, out["model_after"]
+            self._predictor = self.model.predictor()
+            if old is not None and self.temps:
+                self.pred0 = self._predictor.update(self.temps, self.rpm, time.time()) - (old - self.pred0)
+        self.last_refit = out
+        self.ctx.record("thermal_refit", out)
+        return out
+
+    def status(self) -> dict:
+        growth = None if self.prediction is None else round(self.prediction - self.pred0, 2)
+        return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
+                "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused,
+                "last_refit": self.last_refit,
+                "summary": f"model {self.model_name}, growth {growth} µm, offset {self.applied:g} µm"}
+
+
+@hookimpl
+def lathed_analyzer_types():
+    return {"thermal": ThermalAnalyzer}
