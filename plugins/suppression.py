@@ -40,7 +40,7 @@ from lathed import hookimpl
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
-                                             SpindleLimits, SuppressionPolicy, VariationSelection)
+                                             SpindleLimits, SuppressionPolicy, VariationSelection, lobe_grid)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.analyzer import Analyzer
 from lathed.bus import Sample
@@ -87,6 +87,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.strategy_name == "lobes" and not modes:
             raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
         self.lobes = StabilityLobes(modes, kf) if modes else None
+        self.grid = None    # the lobes over the spindle's range, computed once at start
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
         self.feed_mm = 0.3
@@ -116,7 +117,7 @@ class SuppressionAnalyzer(Analyzer):
             # the cutting speed the tool and material were programmed for bounds how far up we go
             limits = replace(limits, max_rpm=min(limits.max_rpm, self.max_speed_ratio * self.rpm))
         rated = RatedSpeed(self.rated_rpm, self.lobes, cut)
-        strategy = {"lobes": lambda: LobeSelection(self.lobes, cut, limits),
+        strategy = {"lobes": lambda: LobeSelection(self.lobes, cut, limits, grid=self.grid),
                     "frequency": lambda: FrequencySelection(limits, cut),
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
@@ -126,6 +127,8 @@ class SuppressionAnalyzer(Analyzer):
     # -- running -----------------------------------------------------------------
     async def run(self) -> None:
         self.ctx.register_control("suppress", self._control)
+        if self.lobes is not None and self.grid is None:
+            self.grid = await asyncio.to_thread(lobe_grid, self.lobes, self.limits)
         sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
         try:
             while True:

@@ -138,6 +138,18 @@ class FrequencySelection:
                         f"revolution frequency = {chatter_frequency_hz:.1f} Hz / {waves[i]} waves")
 
 
+def lobe_grid(lobes: StabilityLobes, limits: SpindleLimits, band: float = 0.03,
+              resolution: int = 6000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Speeds over the spindle's range, their b_lim, and the worst b_lim within
+    +-band of each. It depends on the structure only, not on the cut, so a
+    daemon computes it once (tens of ms) rather than at every alarm."""
+    n = np.linspace(limits.min_rpm, limits.max_rpm, resolution)
+    b, _ = lobes.b_lim_at(n)
+    half = np.maximum(1, np.round(band * n / (n[1] - n[0])).astype(int))
+    worst = np.array([b[max(0, i - h):i + h + 1].min() for i, h in enumerate(half)])
+    return n, b, worst
+
+
 @dataclass
 class LobeSelection:
     lobes: StabilityLobes
@@ -147,13 +159,12 @@ class LobeSelection:
     band: float = 0.03           # ... over +-3 % of speed (model error, speed ripple)
     resolution: int = 6000
     name: str = "sss_lobes"
+    grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None   # from lobe_grid(), shared
 
     def select(self, rpm_now, chatter_frequency_hz, avoid=()):
-        n = np.linspace(self.limits.min_rpm, self.limits.max_rpm, self.resolution)
-        b, _ = self.lobes.b_lim_at(n)
-        # robust limit: the worst b_lim within +-band of each speed
-        half = np.maximum(1, np.round(self.band * n / (n[1] - n[0])).astype(int))
-        worst = np.array([b[max(0, i - h):i + h + 1].min() for i, h in enumerate(half)])
+        if self.grid is None:
+            self.grid = lobe_grid(self.lobes, self.limits, self.band, self.resolution)
+        n, b, worst = self.grid
         ok = self.cut.drivable(n, self.limits) & _allowed(n, avoid)
         stable = ok & (worst >= self.margin * self.cut.depth_m)
         if stable.any():
