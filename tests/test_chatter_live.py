@@ -1,0 +1,77 @@
+"""Chatter detection inside the running daemon, on the simulated lathe, seen
+through lathectl as an operator sees it (issue 3, last Done-when item)."""
+from __future__ import annotations
+
+import json
+import re
+
+from tests.conftest import ROOT, sim_call, wait_until
+
+DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
+
+
+def default_table(name: str) -> str:
+    """The ``[analyzer.NAME]`` table of the shipped default config, verbatim."""
+    m = re.search(rf"^\[analyzer\.{name}\]\n.*?(?=^\[|^# |\Z)", DEFAULT, re.S | re.M)
+    assert m, f"no [analyzer.{name}] in etc/lathed.toml"
+    return m.group(0)
+
+
+CHATTER = default_table("chatter")
+
+
+def events(d, kind: str) -> list[dict]:
+    return json.loads(d.ctl("events", "--kind", kind, "--limit", "200", "--json").stdout)
+
+
+def chatter(d) -> dict:
+    return d.item("analyzers", "chatter")
+
+
+def part_count(d) -> int:
+    return int(sim_call(d.paths["sim"], "status")["registers"]["part_count"])
+
+
+def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
+    d = sim_daemon(analyzers=CHATTER)
+    wait_until(lambda: chatter(d)["state"] == "running", what="chatter analyzer running")
+    assert sim_call(d.paths["sim"], "set", {"depth_mm": 3.0}) == {"depth_mm": 3.0}
+    # every part now cuts 3 mm deep, above the ~2.4 mm limit: the first cut chatters
+    alarms = wait_until(lambda: events(d, "chatter_alarm"), timeout=30, interval=0.2, what="chatter_alarm event")
+    a = alarms[0]
+    assert a["source"] == "chatter"
+    p = a["payload"]
+    assert p["machine"] == "lathe" and p["tool"] == "T0101" and p["material"] == "C45"
+    assert p["depth_mm"] == 3.0
+    assert p["detector"] == chatter(d)["detector"]
+    assert p["index"] > p["threshold"] > 0
+    assert 50 < p["chatter_frequency_hz"] < 2000      # the structure's modes are at 190 and 620 Hz
+    assert round(p["rpm"]) in (1500, 2000, 2500)
+    # the analyzer's own status reports it
+    st = chatter(d)
+    assert st["alarms"] >= 1 and st["windows"] > 0
+    assert st["threshold"] is not None and st["cut_state"] in ("chatter", "watching", "learning", "idle")
+    wait_until(lambda: chatter(d)["cut_state"] == "chatter" or events(d, "chatter_cleared"),
+               timeout=15, what="chatter state or a cleared alarm")
+    # the human views name it too
+    assert "chatter_alarm" in d.ctl("events").stdout
+    assert "alarm(s)" in d.ctl("status").stdout
+    # the depth goes back to the program; the cut ends and the alarm clears with it
+    sim_call(d.paths["sim"], "set", {"depth_mm": None})
+    cleared = wait_until(lambda: events(d, "chatter_cleared"), timeout=30, interval=0.2,
+                         what="chatter_cleared event")
+    assert cleared[0]["payload"]["machine"] == "lathe"
+
+
+def test_no_false_alarm_on_stable_cuts(sim_daemon):
+    d = sim_daemon(analyzers=CHATTER)
+    assert sim_call(d.paths["sim"], "set", {"depth_mm": 1.0}) == {"depth_mm": 1.0}
+    start = part_count(d)
+    # three parts at 1 mm (the program's speeds 1500, 2000, 2500 r/min): the detector
+    # learns each cut and watches it, and never cries chatter
+    wait_until(lambda: part_count(d) >= start + 3, timeout=45, interval=0.3, what="three stable parts")
+    st = chatter(d)
+    assert st["windows"] > 20, st        # the detector did analyse the cuts
+    assert st["alarms"] == 0, st
+    assert events(d, "chatter_alarm") == []
+    assert st["cut_state"] != "chatter"
