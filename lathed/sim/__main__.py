@@ -9,7 +9,9 @@ serial-line CAN adapter (slcan) on a pseudo-terminal (``--robot-link``).
 A JSON-lines control socket lets an operator or a test change the cut,
 take a peer down or raise an alarm:
 
-    {"cmd": "status"}
+    {"cmd": "status"}      (with "parts": the last parts' cut start, the instant
+                            chatter became visible and the speed writes received,
+                            in the wall time of the vibration stream's t0 stamps)
     {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
     {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
         peer: modbus | vibration | serial (the lathe's), mill, grinder
@@ -28,6 +30,7 @@ import os
 import signal
 import sys
 import time
+from collections import deque
 from pathlib import Path
 
 from lathed.sim.can_peer import CanPeer
@@ -48,7 +51,7 @@ class Simulator:
         self.args = args
         self.lathe = SimLathe(rate_hz=args.rate, time_scale=args.time_scale, seed=args.seed,
                               depth_override_mm=args.depth_mm)
-        self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self.lathe.write)
+        self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
@@ -67,6 +70,9 @@ class Simulator:
         self.produced = 0
         self.overruns = 0
         self.booted = time.monotonic()
+        # (sim time, wall time) of recent vibration blocks' first samples: sim
+        # instants become comparable with the stream's t0 stamps, overruns too
+        self._clock: deque[tuple[float, float]] = deque(maxlen=512)
         self._outages: set[asyncio.Task] = set()
         self._stop = asyncio.Event()
 
@@ -135,12 +141,35 @@ class Simulator:
             while self.produced + BLOCK <= due:
                 t0 = start + self.produced / rate
                 rpm = self.lathe.rpm
+                self._clock.append((self.lathe.n_samples / self.lathe.rate_hz, t0))
                 data = self.lathe.step(BLOCK)
+                self._stamp(self.lathe.record)
                 self.vibration.send(t0, rpm, data)
                 self.produced += BLOCK
             if self.modbus.up:
                 self.modbus.block.update(self.lathe.registers())
             await asyncio.sleep(max(0.0, start + (self.produced + BLOCK) / rate - time.time()))
+
+    def _wall(self, sim_t: float) -> float | None:
+        for s0, w0 in reversed(self._clock):
+            if s0 <= sim_t:
+                return w0 + (sim_t - s0)
+        return None
+
+    def _stamp(self, rec) -> None:
+        # the cut starts on a block boundary and chatter is known visible at most
+        # a few revolutions late, so both are still in the clock's window
+        if rec.cut_start_s is not None and rec.cut_start_wall is None:
+            rec.cut_start_wall = self._wall(rec.cut_start_s)
+        if rec.visible_at_s is not None and rec.visible_wall is None:
+            rec.visible_wall = self._wall(rec.visible_at_s)
+
+    def _lathe_write(self, name: str, value: float) -> None:
+        # the instant the machine got the command, not when the daemon sent it
+        t = time.time()
+        self.lathe.write(name, value)
+        if name == "spindle_rpm_cmd":
+            self.lathe.record.speed_writes[-1]["wall_t"] = t
 
     async def _serial_loop(self) -> None:
         period = READING_PERIOD_S / self.args.time_scale
@@ -193,6 +222,8 @@ class Simulator:
             return {"t": self.lathe.t, "phase": self.lathe.phase, "part": self.lathe.part_index,
                     "registers": self.lathe.registers(), "temperatures": self.lathe.thermal.readings(),
                     "displacement_um": self.lathe.thermal.displacement_um, "overruns": self.overruns,
+                    "visible_at": self.lathe.record.visible_wall,
+                    "parts": [r.as_dict() for r in list(self.lathe.parts)[-max(1, int(args.get("parts", 16))):]],
                     "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,
                               "serial": self.serial.master is not None,
                               **({"mill": self.mill_peer.up} if self.mill_peer else {}),

@@ -5,18 +5,23 @@ its commanded speed within an acceleration limit; the program turns parts
 one after another (load, cut along the part, retract); the cut's vibration
 comes from the regenerative chip-thickness model (lathed.analysis.regen), so
 a depth above the stability limit really chatters; the spindle warms with
-speed (lathed.sim.thermal). No asyncio here: the peers in this package serve
-this state over Modbus, serial and TCP.
+speed (lathed.sim.thermal). It also watches its own cut for the instant
+chatter becomes visible on the surface (``VisibleChatter``, regen's rule
+applied live), so the closed loop's reaction can be timed against the truth.
+No asyncio here: the peers in this package serve this state over Modbus,
+serial and TCP.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
-from lathed.analysis.regen import RegenerativeTurning
+from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, SimBlock
 from lathed.sim.thermal import SpindleThermal
 
 # The simulated lathe's structure: a compliant workpiece mode at 190 Hz
@@ -45,6 +50,118 @@ DEFAULT_PROGRAM = (
     Cut(1500, 1.0), Cut(2000, 1.0), Cut(2500, 3.0),
     Cut(2000, 1.0), Cut(1500, 3.0), Cut(2500, 1.0),
 )
+
+class VisibleChatter:
+    """regen.simulate_cut's "chatter is visible" rule, evaluated live block by block.
+
+    Same quantities as regen.wav_rev/simulate_cut: d = y(theta) - y(theta - 2 pi)
+    less its centred moving mean over rate/200 samples, zero out of the cut;
+    rms per revolution counted from the cut's start (revolution length fixed
+    by the speed there); visible from the start of the first revolution with
+    rms >= VISIBLE_WAVINESS_M that does not shrink by more than 10 % over the
+    next two.  The stream since start-up is the "recording".  The centred mean
+    looks ahead half a window, so the verdict comes half a window plus three
+    revolutions after the instant it reports.  O(block) work per block.
+    """
+
+    def __init__(self, rate_hz: float):
+        self.rate = float(rate_hz)
+        k = max(1, int(rate_hz / 200))
+        self.k = k
+        self.ahead = (k - 1) // 2           # np.convolve(mode="same") centring
+        self.behind = k - 1 - self.ahead
+        self.n = 0                          # samples fed
+        self._th = np.empty(0)              # last ~revolution, for y(theta - 2 pi)
+        self._y = np.empty(0)
+        # d not yet mean-removed, from absolute index _dbase; zeros before the
+        # stream like np.convolve's padding
+        self._d = np.zeros(self.behind)
+        self._inc = np.zeros(self.behind, dtype=bool)
+        self._dbase = -self.behind
+        self._p = 0                         # first sample not yet final
+        self.i0: int | None = None          # tracked cut: first sample, end, revolution
+        self.end: int | None = None
+        self.rev = 0
+        self.revs: list[float] = []         # rms per completed revolution (m)
+        self._sum = 0.0
+        self.visible_at: int | None = None  # sample index
+
+    def start(self, i0: int, rpm: float) -> None:
+        self.i0, self.end = i0, None
+        self.rev = max(1, int(self.rate * 60.0 / rpm))
+        self.revs, self._sum, self.visible_at = [], 0.0, None
+
+    def stop(self, end: int) -> None:
+        if self.i0 is not None and self.end is None:
+            self.end = end
+
+    def feed(self, b: SimBlock) -> None:
+        th, y = b.theta_rad, b.y_m
+        hth = np.concatenate((self._th, th))
+        hy = np.concatenate((self._y, y))
+        d = y - np.interp(th - 2 * np.pi, hth, hy, left=np.nan)
+        d[~np.isfinite(d)] = 0.0
+        keep = int(np.searchsorted(hth, hth[-1] - 2.05 * np.pi))
+        self._th, self._y = hth[keep:], hy[keep:]
+        self.n += len(y)
+        self._d = np.concatenate((self._d, d))
+        self._inc = np.concatenate((self._inc, b.in_cut))
+        lo, hi = self._p, self.n - self.ahead    # final now: [lo, hi)
+        if hi <= lo:
+            return
+        c = np.concatenate(([0.0], np.cumsum(self._d)))
+        idx = np.arange(lo, hi) - self._dbase
+        mean = (c[idx + self.ahead + 1] - c[idx - self.behind]) / self.k
+        wav = np.where(self._inc[idx], self._d[idx] - mean, 0.0)
+        self._track(lo, wav)
+        self._p = hi
+        cut = hi - self.behind - self._dbase
+        self._d, self._inc, self._dbase = self._d[cut:], self._inc[cut:], hi - self.behind
+
+    def _track(self, lo: int, wav: np.ndarray) -> None:
+        if self.i0 is None or self.visible_at is not None:
+            return
+        hi = lo + len(wav)
+        pos = max(lo, self.i0 + len(self.revs) * self.rev)
+        stop = hi if self.end is None else min(hi, self.end)
+        while pos < stop:
+            rev_end = self.i0 + (len(self.revs) + 1) * self.rev
+            e = min(stop, rev_end)
+            seg = wav[pos - lo:e - lo]
+            self._sum += float(seg @ seg)
+            pos = e
+            if e == rev_end:
+                self.revs.append(math.sqrt(self._sum / self.rev))
+                self._sum = 0.0
+                r = self.revs
+                if len(r) >= 3 and r[-3] >= VISIBLE_WAVINESS_M and r[-2] >= 0.9 * r[-3] \
+                        and r[-1] >= 0.9 * r[-2]:
+                    self.visible_at = self.i0 + (len(r) - 3) * self.rev
+                    return
+        if self.end is not None and hi >= self.end:
+            self.i0 = None      # cut over: a revolution it did not finish does not count
+
+
+@dataclass
+class PartRecord:
+    """One part as the machine saw it: for timing the closed loop against the truth.
+    Times are sim seconds (sample index / rate); the simulator process adds
+    the wall-clock times of its vibration stream (``*_wall``)."""
+    part: int
+    rpm: float                    # programmed
+    depth_mm: float
+    b_lim_mm: float | None = None     # limiting depth at the speed the cut started at
+    cut_start_s: float | None = None
+    cut_end_s: float | None = None
+    visible_at_s: float | None = None
+    waviness_um: list[float] = field(default_factory=list)   # first revolutions' rms
+    speed_writes: list[dict] = field(default_factory=list)   # {"sim_t", "rpm"[, "wall_t"]}
+    cut_start_wall: float | None = None
+    visible_wall: float | None = None
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in self.__dict__.items()}
+
 
 LOAD_S = 1.5       # bar loaded, spindle brought to the part's speed
 RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
@@ -77,6 +194,23 @@ class SimLathe:
         self.probe_displacement_um = 0.0
         self.probe_seq = 0
         self.program_number = 1000
+        self.lobes = StabilityLobes(LATHE_MODES, LATHE_KF)
+        self.watch = VisibleChatter(rate_hz)
+        self.n_samples = 0
+        self.parts: deque[PartRecord] = deque(maxlen=64)
+        self._new_part()
+
+    def _new_part(self) -> None:
+        self.parts.append(PartRecord(self.part_index, self.part.rpm, self.depth_mm))
+
+    @property
+    def record(self) -> PartRecord:
+        return self.parts[-1]
+
+    @property
+    def visible_at_s(self) -> float | None:
+        """Sim time (sample index / rate) chatter became visible in the current part, or None."""
+        return self.record.visible_at_s
 
     # -- program ------------------------------------------------------------
     @property
@@ -97,6 +231,7 @@ class SimLathe:
             if not (math.isfinite(value) and 0 <= value <= self.max_rpm):
                 raise ValueError(f"spindle speed {value} r/min beyond the drive's 0..{self.max_rpm:g}")
             self.rpm_override = value
+            self.record.speed_writes.append({"sim_t": self.t, "rpm": value})
         elif name == "offset_x_um":
             if not math.isfinite(value):
                 raise ValueError("offset is not a number")
@@ -122,6 +257,7 @@ class SimLathe:
             self.part_index += 1
             self.rpm_override = None
             self.phase, self.phase_t, self.y_mm = "load", 0.0, 0.0
+            self._new_part()
 
     # -- physics --------------------------------------------------------------
     def step(self, n: int) -> np.ndarray:
@@ -131,11 +267,36 @@ class SimLathe:
         target = self.rpm_cmd
         step = self.accel_rpm_s * dt
         self.rpm = target if abs(target - self.rpm) <= step else self.rpm + math.copysign(step, target - self.rpm)
+        was = self.phase
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
         block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev)
+        self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)
         return np.asarray(block.accel, dtype=np.float32)
+
+    def _watch(self, was: str, n: int, block: SimBlock) -> None:
+        i = self.n_samples                  # this block's first sample
+        rec = self.record
+        if self.phase == "cut" and was != "cut":
+            rec.cut_start_s, rec.depth_mm = i / self.rate_hz, self.depth_mm
+            rec.b_lim_mm = float(self.lobes.b_lim_at(max(self.rpm, 60.0))[0][0] * 1e3)
+            # regen's rule counts from the instant the cut is above the limit
+            if self.depth_mm > rec.b_lim_mm:
+                self.watch.start(i, max(self.rpm, 60.0))
+        elif was == "cut" and self.phase != "cut":
+            # the part record moved on only after retract, so this is still its part
+            rec.cut_end_s = i / self.rate_hz
+            self.watch.stop(i)
+        w = self.watch
+        before = w.visible_at
+        tracking = w.i0 is not None
+        self.watch.feed(block)
+        self.n_samples += n
+        if tracking and w.visible_at is not None and before is None:
+            rec.visible_at_s = w.visible_at / self.rate_hz
+        if tracking and len(w.revs) != len(rec.waviness_um) and len(w.revs) <= 8:
+            rec.waviness_um = [round(r * 1e6, 2) for r in w.revs]
 
     def registers(self) -> dict[str, float]:
         radius = self.part.diameter_mm / 2
