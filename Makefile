@@ -19,4 +19,19 @@ test: $(STAMP)
 	bash tests/ensure_postgres.sh
 	$(BIN)/python -m pytest
 
-.PHONY: venv run test
+# Benchmarks: each prints a Markdown table (the README's performance section).
+bench-daemon: $(STAMP)
+	$(BIN)/python bench/bench_daemon.py
+bench-chatter: $(STAMP)
+	$(BIN)/python bench/bench_chatter.py --with-reference
+bench-suppression: $(STAMP)
+	$(BIN)/python bench/bench_suppression.py
+bench-loop: $(STAMP)
+	$(BIN)/python bench/bench_loop.py
+bench-thermal: $(STAMP)
+	$(BIN)/python bench/bench_thermal.py
+bench-store: $(STAMP)
+	$(BIN)/python bench/bench_store.py
+bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store
+
+.PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store

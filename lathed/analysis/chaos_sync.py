@@ -25,10 +25,9 @@ import math
 from collections import deque
 
 import numpy as np
-from scipy.signal import lfilter
 
 from lathed.analysis.detectors import RevolutionDetector
-from lathed.analysis.fracdiff import gl_weights
+from lathed.analysis.fracdiff import fir, gl_weights
 
 
 def eye_features(e: np.ndarray, a: float = 10.0, b: float = 28.0) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +82,7 @@ class ChaosSyncDetector(RevolutionDetector):
     def _new_samples(self, start: int, end: int) -> None:
         # the GL derivative of the revolution difference, once per sample, state carried
         d = np.nan_to_num(self._d[start:end])
-        self._e[start:end], self._zi = lfilter(self._w, [1.0], d, zi=self._zi)
+        self._e[start:end], self._zi = fir(self._w, d, self._zi)
 
     def _error(self, start: int, end: int) -> np.ndarray:
         return self._e[start:end]

@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
-from scipy import fft as sfft
 
 _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
 
@@ -302,8 +301,8 @@ def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> fl
     n = len(x)
     if n < 8:
         return None
-    nf = sfft.next_fast_len(n, real=True)
-    spec = np.abs(sfft.rfft(x * np.hanning(n), nf))
+    nf = fast_len(n)
+    spec = np.abs(np.fft.rfft(x * np.hanning(n), nf))
     f = np.arange(len(spec)) * rate / nf
     band = np.flatnonzero((f >= fmin) & (f <= min(fmax, rate / 2)))
     if band.size < 3:
@@ -345,8 +344,8 @@ class SpectralRatioDetector(RevolutionDetector):
     def _measure(self, start: int, end: int, rpm: float) -> float:
         x = self._x[start:end]
         n = len(x)
-        nf = sfft.next_fast_len(n, real=True)
-        ps = np.abs(sfft.rfft((x - x.mean()) * np.hanning(n), nf)) ** 2
+        nf = fast_len(n)
+        ps = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), nf)) ** 2
         df = self.rate / nf
         f = np.arange(len(ps)) * df
         frot = rpm / 60.0
@@ -361,6 +360,23 @@ class SpectralRatioDetector(RevolutionDetector):
 
     def _chatter_frequency(self, start: int, end: int, rpm: float) -> float | None:
         return getattr(self, "_last_peak", None)
+
+
+def fast_len(n: int) -> int:
+    """The smallest 2^a 3^b 5^c >= n: an FFT length numpy's pocketfft does fast
+    (scipy.fft would do, but costs the daemon a quarter second to import)."""
+    best = 1 << max(n - 1, 0).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            m = p35
+            while m < n:
+                m *= 2
+            best = min(best, m)
+            p35 *= 3
+        p5 *= 5
+    return best
 
 
 Factory = Callable[..., Any]

@@ -11,7 +11,6 @@ gives the same output as feeding it at once.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
 
 
 def gl_weights(p: float, memory: int) -> np.ndarray:
@@ -24,11 +23,23 @@ def gl_weights(p: float, memory: int) -> np.ndarray:
     return np.r_[1.0, np.cumprod(1.0 - (p + 1.0) / j)]
 
 
+def fir(w: np.ndarray, x: np.ndarray, hist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """y[n] = sum_j w[j] x[n-j] over a block ``x`` whose predecessors are
+    ``hist`` (the last len(w)-1 inputs, oldest first); returns (y, new hist).
+    numpy's convolve, not scipy.signal: importing scipy.signal costs the
+    daemon a second of start-up and tens of MB."""
+    if len(w) == 1:
+        return w[0] * x, hist
+    full = np.concatenate([hist, x])
+    return np.convolve(full, w, mode="valid"), full[len(full) - (len(w) - 1):]
+
+
 def fracdiff(x: np.ndarray, p: float, memory: int, h: float = 1.0, axis: int = -1) -> np.ndarray:
     """Finite-memory GL derivative of order ``p`` of samples ``x`` spaced ``h``;
     samples before the start are taken as zero."""
     w = gl_weights(p, memory)
-    return lfilter(w, [1.0], np.asarray(x, dtype=float), axis=axis) * h ** (-p)
+    x = np.asarray(x, dtype=float)
+    return np.apply_along_axis(lambda v: np.convolve(v, w)[:len(v)], axis, x) * h ** (-p)
 
 
 class GLDerivative:
@@ -52,5 +63,10 @@ class GLDerivative:
         x = np.asarray(block, dtype=float)
         if len(self.weights) == 1:
             return x * self._scale
-        y, self._zi = lfilter(self.weights, [1.0], x, axis=-1, zi=self._zi)
+        if x.ndim == 1:
+            y, self._zi = fir(self.weights, x, self._zi)
+        else:
+            out = [fir(self.weights, row, zi) for row, zi in zip(x, self._zi)]
+            y = np.array([o[0] for o in out])
+            self._zi = np.array([o[1] for o in out])
         return y * self._scale

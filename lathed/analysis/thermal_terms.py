@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Iterable, Mapping, Protocol, runtime_checkable
 
 import numpy as np
-from scipy.signal import lfilter
 
 if TYPE_CHECKING:
     from lathed.analysis.thermal import ThermalData
@@ -34,6 +33,7 @@ def lag_filter(t_s: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
     if len(x) < 2:
         return x.astype(float).copy()
     if np.ptp(dt) <= 1e-9 * max(dt[0], 1.0):
+        from scipy.signal import lfilter   # here: heavy to import, and only fits need it
         a = 1.0 - math.exp(-dt[0] / tau_s)
         y, _ = lfilter([a], [1.0, a - 1.0], x, zi=[(1.0 - a) * x[0]])
         return y

@@ -1,0 +1,29 @@
+"""The unit file passes systemd-analyze verify (where systemd-analyze exists)."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import ROOT
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_unit_verifies_clean(tmp_path):
+    unit = (ROOT / "systemd" / "lathed.service").read_text()
+    # the unit names the installed location; point it at this environment's lathed
+    unit = unit.replace("/opt/lathed/.venv/bin/lathed", str(Path(sys.executable).parent / "lathed"))
+    path = tmp_path / "lathed.service"
+    path.write_text(unit)
+    r = subprocess.run(["systemd-analyze", "verify", str(path)], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+
+
+def test_unit_is_notify_with_watchdog_and_state():
+    unit = (ROOT / "systemd" / "lathed.service").read_text()
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=lathed",
+                 "RuntimeDirectory=lathed", "SupplementaryGroups=dialout", "User=lathed", "AF_CAN"):
+        assert line in unit
