@@ -12,6 +12,7 @@ as a Sample. Gaps in the stream's sample counter are counted, never hidden.
 from __future__ import annotations
 
 import asyncio
+import math
 
 import numpy as np
 
@@ -56,11 +57,17 @@ class VibrationTCP(Driver):
 
     async def run(self) -> None:
         while True:
-            head = await asyncio.wait_for(self.reader.readexactly(VIB_HEADER.size), self.timeout)
-            channels, n, rate, seq, t0, rpm = unpack_vibration_header(head)
-            if n * channels > MAX_FRAME_SAMPLES:
-                raise ValueError(f"frame of {n}x{channels} samples is larger than {MAX_FRAME_SAMPLES}")
-            body = await asyncio.wait_for(self.reader.readexactly(4 * n * channels), self.timeout)
+            # asyncio.timeout, not wait_for: no extra task per read at 50 frames/s
+            try:
+                async with asyncio.timeout(self.timeout):
+                    head = await self.reader.readexactly(VIB_HEADER.size)
+                    channels, n, rate, seq, t0, rpm = unpack_vibration_header(head)
+                    if n * channels > MAX_FRAME_SAMPLES:
+                        raise ValueError(f"frame of {n}x{channels} samples is larger than {MAX_FRAME_SAMPLES}")
+                    body = await self.reader.readexactly(4 * n * channels)
+            except TimeoutError:
+                raise TimeoutError(f"no vibration frame from {self.host}:{self.port} for {self.timeout:g} s "
+                                   "(DAQ stopped or cable out?)") from None
             data = np.frombuffer(body, dtype="<f4").reshape(n, channels)[:, 0].astype(np.float64)
             if self._next_seq is not None and seq != self._next_seq:
                 if seq > self._next_seq:
@@ -72,7 +79,7 @@ class VibrationTCP(Driver):
             self.samples += n
             self.mark_data()
             self.ctx.bus.publish(Block(self.name, "acceleration", float(rate), t0, seq, data, float(rpm)))
-            self.ctx.bus.publish(Sample(self.name, "rms", float(np.sqrt(np.mean(data * data))), "m/s²", t0))
+            self.ctx.bus.publish(Sample(self.name, "rms", math.sqrt(float(data @ data) / n), "m/s²", t0))
 
     def status(self) -> dict:
         return {"rate_hz": self.rate_hz, "frames": self.frames, "lost_samples": self.lost_samples}
