@@ -38,6 +38,12 @@ from lathed.config import Section
 from lathed.control import RequestError
 
 
+# refit() fits on all but the newest 20 % and the residual loop needs 10 rows for
+# each of its 5 held-out time blocks: ceil(50 / 0.8) measurements at least.
+REFIT_HOLDOUT = 0.2
+MIN_REFIT_ROWS = math.ceil(10 * 5 / (1 - REFIT_HOLDOUT))
+
+
 class ThermalAnalyzer(Analyzer):
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
@@ -178,8 +184,8 @@ class ThermalAnalyzer(Analyzer):
         rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_measurement' "
                                     "AND source = ? ORDER BY id", (self.name,))
         pts = [json.loads(r["payload"]) for r in rows]
-        if len(pts) < 20:
-            raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least 20")
+        if len(pts) < MIN_REFIT_ROWS:
+            raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least {MIN_REFIT_ROWS}")
         places = sorted(set.intersection(*(set(p["temps_c"]) for p in pts)))
         t = np.array([p["t"] for p in pts])
         return ThermalData(t - t[0], {f"t_{k}_c": np.array([p["temps_c"][k] for p in pts]) for k in places},
@@ -188,7 +194,11 @@ class ThermalAnalyzer(Analyzer):
 
     def _refit(self) -> tuple[dict, object]:
         data = self._measurements()
-        res = refit(data, current=self.model, extra_candidates=self._candidates())
+        try:
+            res = refit(data, current=self.model, holdout_fraction=REFIT_HOLDOUT,
+                        extra_candidates=self._candidates())
+        except ValueError as e:     # data the residual loop cannot use: say so, keep the model
+            raise RequestError(f"refit failed on {len(data)} probe measurements: {e}") from None
         out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
