@@ -113,6 +113,8 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     seed_measurements(tmp_path / "state", SEEDED)
     d = sim_daemon(analyzers=THERMAL, time_scale=TIME_SCALE)
     models = tmp_path / "state" / "thermal-models"
+    # the analyzer offers its control command once it runs (the daemon is ready before)
+    wait_until(lambda: isinstance(thermal(d, "status", check=False), dict), what="thermal control command")
     # too few measurements: one clear line, non-zero exit, nothing saved
     r = thermal(d, "refit", check=False)
     assert r.returncode != 0 and re.search(rf"only ({SEEDED}|{SEEDED + 1}) probe measurements stored; "
@@ -127,8 +129,10 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     assert out["rows"] >= NEED and out["model_before"] == "eq14"
     assert out["before_rmse_um"] > 0 and out["after_rmse_um"] >= 0
     assert out["better"] == (out["after_rmse_um"] < out["before_rmse_um"] * 0.95)
-    # eq. 14 is another machine's regression: the fit on this lathe's own data beats it
+    # eq. 14 is another machine's regression (its -222 µm intercept included): the fit on this
+    # lathe's own probe data beats it, and tracks the newest probes within a few µm
     assert out["better"], out
+    assert out["after_rmse_um"] < 10.0, out
     assert out["model_after"] == "thermal-v1.toml"
     saved = models / "thermal-v1.toml"
     assert saved.is_file() and "before_rmse_um" in saved.read_text()
