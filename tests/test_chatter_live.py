@@ -56,12 +56,12 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     # the analyzer's own status reports it
     st = chatter(d)
     assert st["alarms"] >= 1 and st["windows"] > 0
-    assert st["threshold"] is not None and st["cut_state"] in ("chatter", "watching", "learning", "idle")
+    assert st["threshold"] is not None
     wait_until(lambda: chatter(d)["cut_state"] == "chatter" or events(d, "chatter_cleared"),
                timeout=15, what="chatter state or a cleared alarm")
     # the human views name it too
     assert "chatter_alarm" in d.ctl("events").stdout
-    assert "alarm(s)" in d.ctl("status").stdout
+    assert re.search(r"^\s+chatter\s.*\b[1-9]\d* alarm\(s\)", d.ctl("status").stdout, re.M)
     # the depth goes back to the program; the cut ends and the alarm clears with it
     assert sim_set(d, None)["depth_mm"] in (1.0, 3.0)
     cleared = wait_until(lambda: events(d, "chatter_cleared"), timeout=30, interval=0.2,
