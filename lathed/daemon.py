@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import logging
 import os
 import signal
 import socket
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,7 @@ from lathed.store import Store
 from lathed.supervisor import Plan, Supervisor, build
 
 log = structlog.get_logger("lathed")
+STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
 
 
 def default_state_dir() -> Path:
@@ -110,6 +113,12 @@ class Daemon:
         self.state = "stopping"
         notify("STOPPING=1")
         log.info("stopping")
+        # A driver stuck in a blocking read in a worker thread must not keep
+        # the process alive: acknowledged records are already committed, so
+        # past the grace period we leave (systemd would SIGKILL us anyway).
+        guard = threading.Timer(STOP_GRACE_S, self._stop_overdue)
+        guard.daemon = True
+        guard.start()
         watchdog.cancel()
         starting.cancel()
         await asyncio.gather(starting, return_exceptions=True)
@@ -121,6 +130,12 @@ class Daemon:
         self.supervisor.record("daemon_stopped", "lathed", {})
         await asyncio.to_thread(self.store.close)
         return 0
+
+    @staticmethod
+    def _stop_overdue() -> None:
+        log.error("stop_overdue", grace_s=STOP_GRACE_S, why="a driver or worker thread did not stop; exiting")
+        logging.shutdown()
+        os._exit(1)
 
     async def _start_drivers(self) -> None:
         if self.sim_settings is not None:

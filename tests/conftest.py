@@ -1,6 +1,7 @@
 """Shared test helpers: free ports, condition polling, a daemon on the simulator."""
 from __future__ import annotations
 
+import gc
 import json
 import os
 import signal
@@ -13,6 +14,17 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def pytest_sessionstart(session):
+    # CPython 3.11 < 3.11.8 can raise a spurious "AST constructor recursion
+    # depth mismatch" (cpython#106905) when a garbage collection runs inside
+    # ast construction, which pytest's assertion rewriting does at collection.
+    gc.disable()
+
+
+def pytest_collection_finish(session):
+    gc.enable()
 BIN = Path(sys.executable).parent
 
 

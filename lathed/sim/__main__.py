@@ -43,7 +43,7 @@ from lathed.sim.vibration_peer import VibrationPeer
 
 BLOCK = 1024              # samples per vibration frame: 20 ms at 51.2 kS/s
 READING_PERIOD_S = 6.0    # the Arduino reads its DS18B20s every 6 s (sim time)
-LINE_PERIOD_S = 0.05      # the neighbours' physics step, and the robot's CAN frame period
+LINE_PERIOD_S = 0.1       # the neighbours' physics step, and the robot's CAN frame period (10 Hz)
 
 
 class Simulator:
