@@ -8,8 +8,6 @@ import json
 import re
 import time
 
-import pytest
-
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
 from plugins.thermal import MIN_REFIT_ROWS
@@ -148,7 +146,3 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     # the compensation now uses the kept model
     wait_until(lambda: any(e["payload"]["model"] == "thermal-v1.toml" for e in events(d, "compensation")),
                timeout=20, what="a compensation with the refitted model")
-
-
-if __name__ == "__main__":
-    pytest.main([__file__, "-q"])
