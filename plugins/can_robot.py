@@ -93,6 +93,10 @@ class CanRobot(Driver):
             kw["bitrate"] = self.bitrate
         if self.interface == "slcan":
             kw["sleep_after_open"] = 0   # a pty or CANable answers at once
+            # python-can's default 1 ms serial timeout makes its reader spin a
+            # thousand times a second while the bus is quiet; a byte still
+            # returns the moment it arrives
+            kw["timeout"] = 0.05
         return can.Bus(**kw)
 
     async def connect(self) -> None:
