@@ -100,6 +100,10 @@ class Daemon:
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
         await self.control.start()
+        # Analyzers first, and one loop turn for them to register their
+        # control commands (parts, suppress, thermal...) before READY.
+        self.supervisor.start_analyzers()
+        await asyncio.sleep(0)
         # READY as soon as we serve; the drivers start once the simulator (an
         # outside peer, however local) listens, so they do not begin in retry.
         starting = asyncio.create_task(self._start_drivers())
@@ -141,7 +145,7 @@ class Daemon:
         if self.sim_settings is not None:
             from lathed.sim.launch import spawn
             self.sim_process = await spawn(self.sim_settings)
-        self.supervisor.start()
+        self.supervisor.start_drivers()
 
     async def _watchdog(self) -> None:
         # Pinged from the event loop itself: if the loop hangs, the pings stop

@@ -239,9 +239,17 @@ class Supervisor:
         return lambda kind, payload=None: self.record(kind, source, payload)
 
     # -- running --------------------------------------------------------------
-    def start(self) -> None:
-        for r in (*self.runners.values(), *self.analyzer_runners.values()):
+    def start_analyzers(self) -> None:
+        for r in self.analyzer_runners.values():
+            r.task = asyncio.create_task(r.loop(), name=f"analyzer:{r.name}")
+
+    def start_drivers(self) -> None:
+        for r in self.runners.values():
             r.task = asyncio.create_task(r.loop(), name=f"{r.category}:{r.name}")
+
+    def start(self) -> None:
+        self.start_analyzers()
+        self.start_drivers()
 
     async def stop(self) -> None:
         # analyzers first, so no command is asked for while drivers close
