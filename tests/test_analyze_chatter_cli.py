@@ -130,7 +130,7 @@ def test_rpm_must_be_positive(files, capsys):
     with pytest.raises(SystemExit) as e:
         _parser().parse_args(["chatter", str(d / "bare.csv"), "--rpm", "0"])
     assert e.value.code == 2
-    assert "must be > 0" in capsys.readouterr().err
+    assert "must be a positive number" in capsys.readouterr().err
 
 
 def test_plot_written(files, capsys, tmp_path):

@@ -1,0 +1,19 @@
+"""lathectl subcommands: each module defines register(sub) and/or register_analyze(sub)."""
+from __future__ import annotations
+
+import argparse
+import math
+
+# sysexits codes the offline commands use
+EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
+
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return v

@@ -18,21 +18,11 @@ import sys
 
 import numpy as np
 
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive
 from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analysis.recording import RecordingError, read_signal
 
-EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
 BLOCK = 4096
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
-    return v
 
 
 def _channel(text: str) -> int:
@@ -52,8 +42,8 @@ def register_analyze(sub) -> None:
                                    "recording, or from --reference (a stable cut).")
     p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float) or CSV "
                    "(time_s plus one signal column, or one column with --rate)")
-    p.add_argument("--rpm", type=_positive, required=True, help="spindle speed in r/min")
-    p.add_argument("--rate", type=_positive, metavar="HZ", help="sample rate of a CSV without time_s")
+    p.add_argument("--rpm", type=positive, required=True, help="spindle speed in r/min")
+    p.add_argument("--rate", type=positive, metavar="HZ", help="sample rate of a CSV without time_s")
     p.add_argument("--channel", type=_channel, default=0, metavar="K",
                    help="WAV channel / CSV signal column, from 0 (default 0)")
     p.add_argument("--reference", metavar="REF", help="recording of a stable cut at the same speed "

@@ -8,12 +8,12 @@ import sys
 
 import numpy as np
 
+from lathed.cli import EX_CANTCREAT, positive
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import parse_mode
 
 # JSON stays readable: each lobe is thinned to at most this many points.
 MAX_POINTS_PER_LOBE = 400
-EX_CANTCREAT = 73  # sysexits: output file cannot be created
 
 
 def _mode(text: str):
@@ -23,21 +23,11 @@ def _mode(text: str):
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
-    return v
-
-
 def _range(text: str) -> tuple[float, float]:
     parts = text.split(":")
     if len(parts) != 2:
         raise argparse.ArgumentTypeError(f"range {text!r}: expected MIN:MAX in r/min")
-    lo, hi = (_positive(p) for p in parts)
+    lo, hi = (positive(p) for p in parts)
     if not lo < hi:
         raise argparse.ArgumentTypeError(f"range {text!r}: MIN must be below MAX")
     return lo, hi
@@ -51,9 +41,9 @@ def register_analyze(sub) -> None:
                    metavar="FN,ZETA,K[,THETA_DEG]",
                    help="structural mode: natural frequency Hz, damping ratio, stiffness N/m, "
                         "angle from the surface normal (repeat for several modes)")
-    p.add_argument("--kf", type=_positive, required=True, metavar="N_PER_M2",
+    p.add_argument("--kf", type=positive, required=True, metavar="N_PER_M2",
                    help="cutting-force coefficient along the chip-thickness direction")
-    p.add_argument("--rpm", type=_positive, help="also report the limiting depth at this speed")
+    p.add_argument("--rpm", type=positive, help="also report the limiting depth at this speed")
     p.add_argument("--range", dest="rpm_range", type=_range, default=(500.0, 6000.0),
                    metavar="MIN:MAX", help="spindle speed range in r/min (default 500:6000)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")

@@ -6,10 +6,9 @@ import json
 import sys
 from pathlib import Path
 
+from lathed.cli import EX_CANTCREAT
 from lathed.analysis.thermal import Analysis, ThermalData, analyze
 from lathed.analysis.thermal_csv import EX_DATAERR, LoadReport, ThermalCsvError, load_thermal_csv
-
-EX_CANTCREAT = 73  # sysexits: output file cannot be created
 
 
 def register_analyze(sub) -> None:
