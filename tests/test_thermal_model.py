@@ -9,7 +9,7 @@ from lathed.analysis.thermal import (DriftTerm, HysteresisTerm, LagTerm, LinearT
                                      fit_coefficients, heldout_errors, lag_filter, load_model, play_operator,
                                      save_model)
 
-EQ14_TOML = Path("/work/shared/data/paper_tables/eq14_thermal_model.toml")
+EQ14_TOML = Path(__file__).resolve().parents[2] / "shared" / "data" / "paper_tables" / "eq14_thermal_model.toml"
 
 
 def _synthetic(n=600, seed=0, dt=6.0):
