@@ -31,7 +31,11 @@ EQ14_COEF_MM_PER_C = {"t_front_bearing_c": -0.00911, "t_rear_bearing_c": 0.00606
                       "t_motor_c": 0.009833, "t_room_c": 0.000548}
 EQ14_INTERCEPT_MM = -0.22194
 
-_REF_ROWS = 10  # rows in the line fitted for the starting temperature (see _start_temp)
+_REF_ROWS = 10        # rows in the line fitted for the starting temperature when rows are sparse
+_REF_WINDOW_S = 300.0  # ... or the span of the quadratic fitted when they are dense (see _start_temp)
+_REF_MIN_ROWS = 20
+# spans tried for the local quadratic that takes sensor noise out of the fit (see smooth_rows)
+_SMOOTH_SPANS_S = (120.0, 240.0, 480.0, 960.0, 1920.0)
 
 
 def sensor_column(key: str) -> str:
@@ -44,14 +48,53 @@ def sensor_column(key: str) -> str:
 # -- data -----------------------------------------------------------------
 
 def _start_temp(t_s: np.ndarray, x: np.ndarray) -> float:
-    """Temperature at the first row from a line through the first rows: one
+    """Temperature at the first row, from a curve through the first rows: one
     DS18B20 reading is 1/16 °C coarse, and a plain mean would include the
-    first minute's warm-up in the reference."""
-    k = min(_REF_ROWS, len(x))
+    first minutes' warm-up in the reference. With dense rows, a quadratic
+    over the first ``_REF_WINDOW_S`` (the warm-up bends within minutes);
+    otherwise a line through the first ``_REF_ROWS`` rows. Every sensor's
+    error here is an offset of the whole run's prediction."""
+    dense = int(np.searchsorted(t_s, t_s[0] + _REF_WINDOW_S, side="right"))
+    if dense >= _REF_MIN_ROWS:
+        k, deg = dense, 2
+    else:
+        k, deg = min(_REF_ROWS, len(x)), 1
     if k < 3 or np.ptp(t_s[:k]) == 0:
         return float(x[0])
-    slope, icpt = np.polyfit(t_s[:k] - t_s[0], x[:k], 1)
-    return float(icpt)
+    return float(np.polyval(np.polyfit(t_s[:k] - t_s[0], x[:k], deg), 0.0))
+
+
+def _savgol_window(t_s: np.ndarray, span_s: float) -> int:
+    """Rows (odd) in ``span_s``; 0 when under 7 rows, or when the span would
+    reach over more than 1/20 of the run (sparse rows, such as one probe per
+    part: neighbouring rows are then not repeat readings of one temperature)."""
+    n = len(t_s)
+    dt = float(np.median(np.diff(t_s))) if n > 1 else 0.0
+    w = min(int(span_s / dt) if dt > 0 else 0, n // 20)
+    w -= w % 2 == 0
+    return w if w >= 7 else 0
+
+
+def smooth_rows(t_s: np.ndarray, x: np.ndarray, span_s: float | None = None) -> np.ndarray:
+    """Local quadratic (Savitzky-Golay) through the rows: the sensor noise
+    (~0.03 °C a reading) taken out, the bends of a warm-up kept. The span is
+    ``span_s`` when given, else the one of ``_SMOOTH_SPANS_S`` with the least
+    leave-one-out error on this signal (a room sensor drifting over hours
+    takes a longer span than a bearing that bends within minutes)."""
+    from scipy.signal import savgol_coeffs, savgol_filter
+    best = (math.inf, x)
+    for sp in ((span_s,) if span_s is not None else _SMOOTH_SPANS_S):
+        w = _savgol_window(t_s, sp)
+        if not w:
+            continue
+        y = savgol_filter(x, w, 2, mode="interp")
+        if span_s is not None:
+            return y
+        h0 = float(savgol_coeffs(w, 2)[w // 2])
+        loo = float(np.mean(np.square((x - y) / (1.0 - h0))))
+        if loo < best[0]:
+            best = (loo, y)
+    return best[1]
 
 
 @dataclass
@@ -89,6 +132,13 @@ class ThermalData:
     def rise(self, column: str) -> np.ndarray:
         return self.temps_c[column] - self.reference_c[column]
 
+    def smooth_rise(self, column: str) -> np.ndarray:
+        """The rise with the sensor noise smoothed out, for fitting only."""
+        cache = self.__dict__.setdefault("_smooth", {})
+        if column not in cache:
+            cache[column] = smooth_rows(self.time_s, self.rise(column))
+        return cache[column]
+
     def slice(self, lo: int, hi: int) -> ThermalData:
         """Rows lo:hi, keeping this run's reference and start time."""
         return ThermalData(self.time_s[lo:hi], {k: v[lo:hi] for k, v in self.temps_c.items()},
@@ -110,6 +160,22 @@ COLLINEAR_R = 0.999
 
 def _design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     cols = [np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
+    return np.hstack(cols) if cols else np.empty((len(data), 0))
+
+
+def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
+    """The design the coefficients are fitted on: as ``_design``, but the
+    sensors' own (linear) columns with their reading noise smoothed out.
+
+    The heated sensors move nearly in lock-step (rear bearing and motor warm
+    with the same speed, r > 0.99), so what tells their weights apart is a
+    few hundredths of a °C, the size of a DS18B20's noise: fitted on the raw
+    readings the weights are biased along that direction (errors in
+    variables), which costs nothing on the training run and a slow ramp of
+    error on a run with another speed schedule. Predictions still use the
+    raw readings."""
+    cols = [data.smooth_rise(t.sensor)[:, None] if isinstance(t, LinearTerm)
+            else np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
 
 
@@ -145,12 +211,17 @@ def blocks(n: int, n_blocks: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
-def heldout_errors(X: np.ndarray, y: np.ndarray, n_blocks: int = 5, gap: int = 10) -> np.ndarray:
+def heldout_errors(X: np.ndarray, y: np.ndarray, n_blocks: int = 5, gap: int = 10,
+                   X_pred: np.ndarray | None = None) -> np.ndarray:
     """Error on each row when its contiguous time block is held out; the
     ``gap`` rows either side are left out of the fit too, since a thermal
-    signal carries over from one row to the next."""
+    signal carries over from one row to the next. The fit is made on ``X``
+    and the held-out rows predicted from ``X_pred`` (default ``X``; see
+    ``_fit_design``)."""
     n = len(y)
-    Z = _Scaled(X)(X)
+    sc = _Scaled(X)
+    Z = sc(X)
+    P = Z if X_pred is None else sc(X_pred)
     G = Z.T @ Z
     b = Z.T @ y
     err = np.empty(n)
@@ -158,7 +229,7 @@ def heldout_errors(X: np.ndarray, y: np.ndarray, n_blocks: int = 5, gap: int = 1
         a, c = max(lo - gap, 0), min(hi + gap, n)
         Ze = Z[a:c]
         beta = _solve(G - Ze.T @ Ze, b - Ze.T @ y[a:c], n - (c - a))
-        err[lo:hi] = y[lo:hi] - Z[lo:hi] @ beta
+        err[lo:hi] = y[lo:hi] - P[lo:hi] @ beta
     return err
 
 
@@ -412,10 +483,11 @@ def baseline_terms(data: ThermalData, n_blocks: int = 5, gap: int = 10) -> tuple
 def _stage(train: ThermalData, terms: list[Term], test: ThermalData | None,
            n_blocks: int, gap: int, notes: list[str]) -> tuple[Stage, np.ndarray]:
     X = _design(train, terms)
+    Xf = _fit_design(train, terms)
     y = train.displacement_um
-    coef, icpt = fit_coefficients(X, y)
+    coef, icpt = fit_coefficients(Xf, y)
     model = ThermalModel(list(terms), coef, icpt, list(notes))
-    e_cv = heldout_errors(X, y, n_blocks, gap)
+    e_cv = heldout_errors(Xf, y, n_blocks, gap, X)
     fit_rmse = rmse(y - (X @ coef + icpt))
     test_rmse = rmse(test.displacement_um - model.predict(test)) if test is not None else rmse(e_cv)
     return Stage(model, fit_rmse, rmse(e_cv), test_rmse), e_cv
@@ -482,6 +554,7 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
     y = train.displacement_um
     while len(found) < max_effects:
         X = _design(train, stage.model.terms)
+        Xf = _fit_design(train, stage.model.terms)
         have = {(t.effect, t.sensor) for t in stage.model.terms}
         best = None
 
@@ -495,7 +568,7 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
             F = np.asarray(term.features(train), float).reshape(len(train), -1)
             if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
                 return
-            e = heldout_errors(np.hstack([X, F]), y, n_blocks, gap)
+            e = heldout_errors(np.hstack([Xf, F]), y, n_blocks, gap, np.hstack([X, F]))
             r = rmse(e)
             if best is None or r < best[0]:
                 best = (r, term, e, cand)
