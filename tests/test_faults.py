@@ -197,10 +197,10 @@ def check_part_events(events, source: str, model_count: int) -> list[int]:
 
 
 def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 100))
+    return asyncio.run(asyncio.wait_for(coro, 200))
 
 
-@pytest.mark.parametrize("seconds", [1.5])
+@pytest.mark.parametrize("seconds", [10.0])   # the issue's figure: every peer gone 10 s
 def test_every_peer_killed_and_restarted(tmp_path, seconds):
     """Each peer in turn down for ``seconds``; every driver returns within 5 s;
     the others never stop."""
