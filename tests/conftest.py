@@ -53,19 +53,9 @@ def wait_until(pred, timeout: float = 20.0, interval: float = 0.05, what: str = 
 
 
 def sim_call(path: str | Path, cmd: str, args: dict | None = None) -> object:
-    with socket.socket(socket.AF_UNIX) as s:
-        s.settimeout(10)
-        s.connect(str(path))
-        s.sendall(json.dumps({"cmd": cmd, "args": args or {}}).encode() + b"\n")
-        buf = b""
-        while not buf.endswith(b"\n"):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            buf += chunk
-    reply = json.loads(buf)
-    assert reply["ok"], reply
-    return reply["result"]
+    """A command to the simulator's control socket (as `lathectl sim` sends it)."""
+    from lathed.cli.sim import call
+    return call(Path(path), cmd, args or {})
 
 
 REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.registers]", 1)[1].split("\n[", 1)[0]

@@ -12,9 +12,8 @@ import json
 import math
 import sys
 
+from lathed.cli import EX_CANTCREAT
 from lathed.lathectl import print_json, remote
-
-EX_CANTCREAT = 73
 
 
 def _num(text: str) -> float:
