@@ -9,6 +9,7 @@ from lathed.sim.thermal import EFFECTS, generate_run, random_schedule
 
 NOISE_UM = 0.5
 TRAIN_SEED, TEST_SEED = 7, 107      # bench/bench_thermal.py sweeps many seeds
+SHIFT_S = 8 * 3600                   # each run is a shift, as in the bench
 
 
 def data(run) -> ThermalData:
@@ -17,9 +18,9 @@ def data(run) -> ThermalData:
                        c["displacement_um"], c["spindle_rpm"])
 
 
-def pair(effects, extra=None):
-    tr = generate_run(random_schedule(TRAIN_SEED), effects, seed=TRAIN_SEED, noise_um=NOISE_UM)
-    te = generate_run(random_schedule(TEST_SEED), effects, seed=TEST_SEED, noise_um=NOISE_UM)
+def pair(effects, extra=None, train_seed=TRAIN_SEED, test_seed=TEST_SEED):
+    tr = generate_run(random_schedule(train_seed, SHIFT_S), effects, seed=train_seed, noise_um=NOISE_UM)
+    te = generate_run(random_schedule(test_seed, SHIFT_S), effects, seed=test_seed, noise_um=NOISE_UM)
     tr, te = data(tr), data(te)
     if extra is not None:
         tr.displacement_um = tr.displacement_um + extra(tr.time_s)
@@ -28,7 +29,7 @@ def pair(effects, extra=None):
 
 
 def test_schedules_differ():
-    assert random_schedule(TRAIN_SEED) != random_schedule(TEST_SEED)
+    assert random_schedule(TRAIN_SEED, SHIFT_S) != random_schedule(TEST_SEED, SHIFT_S)
 
 
 @pytest.mark.parametrize("effect", EFFECTS)
@@ -51,8 +52,11 @@ def test_lag_time_constant_is_found():
     assert 900 < first.term.params["tau_s"] < 3000
 
 
-def test_no_effect_is_claimed_on_data_without_one():
-    tr, te = pair(())
+# 3 and 6: the pairs whose 5-h runs ended just over the bar (rear bearing and
+# motor warm nearly in step; their weights scattered).
+@pytest.mark.parametrize("seed", [TRAIN_SEED, 3, 6])
+def test_no_effect_is_claimed_on_data_without_one(seed):
+    tr, te = pair((), train_seed=seed, test_seed=seed + 100)
     a = analyze(tr, te)
     assert a.effects == []
     assert a.final.test_rmse_um <= 1.10 * NOISE_UM
