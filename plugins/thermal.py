@@ -11,8 +11,15 @@ write it to the CNC as an X offset (numeric core: lathed.analysis.thermal).
     step = "1s"                # how often the prediction is evaluated
     sign = -1.0                # offset = sign * growth since the tool was touched off
 
-The growth is taken relative to the first prediction after start (the
-machine is assumed cold and touched off then). Each probe result the
+The growth is compensated since the tool was touched off. The touch-off (the
+temperatures, time and speed of that moment, and the offset then in force)
+is stored as a ``thermal_touchoff`` record: on the very first start the
+spindle is assumed cold and touched off at the first full set of readings;
+``lathectl thermal touchoff`` says the operator touched off again (the
+offset in force then stays as the new base); a restarted daemon goes on
+from the stored touch-off instead of taking a warm spindle for a cold one.
+Nothing is written until the machine has reported the offset it holds
+(``offset_x_um``), so phasing always starts from the real value. Each probe result the
 machine reports (``probe_seq`` changing) is stored as a
 ``thermal_measurement`` with the temperatures of the moment; ``lathectl
 thermal refit`` runs the residual loop on them, keeps the new model only if
@@ -70,7 +77,8 @@ class ThermalAnalyzer(Analyzer):
         self.rpm: float | None = None
         self.prediction: float | None = None
         self.pred0: float | None = None
-        self.applied: float = 0.0
+        self.touchoff: dict | None = None
+        self.applied: float | None = None      # the offset the machine reports holding
         self.target: float = 0.0
         self.writes = 0
         self.refused: str | None = None
@@ -108,7 +116,7 @@ class ThermalAnalyzer(Analyzer):
     async def run(self) -> None:
         self.ctx.register_control("thermal", self._control)
         self._load_newest()
-        self._predictor = self.model.predictor()
+        self._restore_touchoff()
         sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096)
         ticker = asyncio.create_task(self._tick())
         try:
@@ -141,21 +149,54 @@ class ThermalAnalyzer(Analyzer):
                                                 "displacement_um": value, "rpm": self.rpm,
                                                 "temps_c": dict(self.temps)})
 
+    # -- touch-off ----------------------------------------------------------------
+    def _restore_touchoff(self) -> None:
+        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_touchoff' AND source = ? "
+                                    "ORDER BY id DESC LIMIT 1", (self.name,))
+        if rows:
+            t = json.loads(rows[0]["payload"])
+            if t.get("machine") == self.machine:
+                self.touchoff = t
+                self._rebuild()
+
+    def _touch_off(self, reason: str, base_um: float) -> None:
+        self.touchoff = {"machine": self.machine, "t": time.time(), "temps_c": dict(self.temps),
+                         "rpm": self.rpm, "base_um": base_um, "reason": reason}
+        self.ctx.record("thermal_touchoff", self.touchoff)
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        """Predictor and zero for the current model from the stored touch-off:
+        the growth is the model's prediction now less its prediction then."""
+        to = self.touchoff
+        ref, t0, rpm0 = to["temps_c"], to["t"], to["rpm"] or 0.0
+        lacking = [p for p in self._sensor_places() if p not in ref]
+        if lacking:
+            self._predictor = self.pred0 = None
+            self.refused = (f"the touch-off of {time.strftime('%F %T', time.localtime(t0))} has no reading of "
+                            f"{', '.join(lacking)}, which model {self.model_name} needs: touch the tool off "
+                            f"again and run `lathectl thermal touchoff`")
+            return
+        self._predictor = self.model.predictor(ref, t0)
+        self.pred0 = self.model.predictor(ref, t0).update(ref, rpm0, t0)
+
     async def _tick(self) -> None:
         while True:
             await asyncio.sleep(self.step)
             if not all(k in self.temps for k in self._sensor_places()):
+                continue
+            if self.touchoff is None:
+                self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
+            if self._predictor is None or self.applied is None:
                 continue
             try:
                 pred = self._predictor.update(self.temps, self.rpm, time.time())
             except ValueError as e:
                 self.ctx.log.warning("thermal_prediction_failed", error=str(e))
                 continue
-            if self.pred0 is None:
-                self.pred0 = pred
             self.prediction = pred
             self.ctx.bus.publish(Sample(self.name, "predicted_growth_um", pred - self.pred0, "µm", time.time()))
-            self.target = self.sign * (pred - self.pred0)
+            self.target = self.touchoff["base_um"] + self.sign * (pred - self.pred0)
             gap = self.target - self.applied
             # hysteresis: start phasing in past the tolerance, stop once caught up
             if abs(gap) > self.tolerance:
@@ -224,26 +265,38 @@ class ThermalAnalyzer(Analyzer):
         action = args.get("action", "status")
         if action == "status":
             return self.status()
+        if action == "touchoff":
+            missing = [p for p in self._sensor_places() if p not in self.temps]
+            if missing:
+                raise RequestError(f"no reading yet from {', '.join(missing)}: cannot take the touch-off temperatures")
+            if self.applied is None:
+                raise RequestError(f"{self.machine} has not reported its offset_x_um yet: cannot take the touch-off")
+            self._touch_off("operator touched the tool off (lathectl thermal touchoff)", self.applied)
+            return self.status()
         if action != "refit":
-            raise RequestError(f"unknown thermal action {action!r}; allowed: status, refit")
+            raise RequestError(f"unknown thermal action {action!r}; allowed: status, refit, touchoff")
         out, res = await asyncio.to_thread(self._refit)
         if res.better:
-            # swap the model; the prediction keeps its zero (the growth since touch-off)
-            old = self.prediction
+            # the new model's growth since the same touch-off; any step is phased in
             self.model, self.model_name = res.model, out["model_after"]
-            self._predictor = self.model.predictor()
-            if old is not None and self.temps:
-                self.pred0 = self._predictor.update(self.temps, self.rpm, time.time()) - (old - self.pred0)
+            if self.touchoff is not None:
+                self._rebuild()
         self.last_refit = out
         self.ctx.record("thermal_refit", out)
         return out
 
     def status(self) -> dict:
-        growth = None if self.prediction is None else round(self.prediction - self.pred0, 2)
+        growth = None if self.prediction is None or self.pred0 is None else round(self.prediction - self.pred0, 2)
+        to = self.touchoff
+        since = "no touch-off yet" if to is None else \
+            f"since touch-off {time.strftime('%F %T', time.localtime(to['t']))}"
+        offset = f"offset {self.applied:g} µm" if self.applied is not None else \
+            f"waiting for {self.machine}'s offset_x_um"
         return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
                 "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused,
+                "touchoff": None if to is None else {k: to[k] for k in ("t", "base_um", "reason")},
                 "last_refit": self.last_refit,
-                "summary": f"model {self.model_name}, growth {growth} µm, offset {self.applied:g} µm"}
+                "summary": f"model {self.model_name}, growth {growth} µm {since}, {offset}"}
 
 
 @hookimpl

@@ -62,7 +62,7 @@ REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.reg
 
 
 def sim_config(tmp: Path, extra: str = "", analyzers: str = "", time_scale: float = 30.0,
-               daemon: str = "") -> tuple[Path, dict]:
+               daemon: str = "", simulator: str = "") -> tuple[Path, dict]:
     """A config running the simulator on free ports in a private directory."""
     mport, vport = free_port(), free_port()
     link = tmp / "ttyARDUINO"
@@ -81,6 +81,7 @@ vibration_port = {vport}
 serial_link = "{link}"
 control = "{paths['sim']}"
 time_scale = {time_scale}
+{simulator}
 
 [machine.lathe]
 plugin = "modbus_cnc"

@@ -5,6 +5,7 @@ Done-when item)."""
 from __future__ import annotations
 
 import json
+import subprocess
 import re
 import time
 
@@ -146,3 +147,70 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     # the compensation now uses the kept model
     wait_until(lambda: any(e["payload"]["model"] == "thermal-v1.toml" for e in events(d, "compensation")),
                timeout=20, what="a compensation with the refitted model")
+
+
+def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
+    """The simulator runs on by itself while the daemon restarts, as a warm lathe
+    would: the compensation must go on from the touch-off stored at the first
+    start, not take the warm spindle for a cold one and phase the offset out."""
+    from lathed.config import load
+    from lathed.sim.launch import SimulatorSettings
+    from tests.conftest import Daemon, sim_config
+
+    cfg, paths = sim_config(tmp_path, analyzers=THERMAL, time_scale=TIME_SCALE, simulator="spawn = false")
+    argv = SimulatorSettings(load(cfg).simulator, tmp_path / "run").argv()
+    (tmp_path / "run").mkdir(exist_ok=True)
+    sim = subprocess.Popen(argv, stdout=subprocess.PIPE)
+    daemons = []
+    try:
+        assert sim.stdout.readline().startswith(b"READY ")
+        d = Daemon(cfg, paths["socket"])
+        daemons.append(d)
+        d.wait_ready()
+        wait_until(lambda: (c := events(d, "compensation")) and c[-1]["payload"]["offset_um"] < -4.0,
+                   timeout=40, interval=0.3, what="an offset of more than 4 µm phased in")
+        first = events(d, "thermal_touchoff")
+        assert len(first) == 1 and first[0]["payload"]["base_um"] == 0.0
+        before = thermal(d, "status")
+        assert d.stop() == 0
+        n_comp = len(events_in(paths["state"], "compensation"))
+
+        d = Daemon(cfg, paths["socket"])
+        daemons.append(d)
+        d.wait_ready()
+        st = wait_until(lambda: (s := thermal(d, "status"))["predicted_growth_um"] is not None and s,
+                        timeout=20, what="a prediction after the restart")
+        # the same touch-off: growth still counted from the cold start, not from now
+        assert st["touchoff"]["t"] == first[0]["payload"]["t"]
+        assert len(events(d, "thermal_touchoff")) == 1
+        assert st["predicted_growth_um"] > before["predicted_growth_um"] - 2.0, (before, st)
+        # a few evaluation steps later: no write has moved the offset back toward zero
+        wait_until(lambda: thermal(d, "status")["applied_offset_um"] is not None, what="the offset read back")
+        ticks = lambda: len(events(d, "compensation"))     # noqa: E731
+        wait_until(lambda: ticks() >= n_comp + 3 or abs(thermal(d, "status")["target_offset_um"]
+                                                        - thermal(d, "status")["applied_offset_um"]) < 2.0,
+                   timeout=20, what="the compensation settled after the restart")
+        after = [e["payload"]["offset_um"] for e in events(d, "compensation")[n_comp:]]
+        assert all(v <= before["applied_offset_um"] + 2.0 for v in after), (before["applied_offset_um"], after)
+        assert thermal(d, "status")["applied_offset_um"] < -4.0
+        # the operator touches the tool off again, warm: the offset in force is the new base
+        st = thermal(d, "touchoff")
+        assert st["touchoff"]["base_um"] == st["applied_offset_um"] and "operator" in st["touchoff"]["reason"]
+        assert len(events(d, "thermal_touchoff")) == 2
+        # growth now counts from this touch-off: the target stays at the base
+        st = wait_until(lambda: (s := thermal(d, "status"))["predicted_growth_um"] is not None
+                        and abs(s["predicted_growth_um"]) < 2.0 and s, what="growth counted from the new touch-off")
+        assert abs(st["target_offset_um"] - st["touchoff"]["base_um"]) < 2.0, st
+    finally:
+        for d in daemons:
+            d.stop()
+        sim.terminate()
+        sim.wait(10)
+
+
+def events_in(state_dir, kind: str) -> list:
+    store = Store(state_dir / "lathed.db", machine_id="test-cell")
+    try:
+        return store.query("SELECT id FROM events WHERE kind = ?", (kind,))
+    finally:
+        store.close()

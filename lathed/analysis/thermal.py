@@ -278,8 +278,9 @@ class ThermalModel:
             raise ValueError(f"the thermal model needs temperature column(s) {', '.join(missing)}")
         return _design(data, self.terms) @ self.coef + self.intercept_um
 
-    def predictor(self, reference_c: Mapping[str, float] | None = None) -> ThermalPredictor:
-        return ThermalPredictor(self, reference_c)
+    def predictor(self, reference_c: Mapping[str, float] | None = None,
+                  t0_s: float | None = None) -> ThermalPredictor:
+        return ThermalPredictor(self, reference_c, t0_s)
 
     def to_dict(self) -> dict[str, Any]:
         terms = []
@@ -351,16 +352,19 @@ class ThermalPredictor:
 
     Temperatures may be keyed ``front_bearing`` or ``t_front_bearing_c``.
     Rises are taken from ``reference_c`` (the cold-start temperatures), or
-    from the first reading when none is given. Terms with memory (lag, rate,
-    hysteresis, drift) keep their state here, so call ``update`` in time order.
+    from the first reading when none is given; the drift clock runs from
+    ``t0_s``, or from the first update. Terms with memory (lag, rate,
+    hysteresis) keep their state here, so call ``update`` in time order; they
+    start settled at the first reading.
     """
 
-    def __init__(self, model: ThermalModel, reference_c: Mapping[str, float] | None = None):
+    def __init__(self, model: ThermalModel, reference_c: Mapping[str, float] | None = None,
+                 t0_s: float | None = None):
         self.model = model
         self.reference_c = None if reference_c is None else {sensor_column(k): float(v)
                                                              for k, v in reference_c.items()}
         self._streams = [t.stream() for t in model.terms]
-        self._t0: float | None = None
+        self._t0 = t0_s
         self.prediction_um: float | None = None
 
     def update(self, temps_c: Mapping[str, float], rpm: float | None = None,
@@ -374,6 +378,10 @@ class ThermalPredictor:
         t = 0.0 if t_s is None else float(t_s)
         if self._t0 is None:
             self._t0 = t
+        unreferenced = [s for s in self.model.sensors if s not in self.reference_c]
+        if unreferenced:
+            raise ValueError(f"no reference temperature for {', '.join(unreferenced)}: "
+                             f"the rises cannot be taken")
         rises = {s: temps[s] - self.reference_c[s] for s in self.model.sensors}
         vals: list[float] = []
         for term, f in zip(self.model.terms, self._streams):

@@ -1,4 +1,4 @@
-"""lathectl thermal status|refit: the live thermal compensation."""
+"""lathectl thermal status|refit|touchoff: the live thermal compensation."""
 from __future__ import annotations
 
 import argparse
@@ -23,8 +23,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("thermal", help="thermal compensation: status, or refit the model on stored probe data")
-    p.add_argument("action", choices=("status", "refit"), nargs="?", default="status")
+    p = sub.add_parser("thermal", help="thermal compensation: status; refit the model on stored probe data; "
+                                       "touchoff: the tool was just touched off (growth counts from now)")
+    p.add_argument("action", choices=("status", "refit", "touchoff"), nargs="?", default="status")
     p.add_argument("--analyzer", help="which thermal analyzer (when there are several)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=run)
