@@ -179,6 +179,7 @@ class ThermalAnalyzer(Analyzer):
             return
         self._predictor = self.model.predictor(ref, t0)
         self.pred0 = self.model.predictor(ref, t0).update(ref, rpm0, t0)
+        self.prediction = None      # until the next step: the last one was another model's
 
     async def _tick(self) -> None:
         while True:
