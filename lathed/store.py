@@ -164,6 +164,19 @@ MIGRATIONS: list[tuple[int, str]] = [
            json_extract(payload, '$.model') AS model
     FROM events WHERE kind = 'compensation';
     """),
+    (3, """
+    -- rows a sink's server refused for their content (not for an outage):
+    -- set aside so the rows after them still go; kept here, never lost
+    CREATE TABLE forward_refused (
+        sink      TEXT NOT NULL,
+        outbox_id INTEGER NOT NULL,
+        tbl       TEXT NOT NULL,
+        row_id    INTEGER NOT NULL,
+        error     TEXT NOT NULL,
+        t         REAL NOT NULL,
+        PRIMARY KEY (sink, outbox_id)
+    );
+    """),
 ]
 
 # Tables whose rows are forwarded to sinks, and their JSON-valued columns.
@@ -364,6 +377,15 @@ class Store:
                 r["machine_id"] = self.machine_id
             out.append((e["id"], e["tbl"], r))
         return out
+
+    def refuse(self, sink: str, outbox_id: int, tbl: str, row_id: int, error: str) -> Future:
+        """Set a row aside for ``sink``: its server refused the row itself."""
+        return self.submit("INSERT INTO forward_refused(sink, outbox_id, tbl, row_id, error, t) "
+                           "VALUES (?,?,?,?,?,?) ON CONFLICT DO NOTHING",
+                           (sink, outbox_id, tbl, row_id, error, time.time()))
+
+    def refused(self, sink: str) -> int:
+        return self.query("SELECT count(*) AS n FROM forward_refused WHERE sink = ?", (sink,))[0]["n"]
 
     def set_progress(self, sink: str, outbox_id: int) -> Future:
         return self.submit("INSERT INTO forward_progress(sink, outbox_id, t) VALUES (?,?,?) "

@@ -14,6 +14,13 @@ batch resent after a crash between the central commit and the local progress
 update is not duplicated. Progress (forwarded up to outbox id N) lives in
 SQLite, so it survives restarts. When PostgreSQL is down, ``run()`` raises;
 the supervisor retries with backoff while records wait locally.
+
+A row the server refuses for its content (a NUL character in a text, a
+value out of a column's range) would stop every row behind it. Such a batch
+is sent again row by row, each in a savepoint: the refused rows are set
+aside in the local ``forward_refused`` table, recorded as a
+``forward_refused`` event with the server's reason, counted in the status,
+and the rest goes on. The rows themselves stay in the local store.
 """
 from __future__ import annotations
 
@@ -33,6 +40,8 @@ from lathed.store import FORWARDED, JSON_COLUMNS
 
 _PG_TYPES = {"INTEGER": "bigint", "REAL": "double precision", "TEXT": "text"}
 _DDL_LOCK = 0x6C617468   # advisory lock: daemons starting together create the tables once
+# What the server raises for a row's content, as opposed to an outage or a schema fault.
+_ROW_REFUSED = (psycopg.DataError, psycopg.IntegrityError)
 
 # The central counterparts of the local views over the analyzers' events.
 _VIEWS = {
@@ -62,6 +71,7 @@ class PostgresSink(Analyzer):
         self.interval = section.getduration("interval", 1.0, minval=0.01, maxval=3600)
         self.timeout = section.getduration("timeout", 30.0, minval=1, maxval=3600)
         self.forwarded = 0
+        self.refused_now = 0     # rows set aside since start (the store keeps the total)
         self.connected = False
         self.last_error: str | None = None
         self.last_forward_t: float | None = None
@@ -88,7 +98,10 @@ class PostgresSink(Analyzer):
                 if not batch:
                     await asyncio.sleep(self.interval)
                     continue
-                await asyncio.wait_for(self._send(con, inserts, batch), self.timeout)
+                try:
+                    await asyncio.wait_for(self._send(con, inserts, batch), self.timeout)
+                except _ROW_REFUSED:
+                    await asyncio.wait_for(self._send_each(con, inserts, batch), self.timeout)
                 # After the central commit: a crash here only causes a resend, which the keys absorb.
                 await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
                 self.forwarded += len(batch)
@@ -133,17 +146,41 @@ class PostgresSink(Analyzer):
                 # consecutive rows of one table go as one pipelined executemany; order is kept
                 for table, group in itertools.groupby(batch, key=lambda e: e[1]):
                     stmt, cols = inserts[table]
-                    await cur.executemany(stmt, [(r["machine_id"], r["uuid"], r["id"], *(r[c] for c in cols))
-                                                 for _, _, r in group])
+                    await cur.executemany(stmt, [_params(r, cols) for _, _, r in group])
+
+    async def _send_each(self, con, inserts, batch: list[tuple[int, str, dict]]) -> None:
+        """The batch again, one savepoint per row: the rows the server refuses
+        are set aside and reported; the others are committed."""
+        async with con.transaction():
+            async with con.cursor() as cur:
+                for oid, table, r in batch:
+                    stmt, cols = inserts[table]
+                    try:
+                        async with con.transaction():
+                            await cur.execute(stmt, _params(r, cols))
+                    except _ROW_REFUSED as e:
+                        why = _cause(e, self.where)
+                        await asyncio.wrap_future(self.ctx.store.refuse(self.name, oid, table, r["id"], why))
+                        self.refused_now += 1
+                        self.ctx.log.error("forward_refused", table=table, row_id=r["id"], error=why)
+                        self.ctx.record("forward_refused", {"sink": self.name, "table": table, "row_id": r["id"],
+                                                            "uuid": r["uuid"], "error": why})
 
     def status(self) -> dict[str, Any]:
         backlog = self.ctx.store.backlog(self.name) if self.ctx else None
+        refused = self.ctx.store.refused(self.name) if self.ctx else None
         state = "forwarding" if self.connected else "waiting for PostgreSQL"
         return {"server": self.where, "connected": self.connected, "backlog": backlog,
-                "forwarded": self.forwarded, "last_error": self.last_error,
+                "forwarded": self.forwarded, "refused": refused, "last_error": self.last_error,
                 "last_forward_t": self.last_forward_t,
                 "summary": f"{state} ({self.where}), backlog {backlog}"
+                           + (f", {refused} row(s) refused by the server (lathectl events --kind forward_refused)"
+                              if refused else "")
                            + (f", last error: {self.last_error}" if self.last_error else "")}
+
+
+def _params(r: dict, cols: list[str]) -> tuple:
+    return (r["machine_id"], r["uuid"], r["id"], *(r[c] for c in cols))
 
 
 def _cause(e: BaseException, where: str) -> str:

@@ -24,6 +24,11 @@ class Ctx:
     def __init__(self, store):
         self.store = store
         self.log = structlog.get_logger("test")
+        self.recorded = []
+
+    def record(self, kind, payload):
+        self.recorded.append((kind, payload))
+        return self.store.record_future(kind, "central", payload)
 
 
 def _sink(dsn: str, store: Store, name: str = "central", **keys) -> PostgresSink:
@@ -92,6 +97,36 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
         assert con.execute("SELECT rpm_after, sent FROM suppression_actions").fetchall() == [(3250.0, True)]
         ra, measured = con.execute("SELECT ra_um, measured FROM inspections").fetchone()
         assert ra == 4.2 and measured == {"roundness_um": 3.0}   # jsonb, not text
+    store.close()
+
+
+def test_a_row_the_server_refuses_is_set_aside_and_the_rest_goes_on(tmp_path, pg_dsn):  # noqa: F811
+    # PostgreSQL's text and jsonb cannot hold NUL; SQLite can: a string read off a
+    # machine's registers may carry one.
+    store = Store(tmp_path / "a.db", machine_id="cell-nul")
+
+    async def main():
+        for i in range(30):
+            payload = {"seq": i, "program": "O1000\x00\x00" if i in (7, 21) else "O1000"}
+            await asyncio.wrap_future(store.record_future("tick", "w", payload))
+        await asyncio.wrap_future(store.record_future("tick", "w\x00", {"seq": 30}))
+        sink = _sink(pg_dsn, store, batch=10)
+        await _drain(sink, store)
+        return sink
+
+    sink = asyncio.run(main())
+    with psycopg.connect(pg_dsn) as con:
+        seqs = sorted(int(r[0]) for r in con.execute(
+            "SELECT payload->>'seq' FROM events WHERE machine_id = 'cell-nul' AND kind = 'tick'"))
+    assert seqs == [i for i in range(30) if i not in (7, 21)]
+    refused = store.query("SELECT tbl, row_id, error FROM forward_refused WHERE sink = 'central' ORDER BY row_id")
+    assert [(r["tbl"], r["row_id"]) for r in refused] == [("events", 8), ("events", 22), ("events", 31)]
+    assert all("refused the records" in r["error"] for r in refused), refused
+    # each is reported, counted, and still in the local store
+    assert [k for k, _ in sink.ctx.recorded] == ["forward_refused"] * 3
+    st = sink.status()
+    assert st["refused"] == 3 and "3 row(s) refused by the server" in st["summary"]
+    assert store.query("SELECT count(*) AS n FROM events WHERE kind = 'tick'")[0]["n"] == 31
     store.close()
 
 
