@@ -128,3 +128,21 @@ def test_temperatures_that_never_change_are_65(tmp_path, capsys):
     p.write_text("time_s,t_motor_c,displacement_um\n" + "".join(f"{6 * k},20.0,{k % 3}\n" for k in range(100)))
     code, out, err = _run([p], capsys)
     assert code == 65 and out == "" and "no temperature column changed" in err and err.count("\n") == 1
+
+
+def test_sim_thermal_run_writes_a_pair_the_analysis_reads(tmp_path):
+    """The README's walk-through: two simulated shifts with an undeclared
+    effect, written by lathectl, analysed by lathectl."""
+    def ctl(*a):
+        return subprocess.run([sys.executable, "-m", "lathed.lathectl", *map(str, a)], capture_output=True,
+                              text=True, cwd=ROOT, timeout=120)
+    for name, seed in (("train", 4), ("test", 104)):
+        r = ctl("sim", "thermal-run", tmp_path / f"{name}.csv", "--effect", "nonlinear", "--hours", "4",
+                "--seed", seed)
+        assert r.returncode == 0 and "effects: nonlinear" in r.stdout, r.stderr
+    r = ctl("analyze", "thermal", tmp_path / "train.csv", "--test", tmp_path / "test.csv", "--json")
+    js = json.loads(r.stdout)
+    assert js["effects"][0]["effect"] == "nonlinear" and js["rows"]["used"] == 2400
+    assert js["final"]["test_rmse_um"] < 0.4 * js["baseline"]["test_rmse_um"]
+    bad = ctl("sim", "thermal-run", tmp_path / "no" / "such" / "dir.csv")
+    assert bad.returncode == 73 and bad.stderr.count("\n") == 1 and "cannot write" in bad.stderr

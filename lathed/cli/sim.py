@@ -1,4 +1,5 @@
-"""lathectl sim: drive the built-in simulator (raise the depth of cut, take a peer down)."""
+"""lathectl sim: drive the built-in simulator (raise the depth of cut, take a peer down),
+or write a simulated thermal run to CSV for ``lathectl analyze thermal``."""
 from __future__ import annotations
 
 import argparse
@@ -6,6 +7,7 @@ import json
 import socket
 from pathlib import Path
 
+from lathed.cli import positive
 from lathed.client import DaemonUnavailable, RemoteError, default_socket
 from lathed.lathectl import print_json
 
@@ -25,7 +27,27 @@ def call(path: Path, cmd: str, args: dict) -> object:
     return reply["result"]
 
 
+def thermal_run(args: argparse.Namespace) -> int:
+    """Offline: the simulated spindle from a cold start, as a CSV ``analyze thermal`` reads."""
+    import sys
+
+    from lathed.cli import EX_CANTCREAT
+    from lathed.sim.thermal import generate_run, random_schedule
+    run = generate_run(random_schedule(args.seed, total_s=args.hours * 3600), args.effect or (), seed=args.seed,
+                       noise_um=args.noise_um)
+    try:
+        run.write_csv(args.out)
+    except OSError as e:
+        print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
+        return EX_CANTCREAT
+    print(f"{args.out}: {len(run)} rows, {args.hours:g} h from a cold start, speed schedule and day of seed "
+          f"{args.seed}, effects: {', '.join(sorted(run.effects)) or 'none'}, probe noise {args.noise_um:g} µm")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.what == "thermal-run":
+        return thermal_run(args)
     path = Path(args.sim_socket) if args.sim_socket else \
         (Path(args.socket) if args.socket else default_socket()).with_name("sim.sock")
     if args.what == "depth":
@@ -48,4 +70,13 @@ def register(sub) -> None:
     o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
     o.add_argument("seconds", type=float)
     s.add_parser("status", help="the simulator's state")
+    from lathed.sim.thermal import EFFECTS
+    t = s.add_parser("thermal-run", help="write a simulated thermal run (CSV) for `lathectl analyze thermal`; "
+                                         "no daemon needed")
+    t.add_argument("out", metavar="OUT.csv")
+    t.add_argument("--effect", action="append", choices=EFFECTS,
+                   help="an effect the static regression lacks, put into the data (repeatable; default none)")
+    t.add_argument("--hours", type=positive, default=8.0, help="length of the run (default 8: one shift)")
+    t.add_argument("--seed", type=int, default=1, help="speed schedule, sensor noise and time of day")
+    t.add_argument("--noise-um", type=float, default=0.5, help="probe repeatability, µm (default 0.5)")
     p.set_defaults(func=run)
