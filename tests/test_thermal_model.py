@@ -86,7 +86,7 @@ def test_play_operator():
 
 def _model_with_every_term():
     terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), LagTerm("t_a_c", 900.0), RateTerm("t_b_c", 120.0),
-             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm()]
+             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3)]
     coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5])
     return ThermalModel(terms, coef, 7.0)
 
@@ -102,6 +102,15 @@ def test_streaming_predictor_equals_batch_prediction_on_uneven_time():
     live = [pred.update({"a": temps["t_a_c"][k], "t_b_c": temps["t_b_c"][k]}, rpm=rpm[k], t_s=t[k])
             for k in range(len(t))]
     assert live == pytest.approx(batch, abs=1e-8)
+
+
+def test_drift_is_held_at_the_span_it_was_fitted_on():
+    m = ThermalModel([DriftTerm(8.0)], np.array([3.0]), 0.0)
+    p = m.predictor(reference_c={}, t0_s=0.0)
+    assert p.update({}, t_s=4 * 3600.0) == pytest.approx(12.0)
+    assert p.update({}, t_s=30 * 3600.0) == pytest.approx(24.0)     # not 90: no line past 8 h
+    saved = ThermalModel.from_dict(m.to_dict())
+    assert saved.terms[0].max_h == 8.0
 
 
 def test_save_and_load_round_trip(tmp_path):

@@ -386,7 +386,7 @@ class ThermalPredictor:
         vals: list[float] = []
         for term, f in zip(self.model.terms, self._streams):
             if f is None:      # drift: hours on the predictor's clock
-                vals.append((t - self._t0) / 3600.0)
+                vals.append(float(term.hours((t - self._t0) / 3600.0)))
             else:
                 vals.extend(float(v) for v in f(t, rises, rpm))
         self.prediction_um = float(np.dot(self.model.coef, vals) + self.model.intercept_um)

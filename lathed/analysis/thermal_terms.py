@@ -249,17 +249,27 @@ class HysteresisTerm:
 
 @dataclass(frozen=True)
 class DriftTerm:
-    """Hours since the run started: a creep no sensor sees."""
+    """Hours since the run started: a creep no sensor sees. Held at
+    ``max_h``, the span it was fitted on: a creep seen for 8 h says nothing
+    of hour 30 (a daemon restarted on a touch-off of the day before would
+    otherwise extrapolate a straight line into the offset)."""
+    max_h: float | None = None
     effect: str = "drift"
     sensor: None = None
-    params: dict = field(default_factory=dict)
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {} if self.max_h is None else {"max_h": round(self.max_h, 2)}
 
     @property
     def names(self) -> tuple[str, ...]:
         return ("hours",)
 
+    def hours(self, h):
+        return h if self.max_h is None else np.minimum(h, self.max_h)
+
     def features(self, data: ThermalData) -> np.ndarray:
-        return ((data.time_s - data.t0_s) / 3600.0)[:, None]
+        return self.hours((data.time_s - data.t0_s) / 3600.0)[:, None]
 
     def stream(self):
         return None   # the predictor feeds its own clock (see ThermalPredictor)
@@ -359,10 +369,10 @@ class DriftCandidate:
     name = "drift"
 
     def propose(self, data):
-        return [DriftTerm()]
+        return [DriftTerm(round(float(data.time_s[-1] - data.t0_s) / 3600.0, 2))]
 
     def make_term(self, sensor, params):
-        return DriftTerm()
+        return DriftTerm(float(params["max_h"]) if "max_h" in params else None)
 
 
 def builtin_candidates() -> list[Candidate]:
