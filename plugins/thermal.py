@@ -12,12 +12,16 @@ write it to the CNC as an X offset (numeric core: lathed.analysis.thermal).
     sign = -1.0                # offset = sign * growth since the tool was touched off
 
 The growth is compensated since the tool was touched off. The touch-off (the
-temperatures, time and speed of that moment, and the offset then in force)
-is stored as a ``thermal_touchoff`` record: on the very first start the
-spindle is assumed cold and touched off at the first full set of readings;
-``lathectl thermal touchoff`` says the operator touched off again (the
-offset in force then stays as the new base); a restarted daemon goes on
-from the stored touch-off instead of taking a warm spindle for a cold one.
+temperatures, time and speed of that moment, the prediction then, and the
+offset then in force) is stored as a ``thermal_touchoff`` record. On the
+very first start the spindle is assumed cold and touched off at the first
+full set of readings: those temperatures are the model's cold reference
+(rises are taken from them, as in the fit) and that time starts its drift
+clock. ``lathectl thermal touchoff`` says the operator touched off again,
+perhaps warm: the cold reference stays (a rise squared or a bearing's
+hysteresis depends on it), the prediction of that moment becomes the zero
+and the offset in force the new base. A restarted daemon goes on from the
+stored touch-off instead of taking a warm spindle for a cold one.
 Nothing is written until the machine has reported the offset it holds
 (``offset_x_um``), so phasing always starts from the real value. Each probe result the
 machine reports (``probe_seq`` changing) is stored as a
@@ -160,25 +164,42 @@ class ThermalAnalyzer(Analyzer):
                 self._rebuild()
 
     def _touch_off(self, reason: str, base_um: float) -> None:
-        self.touchoff = {"machine": self.machine, "t": time.time(), "temps_c": dict(self.temps),
-                         "rpm": self.rpm, "base_um": base_um, "reason": reason}
-        self.ctx.record("thermal_touchoff", self.touchoff)
-        self._rebuild()
+        now = time.time()
+        prev = self.touchoff
+        to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm,
+              "base_um": base_um, "reason": reason,
+              # the model's cold reference: kept from the first start
+              "cold_c": dict(prev.get("cold_c", prev["temps_c"])) if prev else dict(self.temps),
+              "cold_t": prev.get("cold_t", prev["t"]) if prev else now,
+              "model": self.model_name, "pred0_um": None}
+        if prev is not None and self._predictor is not None:
+            # the live prediction, with the state of lagging and hysteretic terms
+            to["pred0_um"] = self._predictor.update(self.temps, self.rpm, now)
+        self.touchoff = to
+        self.ctx.record("thermal_touchoff", to)
+        if to["pred0_um"] is not None:
+            self.pred0 = to["pred0_um"]     # same model and predictor: only the zero moves
+        else:
+            self._rebuild()
 
     def _rebuild(self) -> None:
         """Predictor and zero for the current model from the stored touch-off:
-        the growth is the model's prediction now less its prediction then."""
+        the growth is the model's prediction now less its prediction at the
+        touch-off (rises from the cold reference in both)."""
         to = self.touchoff
-        ref, t0, rpm0 = to["temps_c"], to["t"], to["rpm"] or 0.0
-        lacking = [p for p in self._sensor_places() if p not in ref]
+        cold, cold_t = to.get("cold_c", to["temps_c"]), to.get("cold_t", to["t"])
+        lacking = [p for p in self._sensor_places() if p not in cold or p not in to["temps_c"]]
         if lacking:
             self._predictor = self.pred0 = None
-            self.refused = (f"the touch-off of {time.strftime('%F %T', time.localtime(t0))} has no reading of "
-                            f"{', '.join(lacking)}, which model {self.model_name} needs: touch the tool off "
+            self.refused = (f"the touch-off of {time.strftime('%F %T', time.localtime(to['t']))} has no reading "
+                            f"of {', '.join(lacking)}, which model {self.model_name} needs: touch the tool off "
                             f"again and run `lathectl thermal touchoff`")
             return
-        self._predictor = self.model.predictor(ref, t0)
-        self.pred0 = self.model.predictor(ref, t0).update(ref, rpm0, t0)
+        self._predictor = self.model.predictor(cold, cold_t)
+        if to.get("pred0_um") is not None and to.get("model") == self.model_name:
+            self.pred0 = to["pred0_um"]
+        else:   # another model since (or the cold start itself): its prediction, settled at the touch-off
+            self.pred0 = self.model.predictor(cold, cold_t).update(to["temps_c"], to["rpm"] or 0.0, to["t"])
         self.prediction = None      # until the next step: the last one was another model's
 
     async def _tick(self) -> None:

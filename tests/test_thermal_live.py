@@ -196,7 +196,14 @@ def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
         # the operator touches the tool off again, warm: the offset in force is the new base
         st = thermal(d, "touchoff")
         assert st["touchoff"]["base_um"] == st["applied_offset_um"] and "operator" in st["touchoff"]["reason"]
-        assert len(events(d, "thermal_touchoff")) == 2
+        touch = events(d, "thermal_touchoff")
+        assert len(touch) == 2
+        # rises still count from the cold start's temperatures (the model's reference), the
+        # prediction of the touch-off moment is the new zero
+        assert touch[1]["payload"]["cold_c"] == first[0]["payload"]["temps_c"]
+        assert touch[1]["payload"]["cold_t"] == first[0]["payload"]["t"]
+        assert touch[1]["payload"]["temps_c"] != first[0]["payload"]["temps_c"]
+        assert touch[1]["payload"]["pred0_um"] is not None
         # growth now counts from this touch-off: the target stays at the base
         st = wait_until(lambda: (s := thermal(d, "status"))["predicted_growth_um"] is not None
                         and abs(s["predicted_growth_um"]) < 2.0 and s, what="growth counted from the new touch-off")
