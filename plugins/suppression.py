@@ -18,6 +18,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     base_rpm = 1500.0
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
+    avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
@@ -27,6 +28,16 @@ Every action is recorded as ``suppression_action`` with its critical values
 whether the guard let it through). ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
+
+With ``avoid = true`` the lobes are also used before any alarm: when a cut
+starts at a depth the lobes call unstable at the programmed speed (the same
+rule the lobes strategy picks speeds by: the worst b_lim within +-3 % of
+the speed under 1.15 x depth), the speed is changed at once, through the
+same policy and guard, and recorded with ``trigger = "predicted"``. A cut
+unstable from entry grows its chatter from the first revolution, and a
+detector that learns its baseline on that cut sees it only once it has
+grown; the model sees it before. Off by default: it trusts the modal model
+(a tap test) to move speeds no alarm has asked for.
 """
 from __future__ import annotations
 
@@ -77,6 +88,7 @@ class SuppressionAnalyzer(Analyzer):
             accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
+        self.avoid = section.getbool("avoid", False)
         try:
             self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
                                             section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
@@ -86,6 +98,8 @@ class SuppressionAnalyzer(Analyzer):
             raise section.error("ssv", str(e)) from None
         if self.strategy_name == "lobes" and not modes:
             raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
+        if self.avoid and self.strategy_name != "lobes":
+            raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.lobes = StabilityLobes(modes, kf) if modes else None
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self.policy: SuppressionPolicy | None = None
@@ -96,6 +110,7 @@ class SuppressionAnalyzer(Analyzer):
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
         self.actions: list[dict] = []
         self.pending: Decision | None = None
+        self.pending_trigger = "alarm"
         self._ssv_task: asyncio.Task | None = None
         self.alarm_wall_t: float | None = None
         self.latency_ms: list[float] = []
@@ -136,14 +151,14 @@ class SuppressionAnalyzer(Analyzer):
                 if not isinstance(s, Sample):
                     continue
                 if s.source == self.machine:
-                    self._on_machine(s)
+                    await self._on_machine(s)
                 elif s.source == self.chatter:
                     await self._on_chatter(s)
         finally:
             self.ctx.bus.unsubscribe(sub)
             self._stop_ssv()
 
-    def _on_machine(self, s: Sample) -> None:
+    async def _on_machine(self, s: Sample) -> None:
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
         elif s.quantity == "feed_mm_rev" and s.value > 0:
@@ -153,8 +168,34 @@ class SuppressionAnalyzer(Analyzer):
             if s.value > 0 and was <= 0:
                 self.policy = self._policy()    # a new cut: bans and budget start afresh
                 self.pending = None
+                if self.avoid:
+                    await self._avoid()
             if s.value <= 0 and was > 0:
                 self._stop_ssv()
+
+    def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
+        """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
+        n, _, worst = self.grid
+        w = float(np.interp(rpm, n, worst))
+        return w < LobeSelection.margin * depth_mm / 1000, w * 1000
+
+    async def _avoid(self) -> None:
+        if self.mode == "off" or self.rpm is None or self.rpm <= 0 or self.grid is None:
+            return
+        unstable, b_mm = self.predicted_unstable(self.rpm, self.depth_mm)
+        if not unstable:
+            return
+        d = self.policy.observe(time.monotonic(), self.rpm, True)
+        if d is None:
+            return
+        d = replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes allow {b_mm:.2f} mm "
+                              f"at {self.rpm:.0f} r/min; {d.reason}")
+        if self.mode == "auto":
+            await self._act(d, trigger="predicted")
+        else:
+            self.pending, self.pending_trigger = d, "predicted"
+            self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual",
+                                                     "trigger": "predicted"})
 
     async def _on_chatter(self, s: Sample) -> None:
         key = {"chatter_index": "index", "chatter_threshold": "threshold",
@@ -177,12 +218,13 @@ class SuppressionAnalyzer(Analyzer):
         if self.mode == "auto":
             await self._act(d)
         else:
-            self.pending = d
-            self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual"})
+            self.pending, self.pending_trigger = d, "alarm"
+            self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual",
+                                                     "trigger": "alarm"})
 
-    async def _act(self, d: Decision, by: str | None = None) -> dict:
+    async def _act(self, d: Decision, by: str | None = None, trigger: str = "alarm") -> dict:
         source = by or self.name
-        payload = {**d.record(), "machine": self.machine, "mode": self.mode}
+        payload = {**d.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger}
         if d.variation is not None:
             self._start_ssv(d)
             result = {"sent": True, "reason": "modulating"}
@@ -194,14 +236,14 @@ class SuppressionAnalyzer(Analyzer):
                 # refused by the guard: never ask for that speed again this part
                 band = self.policy.ban_band
                 self.policy.banned.append((d.rpm_after * (1 - band), d.rpm_after * (1 + band)))
-            if result["sent"] and self.alarm_wall_t is not None:
+            if result["sent"] and self.alarm_wall_t is not None and trigger == "alarm":
                 # from the first alarm window's sample time to the write's return
                 self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
                 payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
         payload.update(sent=result["sent"], refused=result["reason"], by=source)
         self.actions.append(payload)
         self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,
-                          rpm_after=d.rpm_after, sent=result["sent"])
+                          rpm_after=d.rpm_after, sent=result["sent"], trigger=trigger)
         self.ctx.record("suppression_action", payload)
         return payload
 
@@ -237,8 +279,9 @@ class SuppressionAnalyzer(Analyzer):
                 self._stop_ssv()
             return self.status()
         if action == "now":
-            d = self.pending
+            d, trigger = self.pending, self.pending_trigger
             if d is None:
+                trigger = "alarm"
                 if not self.chat["alarm"]:
                     raise RequestError("no chatter alarm on this machine now; nothing to suppress")
                 if self.rpm is None or self.policy is None:
@@ -249,7 +292,7 @@ class SuppressionAnalyzer(Analyzer):
                     raise RequestError("no admissible speed: every candidate is banned for this part or "
                                        "the policy is holding after a change")
             self.pending = None
-            return await self._act(d, by=args.get("by", "operator"))
+            return await self._act(d, by=args.get("by", "operator"), trigger=trigger)
         if action == "status":
             return self.status()
         raise RequestError(f"unknown suppress action {action!r}; allowed: auto, manual, off, now, status")

@@ -160,3 +160,39 @@ def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
     assert spindle_commands(d) == []
     assert sim_registers(d)["spindle_override_pct"] == pytest.approx(100.0)
     assert d.item("analyzers", "suppress")["last_action"]["sent"] is False
+
+
+def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon):
+    d = sim_daemon(analyzers=default_table("chatter") + "\n" + default_table("suppress") + "\navoid = true\n")
+    wait_until(lambda: d.item("analyzers", "suppress")["state"] == "running", what="suppression running")
+    # 1 mm: stable at every programmed speed, nothing predicted
+    assert sim_set(d, 1.0) == {"depth_mm": 1.0}
+    part0 = sim_call(d.paths["sim"], "status")["part"]
+    wait_until(lambda: sim_call(d.paths["sim"], "status")["part"] >= part0 + 3, timeout=60, interval=0.2,
+               what="three 1 mm parts")
+    assert events(d, "suppression_action") == []
+    # 3 mm: above the limit (~2.4 mm) at 1500, 2000 and 2500 r/min
+    sim_set(d, 3.0)
+    start = sim_call(d.paths["sim"], "status")["part"] + 1       # the first part cut wholly at 3 mm
+    acts = wait_until(lambda: len(a := [e for e in events(d, "suppression_action")
+                                        if e["payload"]["trigger"] == "predicted"]) >= 4 and a,
+                      timeout=60, interval=0.2, what="four predicted actions")
+    for e in acts:
+        p = e["payload"]
+        assert p["sent"] and p["strategy"] == "sss_lobes" and p["expected_stable"] is True, p
+        assert p["reason"].startswith("predicted at cut entry: 3 mm deep, the lobes allow ")
+        assert p["chatter_index"] is None and p["rpm_after"] <= 1.3 * p["rpm_before"] + 1
+    # each 3 mm part: the speed is written within a few revolutions of the tool entering. At
+    # 1500 r/min the entry's waviness already grows (the simulator calls it visible from the first
+    # revolution), so the write must come within the loop's target of that, 3 rev + 20 ms; at
+    # 2000 and 2500 r/min it never becomes visible.
+    parts = [p for p in sim_call(d.paths["sim"], "status", {"parts": 32})["parts"]
+             if p["part"] >= start and p["cut_end_s"] is not None]
+    assert len(parts) >= 2, parts
+    for p in parts:
+        writes = [w["wall_t"] for w in p["speed_writes"] if "wall_t" in w]
+        assert writes and writes[0] - p["cut_start_wall"] < 0.25, p    # 100 ms polling + the write
+        if p["visible_wall"] is not None:
+            assert writes[0] - p["visible_wall"] <= 3 * 60 / p["rpm"] + 0.020, p
+    # and the chatter is gone before the detector would have seen it grow
+    assert [e for e in events(d, "chatter_alarm") if e["t"] >= parts[0]["cut_start_wall"]] == []
