@@ -28,6 +28,7 @@ bench-suppression: $(STAMP)
 	$(BIN)/python bench/bench_suppression.py
 bench-loop: $(STAMP)
 	$(BIN)/python bench/bench_loop.py
+	$(BIN)/python bench/bench_loop.py --avoid
 bench-thermal: $(STAMP)
 	$(BIN)/python bench/bench_thermal.py
 bench-store: $(STAMP)
