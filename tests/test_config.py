@@ -146,3 +146,22 @@ def test_load_structures_instances(tmp_path):
     c = load(cfg)
     inst = c.instance("machine", "lathe")
     assert inst.plugin == "modbus_cnc" and "plugin" not in inst.section
+
+
+def test_avoid_needs_the_lobes(tmp_path):
+    text = BASE + """
+[analyzer.chatter]
+plugin = "chatter"
+input = "accel"
+machine = "lathe"
+
+[analyzer.suppress]
+plugin = "suppression"
+chatter = "chatter"
+machine = "lathe"
+strategy = "frequency"
+avoid = true
+"""
+    code, err = check(tmp_path, text)
+    assert code == 78 and err.splitlines()[0] == ('lathed: FILE: [analyzer.suppress] avoid: predicting chatter at '
+                                                  'cut entry needs strategy = "lobes" (and its modes)'), err
