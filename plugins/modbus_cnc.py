@@ -18,6 +18,12 @@
 
 For RTU (RS-485): ``transport = "rtu"``, ``device = "/dev/ttyUSB0"``,
 ``baudrate`` (19200), ``parity`` ("N" | "E" | "O"), ``stopbits`` (1 | 2).
+Several machines on one RS-485 bus name the same ``device``, each with its
+own ``unit``: they share one open port and take turns on it, one request
+at a time (the bus is half duplex; two clients on one adapter would read
+each other's answers). Their serial settings must agree. A machine that
+stops answering costs the others its ``timeout`` per try, and the
+supervisor's backoff spaces its tries out.
 
 A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
 uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
@@ -38,6 +44,7 @@ The machine model (lathed.machine) is filled from registers by name:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import re
 import time
 from collections import Counter
@@ -60,6 +67,25 @@ TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2
 ACTION_REGISTERS = {"spindle_rpm": "spindle_rpm_cmd", "offset_x_um": "offset_x_um"}
 MAX_READ = 125   # registers per Modbus read request (protocol limit)
 AXIS = re.compile(r"^([a-z])_(mm|deg)$")
+
+
+class SerialLink:
+    """One RS-485 adapter, shared by every machine configured on it."""
+
+    def __init__(self, device: str, settings: tuple):
+        self.device, self.settings = device, settings
+        self.client: AsyncModbusSerialClient | None = None    # None while the first machine opens it
+        self.opened = asyncio.Event()
+        self.lock = asyncio.Lock()
+        self.users: set[str] = set()
+
+
+_LINKS: dict[str, SerialLink] = {}     # device -> the link open on it now
+
+
+def _settings_text(s: tuple) -> str:
+    baud, parity, stop = s
+    return f"{baud} baud 8{parity}{stop}"
 
 
 @dataclass(frozen=True)
@@ -167,6 +193,7 @@ class ModbusCNC(Driver):
         self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
                              if reg in self.registers and self.registers[reg].writable)
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
+        self.link: SerialLink | None = None
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
         self.model = MachineModel(self.kind, self.stale_after, self._record)
         self.polls = 0
@@ -182,41 +209,94 @@ class ModbusCNC(Driver):
         if self.transport == "tcp":
             self.client = AsyncModbusTcpClient(self.host, port=self.port, timeout=self.timeout, retries=0,
                                                reconnect_delay=0)
+            await self._open(self.client)
         else:
-            self.client = AsyncModbusSerialClient(self.device, framer=FramerType.RTU, baudrate=self.baudrate,
-                                                  parity=self.parity, stopbits=self.stopbits,
-                                                  timeout=self.timeout, retries=0, reconnect_delay=0)
+            await self._join_link()
+        # the first read proves the controller answers: an open port is not a machine
+        await self._read_group(self.groups[min(self.groups)])
+        self.model.link_up()
+
+    async def _open(self, client) -> None:
         try:
-            ok = await asyncio.wait_for(self.client.connect(), self.timeout + 1)
+            ok = await asyncio.wait_for(client.connect(), self.timeout + 1)
         except asyncio.TimeoutError:
             ok = False
         if not ok:
             self.errors["connect"] += 1
             hint = "machine off or network down?" if self.transport == "tcp" else "adapter unplugged?"
             raise ConnectionError(f"no Modbus {self.transport.upper()} link to {self.where} ({hint})")
-        # the first read proves the controller answers: an open port is not a machine
-        await self._read_group(self.groups[min(self.groups)])
-        self.model.link_up()
+
+    async def _join_link(self) -> None:
+        settings = (self.baudrate, self.parity, self.stopbits)
+        link = _LINKS.get(self.device)
+        if link is not None and link.settings != settings:
+            raise ConnectionError(
+                f"{self.device} is open at {_settings_text(link.settings)} for {', '.join(sorted(link.users))}; "
+                f"this machine asks {_settings_text(settings)}: the machines on one RS-485 bus must agree")
+        if link is None:
+            # registered before opening, so machines starting together open the port once
+            link = _LINKS[self.device] = SerialLink(self.device, settings)
+            link.users.add(self.name)
+            client = AsyncModbusSerialClient(self.device, framer=FramerType.RTU, baudrate=self.baudrate,
+                                             parity=self.parity, stopbits=self.stopbits,
+                                             timeout=self.timeout, retries=0, reconnect_delay=0)
+            try:
+                await self._open(client)
+            except BaseException:
+                link.users.discard(self.name)
+                if _LINKS.get(self.device) is link:
+                    del _LINKS[self.device]
+                link.opened.set()         # the others waiting see no client and fail too
+                raise
+            link.client = client
+            link.opened.set()
+        else:
+            link.users.add(self.name)
+            await link.opened.wait()
+            if link.client is None:
+                link.users.discard(self.name)
+                self.errors["connect"] += 1
+                raise ConnectionError(f"no Modbus RTU link to {self.where} (adapter unplugged?)")
+        self.link, self.client = link, link.client
 
     async def close(self) -> None:
         self.model.link_down()
-        if self.client is not None:
+        link, self.link = self.link, None
+        if link is not None:
+            link.users.discard(self.name)
+            if not link.users:
+                if _LINKS.get(link.device) is link:
+                    del _LINKS[link.device]
+                if link.client is not None:
+                    link.client.close()
+        elif self.client is not None:
             self.client.close()
-            self.client = None
+        self.client = None
+
+    def _turn(self):
+        """The bus for one request: RTU machines on one adapter take turns."""
+        return self.link.lock if self.link is not None else contextlib.nullcontext()
+
+    def _link_lost(self) -> None:
+        # the adapter itself is gone: the next machine to connect opens it afresh
+        if self.link is not None and _LINKS.get(self.link.device) is self.link:
+            del _LINKS[self.link.device]
 
     async def _read_group(self, plan) -> None:
         now = time.time()
         for start, count, members in plan:
             try:
-                rr = await asyncio.wait_for(
-                    self.client.read_holding_registers(start, count=count, device_id=self.unit),
-                    self.timeout + 1)
+                async with self._turn():
+                    rr = await asyncio.wait_for(
+                        self.client.read_holding_registers(start, count=count, device_id=self.unit),
+                        self.timeout + 1)
             except (asyncio.TimeoutError, ModbusIOException) as e:
                 self.errors["timeout"] += 1
                 raise TimeoutError(f"no answer from unit {self.unit} at {self.where} within {self.timeout:g} s "
                                    f"(controller hung, wrong unit id or cable?)") from e
             except ConnectionException as e:
                 self.errors["connection"] += 1
+                self._link_lost()
                 raise ConnectionError(f"Modbus link to {self.where} lost: {e}") from e
             if rr.isError():
                 self.errors["refused"] += 1
@@ -266,7 +346,8 @@ class ModbusCNC(Driver):
             raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
         if self.client is None:
             raise ConnectionError("not connected")
-        rr = await self.client.write_registers(reg.address, reg.encode(cmd.value), device_id=self.unit)
+        async with self._turn():
+            rr = await self.client.write_registers(reg.address, reg.encode(cmd.value), device_id=self.unit)
         if rr.isError():
             raise ModbusException(f"controller refused write of {cmd.value:g} to {reg.name}: {rr}")
         self.values[reg.name] = (float(cmd.value), time.time())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import Counter
 
 import pytest
 import structlog
@@ -144,3 +145,76 @@ def test_no_server_is_a_clear_connection_error():
     d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
     with pytest.raises(ConnectionError, match=r"no Modbus TCP link to 127.0.0.1:\d+ \(machine off or network down\?\)"):
         asyncio.run(d.connect())
+
+
+def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
+    """Two controllers, units 1 and 2, on one RS-485 cable; the PC has one
+    adapter. Both machines are configured on it: one port, one request at a
+    time, no answer read by the wrong machine; unit 2 going silent costs
+    unit 1 nothing but bus time; a third machine asking other serial settings
+    is refused with the reason."""
+    from pymodbus import FramerType
+    from pymodbus.datastore import ModbusDeviceContext, ModbusServerContext
+    from pymodbus.server import ModbusSerialServer
+
+    from lathed.sim.modbus_peer import _Registers
+    from lathed.supervisor import Runner
+    from plugins import modbus_cnc
+
+    link = tmp_path / "ttyBUS"
+    nm = NullModem(link)
+    blocks = {u: _Registers(CELL_MAP, N_CELL_REGISTERS, lambda n, v: None) for u in (1, 2)}
+    blocks[1].update({"spindle_rpm": 1111.0})
+    blocks[2].update({"spindle_rpm": 2222.0})
+
+    def machine(name, unit, baudrate=115200):
+        sec = Section("t.toml", f"machine.{name}", {"kind": "grinder", "transport": "rtu", "device": str(link),
+                                                    "baudrate": baudrate, "unit": unit, "poll": "50ms",
+                                                    "timeout": "300ms", "registers": REGS})
+        d = ModbusCNC(name, sec)
+        d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
+        return d
+
+    async def main():
+        ctx = ModbusServerContext(devices={u: ModbusDeviceContext(hr=b) for u, b in blocks.items()}, single=False)
+        server = ModbusSerialServer(ctx, framer=FramerType.RTU, port=nm.open(), baudrate=115200,
+                                    ignore_missing_devices=True)
+        await server.serve_forever(background=True)
+        a, b = machine("grinder1", 1), machine("grinder2", 2)
+        runners = [Runner("machine", d.name, d, 0.1, 0.5, lambda *x, **k: None) for d in (a, b)]
+        for r in runners:
+            r.task = asyncio.create_task(r.loop())
+        try:
+            await until(lambda: a.polls > 20 and b.polls > 20, 10, "both machines polled")
+            assert a.link is b.link and a.client is b.client and a.link.users == {"grinder1", "grinder2"}
+            # each machine reads its own controller
+            assert a.values["spindle_rpm"][0] == 1111.0 and b.values["spindle_rpm"][0] == 2222.0
+            assert a.errors == Counter() and b.errors == Counter()
+            # unit 2 goes silent (powered off): grinder2 retries, grinder1 keeps its data fresh
+            del ctx[2]
+            await until(lambda: runners[1].state != "connected", 5, "grinder2 noticing")
+            polls = a.polls
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 2.0:
+                assert time.time() - a.values["spindle_rpm"][1] < 1.0, "grinder1 starved on the bus"
+                await asyncio.sleep(0.05)
+            assert a.polls - polls >= 10 and a.errors == Counter() and runners[0].state == "connected"
+            assert b.errors["timeout"] >= 1
+            # back on: grinder2 reconnects on the same open port
+            ctx[2] = ModbusDeviceContext(hr=blocks[2])
+            await until(lambda: runners[1].state == "connected" and b.values["spindle_rpm"][0] == 2222.0, 10,
+                        "grinder2 back")
+            assert a.link is b.link
+            # one bus, one speed: a machine asking 9600 baud is refused with the reason
+            c = machine("grinder3", 3, baudrate=9600)
+            with pytest.raises(ConnectionError, match=r"ttyBUS is open at 115200 baud 8N1 for grinder1, grinder2; "
+                                                      r"this machine asks 9600 baud 8N1"):
+                await c.connect()
+        finally:
+            for r in runners:
+                r.task.cancel()
+            await asyncio.gather(*(r.task for r in runners), return_exceptions=True)
+            await server.shutdown()
+            nm.close()
+        assert str(link) not in modbus_cnc._LINKS       # the last machine closed the port
+    asyncio.run(asyncio.wait_for(main(), 60))
