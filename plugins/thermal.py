@@ -149,9 +149,12 @@ class ThermalAnalyzer(Analyzer):
         value = self._probe_value
         if value is None or not self.temps:
             return
-        self.ctx.record("thermal_measurement", {"machine": self.machine, "t": time.time(),
-                                                "displacement_um": value, "rpm": self.rpm,
-                                                "temps_c": dict(self.temps)})
+        m = {"machine": self.machine, "t": time.time(), "displacement_um": value, "rpm": self.rpm,
+             "temps_c": dict(self.temps)}
+        if self.touchoff is not None:   # the reference the live prediction takes its rises from
+            m["cold_c"] = self.touchoff.get("cold_c", self.touchoff["temps_c"])
+            m["cold_t"] = self.touchoff.get("cold_t", self.touchoff["t"])
+        self.ctx.record("thermal_measurement", m)
 
     # -- touch-off ----------------------------------------------------------------
     def _restore_touchoff(self) -> None:
@@ -252,8 +255,17 @@ class ThermalAnalyzer(Analyzer):
             raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least {MIN_REFIT_ROWS}")
         places = sorted(set.intersection(*(set(p["temps_c"]) for p in pts)))
         t = np.array([p["t"] for p in pts])
-        return ThermalData(t - t[0], {f"t_{k}_c": np.array([p["temps_c"][k] for p in pts]) for k in places},
-                           np.array([p["displacement_um"] for p in pts]),
+        temps = {f"t_{k}_c": np.array([p["temps_c"][k] for p in pts]) for k in places}
+        # All taken since one cold start: fit rises and drift hours from it, as the live
+        # prediction takes them. Otherwise (rows from before touch-offs were stored, or
+        # several cold starts) the run's own start is the reference.
+        refs = {json.dumps([p.get("cold_c"), p.get("cold_t")], sort_keys=True) for p in pts}
+        cold, cold_t = pts[0].get("cold_c"), pts[0].get("cold_t")
+        if len(refs) == 1 and cold is not None and all(k in cold for k in places):
+            return ThermalData(t - cold_t, temps, np.array([p["displacement_um"] for p in pts]),
+                               np.array([p["rpm"] or 0.0 for p in pts]),
+                               reference_c={f"t_{k}_c": float(cold[k]) for k in places}, t0_s=0.0)
+        return ThermalData(t - t[0], temps, np.array([p["displacement_um"] for p in pts]),
                            np.array([p["rpm"] or 0.0 for p in pts]))
 
     def _refit(self) -> tuple[dict, object]:

@@ -5,9 +5,11 @@ Done-when item)."""
 from __future__ import annotations
 
 import json
-import subprocess
 import re
+import subprocess
 import time
+
+import pytest
 
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
@@ -219,5 +221,42 @@ def events_in(state_dir, kind: str) -> list:
     store = Store(state_dir / "lathed.db", machine_id="test-cell")
     try:
         return store.query("SELECT id FROM events WHERE kind = ?", (kind,))
+    finally:
+        store.close()
+
+
+def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path):
+    """Probe rows stored since one cold start carry its temperatures: the refit
+    takes rises and drift hours from them, as the live prediction does; rows
+    without (or from several cold starts) fall back to the run's own start."""
+    from lathed.config import Section
+    from plugins.thermal import ThermalAnalyzer
+
+    an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                            {"input": "temps", "machine": "lathe"}))
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+
+    class Ctx:
+        pass
+    an.ctx = Ctx()
+    an.ctx.store = store
+    cold = {"front_bearing": 19.25, "rear_bearing": 19.25, "motor": 19.31, "room": 19.19}
+    try:
+        for k in range(NEED):
+            temps = {p: v + 0.05 * k for p, v in cold.items()}
+            store.record_future("thermal_measurement", "thermal", {
+                "machine": "lathe", "t": 1000.0 + 60 * k, "displacement_um": 0.4 * k, "rpm": 2000.0,
+                "temps_c": temps, "cold_c": cold, "cold_t": 940.0}).result(10)
+        d = an._measurements()
+        assert d.reference_c == {f"t_{p}_c": v for p, v in cold.items()}
+        assert d.t0_s == 0.0 and d.time_s[0] == 60.0          # hours since the cold start
+        assert d.rise("t_motor_c")[0] == pytest.approx(0.0) and d.rise("t_motor_c")[-1] == pytest.approx(
+            0.05 * (NEED - 1))
+        # a row from another cold start: the run's own start again
+        store.record_future("thermal_measurement", "thermal", {
+            "machine": "lathe", "t": 9000.0, "displacement_um": 1.0, "rpm": 2000.0, "temps_c": cold,
+            "cold_c": cold, "cold_t": 8000.0}).result(10)
+        d = an._measurements()
+        assert d.time_s[0] == 0.0 and d.reference_c != {f"t_{p}_c": v for p, v in cold.items()}
     finally:
         store.close()
