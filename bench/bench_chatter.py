@@ -25,8 +25,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from lathed.analysis.detectors import DETECTORS, DEFAULT_DETECTOR, make_detector  # noqa: E402

@@ -108,8 +108,8 @@ def main() -> int:
         cpu = 100 * (cpu_s(proc.pid) - c0) / (time.monotonic() - w0)
         rss = rss_mb(proc.pid)
         stop(proc)
-    print(f"| measure (default config, simulator running) | value | target |")
-    print(f"|---|---|---|")
+    print("| measure (default config, simulator running) | value | target |")
+    print("|---|---|---|")
     print(f"| start to READY=1, median of {a.starts} | {statistics.median(readies):.2f} s "
           f"(min {min(readies):.2f}, max {max(readies):.2f}) | < 2 s |")
     print(f"| resident memory after {a.seconds:.0f} s | {rss:.0f} MB | < 150 MB |")

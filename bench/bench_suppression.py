@@ -184,7 +184,7 @@ def main() -> int:
     cut = Cut(DEPTH_MM * 1e-3, FEED_MM * 1e-3, DIAMETER_M, KT)
     strategies = _strategies(lobes, cut)
     b_at, _ = lobes.b_lim_at(np.array([RATED_RPM, *SPEEDS]))
-    print(f"# Chatter suppression on the simulated lathe\n")
+    print("# Chatter suppression on the simulated lathe\n")
     print(f"Model: modes {', '.join(f'{m.fn_hz:g} Hz/zeta {m.zeta:g}/k {m.k_n_per_m:.2g} N/m/{m.theta_deg:g} deg' for m in MODES)}; "
           f"Kf {KF:.2g} N/m^2; b_lim,min {lobes.b_lim_min_m * 1e3:.2f} mm; "
           f"b_lim at {RATED_RPM:g}/{'/'.join(f'{s:g}' for s in SPEEDS)} r/min = "

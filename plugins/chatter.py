@@ -19,7 +19,6 @@ and then ``chatter_alarm`` (1/0); it records ``chatter_alarm`` and
 """
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from lathed import hookimpl
-from lathed.analysis.thermal import ThermalData, ThermalModel, eq14_model, load_model, refit, save_model
+from lathed.analysis.thermal import ThermalData, eq14_model, load_model, refit, save_model
 from lathed.analyzer import Analyzer
 from lathed.bus import Sample
 from lathed.command import Command

@@ -6,7 +6,6 @@ import asyncio
 import os
 import time
 
-import pytest
 import structlog
 
 from lathed.bus import Bus
