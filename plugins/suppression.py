@@ -303,7 +303,10 @@ class SuppressionAnalyzer(Analyzer):
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": len(self.actions), "last_action": self.actions[-1] if self.actions else None,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
-                "summary": f"mode {self.mode}, strategy {self.strategy_name}, {len(self.actions)} action(s)"}
+                "avoid": self.avoid,
+                "summary": f"mode {self.mode}, strategy {self.strategy_name}"
+                           + (", avoids predicted chatter at cut entry" if self.avoid else "")
+                           + f", {len(self.actions)} action(s)"}
 
 
 @hookimpl

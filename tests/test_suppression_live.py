@@ -165,6 +165,8 @@ def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
 def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon):
     d = sim_daemon(analyzers=default_table("chatter") + "\n" + default_table("suppress") + "\navoid = true\n")
     wait_until(lambda: d.item("analyzers", "suppress")["state"] == "running", what="suppression running")
+    assert suppress(d, "status")["avoid"] is True
+    assert "avoids predicted chatter at cut entry" in d.ctl("suppress", "status").stdout
     # 1 mm: stable at every programmed speed, nothing predicted
     assert sim_set(d, 1.0) == {"depth_mm": 1.0}
     part0 = sim_call(d.paths["sim"], "status")["part"]

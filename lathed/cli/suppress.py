@@ -15,9 +15,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"{r['strategy']}: {r['rpm_before']:.0f} -> {r['rpm_after']:.0f} r/min {verb}")
     else:
         last = r.get("last_action")
-        print(f"mode {r['mode']}, strategy {r['strategy']}, chatter alarm {'ON' if r['chatter_alarm'] else 'off'}, "
-              f"{r['actions']} action(s)" + (f"; last {last['rpm_before']:.0f} -> {last['rpm_after']:.0f} r/min"
-                                           if last else ""))
+        print(f"mode {r['mode']}, strategy {r['strategy']}"
+              + (", avoids predicted chatter at cut entry" if r.get("avoid") else "")
+              + f", chatter alarm {'ON' if r['chatter_alarm'] else 'off'}, {r['actions']} action(s)"
+              + (f"; last {last['rpm_before']:.0f} -> {last['rpm_after']:.0f} r/min"
+                 + (" (predicted)" if last.get("trigger") == "predicted" else "") if last else ""))
     return 0
 
 
