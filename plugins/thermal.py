@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from lathed import hookimpl
-from lathed.analysis.thermal import ThermalData, eq14_model, load_model, refit, save_model
+from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
 from lathed.analyzer import Analyzer
 from lathed.bus import Sample
 from lathed.command import Command
@@ -247,26 +247,37 @@ class ThermalAnalyzer(Analyzer):
         return [s[2:-2] if s.startswith("t_") and s.endswith("_c") else s for s in self.model.sensors]
 
     # -- refit -----------------------------------------------------------------------
-    def _measurements(self) -> ThermalData:
+    def _measurements(self) -> ThermalData | ThermalRuns:
         rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_measurement' "
                                     "AND source = ? ORDER BY id", (self.name,))
         pts = [json.loads(r["payload"]) for r in rows]
         if len(pts) < MIN_REFIT_ROWS:
             raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least {MIN_REFIT_ROWS}")
         places = sorted(set.intersection(*(set(p["temps_c"]) for p in pts)))
-        t = np.array([p["t"] for p in pts])
-        temps = {f"t_{k}_c": np.array([p["temps_c"][k] for p in pts]) for k in places}
-        # All taken since one cold start: fit rises and drift hours from it, as the live
-        # prediction takes them. Otherwise (rows from before touch-offs were stored, or
-        # several cold starts) the run's own start is the reference.
-        refs = {json.dumps([p.get("cold_c"), p.get("cold_t")], sort_keys=True) for p in pts}
-        cold, cold_t = pts[0].get("cold_c"), pts[0].get("cold_t")
-        if len(refs) == 1 and cold is not None and all(k in cold for k in places):
-            return ThermalData(t - cold_t, temps, np.array([p["displacement_um"] for p in pts]),
-                               np.array([p["rpm"] or 0.0 for p in pts]),
-                               reference_c={f"t_{k}_c": float(cold[k]) for k in places}, t0_s=0.0)
-        return ThermalData(t - t[0], temps, np.array([p["displacement_um"] for p in pts]),
-                           np.array([p["rpm"] or 0.0 for p in pts]))
+        # Rows since one cold start form a run: rises and drift hours from that start's
+        # temperatures and time, as the live prediction takes them; lag and hysteresis
+        # start afresh in each. Rows stored without it (before touch-offs were stored)
+        # are one run from their own start.
+        groups: dict[object, list[dict]] = {}
+        for p in pts:
+            cold = p.get("cold_c")
+            key = p["cold_t"] if cold is not None and all(k in cold for k in places) else None
+            groups.setdefault(key, []).append(p)
+        runs = [self._run(g, places, cold_t) for cold_t, g in groups.items()]
+        runs.sort(key=lambda r: r[0])
+        return runs[0][1] if len(runs) == 1 else ThermalRuns([r for _, r in runs])
+
+    @staticmethod
+    def _run(g: list[dict], places: list[str], cold_t: float | None) -> tuple[float, ThermalData]:
+        t = np.array([p["t"] for p in g])
+        temps = {f"t_{k}_c": np.array([p["temps_c"][k] for p in g]) for k in places}
+        disp = np.array([p["displacement_um"] for p in g])
+        rpm = np.array([p["rpm"] or 0.0 for p in g])
+        if cold_t is None:
+            return float(t[0]), ThermalData(t - t[0], temps, disp, rpm)
+        cold = g[0]["cold_c"]
+        return float(t[0]), ThermalData(t - cold_t, temps, disp, rpm,
+                                        reference_c={f"t_{k}_c": float(cold[k]) for k in places}, t0_s=0.0)
 
     def _refit(self) -> tuple[dict, object]:
         data = self._measurements()

@@ -130,3 +130,32 @@ def test_refit_keeps_the_better_model():
     # A second refit against the model just fitted finds no real improvement.
     r2 = refit(tr, current=r.model)
     assert not r2.better and r2.model is r.model
+
+
+def _day(seed, effects):
+    """One day's probe data from a cold start: a probe every 5 min, touched off at the first readings."""
+    r = generate_run(random_schedule(seed, SHIFT_S), effects, seed=seed, dt_s=60.0, noise_um=0.3)
+    c = {k: v[::5] for k, v in r.columns.items()}
+    temps = {k: v for k, v in c.items() if k.startswith("t_")}
+    return c, temps, {k: float(v[0]) for k, v in temps.items()}
+
+
+def test_days_from_their_own_cold_starts_fit_better_than_one_long_run():
+    from lathed.analysis.thermal import ThermalRuns, rmse
+    days = [_day(s, ("drift",)) for s in (21, 22, 23, 24)]
+    runs = ThermalRuns([ThermalData(c["time_s"], t, c["displacement_um"], c["spindle_rpm"], reference_c=ref, t0_s=0.0)
+                        for c, t, ref in days[:3]])
+    # the same rows as one run: days end to end, rises from the first morning, one drift clock
+    one = ThermalData(np.concatenate([c["time_s"] + k * 86400 for k, (c, _, _) in enumerate(days[:3])]),
+                      {k: np.concatenate([t[k] for _, t, _ in days[:3]]) for k in days[0][1]},
+                      np.concatenate([c["displacement_um"] for c, _, _ in days[:3]]),
+                      np.concatenate([c["spindle_rpm"] for c, _, _ in days[:3]]))
+    c4, t4, r4 = days[3]
+    day4 = ThermalData(c4["time_s"], t4, c4["displacement_um"], c4["spindle_rpm"], reference_c=r4, t0_s=0.0)
+    a_runs, a_one = analyze(runs), analyze(one)
+    assert a_runs.effects[0].term.effect == "drift"
+    e_runs = rmse(day4.displacement_um - a_runs.model.predict(day4))
+    e_one = rmse(day4.displacement_um - a_one.model.predict(day4))
+    assert e_runs < 1.0 and e_runs < 0.5 * e_one, (e_runs, e_one)
+    r = refit(runs)                       # the daemon's refit takes the same runs
+    assert r.better and r.after_rmse_um < 1.0

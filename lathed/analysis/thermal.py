@@ -147,6 +147,52 @@ class ThermalData:
                            dict(self.reference_c), self.t0_s)
 
 
+class ThermalRuns:
+    """Several runs, each from its own cold start (days of probe data): one
+    set of rows for the fit, but each run keeps its own reference
+    temperatures and drift clock, and terms with memory (lag, rate,
+    hysteresis) start afresh in each. Behaves as a ThermalData for the
+    residual loop; ``time_s`` is each row's time since its run's start."""
+
+    def __init__(self, runs: Sequence[ThermalData]):
+        self.runs = [r for r in runs if len(r)]
+        if not self.runs:
+            raise ValueError("thermal data has no rows")
+        cols = [set(r.temps_c) for r in self.runs]
+        if any(c != cols[0] for c in cols):
+            raise ValueError("the runs do not have the same temperature columns")
+        cat = np.concatenate
+        self.time_s = cat([r.time_s - r.t0_s for r in self.runs])
+        self.t0_s = 0.0
+        self.temps_c = {k: cat([r.temps_c[k] for r in self.runs]) for k in self.runs[0].temps_c}
+        self.displacement_um = (None if any(r.displacement_um is None for r in self.runs)
+                                else cat([r.displacement_um for r in self.runs]))
+        self.rpm = None if any(r.rpm is None for r in self.runs) else cat([r.rpm for r in self.runs])
+        self.reference_c = self.runs[0].reference_c
+
+    def __len__(self) -> int:
+        return len(self.time_s)
+
+    @property
+    def sensors(self) -> list[str]:
+        return self.runs[0].sensors
+
+    def rise(self, column: str) -> np.ndarray:
+        return np.concatenate([r.rise(column) for r in self.runs])
+
+    def smooth_rise(self, column: str) -> np.ndarray:
+        return np.concatenate([r.smooth_rise(column) for r in self.runs])
+
+    def slice(self, lo: int, hi: int) -> ThermalRuns:
+        out, start = [], 0
+        for r in self.runs:
+            a, b = max(lo - start, 0), min(hi - start, len(r))
+            if a < b:
+                out.append(r.slice(a, b))
+            start += len(r)
+        return ThermalRuns(out)
+
+
 from lathed.analysis.thermal_terms import (  # noqa: F401  (re-exported: plugins import them from here)
     Candidate, DriftCandidate, DriftTerm, HysteresisCandidate, HysteresisTerm, LagCandidate, LagTerm,
     LinearTerm, NonlinearCandidate, NonlinearTerm, RateCandidate, RateTerm, SpeedCandidate, SpeedTerm,
@@ -158,7 +204,9 @@ _RIDGE = 1e-6          # relative to n on standardised columns: only bites on ex
 COLLINEAR_R = 0.999
 
 
-def _design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
+def _design(data: ThermalData | ThermalRuns, terms: Sequence[Term]) -> np.ndarray:
+    if isinstance(data, ThermalRuns):      # terms with memory start afresh in each run
+        return np.vstack([_design(r, terms) for r in data.runs])
     cols = [np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
 
@@ -174,6 +222,8 @@ def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     variables), which costs nothing on the training run and a slow ramp of
     error on a run with another speed schedule. Predictions still use the
     raw readings."""
+    if isinstance(data, ThermalRuns):
+        return np.vstack([_fit_design(r, terms) for r in data.runs])
     cols = [data.smooth_rise(t.sensor)[:, None] if isinstance(t, LinearTerm)
             else np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
@@ -573,7 +623,7 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
             if test is not None and (term.sensor and term.sensor not in test.temps_c
                                      or isinstance(term, SpeedTerm) and test.rpm is None):
                 return       # could not be evaluated on the test run
-            F = np.asarray(term.features(train), float).reshape(len(train), -1)
+            F = _design(train, [term])
             if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
                 return
             e = heldout_errors(np.hstack([Xf, F]), y, n_blocks, gap, np.hstack([X, F]))

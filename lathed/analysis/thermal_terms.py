@@ -369,7 +369,7 @@ class DriftCandidate:
     name = "drift"
 
     def propose(self, data):
-        return [DriftTerm(round(float(data.time_s[-1] - data.t0_s) / 3600.0, 2))]
+        return [DriftTerm(round(float(np.max(data.time_s - data.t0_s)) / 3600.0, 2))]
 
     def make_term(self, sensor, params):
         return DriftTerm(float(params["max_h"]) if "max_h" in params else None)
