@@ -48,6 +48,12 @@ class Settings:
         self.plugin_dirs = [_path(base, d, None) for d in sec.getlist("plugin_dirs", [])]
         self.log_level = sec.getstr("log_level", "info", choices=("debug", "info", "warning", "error"))
         sec.check_unused()
+        st = cfg.store
+        # 0: every record is kept. Otherwise records older than this are deleted,
+        # but only once every configured sink has forwarded them.
+        self.keep_days = st.getfloat("keep_days", 0.0, minval=0.0, maxval=36500.0)
+        self.prune_every = st.getduration("prune_every", 3600.0, minval=1.0, maxval=7 * 86400.0)
+        st.check_unused()
 
     @property
     def socket_path(self) -> Path:
@@ -90,6 +96,7 @@ class Daemon:
         self.supervisor: Supervisor | None = None
         self.sim_process = None
         self._stop = asyncio.Event()
+        self.last_prune: dict | None = None
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
@@ -113,7 +120,11 @@ class Daemon:
                  startup_s=round(time.monotonic() - self.started, 3))
         notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")
         watchdog = asyncio.create_task(self._watchdog())
+        pruning = asyncio.create_task(self._prune()) if self.settings.keep_days > 0 else None
         await self._stop.wait()
+        if pruning is not None:
+            pruning.cancel()
+            await asyncio.gather(pruning, return_exceptions=True)
         self.state = "stopping"
         notify("STOPPING=1")
         log.info("stopping")
@@ -134,6 +145,22 @@ class Daemon:
         self.supervisor.record("daemon_stopped", "lathed", {})
         await asyncio.to_thread(self.store.close)
         return 0
+
+    async def _prune(self) -> None:
+        """Retention: delete records older than keep_days that every sink has forwarded."""
+        sinks = [name for name, (_, an) in self.plan.analyzers.items() if getattr(an, "forwards_records", False)]
+        while True:
+            await asyncio.sleep(self.settings.prune_every)
+            cutoff = time.time() - self.settings.keep_days * 86400.0
+            try:
+                removed = await asyncio.to_thread(self.store.prune, cutoff, sinks)
+            except Exception as e:      # the store says why; keep every record and try again later
+                log.error("prune_failed", error=str(e))
+                continue
+            self.last_prune = {"t": time.time(), "older_than_t": cutoff, "removed": removed}
+            if any(removed.values()):
+                self.supervisor.record("store_pruned", "lathed", {"older_than_t": cutoff, "removed": removed,
+                                                                  "sinks": sinks})
 
     @staticmethod
     def _stop_overdue() -> None:
@@ -169,7 +196,8 @@ class Daemon:
     async def _cmd_status(self, args: dict) -> Any:
         return {"daemon": {"state": self.state, "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
-                           "config": str(self.cfg.path), "store": self.store.stats(),
+                           "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
+                                                                "last_prune": self.last_prune},
                            "simulator": None if self.sim_process is None else
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode}},
                 **self.supervisor.status()}

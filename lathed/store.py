@@ -179,6 +179,10 @@ MIGRATIONS: list[tuple[int, str]] = [
     """),
 ]
 
+# The time a record row is aged by, for retention.
+AGE_COLUMN = {"events": "t", "workpieces": "end_t", "inspections": "t", "sampling_queue": "t", "experiments": "t"}
+PRUNE_CHUNK = 2000
+
 # Tables whose rows are forwarded to sinks, and their JSON-valued columns.
 FORWARDED = ("events", "workpieces", "inspections", "sampling_queue", "experiments")
 JSON_COLUMNS = frozenset({"payload", "measured", "levels", "settings"})
@@ -242,8 +246,9 @@ class Store:
         self._thread.start()
 
     # -- writing --------------------------------------------------------
-    def submit(self, sql: str, params: tuple) -> Future:
-        """Queue one write; the future resolves to lastrowid after commit."""
+    def submit(self, sql: str | list[tuple[str, tuple]], params: tuple) -> Future:
+        """Queue one write; the future resolves to lastrowid after commit. A
+        list of (sql, params) is executed together, all or none."""
         fut: Future = Future()
         self._q.put((sql, params, fut))
         return fut
@@ -271,7 +276,19 @@ class Store:
             self._wcon.execute("BEGIN")
             for sql, params, fut in batch:
                 try:
-                    results.append((fut, self._wcon.execute(sql, params).lastrowid, None))
+                    if isinstance(sql, list):     # statements that stand or fall together
+                        self._wcon.execute("SAVEPOINT item")
+                        try:
+                            for s, p in sql:
+                                self._wcon.execute(s, p)
+                        except sqlite3.Error:
+                            self._wcon.execute("ROLLBACK TO item")
+                            raise
+                        finally:
+                            self._wcon.execute("RELEASE item")
+                        results.append((fut, None, None))
+                    else:
+                        results.append((fut, self._wcon.execute(sql, params).lastrowid, None))
                 except sqlite3.Error as e:   # one bad record must not sink the batch
                     results.append((fut, None, e))
             self._wcon.execute("COMMIT")
@@ -386,6 +403,46 @@ class Store:
 
     def refused(self, sink: str) -> int:
         return self.query("SELECT count(*) AS n FROM forward_refused WHERE sink = ?", (sink,))[0]["n"]
+
+    def prune(self, before_t: float, sinks: list[str]) -> dict[str, int]:
+        """Delete record rows older than ``before_t`` that every sink in ``sinks``
+        has forwarded (all of them when there is no sink), with their outbox
+        entries, in one transaction per chunk. Candidates are found on the
+        read connection, walking the outbox in id (insertion) order and
+        stopping at the first chunk with nothing old enough, so the writer
+        only ever runs deletes by primary key. Returns rows removed per table."""
+        safe = min((self.progress(s) for s in sinks), default=None)
+        if safe is None:
+            safe = self.query("SELECT max(id) AS m FROM outbox")[0]["m"] or 0
+        removed = {t: 0 for t in AGE_COLUMN}
+        after = 0
+        while True:
+            entries = self.query("SELECT id, tbl, row_id FROM outbox WHERE id > ? AND id <= ? ORDER BY id LIMIT ?",
+                                 (after, safe, PRUNE_CHUNK))
+            if not entries:
+                break
+            after = entries[-1]["id"]
+            old: dict[str, list[tuple[int, int]]] = {}
+            by_table: dict[str, list[tuple[int, int]]] = {}
+            for e in entries:
+                by_table.setdefault(e["tbl"], []).append((e["id"], e["row_id"]))
+            for tbl, pairs in by_table.items():
+                col = AGE_COLUMN[tbl]
+                rows = {r["id"] for r in self.query(
+                    f"SELECT id FROM {tbl} WHERE {col} < ? AND id IN ({','.join('?' * len(pairs))})",
+                    (before_t, *(rid for _, rid in pairs)))}
+                old[tbl] = [(oid, rid) for oid, rid in pairs if rid in rows]
+            if not any(old.values()):
+                break       # insertion order follows time: nothing older further on
+            stmts = []
+            for tbl, pairs in old.items():
+                if pairs:
+                    marks = ",".join("?" * len(pairs))
+                    stmts.append((f"DELETE FROM outbox WHERE id IN ({marks})", tuple(o for o, _ in pairs)))
+                    stmts.append((f"DELETE FROM {tbl} WHERE id IN ({marks})", tuple(r for _, r in pairs)))
+                    removed[tbl] += len(pairs)
+            self.submit(stmts, ()).result()
+        return removed
 
     def set_progress(self, sink: str, outbox_id: int) -> Future:
         return self.submit("INSERT INTO forward_progress(sink, outbox_id, t) VALUES (?,?,?) "

@@ -59,6 +59,7 @@ _VIEWS = {
 
 
 class PostgresSink(Analyzer):
+    forwards_records = True     # retention (keep_days) waits for this sink's progress
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
         self.dsn = section.getstr("dsn")

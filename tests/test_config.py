@@ -57,6 +57,10 @@ def test_valid_minimal(tmp_path):
     (('name = "t"', 'name = "t"\nflavour = 1'),
      "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: log_level, name, plugin_dirs, "
      "runtime_dir, state_dir"),
+    (("writable = true }\n", "writable = true }\n[store]\nkeep_day = 30\n"),
+     "lathed: FILE: [store] keep_day: unknown key; allowed keys here: keep_days, prune_every"),
+    (("writable = true }\n", "writable = true }\n[store]\nkeep_days = -1\n"),
+     "lathed: FILE: [store] keep_days: -1 is out of range; allowed: a number in [0.0, 36500.0]"),
     (("[daemon]", "[deamon]"),
      "lathed: FILE: [deamon]: unknown table; allowed: daemon, simulator, store, machine, sensor, analyzer"),
     (("port = 15020", "port = 15020\n[machine.lathe.limits]\nspindle_rpm_max = -5.0"),

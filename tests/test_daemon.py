@@ -92,3 +92,21 @@ def test_sigterm_stops_cleanly_and_notifies(sim_daemon, tmp_path):
     assert any(m.startswith("READY=1") for m in msgs)
     assert d.stop() == 0
     srv.close()
+
+
+def test_retention_prunes_old_records_while_running(sim_daemon):
+    # keep_days 0.0001 = 8.6 s: the start-up events age out within the test
+    d = sim_daemon(extra='[store]\nkeep_days = 0.0001\nprune_every = "1s"\n')
+
+    def events(kind):
+        return json.loads(d.ctl("events", "--kind", kind, "--limit", "100", "--json").stdout)
+    started = events("daemon_started")
+    assert len(started) == 1
+    pruned = wait_until(lambda: events("store_pruned"), timeout=30, interval=0.5, what="a store_pruned event")
+    p = pruned[0]["payload"]
+    assert p["removed"]["events"] >= 1 and p["sinks"] == []
+    assert events("daemon_started") == []            # older than 8.6 s: gone
+    assert events("store_pruned")[-1]["t"] > started[0]["t"]
+    st = d.status()
+    assert st["daemon"]["state"] == "running" and st["daemon"]["store"]["keep_days"] == 0.0001
+    assert st["daemon"]["store"]["last_prune"]["removed"]["events"] >= 0

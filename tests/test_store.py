@@ -103,3 +103,43 @@ def test_non_finite_numbers_are_recorded_as_null_so_the_views_still_read(tmp_pat
     assert s.events(kind="chatter_alarm")[0]["payload"] == {"index": None, "threshold": 1.8,
                                                            "spectrum": [1.0, None], "nested": {"x": None}}
     s.close()
+
+
+def test_retention_deletes_only_old_records_every_sink_has_forwarded(tmp_path, monkeypatch):
+    monkeypatch.setattr(storemod, "PRUNE_CHUNK", 7)      # several chunks
+    s = Store(tmp_path / "a.db", machine_id="cell-r")
+    day = 86400.0
+    for k in range(40):                                  # 40 old events, then 10 recent ones
+        s.record_future("tick", "w", {"k": k}, t=1000.0 + k).result(10)
+    part = "00000000-0000-0000-0000-00000000000a"
+    s.insert("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1050.0, "end_t": 1060.0,
+                            "outcome": "finished", "chatter_alarms": 0, "abnormal": 0}).result(10)
+    for k in range(10):
+        s.record_future("tick", "w", {"k": 100 + k}, t=10 * day + k).result(10)
+    # sink "central" forwarded the first 30 outbox entries; "backup" only 20
+    s.set_progress("central", 30).result(10)
+    s.set_progress("backup", 20).result(10)
+    removed = s.prune(5 * day, ["central", "backup"])
+    assert removed["events"] == 20 and removed["workpieces"] == 0
+    ks = [r["payload"]["k"] for r in s.events(100, "tick", None, 0)]
+    assert sorted(ks) == list(range(20, 40)) + list(range(100, 110))
+    # what is left still forwards in order, with no hole in the outbox
+    assert [t for _, t, _ in s.pending("backup", 100)][:1] == ["events"] and s.backlog("backup") == 31
+    # once both have forwarded everything, the old rest goes, the recent stays
+    last = s.query("SELECT max(id) AS m FROM outbox")[0]["m"]
+    s.set_progress("central", last).result(10)
+    s.set_progress("backup", last).result(10)
+    removed = s.prune(5 * day, ["central", "backup"])
+    assert removed == {"events": 20, "workpieces": 1, "inspections": 0, "sampling_queue": 0, "experiments": 0}
+    assert sorted(r["payload"]["k"] for r in s.events(100, "tick", None, 0)) == list(range(100, 110))
+    assert s.pending("backup", 100) == [] and s.prune(5 * day, ["central", "backup"])["events"] == 0
+    s.close()
+
+
+def test_retention_without_sinks_and_with_a_sink_that_never_forwarded(tmp_path):
+    s = Store(tmp_path / "a.db")
+    for k in range(5):
+        s.record_future("tick", "w", {"k": k}, t=1.0).result(10)
+    assert s.prune(100.0, ["central"])["events"] == 0     # not yet forwarded: kept
+    assert s.prune(100.0, [])["events"] == 5               # no sink: the age alone decides
+    s.close()
