@@ -410,13 +410,15 @@ class Store:
         entries, in one transaction per chunk. Candidates are found on the
         read connection, walking the outbox in id (insertion) order and
         stopping at the first chunk with nothing old enough, so the writer
-        only ever runs deletes by primary key. Returns rows removed per table."""
+        only ever runs deletes by primary key; after each chunk it waits as
+        long as the chunk took. Returns rows removed per table."""
         safe = min((self.progress(s) for s in sinks), default=None)
         if safe is None:
             safe = self.query("SELECT max(id) AS m FROM outbox")[0]["m"] or 0
         removed = {t: 0 for t in AGE_COLUMN}
         after = 0
         while True:
+            started = time.monotonic()
             entries = self.query("SELECT id, tbl, row_id FROM outbox WHERE id > ? AND id <= ? ORDER BY id LIMIT ?",
                                  (after, safe, PRUNE_CHUNK))
             if not entries:
@@ -442,6 +444,8 @@ class Store:
                     stmts.append((f"DELETE FROM {tbl} WHERE id IN ({marks})", tuple(r for _, r in pairs)))
                     removed[tbl] += len(pairs)
             self.submit(stmts, ()).result()
+            # as long again idle: live records are committed between chunks, not behind them
+            time.sleep(min(time.monotonic() - started, 0.25))
         return removed
 
     def set_progress(self, sink: str, outbox_id: int) -> Future:
