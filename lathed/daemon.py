@@ -97,6 +97,7 @@ class Daemon:
         self.sim_process = None
         self._stop = asyncio.Event()
         self.last_prune: dict | None = None
+        self._step = "starting"
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
@@ -137,12 +138,16 @@ class Daemon:
         watchdog.cancel()
         starting.cancel()
         await asyncio.gather(starting, return_exceptions=True)
+        self._step = "stopping analyzers and drivers"
         await self.supervisor.stop()
+        self._step = "closing the control socket"
         await self.control.close()
+        self._step = "stopping the simulator"
         if self.sim_process is not None:
             from lathed.sim.launch import stop
             await stop(self.sim_process)
         self.supervisor.record("daemon_stopped", "lathed", {})
+        self._step = "closing the store"
         await asyncio.to_thread(self.store.close)
         return 0
 
@@ -162,9 +167,13 @@ class Daemon:
                 self.supervisor.record("store_pruned", "lathed", {"older_than_t": cutoff, "removed": removed,
                                                                   "sinks": sinks})
 
-    @staticmethod
-    def _stop_overdue() -> None:
-        log.error("stop_overdue", grace_s=STOP_GRACE_S, why="a driver or worker thread did not stop; exiting")
+    def _stop_overdue(self) -> None:
+        # what was still running, so the next hang names its culprit
+        busy = [name for group in (self.supervisor.analyzer_runners, self.supervisor.runners)
+                for name, r in group.items() if r.task is not None and not r.task.done()]
+        threads = [t.name for t in threading.enumerate() if t is not threading.current_thread() and t.is_alive()]
+        log.error("stop_overdue", grace_s=STOP_GRACE_S, why="a driver or worker thread did not stop; exiting",
+                  step=self._step, runners_not_stopped=busy, threads=threads)
         logging.shutdown()
         os._exit(1)
 
