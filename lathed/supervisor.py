@@ -109,6 +109,22 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     return plan
 
 
+async def cancel_and_wait(tasks, every_s: float = 1.0) -> None:
+    """Cancel the tasks and wait for them, cancelling again every ``every_s``
+    those still running: Python 3.11's asyncio.wait_for (in our code and in
+    libraries) returns the result instead of raising when the cancellation
+    lands as its inner await completes, and a polling driver then polls on."""
+    pending = {t for t in tasks if not t.done()}
+    rounds = 0
+    while pending:
+        for t in pending:
+            t.cancel()
+        _, pending = await asyncio.wait(pending, timeout=every_s)
+        rounds += 1
+        if pending:
+            log.warning("cancel_repeated", tasks=sorted(t.get_name() for t in pending), round=rounds)
+
+
 class Runner:
     """A supervised task for one driver or analyzer."""
 
@@ -254,10 +270,7 @@ class Supervisor:
     async def stop(self) -> None:
         # analyzers first, so no command is asked for while drivers close
         for group in (self.analyzer_runners, self.runners):
-            tasks = [r.task for r in group.values() if r.task]
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
+            await cancel_and_wait([r.task for r in group.values() if r.task])
 
     # -- commands -------------------------------------------------------------
     async def command(self, cmd: Command) -> dict:

@@ -286,10 +286,10 @@ class ModbusCNC(Driver):
         now = time.time()
         for start, count, members in plan:
             try:
-                async with self._turn():
-                    rr = await asyncio.wait_for(
-                        self.client.read_holding_registers(start, count=count, device_id=self.unit),
-                        self.timeout + 1)
+                # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
+                # cancellation that lands as the read completes, and the poll goes on
+                async with self._turn(), asyncio.timeout(self.timeout + 1):
+                    rr = await self.client.read_holding_registers(start, count=count, device_id=self.unit)
             except (asyncio.TimeoutError, ModbusIOException) as e:
                 self.errors["timeout"] += 1
                 raise TimeoutError(f"no answer from unit {self.unit} at {self.where} within {self.timeout:g} s "
