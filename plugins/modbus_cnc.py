@@ -218,7 +218,8 @@ class ModbusCNC(Driver):
 
     async def _open(self, client) -> None:
         try:
-            ok = await asyncio.wait_for(client.connect(), self.timeout + 1)
+            async with asyncio.timeout(self.timeout + 1):     # not wait_for: see _read_group
+                ok = await client.connect()
         except asyncio.TimeoutError:
             ok = False
         if not ok:

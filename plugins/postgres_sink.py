@@ -60,6 +60,7 @@ _VIEWS = {
 
 class PostgresSink(Analyzer):
     forwards_records = True     # retention (keep_days) waits for this sink's progress
+
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
         self.dsn = section.getstr("dsn")
@@ -72,7 +73,6 @@ class PostgresSink(Analyzer):
         self.interval = section.getduration("interval", 1.0, minval=0.01, maxval=3600)
         self.timeout = section.getduration("timeout", 30.0, minval=1, maxval=3600)
         self.forwarded = 0
-        self.refused_now = 0     # rows set aside since start (the store keeps the total)
         self.connected = False
         self.last_error: str | None = None
         self.last_forward_t: float | None = None
@@ -162,7 +162,6 @@ class PostgresSink(Analyzer):
                     except _ROW_REFUSED as e:
                         why = _cause(e, self.where)
                         await asyncio.wrap_future(self.ctx.store.refuse(self.name, oid, table, r["id"], why))
-                        self.refused_now += 1
                         self.ctx.log.error("forward_refused", table=table, row_id=r["id"], error=why)
                         self.ctx.record("forward_refused", {"sink": self.name, "table": table, "row_id": r["id"],
                                                             "uuid": r["uuid"], "error": why})

@@ -188,14 +188,18 @@ class SuppressionAnalyzer(Analyzer):
         d = self.policy.observe(time.monotonic(), self.rpm, True)
         if d is None:
             return
-        d = replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes allow {b_mm:.2f} mm "
-                              f"at {self.rpm:.0f} r/min; {d.reason}")
+        await self._decided(replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes "
+                                              f"allow {b_mm:.2f} mm at {self.rpm:.0f} r/min; {d.reason}"),
+                            "predicted")
+
+    async def _decided(self, d: Decision, trigger: str) -> None:
+        """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal."""
         if self.mode == "auto":
-            await self._act(d, trigger="predicted")
+            await self._act(d, trigger=trigger)
         else:
-            self.pending, self.pending_trigger = d, "predicted"
+            self.pending, self.pending_trigger = d, trigger
             self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual",
-                                                     "trigger": "predicted"})
+                                                     "trigger": trigger})
 
     async def _on_chatter(self, s: Sample) -> None:
         key = {"chatter_index": "index", "chatter_threshold": "threshold",
@@ -215,12 +219,7 @@ class SuppressionAnalyzer(Analyzer):
                                 self.chat["index"], self.chat["threshold"])
         if d is None:
             return
-        if self.mode == "auto":
-            await self._act(d)
-        else:
-            self.pending, self.pending_trigger = d, "alarm"
-            self.ctx.record("suppression_proposed", {**d.record(), "machine": self.machine, "mode": "manual",
-                                                     "trigger": "alarm"})
+        await self._decided(d, "alarm")
 
     async def _act(self, d: Decision, by: str | None = None, trigger: str = "alarm") -> dict:
         source = by or self.name

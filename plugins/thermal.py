@@ -152,8 +152,7 @@ class ThermalAnalyzer(Analyzer):
         m = {"machine": self.machine, "t": time.time(), "displacement_um": value, "rpm": self.rpm,
              "temps_c": dict(self.temps)}
         if self.touchoff is not None:   # the reference the live prediction takes its rises from
-            m["cold_c"] = self.touchoff.get("cold_c", self.touchoff["temps_c"])
-            m["cold_t"] = self.touchoff.get("cold_t", self.touchoff["t"])
+            m["cold_c"], m["cold_t"] = self.touchoff["cold_c"], self.touchoff["cold_t"]
         self.ctx.record("thermal_measurement", m)
 
     # -- touch-off ----------------------------------------------------------------
@@ -172,8 +171,8 @@ class ThermalAnalyzer(Analyzer):
         to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm,
               "base_um": base_um, "reason": reason,
               # the model's cold reference: kept from the first start
-              "cold_c": dict(prev.get("cold_c", prev["temps_c"])) if prev else dict(self.temps),
-              "cold_t": prev.get("cold_t", prev["t"]) if prev else now,
+              "cold_c": dict(prev["cold_c"]) if prev else dict(self.temps),
+              "cold_t": prev["cold_t"] if prev else now,
               "model": self.model_name, "pred0_um": None}
         if prev is not None and self._predictor is not None:
             # the live prediction, with the state of lagging and hysteretic terms
@@ -190,7 +189,7 @@ class ThermalAnalyzer(Analyzer):
         the growth is the model's prediction now less its prediction at the
         touch-off (rises from the cold reference in both)."""
         to = self.touchoff
-        cold, cold_t = to.get("cold_c", to["temps_c"]), to.get("cold_t", to["t"])
+        cold, cold_t = to["cold_c"], to["cold_t"]
         lacking = [p for p in self._sensor_places() if p not in cold or p not in to["temps_c"]]
         if lacking:
             self._predictor = self.pred0 = None
