@@ -17,14 +17,20 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import queue
 import sqlite3
+import stat
 import threading
 import time
 import uuid as uuidlib
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
+
+import structlog
+
+log = structlog.get_logger("lathed.store")
 
 # Versioned schema migrations: (version, SQL). Append, never edit.
 MIGRATIONS: list[tuple[int, str]] = [
@@ -229,19 +235,31 @@ def migrate(con: sqlite3.Connection) -> int:
     return version
 
 
+class StoreError(Exception):
+    """The store could not take a record; the message says why."""
+
+
 class Store:
     def __init__(self, path: str | Path, machine_id: str = "lathed"):
         self.path = Path(path)
         self.machine_id = machine_id
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
         self._wcon = connect(self.path)
+        _private(self.path)
         self.schema_version = migrate(self._wcon)
         self._rcon = connect(self.path)
         self._rlock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
+        self._closed = False
+        self._orphans: list = []     # the batch in hand when the writer thread died
         self.written = 0
         self.failed = 0
         self.last_error: str | None = None
+        self.last_error_t: float | None = None
+        # True while the last transaction failed as a whole (disk full, I/O
+        # error) or the writer is gone: the store is not taking records.
+        self.failing = False
+        self.writer_error: str | None = None   # why the writer thread stopped, if it did
         self._thread = threading.Thread(target=self._writer, name="lathed-store", daemon=True)
         self._thread.start()
 
@@ -250,25 +268,68 @@ class Store:
         """Queue one write; the future resolves to lastrowid after commit. A
         list of (sql, params) is executed together, all or none."""
         fut: Future = Future()
-        self._q.put((sql, params, fut))
+        self._put((sql, params, fut))
         return fut
 
+    def _put(self, item: tuple) -> None:
+        if self._closed:
+            raise StoreError(f"store {self.path} is closed: record not taken")
+        self._q.put(item)
+
+    @property
+    def writer_alive(self) -> bool:
+        return self._thread.is_alive()
+
     def _writer(self) -> None:
-        while True:
-            item = self._q.get()
-            if item is None:
-                return
-            batch = [item]
-            while len(batch) < 5000:
+        batch: list = []
+        try:
+            while True:
+                batch = []
+                item = self._q.get()
+                if item is None:
+                    return
+                batch = [item]
+                while len(batch) < 5000:
+                    try:
+                        nxt = self._q.get_nowait()
+                    except queue.Empty:
+                        break
+                    if nxt is None:
+                        self._q.put(None)   # finish this batch, then stop
+                        break
+                    batch.append(nxt)
                 try:
-                    nxt = self._q.get_nowait()
-                except queue.Empty:
-                    break
-                if nxt is None:
-                    self._q.put(None)   # finish this batch, then stop
-                    break
-                batch.append(nxt)
-            self._commit(batch)
+                    self._commit(batch)
+                except Exception as e:   # a fault of the writer itself: this batch fails, the next is served
+                    self._writer_fault(batch, e)
+        except BaseException as e:       # the thread ends: say so; close() commits what it held and what is queued
+            try:
+                if self._wcon.in_transaction:
+                    self._wcon.execute("ROLLBACK")
+            except BaseException:
+                pass
+            self._orphans = [item for item in batch if not item[2].done()]
+            self.writer_error = _one_line(e)
+            self.failing = True
+            self._note_error(f"store writer stopped: {self.writer_error}")
+            log.critical("store_writer_died", error=self.writer_error, queued=self._q.qsize() + len(self._orphans))
+
+    def _writer_fault(self, batch: list, e: Exception) -> None:
+        err = StoreError(f"store writer fault, batch of {len(batch)} not committed: {_one_line(e)}")
+        log.error("store_writer_fault", error=str(err))
+        try:
+            if self._wcon.in_transaction:
+                self._wcon.execute("ROLLBACK")
+        except Exception as e2:
+            log.error("store_rollback_failed", error=_one_line(e2))
+        unsettled = [(fut, None, err) for _, _, fut in batch if not fut.done()]
+        self.failed += len(unsettled)
+        self.failing = True
+        self._note_error(str(err))
+        self._settle_all(unsettled)
+
+    def _note_error(self, text: str) -> None:
+        self.last_error, self.last_error_t = text, time.time()
 
     def _commit(self, batch: list) -> None:
         results = []
@@ -281,7 +342,7 @@ class Store:
                         try:
                             for s, p in sql:
                                 self._wcon.execute(s, p)
-                        except sqlite3.Error:
+                        except Exception:
                             self._wcon.execute("ROLLBACK TO item")
                             raise
                         finally:
@@ -289,8 +350,12 @@ class Store:
                         results.append((fut, None, None))
                     else:
                         results.append((fut, self._wcon.execute(sql, params).lastrowid, None))
-                except sqlite3.Error as e:   # one bad record must not sink the batch
+                except sqlite3.Error as e:   # one bad record must not sink the batch...
+                    if not self._wcon.in_transaction:
+                        raise                # ...unless SQLite rolled the transaction back (disk full)
                     results.append((fut, None, e))
+                except (ValueError, TypeError, OverflowError) as e:   # a value SQLite cannot bind
+                    results.append((fut, None, StoreError(f"record not stored: {_one_line(e)}")))
             self._wcon.execute("COMMIT")
         except sqlite3.Error as e:
             try:
@@ -298,15 +363,22 @@ class Store:
             except sqlite3.Error:
                 pass
             self.failed += len(batch)
-            self.last_error = str(e)
+            self.failing = True
+            self._note_error(f"commit failed, {len(batch)} records not stored: {_one_line(e)}")
+            log.error("store_commit_failed", error=self.last_error)
             results = [(fut, None, e) for _, _, fut in batch]
         else:
+            self.failing = False
             for _, _, err in results:
                 if err is None:
                     self.written += 1
                 else:
                     self.failed += 1
-                    self.last_error = str(err)
+                    self._note_error(_one_line(err))
+        self._settle_all(results)
+
+    @staticmethod
+    def _settle_all(results: list) -> None:
         # Event-loop futures are settled with one wake-up of their loop per
         # batch, not one per record: at thousands of records a second the
         # per-record wake-ups are what would delay the loop.
@@ -326,7 +398,7 @@ class Store:
 
     def _submit_async(self, sql: str, params: tuple) -> asyncio.Future:
         fut = asyncio.get_running_loop().create_future()
-        self._q.put((sql, params, fut))
+        self._put((sql, params, fut))
         return fut
 
     async def record(self, kind: str, source: str, payload: dict[str, Any] | None = None,
@@ -454,8 +526,27 @@ class Store:
                            (sink, outbox_id, time.time()))
 
     def close(self) -> None:
+        """Commit everything queued, then close. Records taken before close are
+        committed even when the writer thread is gone (it is done here)."""
+        if self._closed:
+            return
+        self._closed = True
         self._q.put(None)
         self._thread.join()
+        rest, self._orphans = self._orphans, []
+        while True:
+            try:
+                item = self._q.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                rest.append(item)
+        if rest:
+            log.warning("store_draining_without_writer", records=len(rest))
+            try:
+                self._commit(rest)
+            except Exception as e:
+                self._writer_fault(rest, e)
         self._wcon.close()
         self._rcon.close()
 
@@ -481,7 +572,28 @@ class Store:
 
     def stats(self) -> dict[str, Any]:
         return {"path": str(self.path), "schema_version": self.schema_version, "written": self.written,
-                "failed": self.failed, "queued": self._q.qsize(), "last_error": self.last_error}
+                "failed": self.failed, "queued": self._q.qsize(), "last_error": self.last_error,
+                "last_error_t": self.last_error_t, "failing": self.failing or not self.writer_alive,
+                "writer_alive": self.writer_alive, "writer_error": self.writer_error}
+
+
+def _private(db: Path) -> None:
+    """Record files readable by the owner's group only (0640), also when an
+    older daemon left them 0644; SQLite gives the -wal/-shm files the mode
+    of the database file."""
+    for p in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
+        try:
+            st = p.stat()
+            mode = stat.S_IMODE(st.st_mode)
+            if st.st_uid == os.geteuid() and mode & 0o137:
+                p.chmod(mode & 0o640)
+        except FileNotFoundError:
+            pass
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _settle(items: list) -> None:

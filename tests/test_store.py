@@ -143,3 +143,81 @@ def test_retention_without_sinks_and_with_a_sink_that_never_forwarded(tmp_path):
     assert s.prune(100.0, ["central"])["events"] == 0     # not yet forwarded: kept
     assert s.prune(100.0, [])["events"] == 5               # no sink: the age alone decides
     s.close()
+
+
+def _count(path, kind: str) -> int:
+    con = sqlite3.connect(path)
+    try:
+        return con.execute("SELECT count(*) FROM events WHERE kind = ?", (kind,)).fetchone()[0]
+    finally:
+        con.close()
+
+
+def test_a_value_sqlite_cannot_bind_fails_only_its_record_and_the_writer_goes_on(tmp_path):
+    # issue 18 D1: an int beyond 64 bits raised OverflowError in the writer thread and killed it
+    s = Store(tmp_path / "a.db")
+    bad = s.insert("experiments", {"t": 1.0, "tool": "T", "material": "M", "levels": {"A": 1},
+                                   "settings": {}, "run": 10 ** 30})
+    good = s.record_future("tick", "w", {"k": 1})
+    with pytest.raises(storemod.StoreError, match="record not stored: OverflowError"):
+        bad.result(10)
+    assert good.result(10) >= 1
+    assert s.record_future("tick", "w", {"k": 2}).result(10) >= 1    # and later records too
+    st = s.stats()
+    assert (st["failed"], st["written"], st["queued"], st["failing"], st["writer_alive"]) == (1, 2, 0, False, True)
+    assert "OverflowError" in st["last_error"] and st["last_error_t"] > 0
+    s.close()
+
+
+def test_close_commits_every_queued_record_even_behind_a_poison_record(tmp_path):
+    s = Store(tmp_path / "a.db")
+    s.insert("experiments", {"t": 1.0, "tool": "T", "material": "M", "levels": {"A": 1},
+                             "settings": {}, "run": 10 ** 30})
+    futs = [s.record_future("command_sent", "suppress", {"k": k}) for k in range(300)]
+    s.close()                                   # without waiting for any of them
+    assert all(f.done() and f.exception() is None for f in futs)
+    assert _count(tmp_path / "a.db", "command_sent") == 300
+    with pytest.raises(storemod.StoreError, match="closed"):
+        s.record_future("late", "w", {})       # refused in one line, not queued forever
+
+
+def test_a_writer_fault_fails_its_batch_only_and_is_recorded(tmp_path):
+    s = Store(tmp_path / "a.db")
+    real = s._commit
+    calls = []
+
+    def faulty(batch):
+        calls.append(len(batch))
+        if len(calls) == 1:
+            raise RuntimeError("bug in the writer")
+        real(batch)
+    s._commit = faulty
+    with pytest.raises(storemod.StoreError, match="store writer fault.*RuntimeError: bug in the writer"):
+        s.record_future("tick", "w", {}).result(10)
+    assert s.stats()["failing"] is True
+    assert s.record_future("tick", "w", {}).result(10) >= 1          # served again, and recovered
+    st = s.stats()
+    assert (st["failed"], st["written"], st["failing"]) == (1, 1, False)
+    assert "bug in the writer" in st["last_error"]
+    s.close()
+
+
+def test_a_dead_writer_is_reported_and_close_still_commits_the_queue(tmp_path):
+    s = Store(tmp_path / "a.db")
+    real = s._commit
+
+    def dying(batch):
+        s._commit = real                        # for the drain in close()
+        raise SystemExit("writer thread killed")
+    s._commit = dying
+    first = s.record_future("tick", "w", {"k": 0})
+    from tests.conftest import wait_until
+    wait_until(lambda: not s.writer_alive, 10, what="the writer thread to end")
+    st = s.stats()
+    assert st["failing"] is True and st["writer_alive"] is False
+    assert "SystemExit: writer thread killed" in st["writer_error"]
+    later = [s.record_future("command_sent", "suppress", {"k": k}) for k in range(50)]
+    s.close()
+    assert all(f.result(0) >= 1 for f in later)                    # acknowledged at close
+    assert first.result(0) >= 1                                    # the batch in hand when it died, too
+    assert _count(tmp_path / "a.db", "command_sent") == 50
