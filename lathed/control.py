@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import socket
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
@@ -24,11 +25,29 @@ class RequestError(Exception):
     """A request the daemon understood but cannot carry out; sent back as the error."""
 
 
+class SocketInUse(Exception):
+    """Another daemon answers on the control socket: it is not ours to replace."""
+
+
+def _answers(path: Path) -> bool:
+    """Whether a daemon accepts connections on ``path`` (else the socket is stale)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(2.0)
+        try:
+            s.connect(str(path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            return False
+        except OSError:   # busy or unreadable: someone is there, leave it alone
+            return True
+        return True
+
+
 class ControlServer:
     def __init__(self, path: Path):
         self.path = path
         self.handlers: dict[str, Handler] = {}
         self._server: asyncio.AbstractServer | None = None
+        self._ident: tuple[int, int] | None = None   # (device, inode) of the socket we bound
 
     def register(self, name: str, handler: Handler) -> None:
         if name in self.handlers:
@@ -38,6 +57,8 @@ class ControlServer:
     async def start(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists() or self.path.is_symlink():
+            if _answers(self.path):
+                raise SocketInUse(f"another daemon answers on {self.path}: not replacing its socket")
             self.path.unlink()   # a stale socket from a killed daemon
         old = os.umask(0o117)    # created 0660 from the start, no window of wider access
         try:
@@ -45,13 +66,17 @@ class ControlServer:
         finally:
             os.umask(old)
         os.chmod(self.path, 0o660)
+        st = os.stat(self.path)
+        self._ident = (st.st_dev, st.st_ino)
 
     async def close(self) -> None:
         if self._server:
             self._server.close()
             await self._server.wait_closed()
-        try:
-            self.path.unlink()
+        try:   # only our own socket: another daemon's, bound since, stays
+            st = os.stat(self.path)
+            if (st.st_dev, st.st_ino) == self._ident:
+                self.path.unlink()
         except FileNotFoundError:
             pass
 

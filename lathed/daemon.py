@@ -7,6 +7,7 @@ import logging
 import os
 import signal
 import socket
+import sqlite3
 import sys
 import threading
 import time
@@ -17,10 +18,11 @@ import structlog
 
 from lathed import __version__
 from lathed import config as configmod
+from lathed import instance
 from lathed import log as logmod
 from lathed.bus import Bus
 from lathed.client import SOCKET_NAME, default_runtime_dir
-from lathed.control import ControlServer, RequestError
+from lathed.control import ControlServer, RequestError, SocketInUse
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
@@ -28,6 +30,7 @@ from lathed.supervisor import Plan, Supervisor, build
 
 log = structlog.get_logger("lathed")
 STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
+EX_SOFTWARE, EX_TEMPFAIL, EX_CANTCREAT = 70, 75, 73
 
 
 def default_state_dir() -> Path:
@@ -86,12 +89,13 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
 
 
 class Daemon:
-    def __init__(self, cfg, settings: Settings, loader: PluginLoader, plan: Plan, sim):
+    def __init__(self, cfg, settings: Settings, loader: PluginLoader, plan: Plan, sim, store: Store):
         self.cfg, self.settings, self.loader, self.plan, self.sim_settings = cfg, settings, loader, plan, sim
         self.started = time.monotonic()
         self.state = "starting"
+        self.exit_code = 0
         self.bus = Bus()
-        self.store: Store | None = None
+        self.store = store
         self.control = ControlServer(settings.socket_path)
         self.supervisor: Supervisor | None = None
         self.sim_process = None
@@ -103,11 +107,15 @@ class Daemon:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._stop.set)
-        self.store = Store(self.settings.state_dir / "lathed.db", machine_id=self.settings.name)
         self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
-        await self.control.start()
+        try:
+            await self.control.start()
+        except (SocketInUse, OSError) as e:
+            print(f"lathed: {e}", file=sys.stderr)
+            await asyncio.to_thread(self.store.close)
+            return EX_TEMPFAIL if isinstance(e, SocketInUse) else EX_CANTCREAT
         # Analyzers first, and one loop turn for them to register their
         # control commands (parts, suppress, thermal...) before READY.
         self.supervisor.start_analyzers()
@@ -149,7 +157,7 @@ class Daemon:
         self.supervisor.record("daemon_stopped", "lathed", {})
         self._step = "closing the store"
         await asyncio.to_thread(self.store.close)
-        return 0
+        return self.exit_code
 
     async def _prune(self) -> None:
         """Retention: delete records older than keep_days that every sink has forwarded."""
@@ -190,10 +198,22 @@ class Daemon:
         last = None
         while True:
             await asyncio.sleep(interval or 5.0)
+            if not self.store.writer_alive:
+                # cannot happen short of a bug; then fail loudly, and the
+                # restart (Restart=on-failure) brings a working writer back
+                log.critical("store_writer_dead", error=self.store.writer_error,
+                             why="records can no longer be written; stopping with an error")
+                notify(f"STATUS=failed: store writer stopped ({self.store.writer_error})")
+                self.exit_code = EX_SOFTWARE
+                self._stop.set()
+                return
             if interval:
                 notify("WATCHDOG=1")
             runners = self.supervisor.runners.values()
-            text = f"STATUS=running: {sum(r.state == 'connected' for r in runners)}/{len(runners)} drivers connected"
+            text = f"STATUS={self.status_state()}: {sum(r.state == 'connected' for r in runners)}/{len(runners)} " \
+                   "drivers connected"
+            if self.store.failing:
+                text += f"; store: {self.store.last_error}"
             if text != last:
                 notify(text)
                 last = text
@@ -202,8 +222,13 @@ class Daemon:
     async def _cmd_ping(self, args: dict) -> Any:
         return "pong"
 
+    def status_state(self) -> str:
+        if self.state == "running" and self.store.stats()["failing"]:
+            return "degraded: store failing"
+        return self.state
+
     async def _cmd_status(self, args: dict) -> Any:
-        return {"daemon": {"state": self.state, "uptime_s": round(time.monotonic() - self.started, 3),
+        return {"daemon": {"state": self.status_state(), "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
                            "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
                                                                 "last_prune": self.last_prune},
@@ -230,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--version", action="version", version=f"lathed {__version__}")
     args = p.parse_args(argv)
 
+    # state files 0640 in 0750 directories also outside systemd (whose UMask
+    # may be looser); only ever tightened. The socket sets its own 0660.
+    os.umask(os.umask(0) | 0o027)
     logmod.setup("info")
     path = args.check_config or args.config
     try:
@@ -238,6 +266,12 @@ def main(argv: list[str] | None = None) -> int:
         for line in str(e).splitlines():
             print(f"lathed: {line}", file=sys.stderr)
         return configmod.EX_CONFIG
+    dirs = {"state_dir": settings.state_dir, "runtime_dir": settings.runtime_dir}
+    problems = [p for what, d in dirs.items() if (p := instance.dir_problem(d, what, create=not args.check_config))]
+    if problems:
+        for line in problems:
+            print(f"lathed: {path}: [daemon] {line}", file=sys.stderr)
+        return EX_CANTCREAT
     if args.check_config:
         failed = [p for p in loader.plugins if p.error]
         for pl in failed:
@@ -250,7 +284,25 @@ def main(argv: list[str] | None = None) -> int:
             log.error("plugin_failed", plugin=pl.name, origin=pl.origin, error=pl.error)
     for key, (_, reason) in plan.skipped.items():
         log.error("instance_skipped", instance=key, reason=reason)
-    return asyncio.run(Daemon(cfg, settings, loader, plan, sim).run())
+    try:   # before anything is written: one daemon per store and per socket
+        locks = [instance.take_lock(d) for d in dict.fromkeys(p.resolve() for p in dirs.values())]
+    except instance.Locked as e:
+        print(f"lathed: {e}", file=sys.stderr)
+        return EX_TEMPFAIL
+    except OSError as e:
+        print(f"lathed: cannot take the instance lock: {e.strerror or e} ({e.filename})", file=sys.stderr)
+        return EX_CANTCREAT
+    db = settings.state_dir / "lathed.db"
+    try:
+        store = Store(db, machine_id=settings.name)
+    except (OSError, sqlite3.Error) as e:
+        print(f"lathed: cannot open the record store {db}: {e}", file=sys.stderr)
+        return EX_CANTCREAT
+    try:
+        return asyncio.run(Daemon(cfg, settings, loader, plan, sim, store).run())
+    finally:
+        for fd in locks:
+            os.close(fd)
 
 
 if __name__ == "__main__":

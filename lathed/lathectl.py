@@ -12,6 +12,7 @@ import importlib
 import json
 import pkgutil
 import sys
+import time
 from typing import Any
 
 from lathed import __version__
@@ -42,6 +43,23 @@ def _fmt_value(v: Any) -> str:
     return "-" if v is None else str(v)
 
 
+def _store_line(st: dict) -> str:
+    """The record store's health in one line: failing now, or the last error and whether it passed."""
+    now = time.time()
+    counts = f"{st['written']} written, {st['failed']} failed, {st['queued']} queued"
+    if st.get("failing"):
+        since = st.get("failing_since")
+        return (f"store: FAILING{'' if since is None else f' for {_age(now - since)}'}: {st.get('last_error')}; "
+                f"{counts}")
+    line = f"store: {counts}"
+    if st.get("last_error"):
+        line += f"; last error {_age(now - st['last_error_t'])} ago: {st['last_error']}"
+        rec = st.get("recovered_t")
+        if rec is not None and rec >= st["last_error_t"]:
+            line += f" (recovered {_age(now - rec)} ago)"
+    return line
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     st = remote(args, "status")
     if args.json:
@@ -51,6 +69,8 @@ def cmd_status(args: argparse.Namespace) -> int:
     up = d["uptime_s"]
     print(f"lathed {d['version']} {d['state']}, up {int(up // 3600)}h{int(up % 3600 // 60):02d}m{int(up % 60):02d}s "
           f"(name {d['name']}, pid {d['pid']})")
+    if d.get("store"):
+        print(_store_line(d["store"]))
     print("machines:")
     for m in st["machines"] or [{"name": "(none)"}]:
         if "state" not in m:

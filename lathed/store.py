@@ -189,6 +189,10 @@ MIGRATIONS: list[tuple[int, str]] = [
 AGE_COLUMN = {"events": "t", "workpieces": "end_t", "inspections": "t", "sampling_queue": "t", "experiments": "t"}
 PRUNE_CHUNK = 2000
 
+# SQLite primary result codes that say the storage failed, not the record:
+# IOERR, CORRUPT, FULL, CANTOPEN, READONLY, NOTADB.
+STORAGE_ERRORS = frozenset({10, 11, 13, 14, 8, 26})
+
 # Tables whose rows are forwarded to sinks, and their JSON-valued columns.
 FORWARDED = ("events", "workpieces", "inspections", "sampling_queue", "experiments")
 JSON_COLUMNS = frozenset({"payload", "measured", "levels", "settings"})
@@ -259,6 +263,8 @@ class Store:
         # True while the last transaction failed as a whole (disk full, I/O
         # error) or the writer is gone: the store is not taking records.
         self.failing = False
+        self.failing_since: float | None = None
+        self.recovered_t: float | None = None    # when the last failing spell ended
         self.writer_error: str | None = None   # why the writer thread stopped, if it did
         self._thread = threading.Thread(target=self._writer, name="lathed-store", daemon=True)
         self._thread.start()
@@ -310,7 +316,7 @@ class Store:
                 pass
             self._orphans = [item for item in batch if not item[2].done()]
             self.writer_error = _one_line(e)
-            self.failing = True
+            self._set_failing(True)
             self._note_error(f"store writer stopped: {self.writer_error}")
             log.critical("store_writer_died", error=self.writer_error, queued=self._q.qsize() + len(self._orphans))
 
@@ -324,15 +330,24 @@ class Store:
             log.error("store_rollback_failed", error=_one_line(e2))
         unsettled = [(fut, None, err) for _, _, fut in batch if not fut.done()]
         self.failed += len(unsettled)
-        self.failing = True
+        self._set_failing(True)
         self._note_error(str(err))
         self._settle_all(unsettled)
+
+    def _set_failing(self, failing: bool) -> None:
+        if failing and not self.failing:
+            self.failing_since = time.time()
+        elif self.failing and not failing:
+            self.recovered_t = time.time()
+            log.info("store_recovered", failing_s=round(self.recovered_t - (self.failing_since or 0), 3))
+        self.failing = failing
 
     def _note_error(self, text: str) -> None:
         self.last_error, self.last_error_t = text, time.time()
 
     def _commit(self, batch: list) -> None:
         results = []
+        storage = False    # a record failed for the storage itself (full, I/O), not for its content
         try:
             self._wcon.execute("BEGIN")
             for sql, params, fut in batch:
@@ -353,6 +368,7 @@ class Store:
                 except sqlite3.Error as e:   # one bad record must not sink the batch...
                     if not self._wcon.in_transaction:
                         raise                # ...unless SQLite rolled the transaction back (disk full)
+                    storage = storage or getattr(e, "sqlite_errorcode", 0) & 0xFF in STORAGE_ERRORS
                     results.append((fut, None, e))
                 except (ValueError, TypeError, OverflowError) as e:   # a value SQLite cannot bind
                     results.append((fut, None, StoreError(f"record not stored: {_one_line(e)}")))
@@ -363,12 +379,12 @@ class Store:
             except sqlite3.Error:
                 pass
             self.failed += len(batch)
-            self.failing = True
+            self._set_failing(True)
             self._note_error(f"commit failed, {len(batch)} records not stored: {_one_line(e)}")
             log.error("store_commit_failed", error=self.last_error)
             results = [(fut, None, e) for _, _, fut in batch]
         else:
-            self.failing = False
+            self._set_failing(storage)
             for _, _, err in results:
                 if err is None:
                     self.written += 1
@@ -574,6 +590,7 @@ class Store:
         return {"path": str(self.path), "schema_version": self.schema_version, "written": self.written,
                 "failed": self.failed, "queued": self._q.qsize(), "last_error": self.last_error,
                 "last_error_t": self.last_error_t, "failing": self.failing or not self.writer_alive,
+                "failing_since": self.failing_since if self.failing else None, "recovered_t": self.recovered_t,
                 "writer_alive": self.writer_alive, "writer_error": self.writer_error}
 
 

@@ -118,8 +118,11 @@ class Records(Analyzer):
         settings = args.get("settings") or {}
         if not isinstance(settings, dict):
             raise RequestError("settings must map factors to their values")
+        run = args.get("run")   # the run number in the array; SQLite stores at most 64 bits
+        if run is not None and (isinstance(run, bool) or not isinstance(run, int) or not 1 <= run <= 1_000_000):
+            raise RequestError(f"run must be an integer in [1, 1000000], got {str(run)[:40]}")
         row = {"t": time.time(), "tool": tool, "material": material, "levels": levels, "settings": settings,
-               "run": args.get("run") if isinstance(args.get("run"), int) else None,
+               "run": run,
                "ra_um": _num(args, "ra_um", minval=0.0), "diameter_error_um": _num(args, "diameter_error_um"),
                "removal_rate": _num(args, "removal_rate", minval=0.0), "part_uuid": args.get("part_uuid")}
         if row["ra_um"] is None and row["diameter_error_um"] is None and row["removal_rate"] is None:

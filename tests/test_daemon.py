@@ -110,3 +110,76 @@ def test_retention_prunes_old_records_while_running(sim_daemon):
     st = d.status()
     assert st["daemon"]["state"] == "running" and st["daemon"]["store"]["keep_days"] == 0.0001
     assert st["daemon"]["store"]["last_prune"]["removed"]["events"] >= 0
+
+
+def _fault_daemon(sim_daemon, tmp_path):
+    import shutil
+    from pathlib import Path
+    plugins = tmp_path / "faultplugins"
+    plugins.mkdir()
+    shutil.copy(Path(__file__).parent / "store_fault_plugin.py", plugins / "test_store_fault.py")
+    return sim_daemon(analyzers='[analyzer.faults]\nplugin = "test_store_fault"\n',
+                      daemon=f'plugin_dirs = ["{plugins}"]')
+
+
+def _call(d, cmd, args=None):
+    from lathed.client import call
+    return call(cmd, args or {}, sock_path=d.socket, timeout=20)
+
+
+def _count(db, kind):
+    import sqlite3
+    con = sqlite3.connect(db)
+    try:
+        return con.execute("SELECT count(*) FROM events WHERE kind = ?", (kind,)).fetchone()[0]
+    finally:
+        con.close()
+
+
+def test_store_failures_show_in_status_and_recording_goes_on(sim_daemon, tmp_path):
+    # issue 18 D1 + D11: a record the store cannot take, then a full disk, then recovery
+    d = _fault_daemon(sim_daemon, tmp_path)
+    wait_until(lambda: _call(d, "write") == [], what="fault commands")
+    assert "record not stored: OverflowError" in _call(d, "poison")
+    assert _call(d, "write", {"n": 3}) == []                      # the writer still writes
+    st = d.status()
+    store = st["daemon"]["store"]
+    assert st["daemon"]["state"] == "running" and store["failed"] == 1 and store["failing"] is False
+    text = d.ctl("status").stdout
+    assert "store:" in text and "1 failed" in text and "OverflowError" in text and "recovered" not in text
+
+    _call(d, "disk_full")
+    errors = _call(d, "write", {"n": 20, "pad": 4000})
+    assert errors and all("database or disk is full" in e for e in errors)
+    st = d.status()
+    assert st["daemon"]["state"] == "degraded: store failing" and st["daemon"]["store"]["failing"] is True
+    text = d.ctl("status").stdout
+    assert "degraded: store failing" in text.splitlines()[0]
+    assert "FAILING" in text and "database or disk is full" in text
+
+    _call(d, "disk_free")
+    assert _call(d, "write", {"n": 2, "pad": 4000}) == []
+    st = d.status()
+    assert st["daemon"]["state"] == "running" and st["daemon"]["store"]["failing"] is False
+    line = next(ln for ln in d.ctl("status").stdout.splitlines() if ln.startswith("store:"))
+    assert "recovered" in line and "ago" in line and "database or disk is full" in line
+
+
+def test_sigterm_commits_records_queued_behind_a_poison_record(sim_daemon, tmp_path):
+    # issue 18 D1: the poison record killed the writer; SIGTERM then lost every queued record
+    d = _fault_daemon(sim_daemon, tmp_path)
+    wait_until(lambda: _call(d, "poison"), what="fault commands")
+    _call(d, "queue", {"n": 500})
+    assert d.stop() == 0
+    assert _count(d.paths["state"] / "lathed.db", "command_sent") == 500
+
+
+def test_a_dead_store_writer_fails_the_daemon_loudly_and_loses_nothing(sim_daemon, tmp_path):
+    d = _fault_daemon(sim_daemon, tmp_path)
+    wait_until(lambda: _call(d, "write") == [], what="fault commands")
+    _call(d, "kill_writer")
+    _call(d, "queue", {"n": 200})
+    wait_until(lambda: d.proc.poll() is not None, 30, what="the daemon to exit")
+    assert d.proc.returncode == 70
+    assert "store_writer_dead" in d.output() and "injected writer death" in d.output()
+    assert _count(d.paths["state"] / "lathed.db", "command_sent") == 200

@@ -1,0 +1,61 @@
+"""One daemon per lathe: the directories it owns and the lock that says so.
+
+A second daemon on the same state directory would write the same record
+store, and on the same runtime directory would take over the control socket
+and the simulator's links; an exclusive ``flock`` on ``lathed.lock`` in each
+stops it before it does anything. The kernel drops the lock with the
+process, so a killed daemon leaves nothing stale behind.
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import stat
+from pathlib import Path
+
+LOCK_NAME = "lathed.lock"
+
+
+class Locked(Exception):
+    """Another daemon holds the lock; the message names its pid and the lock file."""
+
+
+def dir_problem(path: Path, what: str, create: bool) -> str | None:
+    """Why ``path`` cannot serve as the daemon's ``what`` directory, in one
+    line naming it and the OS error; None when it can. With ``create`` it is
+    made (0750) and a group/world-writable one we own is tightened;
+    without, only checked (``--check-config``)."""
+    try:
+        if create:
+            path.mkdir(parents=True, exist_ok=True, mode=0o750)
+            st = path.stat()
+            if st.st_uid == os.geteuid() and stat.S_IMODE(st.st_mode) & 0o027:
+                path.chmod(stat.S_IMODE(st.st_mode) & ~0o027)
+        probe = path
+        while not probe.exists() and probe != probe.parent:
+            probe = probe.parent          # the first existing ancestor decides whether it can be made
+        if not probe.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(probe))
+        if not os.access(probe, os.W_OK | os.X_OK):
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(probe))
+    except OSError as e:
+        where = f" ({e.filename})" if e.filename and str(e.filename) != str(path) else ""
+        return f"{what} {path} is not usable: {e.strerror or e}{where}"
+    return None
+
+
+def take_lock(directory: Path) -> int:
+    """Lock ``directory`` for this process; returns the descriptor to keep open."""
+    path = directory / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise Locked(f"another lathed (pid {pid}) holds {path}: not starting a second daemon "
+                     "on the same directories") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
