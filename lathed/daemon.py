@@ -49,6 +49,8 @@ class Settings:
         self.state_dir = _path(base, sec.getstr("state_dir", ""), default_state_dir())
         self.runtime_dir = _path(base, sec.getstr("runtime_dir", ""), default_runtime_dir())
         self.plugin_dirs = [_path(base, d, None) for d in sec.getlist("plugin_dirs", [])]
+        # a plugin still importing after this is reported as failed (one looping at import)
+        self.plugin_import_timeout = sec.getduration("plugin_import_timeout", 30.0, minval=0.1, maxval=600.0)
         self.log_level = sec.getstr("log_level", "info", choices=("debug", "info", "warning", "error"))
         sec.check_unused()
         st = cfg.store
@@ -74,7 +76,7 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
     """Load and validate everything; raises ConfigError with every problem, one per line."""
     cfg = configmod.load(path)
     settings = Settings(cfg)
-    loader = load_all(settings.plugin_dirs)
+    loader = load_all(settings.plugin_dirs, settings.plugin_import_timeout)
     plan = build(cfg, loader, strict=strict)
     sim = None
     if cfg.simulator is not None:
@@ -84,7 +86,10 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
         except configmod.ConfigError as e:
             plan.errors.append(str(e))
     if plan.errors:
-        raise configmod.ConfigError("\n".join(plan.errors))
+        # root cause first: a plugin that failed to load explains the types it would have provided
+        failed = [f"{cfg.path}: plugin {p.name} ({p.origin}) failed to load: {p.error}"
+                  for p in loader.plugins if p.error]
+        raise configmod.ConfigError("\n".join(failed + plan.errors))
     return cfg, settings, loader, plan, sim
 
 

@@ -7,8 +7,11 @@ reported and skipped; it never stops the daemon.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib.util
+import signal
 import sys
+import threading
 import traceback
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
@@ -20,6 +23,32 @@ import pluggy
 from lathed import hookspecs
 
 GROUP = "lathed.plugins"
+IMPORT_TIMEOUT_S = 30.0   # per plugin; numpy/scipy imports on a busy 2-core PC take seconds
+
+
+class ImportTimeout(BaseException):
+    """A plugin did not finish importing in time. A BaseException, so the
+    plugin's own ``except Exception`` does not swallow it."""
+
+
+@contextlib.contextmanager
+def _deadline(seconds: float, what: str):
+    """Interrupt the main thread if the body runs longer than ``seconds``
+    (a plugin looping at import). Elsewhere than the main thread there are
+    no signals to do it with, and the body runs unbounded."""
+    if not seconds or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def expired(signum, frame):
+        raise ImportTimeout(f"{what} did not finish importing within {seconds:g} s")
+    old = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
 
 
 @dataclass
@@ -37,12 +66,17 @@ def _one_line(exc: BaseException) -> str:
     if tb:
         last = tb[-1]
         where = f" at {last.filename}:{last.lineno}"
+    if isinstance(exc, SystemExit):   # sys.exit() in a plugin must not end the daemon, nor pass unnoticed
+        return f"SystemExit: the plugin called sys.exit({exc.code!r}){where}"
+    if isinstance(exc, ImportTimeout):
+        return str(exc) + where
     msg = str(exc).splitlines()[0] if str(exc) else ""
     return f"{type(exc).__name__}: {msg}{where}"
 
 
 class PluginLoader:
-    def __init__(self) -> None:
+    def __init__(self, import_timeout: float = IMPORT_TIMEOUT_S) -> None:
+        self.import_timeout = import_timeout
         self.pm = pluggy.PluginManager("lathed")
         self.pm.add_hookspecs(hookspecs)
         self.plugins: list[PluginInfo] = []
@@ -53,8 +87,11 @@ class PluginLoader:
         for ep in sorted(entry_points(group=group), key=lambda e: e.name):
             info = PluginInfo(ep.name, f"entry point {ep.value}")
             try:
-                self._register(ep.load(), info)
-            except Exception as e:   # a broken plugin is reported, never fatal
+                with _deadline(self.import_timeout, f"plugin {ep.name}"):
+                    self._register(ep.load(), info)
+            except KeyboardInterrupt:
+                raise
+            except BaseException as e:   # a broken plugin is reported, never fatal, even sys.exit()
                 info.error = _one_line(e)
             self.plugins.append(info)
 
@@ -68,12 +105,15 @@ class PluginLoader:
             info = PluginInfo(path.stem, str(path))
             modname = f"lathed_dropin_{path.stem}"
             try:
-                spec = importlib.util.spec_from_file_location(modname, path)
-                module = importlib.util.module_from_spec(spec)
-                sys.modules[modname] = module
-                spec.loader.exec_module(module)
-                self._register(module, info)
-            except Exception as e:
+                with _deadline(self.import_timeout, f"plugin {path.stem} ({path})"):
+                    spec = importlib.util.spec_from_file_location(modname, path)
+                    module = importlib.util.module_from_spec(spec)
+                    sys.modules[modname] = module
+                    spec.loader.exec_module(module)
+                    self._register(module, info)
+            except KeyboardInterrupt:
+                raise
+            except BaseException as e:
                 sys.modules.pop(modname, None)
                 info.error = _one_line(e)
             self.plugins.append(info)
@@ -100,7 +140,7 @@ class PluginLoader:
             if getattr(module, "lathed_thermal_candidates", None):
                 provided.append("thermal candidates")
             info.provides = provided
-        except Exception:
+        except BaseException:
             self.pm.unregister(module)
             raise
 
@@ -125,8 +165,8 @@ class PluginLoader:
                  "provides": p.provides, "error": p.error} for p in self.plugins]
 
 
-def load_all(plugin_dirs: list[Path]) -> PluginLoader:
-    loader = PluginLoader()
+def load_all(plugin_dirs: list[Path], import_timeout: float = IMPORT_TIMEOUT_S) -> PluginLoader:
+    loader = PluginLoader(import_timeout)
     loader.load_entry_points()
     for d in plugin_dirs:
         loader.load_dir(d)

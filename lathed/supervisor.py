@@ -46,8 +46,12 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     that would have provided it.
     """
     plan = Plan(loader=loader)
+    if not cfg.instances:
+        plan.errors.append(f"{cfg.path}: nothing to run: no [machine.*], [sensor.*] or [analyzer.*] table")
+        return plan
     drivers, analyzers = loader.driver_types(), loader.analyzer_types()
     failed = [p.name for p in loader.plugins if p.error]
+    broken: set[str] = set()   # instances refused above: what refers to them is not a further error
     for inst in cfg.instances:
         key = f"{inst.category}.{inst.name}"
         types = analyzers if inst.category == "analyzer" else drivers
@@ -61,6 +65,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                                            f"(failed plugins: {', '.join(failed)})")
             else:
                 plan.errors.append(msg + (f" (failed plugins: {', '.join(failed)})" if failed else ""))
+                broken.add(inst.name)
             continue
         try:
             if not inst.framework.getbool("enabled", True):
@@ -79,10 +84,14 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                                                    "use it under [sensor.*]")
         except ConfigError as e:
             plan.errors.append(str(e))
+            broken.add(inst.name)
             continue
-        except Exception as e:   # a plugin bug in a constructor is reported, not fatal
+        except KeyboardInterrupt:
+            raise
+        except BaseException as e:   # a plugin bug in a constructor (even sys.exit) is reported, not fatal
             if strict:
                 plan.errors.append(f"{cfg.path}: [{key}]: plugin {inst.plugin!r} failed to start: {_one_line(e)}")
+                broken.add(inst.name)
             else:
                 plan.skipped[key] = (inst, f"failed to start: {_one_line(e)}")
             continue
@@ -99,12 +108,12 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     # wiring: analyzers may only read and command instances that exist
     for name, (inst, an) in plan.analyzers.items():
         for src in an.inputs():
-            if src not in plan.drivers and f"machine.{src}" not in plan.skipped \
+            if src not in plan.drivers and src not in broken and f"machine.{src}" not in plan.skipped \
                     and f"sensor.{src}" not in plan.skipped:
                 plan.errors.append(f"{cfg.path}: [analyzer.{name}]: input {src!r} is not a configured "
                                    f"machine or sensor; configured: {', '.join(plan.drivers) or 'none'}")
         for m in an.machines():
-            if m not in plan.limits and f"machine.{m}" not in plan.skipped:
+            if m not in plan.limits and m not in broken and f"machine.{m}" not in plan.skipped:
                 plan.errors.append(f"{cfg.path}: [analyzer.{name}]: machine {m!r} is not a configured machine")
     return plan
 

@@ -56,7 +56,7 @@ def test_valid_minimal(tmp_path):
      "lathed: FILE: [machine.lathe] plugin: unknown driver type 'modbus_cn'; allowed: *modbus_cnc, "),
     (('name = "t"', 'name = "t"\nflavour = 1'),
      "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: log_level, name, plugin_dirs, "
-     "runtime_dir, state_dir"),
+     "plugin_import_timeout, runtime_dir, state_dir"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_day = 30\n"),
      "lathed: FILE: [store] keep_day: unknown key; allowed keys here: keep_days, prune_every"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_days = -1\n"),
@@ -169,3 +169,52 @@ avoid = true
     code, err = check(tmp_path, text)
     assert code == 78 and err.splitlines()[0] == ('lathed: FILE: [analyzer.suppress] avoid: predicting chatter at '
                                                   'cut entry needs strategy = "lobes" (and its modes)'), err
+
+
+ANALYZERS = """
+[sensor.accel]
+plugin = "vibration_tcp"
+host = "127.0.0.1"
+port = 15021
+
+[analyzer.chatter]
+plugin = "chatter"
+input = "accel"
+machine = "lathe"
+
+[analyzer.records]
+plugin = "records"
+machine = "lathe"
+"""
+
+
+def test_one_bad_key_is_one_error_not_its_follow_ons(tmp_path):
+    # issue 18 D10: the analyzers referring to the refused machine were each reported too
+    code, err = check(tmp_path, BASE.replace("port = 15020", "port = 15020\nprot = 1", 1) + ANALYZERS)
+    assert code == 78
+    assert err == "lathed: FILE: [machine.lathe] prot: unknown key; allowed keys here: " + \
+        err.split("allowed keys here: ", 1)[1]
+    assert len(err.splitlines()) == 1, err
+    # an analyzer naming a machine that is not configured at all is still an error
+    code, err = check(tmp_path, BASE + ANALYZERS.replace('machine = "lathe"', 'machine = "lath"'))
+    assert code == 78 and "'lath' is not a configured machine" in err
+
+
+def test_a_config_with_nothing_to_run_is_refused(tmp_path):
+    code, err = check(tmp_path, '[daemon]\nname = "t"\nstate_dir = "state"\nruntime_dir = "run"\n')
+    assert (code, err) == (78, "lathed: FILE: nothing to run: no [machine.*], [sensor.*] or [analyzer.*] table")
+
+
+def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    text = BASE.replace('state_dir = "state"', f'state_dir = "{blocker / "state"}"')
+    code, err = check(tmp_path, text)
+    assert code == 73
+    assert err == f"lathed: FILE: [daemon] state_dir {blocker / 'state'} is not usable: Not a directory ({blocker})"
+    # the daemon itself says the same instead of a traceback
+    cfg = tmp_path / "lathed.toml"
+    r = subprocess.run([str(BIN / "lathed"), "--config", str(cfg)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 73 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1].endswith(f"[daemon] state_dir {blocker / 'state'} is not usable: "
+                                                      "Not a directory")

@@ -113,3 +113,39 @@ def test_daemon_lists_failed_plugins_and_runs_dropin(sim_daemon, tmp_path):
     assert "FAILED  broken" in d.ctl("plugins").stdout
     wait_until(lambda: (d.item("sensors", "count")["last_value"] or {}).get("count", 0) >= 4,
                what="drop-in sensor values")
+
+
+def _check(tmp_path, plugin_text: str, extra: str = "") -> "subprocess.CompletedProcess":
+    import subprocess
+    from tests.conftest import BIN
+    d = tmp_path / "dropins"
+    d.mkdir(exist_ok=True)
+    (d / "bad.py").write_text(plugin_text)
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(f'[daemon]\nstate_dir = "{tmp_path / "state"}"\nruntime_dir = "{tmp_path / "run"}"\n'
+                   f'plugin_dirs = ["{d}"]\n{extra}\n[sensor.count]\nplugin = "counter"\n')
+    return subprocess.run([str(BIN / "lathed"), "--check-config", str(cfg)], capture_output=True, text=True,
+                          timeout=60)
+
+
+def test_a_plugin_calling_sys_exit_at_import_is_a_plugin_failure(tmp_path):
+    # issue 18 D10: it made lathed and --check-config exit 0 silently
+    loader = load_all([_dropin(tmp_path, "import sys\nsys.exit(0)\n")])
+    (bad,) = [p for p in loader.plugins if p.name == "bad"]
+    assert bad.error.startswith("SystemExit: the plugin called sys.exit(0) at ") and "bad.py:2" in bad.error
+    r = _check(tmp_path, "import sys\nsys.exit(0)\n")
+    assert r.returncode == 78, r
+    assert "plugin bad" in r.stderr and "sys.exit(0)" in r.stderr
+
+
+def test_a_plugin_looping_at_import_is_stopped_and_reported(tmp_path):
+    r = _check(tmp_path, "while True:\n    pass\n", 'plugin_import_timeout = "1s"')
+    assert r.returncode == 78, r
+    assert "plugin bad" in r.stderr and "did not finish importing within 1 s" in r.stderr
+
+
+def _dropin(tmp_path, text: str):
+    d = tmp_path / "one"
+    d.mkdir()
+    (d / "bad.py").write_text(text)
+    return d
