@@ -47,7 +47,8 @@ class ControlServer:
         self.path = path
         self.handlers: dict[str, Handler] = {}
         self._server: asyncio.AbstractServer | None = None
-        self._ident: tuple[int, int] | None = None   # (device, inode) of the socket we bound
+        # (device, inode, ctime) of the socket we bound: a socket bound since may reuse the inode
+        self._ident: tuple[int, int, int] | None = None
 
     def register(self, name: str, handler: Handler) -> None:
         if name in self.handlers:
@@ -67,7 +68,7 @@ class ControlServer:
             os.umask(old)
         os.chmod(self.path, 0o660)
         st = os.stat(self.path)
-        self._ident = (st.st_dev, st.st_ino)
+        self._ident = (st.st_dev, st.st_ino, st.st_ctime_ns)
 
     async def close(self) -> None:
         if self._server:
@@ -75,7 +76,7 @@ class ControlServer:
             await self._server.wait_closed()
         try:   # only our own socket: another daemon's, bound since, stays
             st = os.stat(self.path)
-            if (st.st_dev, st.st_ino) == self._ident:
+            if (st.st_dev, st.st_ino, st.st_ctime_ns) == self._ident:
                 self.path.unlink()
         except FileNotFoundError:
             pass

@@ -183,3 +183,50 @@ def test_a_dead_store_writer_fails_the_daemon_loudly_and_loses_nothing(sim_daemo
     assert d.proc.returncode == 70
     assert "store_writer_dead" in d.output() and "injected writer death" in d.output()
     assert _count(d.paths["state"] / "lathed.db", "command_sent") == 200
+
+
+def test_a_second_daemon_on_the_same_config_refuses_and_leaves_the_first_alone(sim_daemon):
+    # issue 18 D2: the second unlinked the live socket, ran on and deleted the socket at exit
+    d = sim_daemon()
+    ino = os.stat(d.socket).st_ino
+    r = subprocess.run([str(BIN / "lathed"), "--config", str(d.cfg)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 75, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line == f"lathed: another lathed (pid {d.proc.pid}) holds {d.paths['state'] / 'lathed.lock'}: " \
+                   "not starting a second daemon on the same directories"
+    assert os.stat(d.socket).st_ino == ino and d.status()["daemon"]["pid"] == d.proc.pid
+    # D13: records readable by the group only, also outside systemd
+    state = d.paths["state"]
+    assert oct(os.stat(state).st_mode & 0o777) == "0o750"
+    for f in ("lathed.db", "lathed.db-wal"):
+        assert oct(os.stat(state / f).st_mode & 0o777) == "0o640", f
+
+
+def test_the_control_socket_of_a_live_daemon_is_never_unlinked(tmp_path):
+    import asyncio
+    from lathed.control import ControlServer, SocketInUse
+    path = tmp_path / "c.sock"
+
+    async def main():
+        first = ControlServer(path)
+        await first.start()
+        with __import__("pytest").raises(SocketInUse, match="another daemon answers on"):
+            await ControlServer(path).start()
+        assert path.exists()
+        # a stale socket (nobody listening) is replaced; closing the old server then leaves the new one
+        stale = ControlServer(path)
+        first._server.close()
+        await first._server.wait_closed()
+        await stale.start()
+        await first.close()
+        assert path.exists() and _pings(path)
+        await stale.close()
+        assert not path.exists()
+    asyncio.run(main())
+
+
+def _pings(path) -> bool:
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(5)
+        s.connect(str(path))
+        return True
