@@ -42,7 +42,7 @@ def config(tmp: Path) -> Path:
         ports[m] = str(free_port())
     for old, new in ports.items():
         text = re.sub(rf"\b{old}\b", new, text)
-    text = text.replace("/tmp/lathed-sim/", f"{tmp}/")
+    text = text.replace("{runtime_dir}/sim/", f"{tmp}/")
     text = text.replace("[daemon]", f'[daemon]\nstate_dir = "{tmp}/state"\nruntime_dir = "{tmp}/run"', 1)
     cfg = tmp / "etc" / "lathed.toml"
     cfg.write_text(text)

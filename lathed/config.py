@@ -226,6 +226,26 @@ class Config:
 FRAMEWORK_KEYS = ("plugin", "limits", "retry_initial", "retry_max", "enabled")
 
 
+def substitute(cfg: Config, name: str, value: str) -> None:
+    """Replace ``{name}`` (e.g. ``{runtime_dir}``) in every string of the
+    config, so a driver and the simulator can name one path in a directory
+    only known at start-up."""
+    token = "{" + name + "}"
+
+    def walk(o: Any) -> Any:
+        if isinstance(o, str):
+            return o.replace(token, value)
+        if isinstance(o, dict):
+            for k, v in o.items():
+                o[k] = walk(v)
+        elif isinstance(o, list):
+            o[:] = [walk(v) for v in o]
+        return o
+    sections = [cfg.daemon, cfg.store] + ([cfg.simulator] if cfg.simulator else [])
+    for sec in sections + [s for inst in cfg.instances for s in (inst.section, inst.framework)]:
+        walk(sec._data)
+
+
 def load(path: str | Path) -> Config:
     """Parse and structure a config file; plugin keys are checked later by
     the plugins themselves (see :func:`lathed.supervisor.build`)."""

@@ -76,6 +76,7 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
     """Load and validate everything; raises ConfigError with every problem, one per line."""
     cfg = configmod.load(path)
     settings = Settings(cfg)
+    configmod.substitute(cfg, "runtime_dir", str(settings.runtime_dir))
     loader = load_all(settings.plugin_dirs, settings.plugin_import_timeout)
     plan = build(cfg, loader, strict=strict)
     sim = None

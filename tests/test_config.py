@@ -218,3 +218,25 @@ def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path):
     assert r.returncode == 73 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].endswith(f"[daemon] state_dir {blocker / 'state'} is not usable: "
                                                       "Not a directory")
+
+
+def test_simulator_links_must_be_in_a_directory_only_we_can_write(tmp_path):
+    # issue 18 D13: links in a fixed /tmp/lathed-sim made with exist_ok: whoever made it first chose the tty
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    shared.chmod(0o777)
+    code, err = check(tmp_path, BASE + f'\n[simulator]\nserial_link = "{shared / "ttyARDUINO"}"\n')
+    assert code == 78
+    assert err == (f"lathed: FILE: [simulator] serial_link: unsafe place for the simulator's tty link: "
+                   f"{shared} is writable by others (mode 0777)")
+    from lathed.sim.serial_peer import _symlink
+    with pytest.raises(PermissionError, match="refusing to put the tty link"):
+        _symlink(shared / "ttyARDUINO", "/dev/null")
+    assert not (shared / "ttyARDUINO").exists()
+
+
+def test_default_config_puts_the_simulator_links_in_the_runtime_dir():
+    _, settings, _, plan, sim = prepare(ROOT / "etc" / "lathed.toml", strict=True)
+    assert sim.serial_link == str(settings.runtime_dir / "sim" / "ttyARDUINO")
+    assert plan.drivers["temps"][1].port == sim.serial_link
+    assert "{runtime_dir}" not in sim.grinder_link + sim.robot_link

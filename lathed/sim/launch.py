@@ -12,7 +12,8 @@ from pathlib import Path
 
 import structlog
 
-from lathed.config import Section
+from lathed.config import ConfigError, Section
+from lathed.sim.serial_peer import link_dir_problem
 
 log = structlog.get_logger("lathed.sim")
 
@@ -23,7 +24,8 @@ class SimulatorSettings:
         self.host = sec.getstr("host", "127.0.0.1")
         self.modbus_port = sec.getint("modbus_port", 15020, minval=1, maxval=65535)
         self.vibration_port = sec.getint("vibration_port", 15021, minval=1, maxval=65535)
-        self.serial_link = sec.getstr("serial_link", "/tmp/lathed-sim/ttyARDUINO")
+        # the tty links live in a directory of ours (see link_dir_problem), by default in the runtime dir
+        self.serial_link = sec.getstr("serial_link", str(runtime_dir / "sim" / "ttyARDUINO"))
         self.control = sec.getstr("control", str(runtime_dir / "sim.sock"))
         self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
         self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=10.0)
@@ -33,6 +35,16 @@ class SimulatorSettings:
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
         sec.check_unused()
+        for key in ("serial_link", "grinder_link", "robot_link"):
+            link = getattr(self, key)
+            problem = link and link_dir_problem(Path(link).parent, create=False)
+            if problem:
+                raise sec.error(key, f"unsafe place for the simulator's tty link: {problem}")
+
+    def link_problems(self) -> list[str]:
+        """Make the links' directories (0700) and check them again, now."""
+        return [p for link in (self.serial_link, self.grinder_link, self.robot_link)
+                if link and (p := link_dir_problem(Path(link).parent, create=True))]
 
     def argv(self) -> list[str]:
         a = [sys.executable, "-m", "lathed.sim", "--host", self.host, "--modbus-port", str(self.modbus_port),
@@ -52,6 +64,10 @@ class SimulatorSettings:
 
 async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subprocess.Process | None:
     if not s.spawn:
+        return None
+    problems = s.link_problems()
+    if problems:
+        log.error("simulator_refused", why="unsafe place for its tty links", problems=problems)
         return None
     proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE)
     try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import stat
 import tty
 from pathlib import Path
 
@@ -98,8 +99,37 @@ class NullModem:
         self.inner = None
 
 
+def link_dir_problem(directory: Path, create: bool) -> str | None:
+    """Why ``directory`` may not hold the simulator's tty links, or None. Whoever
+    can write a directory can point a link in it at a tty of their own (fake
+    temperatures to the daemon), so it must be ours and writable by us alone;
+    with ``create`` a missing one is made 0700."""
+    if create:
+        try:
+            directory.mkdir(parents=True, mode=0o700)
+        except FileExistsError:
+            pass
+        except OSError as e:
+            return f"cannot create {directory}: {e.strerror or e}"
+    try:
+        st = directory.lstat()
+    except FileNotFoundError:
+        return None            # made 0700 when the simulator starts
+    except OSError as e:
+        return f"cannot use {directory}: {e.strerror or e}"
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{directory} is not a directory"
+    if st.st_uid != os.geteuid():
+        return f"{directory} belongs to uid {st.st_uid}, not to us (uid {os.geteuid()})"
+    if stat.S_IMODE(st.st_mode) & 0o022:
+        return f"{directory} is writable by others (mode {stat.S_IMODE(st.st_mode):04o})"
+    return None
+
+
 def _symlink(link: Path, target: str) -> None:
-    link.parent.mkdir(parents=True, exist_ok=True)
+    problem = link_dir_problem(link.parent, create=True)
+    if problem:
+        raise PermissionError(f"refusing to put the tty link {link} there: {problem}")
     tmp = link.with_name(link.name + ".new")
     if tmp.is_symlink() or tmp.exists():
         tmp.unlink()
