@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from lathed import records
 from lathed.records import PartTracker
 from lathed.store import Store
@@ -127,3 +129,14 @@ def test_parts_join_their_inspection_and_leave_the_queue(tmp_path):
     assert records.find_part(q, "u") is None          # ambiguous prefix
     assert [r["part_no"] for r in records.parts(q)] == [1, 2, 3]
     store.close()
+
+
+@pytest.mark.parametrize("run", [10 ** 30, -1, 0, "3", 2.5, True])
+def test_experiment_run_must_be_a_sane_integer(run):
+    # issue 18 D1: a run of 10**30 reached the store writer and killed it
+    from lathed.config import Section
+    from lathed.control import RequestError
+    from plugins.records import Records
+    r = Records("records", Section("f.toml", "analyzer.records", {"tool": "T", "material": "M"}))
+    with pytest.raises(RequestError, match=r"^run must be an integer in \[1, 1000000\], got "):
+        asyncio.run(r._cmd_experiment_add({"levels": {"A": 1}, "ra_um": 1.0, "run": run}))
