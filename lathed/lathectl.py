@@ -86,7 +86,10 @@ def cmd_status(args: argparse.Namespace) -> int:
     print("analyzers:")
     for a in st["analyzers"]:
         summary = a.get("summary", "")
-        print(f"  {a['name']:<12} {a['detail']:<12} {summary}")
+        # one that crash-looped and runs again says so, with why (e.g. the store refused its records)
+        fault = f"  (restarted after: {a['last_error']})" if a.get("last_error") and a.get("state") == "running" \
+            else ""
+        print(f"  {a['name']:<12} {a['detail']:<12} {summary}{fault}")
     if not st["analyzers"]:
         print("  (none)")
     return 0

@@ -230,3 +230,23 @@ def _pings(path) -> bool:
         s.settimeout(5)
         s.connect(str(path))
         return True
+
+
+def test_status_text_names_a_failing_store_and_an_analyzer_that_crash_looped(monkeypatch, capsys):
+    import time as _time
+    from lathed import lathectl
+    now = _time.time()
+    st = {"daemon": {"version": "x", "state": "degraded: store failing", "uptime_s": 75.0, "name": "c", "pid": 1,
+                     "store": {"written": 10, "failed": 65, "queued": 3, "failing": True, "failing_since": now - 30,
+                               "last_error": "OperationalError: database or disk is full",
+                               "last_error_t": now - 1, "recovered_t": None}},
+          "machines": [], "sensors": [],
+          "analyzers": [{"name": "records", "state": "running", "detail": "running", "summary": "4 parts",
+                         "last_error": "OperationalError: database or disk is full"}]}
+    monkeypatch.setattr(lathectl, "remote", lambda args, cmd, a=None: st)
+    assert lathectl.main(["status"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("lathed x degraded: store failing, up 0h01m15s")
+    assert out[1].startswith("store: FAILING for 30") and "database or disk is full; 10 written, 65 failed, 3 queued" \
+        in out[1]
+    assert any(ln.strip().startswith("records") and "restarted after: OperationalError" in ln for ln in out)
