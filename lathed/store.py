@@ -365,13 +365,14 @@ class Store:
                         results.append((fut, None, None))
                     else:
                         results.append((fut, self._wcon.execute(sql, params).lastrowid, None))
-                except sqlite3.Error as e:   # one bad record must not sink the batch...
+                except Exception as e:   # one bad record must not sink the batch...
                     if not self._wcon.in_transaction:
-                        raise                # ...unless SQLite rolled the transaction back (disk full)
-                    storage = storage or getattr(e, "sqlite_errorcode", 0) & 0xFF in STORAGE_ERRORS
-                    results.append((fut, None, e))
-                except (ValueError, TypeError, OverflowError) as e:   # a value SQLite cannot bind
-                    results.append((fut, None, StoreError(f"record not stored: {_one_line(e)}")))
+                        raise            # ...unless SQLite rolled the transaction back (disk full)
+                    if isinstance(e, sqlite3.Error):
+                        storage = storage or getattr(e, "sqlite_errorcode", 0) & 0xFF in STORAGE_ERRORS
+                        results.append((fut, None, e))
+                    else:                # e.g. OverflowError: an int SQLite cannot bind
+                        results.append((fut, None, StoreError(f"record not stored: {_one_line(e)}")))
             self._wcon.execute("COMMIT")
         except sqlite3.Error as e:
             try:

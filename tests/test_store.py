@@ -221,3 +221,16 @@ def test_a_dead_writer_is_reported_and_close_still_commits_the_queue(tmp_path):
     assert all(f.result(0) >= 1 for f in later)                    # acknowledged at close
     assert first.result(0) >= 1                                    # the batch in hand when it died, too
     assert _count(tmp_path / "a.db", "command_sent") == 50
+
+
+def test_any_exception_binding_a_record_fails_that_record_alone(tmp_path):
+    class Unadaptable:
+        def __conform__(self, protocol):
+            raise RuntimeError("cannot adapt")
+    s = Store(tmp_path / "a.db")
+    bad = s.set_progress("central", Unadaptable())
+    good = s.record_future("tick", "w", {})
+    with pytest.raises(storemod.StoreError, match="record not stored: RuntimeError: cannot adapt"):
+        bad.result(10)
+    assert good.result(10) >= 1 and s.stats()["failing"] is False and s.writer_alive
+    s.close()
