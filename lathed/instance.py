@@ -11,7 +11,6 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
-import stat
 from pathlib import Path
 
 LOCK_NAME = "lathed.lock"
@@ -23,15 +22,13 @@ class Locked(Exception):
 
 def dir_problem(path: Path, what: str, create: bool) -> str | None:
     """Why ``path`` cannot serve as the daemon's ``what`` directory, in one
-    line naming it and the OS error; None when it can. With ``create`` it is
-    made (0750) and a group/world-writable one we own is tightened;
-    without, only checked (``--check-config``)."""
+    line naming it and the OS error; None when it can. With ``create`` a
+    missing one is made 0750 (an existing one keeps the mode it was given:
+    the files in it are 0640 anyway); without, only checked
+    (``--check-config``)."""
     try:
         if create:
             path.mkdir(parents=True, exist_ok=True, mode=0o750)
-            st = path.stat()
-            if st.st_uid == os.geteuid() and stat.S_IMODE(st.st_mode) & 0o027:
-                path.chmod(stat.S_IMODE(st.st_mode) & ~0o027)
         probe = path
         while not probe.exists() and probe != probe.parent:
             probe = probe.parent          # the first existing ancestor decides whether it can be made
