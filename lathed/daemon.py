@@ -21,6 +21,7 @@ from lathed import config as configmod
 from lathed import instance
 from lathed import log as logmod
 from lathed.bus import Bus
+from lathed.cli import EX_CANTCREAT
 from lathed.client import SOCKET_NAME, default_runtime_dir
 from lathed.control import ControlServer, RequestError, SocketInUse
 from lathed.plugins import PluginLoader, load_all
@@ -30,7 +31,7 @@ from lathed.supervisor import Plan, Supervisor, build
 
 log = structlog.get_logger("lathed")
 STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
-EX_SOFTWARE, EX_TEMPFAIL, EX_CANTCREAT = 70, 75, 73
+EX_SOFTWARE, EX_TEMPFAIL = 70, 75   # sysexits: a dead store writer; another daemon holds the lock
 
 
 def default_state_dir() -> Path:
