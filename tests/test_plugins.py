@@ -149,3 +149,14 @@ def _dropin(tmp_path, text: str):
     d.mkdir()
     (d / "bad.py").write_text(text)
     return d
+
+
+def test_the_daemon_runs_on_past_a_plugin_that_calls_sys_exit(sim_daemon, tmp_path):
+    # issue 18 D10: lathed exited 0 at import, and Restart=on-failure left the service down
+    d_dir = tmp_path / "exiting"
+    d_dir.mkdir()
+    (d_dir / "quitter.py").write_text("import sys\nsys.exit(0)\n")
+    d = sim_daemon(daemon=f'plugin_dirs = ["{d_dir}"]')
+    by = {p["name"]: p for p in json.loads(d.ctl("plugins", "--json").stdout)}
+    assert by["quitter"]["state"] == "failed" and "sys.exit(0)" in by["quitter"]["error"]
+    assert d.proc.poll() is None
