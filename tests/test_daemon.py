@@ -243,6 +243,7 @@ def test_status_text_names_a_failing_store_and_an_analyzer_that_crash_looped(mon
           "machines": [], "sensors": [],
           "analyzers": [{"name": "records", "state": "running", "detail": "running", "summary": "4 parts",
                          "last_error": "OperationalError: database or disk is full"}]}
+    lathectl.build_parser()   # the subcommand modules import remote: let them take the real one first
     monkeypatch.setattr(lathectl, "remote", lambda args, cmd, a=None: st)
     assert lathectl.main(["status"]) == 0
     out = capsys.readouterr().out.splitlines()
