@@ -99,6 +99,8 @@ class Args(Section):
             v.encode("utf-8")
         except UnicodeEncodeError:   # a lone surrogate from a JSON \ud800 escape: not storable text
             raise self.error(key, f"not valid text: {shown(v)}") from None
+        if not v.isprintable():      # newlines, NUL...: these end up in records, logs and CSV exports
+            raise self.error(key, f"not printable text (control characters): {shown(v)}")
         return v
 
     def getlist(self, key: str, default: Any = _REQUIRED, item: type = str, maxitems: int = MAX_ITEMS) -> list:

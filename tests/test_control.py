@@ -58,6 +58,8 @@ def assert_refused(reply: dict, logs: list[dict], *wanted: str) -> None:
      ["inspect: ra_um: expected a finite number", "(401 characters)"]),
     ({"cmd": "inspect", "args": {"part": "1", "values": {"a": "x"}}}, ["inspect: values.a: expected a finite number"]),
     ({"cmd": "inspect", "args": {"part": "1", "ra_um": 1.0, "by": "\ud800"}}, ["inspect: by: not valid text"]),
+    ({"cmd": "suppress", "args": {"action": "off", "by": "me\nERROR fake log line"}},
+     ["suppress: by: not printable text"]),
     ({"cmd": "parts", "args": {"abnormal": "yes"}}, ["parts: abnormal: expected true or false"]),
     ({"cmd": "export", "args": {"what": "parts", "limit": 10 ** 7}}, ["export: limit", "in [1, 100000]"]),
     ({"cmd": "experiment_add", "args": {"levels": {"A": 1}, "ra_um": 1.0, "run": 10 ** 30}},
