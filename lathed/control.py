@@ -28,7 +28,7 @@ MAX_LINE = 64 << 10
 # json.loads (which would recurse 32k deep on a line of '[').
 MAX_CONTAINERS = 64
 ACCEPT_LOG_EVERY_S = 10.0
-ENCODE_CHUNK = 1000   # rows of a reply encoded per call: a few ms of the GIL each
+ENCODE_CHUNK = 500    # rows of a reply encoded per call: a few ms of the GIL each
 
 
 class RequestError(Exception):
@@ -177,9 +177,9 @@ def _encode(obj: dict) -> bytes:
 
 def _encode_rows(rows: list) -> bytes:
     """``{"ok": true, "result": rows}`` as _encode makes it, a chunk of rows per json.dumps call."""
-    chunks = (json.dumps(rows[i:i + ENCODE_CHUNK], default=_default)[1:-1]
-              for i in range(0, len(rows), ENCODE_CHUNK))
-    return ('{"ok": true, "result": [' + ", ".join(chunks) + "]}\n").encode()
+    chunks = [json.dumps(rows[i:i + ENCODE_CHUNK], default=_default)[1:-1].encode()
+              for i in range(0, len(rows), ENCODE_CHUNK)]
+    return b'{"ok": true, "result": [' + b", ".join(chunks) + b"]}\n"
 
 
 def _default(o: Any) -> Any:

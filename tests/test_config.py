@@ -57,6 +57,8 @@ def test_valid_minimal(tmp_path):
     (('name = "t"', 'name = "t"\nflavour = 1'),
      "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: *log_level, name, plugin_dirs, "
      "runtime_dir, state_dir"),
+    (('name = "t"', 'name = "t"\ncontrol_max_clients = 0'),
+     "lathed: FILE: [daemon] control_max_clients: 0 is out of range; allowed: an integer in [1, 1024]"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_day = 30\n"),
      "lathed: FILE: [store] keep_day: unknown key; allowed keys here: keep_days, prune_every"),
     # an integer too large for a float once raised OverflowError out of the getter (a traceback)

@@ -277,3 +277,20 @@ def test_client_reports_a_reply_that_is_not_json(tmp_path):
     finally:
         t.join(5)
         lst.close()
+
+
+def test_daemon_table_sets_the_control_bounds(tmp_path):
+    d = InProcessDaemon(tmp_path, daemon='control_max_clients = 3\ncontrol_idle_timeout = "2min"\n'
+                                          'control_request_timeout = "500ms"')
+    try:
+        assert (d.control.max_clients, d.control.idle_timeout, d.control.request_timeout) == (3, 120.0, 0.5)
+        st = d.handle(b'{"cmd": "status"}\n')["result"]["daemon"]["control"]
+        assert st == {"clients": 0, "max_clients": 3, "refused": 0}
+    finally:
+        d.close()
+
+
+def test_a_large_reply_is_encoded_in_chunks_as_one_json_line():
+    from lathed.control import ENCODE_CHUNK, _encode, _encode_rows
+    rows = [{"id": i, "payload": {"x": [i, 1.5]}, "t": None} for i in range(2 * ENCODE_CHUNK + 7)]
+    assert _encode_rows(rows) == _encode({"ok": True, "result": rows})
