@@ -11,6 +11,7 @@ import json
 import math
 import os
 import time
+import weakref
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
@@ -28,11 +29,25 @@ MAX_LINE = 64 << 10
 # json.loads (which would recurse 32k deep on a line of '[').
 MAX_CONTAINERS = 64
 ACCEPT_LOG_EVERY_S = 10.0
+HEAVY_AT_ONCE = 2     # O(records) requests run at once; the rest wait their turn
 ENCODE_CHUNK = 500    # rows of a reply encoded per call: a few ms of the GIL each
 
 
 class RequestError(Exception):
     """A request the daemon understood but cannot carry out; sent back as the error."""
+
+
+_heavy: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+    """Run a request's O(records) work (queries, exports, analyses) in a worker thread, at most
+    HEAVY_AT_ONCE at a time: off the event loop, and a crowd of exports cannot take every
+    worker thread (the store and drivers use them too) nor hold a result's memory each."""
+    loop = asyncio.get_running_loop()
+    sem = _heavy.setdefault(loop, asyncio.Semaphore(HEAVY_AT_ONCE))
+    async with sem:
+        return await asyncio.to_thread(fn, *args)
 
 
 class ControlServer:

@@ -21,7 +21,7 @@ from lathed import log as logmod
 from lathed.bus import Bus
 from lathed.client import SOCKET_NAME, default_runtime_dir
 from lathed.args import Args
-from lathed.control import AcceptErrorLog, ControlServer
+from lathed.control import AcceptErrorLog, ControlServer, offload
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
@@ -233,7 +233,7 @@ class Daemon:
         kind, source = a.getstr("kind", None), a.getstr("source", None)
         since_id = a.getint("since_id", 0)
         a.check_unused()
-        return await asyncio.to_thread(self.store.events, limit, kind, source, since_id)
+        return await offload(self.store.events, limit, kind, source, since_id)
 
 
 def main(argv: list[str] | None = None) -> int:

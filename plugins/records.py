@@ -13,7 +13,6 @@ Adds the control commands ``parts``, ``inspect``, ``experiment_add``,
 """
 from __future__ import annotations
 
-import asyncio
 import time
 import uuid as uuidlib
 from typing import Any
@@ -24,7 +23,7 @@ from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.bus import Sample
 from lathed.config import Section
-from lathed.control import RequestError
+from lathed.control import RequestError, offload
 
 EXPORTS = ("events", "parts", "inspections", "experiments")
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
@@ -92,7 +91,7 @@ class Records(Analyzer):
         abnormal, pending = a.getbool("abnormal", False), a.getbool("pending", False)
         limit = a.getint("limit", 100, minval=1, maxval=100_000)
         a.check_unused()
-        return await asyncio.to_thread(records.parts, self._query, abnormal, pending, limit)
+        return await offload(records.parts, self._query, abnormal, pending, limit)
 
     async def _cmd_inspect(self, args: dict) -> Any:
         a = Args("inspect", args)
@@ -104,13 +103,13 @@ class Records(Analyzer):
         a.check_unused()
         if ra is None and err is None and not values:
             raise RequestError("inspect: nothing measured: give ra_um, diameter_error_um or values")
-        part = await asyncio.to_thread(records.find_part, self._query, ref)
+        part = await offload(records.find_part, self._query, ref)
         if part is None:
             raise RequestError(f"no part {ref!r} (give its number from `lathectl parts` or a unique uuid prefix)")
         await self.ctx.store.add("inspections", {
             "t": time.time(), "part_uuid": part["uuid"], "ra_um": ra, "diameter_error_um": err,
             "measured": values, "inspector": by})
-        return await asyncio.to_thread(records.find_part, self._query, str(part["id"]))
+        return await offload(records.find_part, self._query, str(part["id"]))
 
     async def _cmd_experiment_add(self, args: dict) -> Any:
         a = Args("experiment_add", args)
@@ -129,7 +128,7 @@ class Records(Analyzer):
         a.check_unused()
         if row["ra_um"] is None and row["diameter_error_um"] is None and row["removal_rate"] is None:
             raise RequestError("experiment_add: nothing measured: give ra_um, diameter_error_um or removal_rate")
-        existing = await asyncio.to_thread(records.experiments, self._query, tool, material)
+        existing = await offload(records.experiments, self._query, tool, material)
         if existing and sorted(existing[0]["levels"]) != sorted(levels):
             raise RequestError(f"experiments for {tool}/{material} use the factors "
                                f"{', '.join(sorted(existing[0]['levels']))}, not {', '.join(sorted(levels))}")
@@ -142,18 +141,18 @@ class Records(Analyzer):
         a = Args("experiments", args)
         tool, material = self._tool(a), self._material(a)
         a.check_unused()
-        return await asyncio.to_thread(records.experiments, self._query, tool, material)
+        return await offload(records.experiments, self._query, tool, material)
 
     async def _cmd_recommend(self, args: dict) -> Any:
         a = Args("recommend", args)
         tool, material = self._tool(a), self._material(a)
         a.check_unused()
-        trials = await asyncio.to_thread(records.experiments, self._query, tool, material)
+        trials = await offload(records.experiments, self._query, tool, material)
         if not trials:
             raise RequestError(f"no experiment records for tool {tool} and material {material}; "
                                "add them with `lathectl experiment add`")
         try:
-            rec = await asyncio.to_thread(taguchi.recommend, trials)
+            rec = await offload(taguchi.recommend, trials)
         except ValueError as e:
             raise RequestError(f"recommend: {tool}/{material}: {e}") from None
         return {"tool": tool, "material": material, **rec}
@@ -174,7 +173,7 @@ class Records(Analyzer):
             fn = lambda: records.inspections(q, limit)  # noqa: E731
         else:
             fn = lambda: q("SELECT * FROM experiments ORDER BY id DESC LIMIT ?", (limit,))[::-1]  # noqa: E731
-        return await asyncio.to_thread(fn)
+        return await offload(fn)
 
     def _tool(self, a: Args) -> str:
         return self._default(a, "tool", self.tool)

@@ -15,7 +15,6 @@ import structlog
 from lathed import client
 from lathed.analysis import taguchi
 from lathed.control import MAX_LINE, AcceptErrorLog, ControlServer
-from tests.conftest import wait_until
 from tests.inproc_daemon import InProcessDaemon
 
 
@@ -294,3 +293,30 @@ def test_a_large_reply_is_encoded_in_chunks_as_one_json_line():
     from lathed.control import ENCODE_CHUNK, _encode, _encode_rows
     rows = [{"id": i, "payload": {"x": [i, 1.5]}, "t": None} for i in range(2 * ENCODE_CHUNK + 7)]
     assert _encode_rows(rows) == _encode({"ok": True, "result": rows})
+
+
+def test_heavy_request_work_runs_two_at_a_time_off_the_loop():
+    # a crowd of exports once took every worker thread at once (the store's and drivers' too)
+    import threading
+    from lathed.control import HEAVY_AT_ONCE, offload
+    gate, lock, running, peak = threading.Event(), threading.Lock(), [0], [0]
+
+    def work(i):
+        with lock:
+            running[0] += 1
+            peak[0] = max(peak[0], running[0])
+        gate.wait(10)
+        with lock:
+            running[0] -= 1
+        return i
+
+    async def crowd():
+        tasks = [asyncio.create_task(offload(work, i)) for i in range(6)]
+        while running[0] < HEAVY_AT_ONCE:        # the loop stays free while they work
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+        assert running[0] == HEAVY_AT_ONCE
+        gate.set()
+        return await asyncio.gather(*tasks)
+    assert asyncio.run(crowd()) == list(range(6))
+    assert peak[0] == HEAVY_AT_ONCE == 2
