@@ -3,6 +3,12 @@
 Request ``{"cmd": NAME, "args": {...}}``; reply ``{"ok": true, "result": ...}``
 or ``{"ok": false, "error": "..."}``. A malformed request gets an error reply
 and the connection stays usable; nothing a client sends stops the daemon.
+Handlers read their arguments through :class:`lathed.args.Args`.
+
+Connections are bounded: at most ``max_clients`` at once (more get a one-line
+refusal), a line of at most MAX_LINE bytes, closed after ``idle_timeout``
+without a request, and a request line (or the reading of its reply) must
+complete within ``request_timeout`` ([daemon] control_* keys).
 """
 from __future__ import annotations
 
