@@ -320,3 +320,16 @@ def test_heavy_request_work_runs_two_at_a_time_off_the_loop():
         return await asyncio.gather(*tasks)
     assert asyncio.run(crowd()) == list(range(6))
     assert peak[0] == HEAVY_AT_ONCE == 2
+
+
+def test_args_bound_lists_and_maps():
+    from lathed.args import Args
+    from lathed.control import RequestError
+    a = Args("cmd", {"names": ["a"] * 65, "m": {"x" * 65: 1.0}, "ok": ["a", "b"]})
+    with pytest.raises(RequestError, match="^cmd: names: 65 items; at most 64 allowed$"):
+        a.getlist("names")
+    with pytest.raises(RequestError, match="^cmd: m name: 65 characters; at most 64 allowed$"):
+        a.getmap("m")
+    assert a.getlist("ok") == ["a", "b"]
+    with pytest.raises(RequestError, match=r"^cmd: ok\[1\]: expected an integer, got str 'b'$"):
+        Args("cmd", {"ok": [1, "b"]}).getlist("ok", item=int)
