@@ -49,6 +49,9 @@ def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | N
             raise DaemonUnavailable(f"lathed is not running (no daemon listening on {path})") from None
         except PermissionError:
             raise DaemonUnavailable(f"permission denied on {path}: join the lathed group") from None
+        except BlockingIOError:   # EAGAIN: the listen backlog is full
+            raise DaemonUnavailable(f"lathed on {path} is not accepting connections now (its backlog is full: "
+                                    "too many clients, or it is out of file descriptors); try again") from None
         s.sendall(json.dumps({"cmd": cmd, "args": args or {}}).encode() + b"\n")
         buf = b""
         while not buf.endswith(b"\n"):
@@ -58,9 +61,14 @@ def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | N
             buf += chunk
     except socket.timeout:
         raise DaemonUnavailable(f"lathed did not answer within {timeout:g} s on {path}") from None
+    except OSError as e:      # reset, broken pipe...: one line, not a traceback
+        raise DaemonUnavailable(f"lost the connection to lathed on {path}: {e.strerror or e}") from None
     finally:
         s.close()
-    reply = json.loads(buf)
-    if not reply.get("ok"):
-        raise RemoteError(reply.get("error", "unknown error"))
+    try:
+        reply = json.loads(buf)
+    except ValueError:
+        raise DaemonUnavailable(f"lathed on {path} sent a reply that is not JSON: {buf[:80]!r}") from None
+    if not isinstance(reply, dict) or not reply.get("ok"):
+        raise RemoteError(reply.get("error", "unknown error") if isinstance(reply, dict) else repr(reply)[:200])
     return reply.get("result")

@@ -38,6 +38,14 @@ def parse_duration(text: str) -> float:
     return float(m.group(1)) * _UNIT_S[m.group(2)]
 
 
+def finite(v: int | float) -> bool:
+    """A finite float, or an integer a float can hold (math.isfinite overflows on 10**400)."""
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
+
+
 def _range_text(minval: Any, maxval: Any) -> str:
     if minval is not None and maxval is not None:
         return f" in [{minval}, {maxval}]"
@@ -116,7 +124,7 @@ class Section:
         if v is default and default is not _REQUIRED:
             return v
         want = f"a number{_range_text(minval, maxval)}" + (f" > {above}" if above is not None else "")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not finite(v):
             raise self.error(key, f"expected {want}, got {v!r}")
         v = float(v)
         if ((minval is not None and v < minval) or (maxval is not None and v > maxval)

@@ -3,13 +3,22 @@
 Request ``{"cmd": NAME, "args": {...}}``; reply ``{"ok": true, "result": ...}``
 or ``{"ok": false, "error": "..."}``. A malformed request gets an error reply
 and the connection stays usable; nothing a client sends stops the daemon.
+Handlers read their arguments through :class:`lathed.args.Args`.
+
+Connections are bounded: at most ``max_clients`` at once (more get a one-line
+refusal), a line of at most MAX_LINE bytes, closed after ``idle_timeout``
+without a request, and a request line (or the reading of its reply) must
+complete within ``request_timeout`` ([daemon] control_* keys).
 """
 from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import socket
+import time
+import weakref
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
@@ -18,7 +27,17 @@ import structlog
 log = structlog.get_logger("lathed.control")
 
 Handler = Callable[[dict[str, Any]], Awaitable[Any]]
-MAX_LINE = 1 << 20
+# One request line. Every command's arguments fit in a few hundred bytes; the
+# StreamReader buffers up to this much per connection (x max_clients is the
+# memory a crowd of slow clients can pin).
+MAX_LINE = 64 << 10
+# Arrays and objects in one request (counted as brackets, also inside strings):
+# real requests have under ten; this bounds the JSON nesting depth before
+# json.loads (which would recurse 32k deep on a line of '[').
+MAX_CONTAINERS = 64
+ACCEPT_LOG_EVERY_S = 10.0
+HEAVY_AT_ONCE = 2     # O(records) requests run at once; the rest wait their turn
+ENCODE_CHUNK = 500    # rows of a reply encoded per call: a few ms of the GIL each
 
 
 class RequestError(Exception):
@@ -42,13 +61,32 @@ def _answers(path: Path) -> bool:
         return True
 
 
+_heavy: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+    """Run a request's O(records) work (queries, exports, analyses) in a worker thread, at most
+    HEAVY_AT_ONCE at a time: off the event loop, and a crowd of exports cannot take every
+    worker thread (the store and drivers use them too) nor hold a result's memory each."""
+    loop = asyncio.get_running_loop()
+    sem = _heavy.setdefault(loop, asyncio.Semaphore(HEAVY_AT_ONCE))
+    async with sem:
+        return await asyncio.to_thread(fn, *args)
+
+
 class ControlServer:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, max_clients: int = 64, idle_timeout: float = 60.0,
+                 request_timeout: float = 5.0):
         self.path = path
         self.handlers: dict[str, Handler] = {}
         self._server: asyncio.AbstractServer | None = None
         # (device, inode, ctime) of the socket we bound: a socket bound since may reuse the inode
         self._ident: tuple[int, int, int] | None = None
+        self.max_clients = max_clients          # connections served at once; more are refused at once
+        self.idle_timeout = idle_timeout        # a connection with no request for this long is closed
+        self.request_timeout = request_timeout  # a request line must arrive, and its reply be read, within this
+        self.clients = 0
+        self.refused = 0
 
     def register(self, name: str, handler: Handler) -> None:
         if name in self.handlers:
@@ -82,38 +120,70 @@ class ControlServer:
             pass
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.clients >= self.max_clients:
+            # refused at once with a reason, so a crowd of idle clients cannot hold fds and buffers
+            self.refused += 1
+            writer.write(_encode({"ok": False, "error": f"too many control connections (the daemon serves "
+                                                        f"{self.max_clients} at once); try again"}))
+            writer.close()
+            return
+        self.clients += 1
         try:
             while True:
                 try:
-                    line = await reader.readline()
+                    # idle until a request starts; then the whole line within request_timeout
+                    # (a client trickling a byte a second is cut, not served forever)
+                    async with asyncio.timeout(self.idle_timeout):
+                        first = await reader.read(1)
+                    if not first:
+                        break
+                    async with asyncio.timeout(self.request_timeout):
+                        line = first if first == b"\n" else first + await reader.readline()
                 except (asyncio.LimitOverrunError, ValueError):
-                    await self._reply(writer, {"ok": False, "error": f"request longer than {MAX_LINE} bytes"})
+                    await self._reply(writer, {"ok": False, "error": f"request line longer than {MAX_LINE} bytes; "
+                                                                     "closing the connection"})
                     break
-                if not line:
+                except TimeoutError:
                     break
                 await self._reply(writer, await self._handle(line))
-        except (ConnectionError, asyncio.IncompleteReadError):
+        except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
             pass
         finally:
+            self.clients -= 1
             writer.close()
 
     async def _reply(self, writer: asyncio.StreamWriter, obj: dict) -> None:
-        writer.write(json.dumps(obj, default=_default).encode() + b"\n")
-        await writer.drain()
+        rows = obj.get("result")
+        if isinstance(rows, list) and len(rows) > ENCODE_CHUNK:
+            # an export of 100k rows is ~0.5 s of encoding: done in a worker, in chunks, so the
+            # GIL passes back to the loop between them (one json.dumps call never yields it)
+            data = await asyncio.to_thread(_encode_rows, rows)
+        else:
+            data = _encode(obj)
+        writer.write(data)
+        async with asyncio.timeout(self.request_timeout):   # a client that never reads its reply is cut
+            await writer.drain()
 
     async def _handle(self, line: bytes) -> dict:
+        """One request line to one reply; never raises."""
+        if line.count(b"[") + line.count(b"{") > MAX_CONTAINERS:
+            return {"ok": False, "error": f"malformed request: more than {MAX_CONTAINERS} JSON arrays/objects"}
         try:
             req = json.loads(line)
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            return {"ok": False, "error": f"malformed request: not JSON ({e.msg if hasattr(e, 'msg') else e})"}
+        except (ValueError, RecursionError) as e:   # JSONDecodeError, bad UTF-8, a >4300-digit integer
+            return {"ok": False, "error": f"malformed request: not JSON ({getattr(e, 'msg', e)})"}
         if not isinstance(req, dict) or not isinstance(req.get("cmd"), str):
             return {"ok": False, "error": 'malformed request: expected {"cmd": NAME, "args": {...}}'}
         args = req.get("args", {})
         if not isinstance(args, dict):
             return {"ok": False, "error": "malformed request: args must be an object"}
+        extra = sorted(set(req) - {"cmd", "args"})
+        if extra:
+            return {"ok": False, "error": f"malformed request: unknown key(s) {', '.join(map(repr, extra))[:200]}; "
+                                          "a request has only cmd and args"}
         handler = self.handlers.get(req["cmd"])
         if handler is None:
-            return {"ok": False, "error": f"unknown command {req['cmd']!r}; known: {', '.join(sorted(self.handlers))}"}
+            return {"ok": False, "error": f"unknown command {req['cmd'][:64]!r}; known: {', '.join(sorted(self.handlers))}"}
         try:
             return {"ok": True, "result": await handler(args)}
         except RequestError as e:
@@ -121,6 +191,42 @@ class ControlServer:
         except Exception as e:   # a handler bug is reported to the client and logged; the daemon goes on
             log.exception("control_handler_failed", cmd=req["cmd"])
             return {"ok": False, "error": f"internal error in {req['cmd']}: {type(e).__name__}: {e}"}
+
+
+class AcceptErrorLog:
+    """The loop's exception handler, quieter about one thing: out of file
+    descriptors, asyncio reports every retry to accept (with a traceback);
+    this logs one line per ``every_s`` with the count, and passes anything
+    else to the default handler."""
+
+    def __init__(self, every_s: float = ACCEPT_LOG_EVERY_S):
+        self.every_s = every_s
+        self.count = 0
+        self._last = -math.inf
+
+    def __call__(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
+        if context.get("message") != "socket.accept() out of system resource":
+            loop.default_exception_handler(context)
+            return
+        self.count += 1
+        now = time.monotonic()
+        if now - self._last >= self.every_s:
+            self._last = now
+            log.error("control_accept_failed", error=str(context.get("exception")), times=self.count,
+                      why="out of file descriptors (raise LimitNOFILE, or find what holds them); "
+                          "new clients wait in the backlog")
+            self.count = 0
+
+
+def _encode(obj: dict) -> bytes:
+    return json.dumps(obj, default=_default).encode() + b"\n"
+
+
+def _encode_rows(rows: list) -> bytes:
+    """``{"ok": true, "result": rows}`` as _encode makes it, a chunk of rows per json.dumps call."""
+    chunks = [json.dumps(rows[i:i + ENCODE_CHUNK], default=_default)[1:-1].encode()
+              for i in range(0, len(rows), ENCODE_CHUNK)]
+    return b'{"ok": true, "result": [' + b", ".join(chunks) + b"]}\n"
 
 
 def _default(o: Any) -> Any:

@@ -23,7 +23,8 @@ from lathed import log as logmod
 from lathed.bus import Bus
 from lathed.cli import EX_CANTCREAT
 from lathed.client import SOCKET_NAME, default_runtime_dir
-from lathed.control import ControlServer, RequestError, SocketInUse
+from lathed.args import Args
+from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
@@ -53,6 +54,11 @@ class Settings:
         # a plugin still importing after this is reported as failed (one looping at import)
         self.plugin_import_timeout = sec.getduration("plugin_import_timeout", 30.0, minval=0.1, maxval=600.0)
         self.log_level = sec.getstr("log_level", "info", choices=("debug", "info", "warning", "error"))
+        # The control socket: clients served at once (more are refused with a reply), how long an
+        # idle connection is kept, and how long one request line may take to arrive.
+        self.control_max_clients = sec.getint("control_max_clients", 64, minval=1, maxval=1024)
+        self.control_idle_timeout = sec.getduration("control_idle_timeout", 60.0, minval=0.1, maxval=86400.0)
+        self.control_request_timeout = sec.getduration("control_request_timeout", 5.0, minval=0.1, maxval=600.0)
         sec.check_unused()
         st = cfg.store
         # 0: every record is kept. Otherwise records older than this are deleted,
@@ -103,7 +109,8 @@ class Daemon:
         self.exit_code = 0
         self.bus = Bus()
         self.store = store
-        self.control = ControlServer(settings.socket_path)
+        self.control = ControlServer(settings.socket_path, settings.control_max_clients,
+                                     settings.control_idle_timeout, settings.control_request_timeout)
         self.supervisor: Supervisor | None = None
         self.sim_process = None
         self._stop = asyncio.Event()
@@ -112,6 +119,7 @@ class Daemon:
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
+        loop.set_exception_handler(AcceptErrorLog())
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._stop.set)
         self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
@@ -227,6 +235,7 @@ class Daemon:
 
     # -- control commands -------------------------------------------------------
     async def _cmd_ping(self, args: dict) -> Any:
+        Args("ping", args).check_unused()
         return "pong"
 
     def status_state(self) -> str:
@@ -235,23 +244,28 @@ class Daemon:
         return self.state
 
     async def _cmd_status(self, args: dict) -> Any:
+        Args("status", args).check_unused()
         return {"daemon": {"state": self.status_state(), "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
                            "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
                                                                 "last_prune": self.last_prune},
                            "simulator": None if self.sim_process is None else
-                           {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode}},
+                           {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
+                           "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
+                                       "refused": self.control.refused}},
                 **self.supervisor.status()}
 
     async def _cmd_plugins(self, args: dict) -> Any:
+        Args("plugins", args).check_unused()
         return self.loader.summary()
 
     async def _cmd_events(self, args: dict) -> Any:
-        limit = args.get("limit", 50)
-        if isinstance(limit, bool) or not isinstance(limit, int) or not 1 <= limit <= 100_000:
-            raise RequestError("limit must be an integer in [1, 100000]")
-        kind, source = args.get("kind"), args.get("source")
-        return await asyncio.to_thread(self.store.events, limit, kind, source, int(args.get("since_id", 0)))
+        a = Args("events", args)
+        limit = a.getint("limit", 50, minval=1, maxval=100_000)
+        kind, source = a.getstr("kind", None), a.getstr("source", None)
+        since_id = a.getint("since_id", 0)
+        a.check_unused()
+        return await offload(self.store.events, limit, kind, source, since_id)
 
 
 def main(argv: list[str] | None = None) -> int:

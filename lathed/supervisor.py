@@ -16,9 +16,11 @@ from typing import Any
 import structlog
 
 from lathed.analyzer import Analyzer, AnalyzerContext
+from lathed.args import Args
 from lathed.bus import Bus
 from lathed.command import Command
 from lathed.config import Config, ConfigError, Instance
+from lathed.control import RequestError
 from lathed.driver import Driver, DriverContext
 from lathed.plugins import PluginLoader, _one_line
 from lathed.safety import Limits, SafetyGuard
@@ -235,14 +237,14 @@ class Supervisor:
         return register
 
     async def _dispatch(self, cmd: str, args: dict) -> Any:
-        from lathed.control import RequestError
         handlers = self._controls[cmd]
-        target = args.get("analyzer")
+        target = Args(cmd, args).getstr("analyzer", None, maxlen=64)
         if target is None and len(handlers) == 1:
             target = next(iter(handlers))
         if target not in handlers:
             raise RequestError(f"{cmd}: name the analyzer (--analyzer); one of {', '.join(sorted(handlers))}")
-        return await handlers[target](args)
+        # the handler reads (and checks) its own arguments
+        return await handlers[target]({k: v for k, v in args.items() if k != "analyzer"})
 
     @staticmethod
     def _retry(inst: Instance) -> tuple[float, float]:

@@ -13,8 +13,6 @@ Adds the control commands ``parts``, ``inspect``, ``experiment_add``,
 """
 from __future__ import annotations
 
-import asyncio
-import math
 import time
 import uuid as uuidlib
 from typing import Any
@@ -22,11 +20,13 @@ from typing import Any
 from lathed import hookimpl, records
 from lathed.analysis import taguchi
 from lathed.analyzer import Analyzer
+from lathed.args import Args
 from lathed.bus import Sample
 from lathed.config import Section
-from lathed.control import RequestError
+from lathed.control import RequestError, offload
 
 EXPORTS = ("events", "parts", "inspections", "experiments")
+MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
 
 
 class Records(Analyzer):
@@ -87,73 +87,82 @@ class Records(Analyzer):
         return self.ctx.store.query(sql, params)
 
     async def _cmd_parts(self, args: dict) -> Any:
-        limit = _int(args, "limit", 100, 1, 100_000)
-        return await asyncio.to_thread(records.parts, self._query, bool(args.get("abnormal")),
-                                       bool(args.get("pending")), limit)
+        a = Args("parts", args)
+        abnormal, pending = a.getbool("abnormal", False), a.getbool("pending", False)
+        limit = a.getint("limit", 100, minval=1, maxval=100_000)
+        a.check_unused()
+        return await offload(records.parts, self._query, abnormal, pending, limit)
 
     async def _cmd_inspect(self, args: dict) -> Any:
-        ref = str(args.get("part", ""))
-        part = await asyncio.to_thread(records.find_part, self._query, ref)
+        a = Args("inspect", args)
+        ref = a.getstr("part", maxlen=64)
+        ra = a.getfloat("ra_um", None, minval=0.0, maxval=MAX_UM)
+        err = a.getfloat("diameter_error_um", None, minval=-MAX_UM, maxval=MAX_UM)
+        values = a.getmap("values", {}, item=float)
+        by = a.getstr("by", None)
+        a.check_unused()
+        if ra is None and err is None and not values:
+            raise RequestError("inspect: nothing measured: give ra_um, diameter_error_um or values")
+        part = await offload(records.find_part, self._query, ref)
         if part is None:
             raise RequestError(f"no part {ref!r} (give its number from `lathectl parts` or a unique uuid prefix)")
-        ra = _num(args, "ra_um", minval=0.0)
-        err = _num(args, "diameter_error_um")
-        values = args.get("values") or {}
-        if not isinstance(values, dict) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                   for v in values.values()):
-            raise RequestError("values must map names to numbers")
-        if ra is None and err is None and not values:
-            raise RequestError("nothing measured: give ra_um, diameter_error_um or values")
         await self.ctx.store.add("inspections", {
             "t": time.time(), "part_uuid": part["uuid"], "ra_um": ra, "diameter_error_um": err,
-            "measured": values, "inspector": str(args.get("by") or "") or None})
-        return await asyncio.to_thread(records.find_part, self._query, str(part["id"]))
+            "measured": values, "inspector": by})
+        return await offload(records.find_part, self._query, str(part["id"]))
 
     async def _cmd_experiment_add(self, args: dict) -> Any:
-        tool, material = _text(args, "tool", self.tool), _text(args, "material", self.material)
-        levels = args.get("levels")
-        if not isinstance(levels, dict) or not levels or not all(
-                isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in levels.values()):
-            raise RequestError("levels must map each factor to its level number (1, 2, 3...)")
-        settings = args.get("settings") or {}
-        if not isinstance(settings, dict):
-            raise RequestError("settings must map factors to their values")
-        run = args.get("run")   # the run number in the array; SQLite stores at most 64 bits
-        if run is not None and (isinstance(run, bool) or not isinstance(run, int) or not 1 <= run <= 1_000_000):
-            raise RequestError(f"run must be an integer in [1, 1000000], got {str(run)[:40]}")
+        a = Args("experiment_add", args)
+        tool, material = self._tool(a), self._material(a)
+        # level numbers index the orthogonal array's columns: small integers (the analysis counts per level)
+        levels = a.getmap("levels", item=int, minval=1, maxval=taguchi.MAX_LEVEL, maxitems=taguchi.MAX_FACTORS)
+        if not levels:
+            raise a.error("levels", "empty; give each factor's level number (1, 2, 3...)")
+        settings = a.getmap("settings", {}, item=(float, str), maxitems=taguchi.MAX_FACTORS)
         row = {"t": time.time(), "tool": tool, "material": material, "levels": levels, "settings": settings,
-               "run": run,
-               "ra_um": _num(args, "ra_um", minval=0.0), "diameter_error_um": _num(args, "diameter_error_um"),
-               "removal_rate": _num(args, "removal_rate", minval=0.0), "part_uuid": args.get("part_uuid")}
+               "run": a.getint("run", None, minval=1, maxval=taguchi.MAX_TRIALS),
+               "ra_um": a.getfloat("ra_um", None, minval=0.0, maxval=MAX_UM),
+               "diameter_error_um": a.getfloat("diameter_error_um", None, minval=-MAX_UM, maxval=MAX_UM),
+               "removal_rate": a.getfloat("removal_rate", None, minval=0.0, maxval=1e9),
+               "part_uuid": a.getstr("part_uuid", None, maxlen=64)}
+        a.check_unused()
         if row["ra_um"] is None and row["diameter_error_um"] is None and row["removal_rate"] is None:
-            raise RequestError("nothing measured: give ra_um, diameter_error_um or removal_rate")
-        existing = await asyncio.to_thread(records.experiments, self._query, tool, material)
+            raise RequestError("experiment_add: nothing measured: give ra_um, diameter_error_um or removal_rate")
+        existing = await offload(records.experiments, self._query, tool, material)
         if existing and sorted(existing[0]["levels"]) != sorted(levels):
             raise RequestError(f"experiments for {tool}/{material} use the factors "
                                f"{', '.join(sorted(existing[0]['levels']))}, not {', '.join(sorted(levels))}")
+        if len(existing) >= taguchi.MAX_TRIALS:
+            raise RequestError(f"experiment_add: {tool}/{material} already has {len(existing)} trials, "
+                               f"the most one analysis takes ({taguchi.MAX_TRIALS})")
         return {"id": await self.ctx.store.add("experiments", row)}
 
     async def _cmd_experiments(self, args: dict) -> Any:
-        tool, material = _text(args, "tool", self.tool), _text(args, "material", self.material)
-        return await asyncio.to_thread(records.experiments, self._query, tool, material)
+        a = Args("experiments", args)
+        tool, material = self._tool(a), self._material(a)
+        a.check_unused()
+        return await offload(records.experiments, self._query, tool, material)
 
     async def _cmd_recommend(self, args: dict) -> Any:
-        tool, material = _text(args, "tool", self.tool), _text(args, "material", self.material)
-        trials = await asyncio.to_thread(records.experiments, self._query, tool, material)
+        a = Args("recommend", args)
+        tool, material = self._tool(a), self._material(a)
+        a.check_unused()
+        trials = await offload(records.experiments, self._query, tool, material)
         if not trials:
             raise RequestError(f"no experiment records for tool {tool} and material {material}; "
                                "add them with `lathectl experiment add`")
         try:
-            rec = await asyncio.to_thread(taguchi.recommend, trials)
+            rec = await offload(taguchi.recommend, trials)
         except ValueError as e:
-            raise RequestError(str(e)) from None
+            raise RequestError(f"recommend: {tool}/{material}: {e}") from None
         return {"tool": tool, "material": material, **rec}
 
     async def _cmd_export(self, args: dict) -> Any:
-        what = args.get("what")
-        if what not in EXPORTS:
-            raise RequestError(f"cannot export {what!r}; allowed: {', '.join(EXPORTS)}")
-        limit = _int(args, "limit", 100_000, 1, 1_000_000)
+        a = Args("export", args)
+        what = a.getstr("what", choices=EXPORTS)
+        # one reply holds every row (100k events: ~25 MB of JSON); more in one go would pin ~1 GB
+        limit = a.getint("limit", 100_000, minval=1, maxval=100_000)
+        a.check_unused()
         q = self._query
         if what == "events":
             fn = lambda: q("SELECT id, uuid, machine_id, t, source, kind, payload FROM events "  # noqa: E731
@@ -164,31 +173,20 @@ class Records(Analyzer):
             fn = lambda: records.inspections(q, limit)  # noqa: E731
         else:
             fn = lambda: q("SELECT * FROM experiments ORDER BY id DESC LIMIT ?", (limit,))[::-1]  # noqa: E731
-        return await asyncio.to_thread(fn)
+        return await offload(fn)
 
+    def _tool(self, a: Args) -> str:
+        return self._default(a, "tool", self.tool)
 
-def _int(args: dict, key: str, default: int, lo: int, hi: int) -> int:
-    v = args.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-        raise RequestError(f"{key} must be an integer in [{lo}, {hi}]")
-    return v
+    def _material(self, a: Args) -> str:
+        return self._default(a, "material", self.material)
 
-
-def _num(args: dict, key: str, minval: float | None = None) -> float | None:
-    v = args.get(key)
-    if v is None:
-        return None
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) \
-            or (minval is not None and v < minval):
-        raise RequestError(f"{key} must be a finite number" + (f" >= {minval:g}" if minval is not None else ""))
-    return float(v)
-
-
-def _text(args: dict, key: str, default: str) -> str:
-    v = args.get(key) or default
-    if not isinstance(v, str) or not v:
-        raise RequestError(f"{key} is required (no default {key} configured in [analyzer.records])")
-    return v
+    @staticmethod
+    def _default(a: Args, key: str, default: str) -> str:
+        v = a.getstr(key, default or None)
+        if v is None:
+            raise a.error(key, "required (no default configured in [analyzer.records])")
+        return v
 
 
 @hookimpl

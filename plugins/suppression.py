@@ -54,6 +54,7 @@ from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, 
                                              SpindleLimits, SuppressionPolicy, VariationSelection, lobe_grid)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.analyzer import Analyzer
+from lathed.args import Args
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
@@ -269,11 +270,14 @@ class SuppressionAnalyzer(Analyzer):
 
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:
-        action = args.get("action", "status")
+        a = Args("suppress", args)
+        action = a.getstr("action", "status", choices=(*MODES, "now", "status"))
+        by = a.getstr("by", "operator")
+        a.check_unused()
         if action in MODES:
             old, self.mode = self.mode, action
             self.ctx.record("suppression_mode", {"machine": self.machine, "from": old, "to": action,
-                                                 "by": args.get("by", "operator")})
+                                                 "by": by})
             if action == "off":
                 self._stop_ssv()
             return self.status()
@@ -291,10 +295,8 @@ class SuppressionAnalyzer(Analyzer):
                     raise RequestError("no admissible speed: every candidate is banned for this part or "
                                        "the policy is holding after a change")
             self.pending = None
-            return await self._act(d, by=args.get("by", "operator"), trigger=trigger)
-        if action == "status":
-            return self.status()
-        raise RequestError(f"unknown suppress action {action!r}; allowed: auto, manual, off, now, status")
+            return await self._act(d, by=by, trigger=trigger)
+        return self.status()
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)

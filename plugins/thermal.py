@@ -44,6 +44,7 @@ import numpy as np
 from lathed import hookimpl
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
 from lathed.analyzer import Analyzer
+from lathed.args import Args
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
@@ -87,6 +88,7 @@ class ThermalAnalyzer(Analyzer):
         self.writes = 0
         self.refused: str | None = None
         self.last_refit: dict | None = None
+        self._refitting = False     # one refit at a time: each reads every probe row and writes thermal-vN
         self._probe_seq: float | None = None
         self._probe_value: float | None = None
         self._phasing = False
@@ -306,7 +308,9 @@ class ThermalAnalyzer(Analyzer):
         return out, res
 
     async def _control(self, args: dict) -> dict:
-        action = args.get("action", "status")
+        a = Args("thermal", args)
+        action = a.getstr("action", "status", choices=("status", "refit", "touchoff"))
+        a.check_unused()
         if action == "status":
             return self.status()
         if action == "touchoff":
@@ -317,9 +321,13 @@ class ThermalAnalyzer(Analyzer):
                 raise RequestError(f"{self.machine} has not reported its offset_x_um yet: cannot take the touch-off")
             self._touch_off("operator touched the tool off (lathectl thermal touchoff)", self.applied)
             return self.status()
-        if action != "refit":
-            raise RequestError(f"unknown thermal action {action!r}; allowed: status, refit, touchoff")
-        out, res = await asyncio.to_thread(self._refit)
+        if self._refitting:
+            raise RequestError("thermal: a refit is already running; wait for its result")
+        self._refitting = True
+        try:
+            out, res = await asyncio.to_thread(self._refit)
+        finally:
+            self._refitting = False
         if res.better:
             # the new model's growth since the same touch-off; any step is phased in
             self.model, self.model_name = res.model, out["model_after"]

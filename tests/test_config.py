@@ -55,10 +55,15 @@ def test_valid_minimal(tmp_path):
     (('plugin = "modbus_cnc"', 'plugin = "modbus_cn"'),
      "lathed: FILE: [machine.lathe] plugin: unknown driver type 'modbus_cn'; allowed: *modbus_cnc, "),
     (('name = "t"', 'name = "t"\nflavour = 1'),
-     "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: log_level, name, plugin_dirs, "
+     "lathed: FILE: [daemon] flavour: unknown key; allowed keys here: *log_level, name, plugin_dirs, "
      "plugin_import_timeout, runtime_dir, state_dir"),
+    (('name = "t"', 'name = "t"\ncontrol_max_clients = 0'),
+     "lathed: FILE: [daemon] control_max_clients: 0 is out of range; allowed: an integer in [1, 1024]"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_day = 30\n"),
      "lathed: FILE: [store] keep_day: unknown key; allowed keys here: keep_days, prune_every"),
+    # an integer too large for a float once raised OverflowError out of the getter (a traceback)
+    (("writable = true }\n", "writable = true }\n[store]\nkeep_days = 1" + "0" * 400 + "\n"),
+     "lathed: FILE: [store] keep_days: expected a number in [0.0, 36500.0], got 1000"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_days = -1\n"),
      "lathed: FILE: [store] keep_days: -1 is out of range; allowed: a number in [0.0, 36500.0]"),
     (("[daemon]", "[deamon]"),

@@ -62,7 +62,7 @@ def test_malformed_requests_get_error_replies(sim_daemon):
                           (b'["cmd"]\n', "malformed request: expected"),
                           (b'{"cmd": "status", "args": 3}\n', "args must be an object"),
                           (b'{"cmd": "explode"}\n', "unknown command 'explode'"),
-                          (b'{"cmd": "events", "args": {"limit": -1}}\n', "limit must be an integer")]:
+                          (b'{"cmd": "events", "args": {"limit": -1}}\n', "events: limit: -1 is out of range")]:
             f.write(bad)
             f.flush()
             reply = json.loads(f.readline())

@@ -76,3 +76,19 @@ def test_sn_formulas_and_replicates():
 def test_factor_mismatch_is_refused():
     with pytest.raises(ValueError, match="disagree"):
         taguchi.recommend([{"levels": {"a": 1}, "ra_um": 1.0}, {"levels": {"b": 1}, "ra_um": 1.0}])
+
+
+@pytest.mark.parametrize("level", [3_000_000, 0, True, 2.5])
+def test_recommend_refuses_levels_outside_an_array(level):
+    # rows stored before levels were checked: a level of 3e8 made np.bincount allocate 3e8
+    # counters on the daemon's event loop (17.7 s, issue 18 D3); one analysis is bounded
+    trials = [{"levels": {"A": 1, "B": 1}, "ra_um": 1.0}, {"levels": {"A": level, "B": 2}, "ra_um": 2.0}]
+    with pytest.raises(ValueError, match=f"factor A has level {level!r}; levels are numbered 1 to 27"):
+        taguchi.recommend(trials)
+
+
+def test_recommend_refuses_more_trials_than_one_analysis_takes():
+    n = taguchi.MAX_TRIALS
+    trials = [{"levels": {"A": 1 + i % 3}, "ra_um": 1.0} for i in range(n + 1)]
+    with pytest.raises(ValueError, match=f"{n + 1} trials; one analysis takes at most {n}"):
+        taguchi.recommend(trials)

@@ -29,6 +29,12 @@ OBJECTIVES = {"precision": ("diameter_error_um", "smaller"),
               "surface": ("ra_um", "smaller"),
               "efficiency": ("removal_rate", "larger")}
 TIE_DB = 1e-6   # dB; levels this close are reported as a tie
+# Bounds of what one analysis takes. Levels number an orthogonal array's
+# settings of a factor (2 to 5 in the common arrays, 9 in L81): the main
+# effects count per level, so a level of 3e8 would allocate per level value.
+MAX_LEVEL = 27
+MAX_FACTORS = 64
+MAX_TRIALS = 10_000
 
 
 def sn_smaller(y: Iterable[float]) -> float:
@@ -78,10 +84,17 @@ def recommend(trials: list[dict[str, Any]]) -> dict[str, Any]:
     """
     if not trials:
         raise ValueError("no experiment trials recorded")
+    if len(trials) > MAX_TRIALS:
+        raise ValueError(f"{len(trials)} trials; one analysis takes at most {MAX_TRIALS}")
     factors = sorted(trials[0]["levels"])
+    if len(factors) > MAX_FACTORS:
+        raise ValueError(f"{len(factors)} factors; at most {MAX_FACTORS}")
     for t in trials:
         if sorted(t["levels"]) != factors:
             raise ValueError(f"trials disagree on the factors: {factors} vs {sorted(t['levels'])}")
+        for f, lv in t["levels"].items():
+            if isinstance(lv, bool) or not isinstance(lv, int) or not 1 <= lv <= MAX_LEVEL:
+                raise ValueError(f"factor {f} has level {lv!r}; levels are numbered 1 to {MAX_LEVEL}")
     settings: dict[str, dict[int, Any]] = {f: {} for f in factors}
     for t in trials:
         for f, v in (t.get("settings") or {}).items():

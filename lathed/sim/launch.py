@@ -12,7 +12,7 @@ from pathlib import Path
 
 import structlog
 
-from lathed.config import ConfigError, Section
+from lathed.config import Section
 from lathed.sim.serial_peer import link_dir_problem
 
 log = structlog.get_logger("lathed.sim")

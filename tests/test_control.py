@@ -1,0 +1,335 @@
+"""The control socket under hostile requests and clients (issue 18 D3, D8, D9):
+wrong argument types and sizes answered in one line before any work, and
+connections bounded in number, time and line length."""
+from __future__ import annotations
+
+import asyncio
+import errno
+import json
+import socket
+import time
+
+import pytest
+import structlog
+
+from lathed import client
+from lathed.analysis import taguchi
+from lathed.control import MAX_LINE, AcceptErrorLog, ControlServer
+from tests.inproc_daemon import InProcessDaemon
+
+
+@pytest.fixture(scope="module")
+def daemon(tmp_path_factory):
+    d = InProcessDaemon(tmp_path_factory.mktemp("control"))
+    yield d
+    d.close()
+
+
+def ask(d: InProcessDaemon, req) -> tuple[dict, list[dict]]:
+    line = req if isinstance(req, bytes) else json.dumps(req).encode() + b"\n"
+    with structlog.testing.capture_logs() as logs:
+        reply = d.handle(line)
+    return reply, logs
+
+
+def assert_refused(reply: dict, logs: list[dict], *wanted: str) -> None:
+    assert reply["ok"] is False, reply
+    err = reply["error"]
+    assert "\n" not in err and len(err) < 400, err
+    assert "internal error" not in err, err
+    for w in wanted:
+        assert w in err, err
+    bad = [e for e in logs if e["log_level"] in ("error", "critical", "exception") or e.get("exc_info")]
+    assert not bad, bad
+
+
+# -- D9: wrong argument types -------------------------------------------------------
+@pytest.mark.parametrize("req, wanted", [
+    ({"cmd": "events", "args": {"since_id": "abc"}}, ["events: since_id: expected an integer", "'abc'"]),
+    ({"cmd": "events", "args": {"since_id": float("nan")}}, ["events: since_id", "nan"]),
+    ({"cmd": "events", "args": {"since_id": 1e30}}, ["events: since_id", "1e+30"]),
+    ({"cmd": "events", "args": {"since_id": 10 ** 30}}, ["events: since_id", "larger than any stored id"]),
+    ({"cmd": "events", "args": {"kind": [1]}}, ["events: kind: expected a string, got list [1]"]),
+    ({"cmd": "suppress", "args": {"analyzer": ["x"]}}, ["suppress: analyzer: expected a string"]),
+    ({"cmd": "suppress", "args": {"action": "auto", "by": {"x": 1}}}, ["suppress: by: expected a string"]),
+    ({"cmd": "thermal", "args": {"action": 3}}, ["thermal: action: expected a string"]),
+    ({"cmd": "inspect", "args": {"part": "1", "ra_um": 10 ** 400}},
+     ["inspect: ra_um: expected a finite number", "(401 characters)"]),
+    ({"cmd": "inspect", "args": {"part": "1", "values": {"a": "x"}}}, ["inspect: values.a: expected a finite number"]),
+    ({"cmd": "inspect", "args": {"part": "1", "ra_um": 1.0, "by": "\ud800"}}, ["inspect: by: not valid text"]),
+    ({"cmd": "suppress", "args": {"action": "off", "by": "me\nERROR fake log line"}},
+     ["suppress: by: not printable text"]),
+    ({"cmd": "parts", "args": {"abnormal": "yes"}}, ["parts: abnormal: expected true or false"]),
+    ({"cmd": "export", "args": {"what": "parts", "limit": 10 ** 7}}, ["export: limit", "in [1, 100000]"]),
+    ({"cmd": "experiment_add", "args": {"levels": {"A": 1}, "ra_um": 1.0, "run": 10 ** 30}},
+     ["experiment_add: run"]),
+    ({"cmd": "experiment_add", "args": {"levels": {"A": 1}, "ra_um": 1.0, "tool": "x" * 10_000}},
+     ["experiment_add: tool: 10000 characters; at most 256"]),
+    ({"cmd": "recommend", "args": {"material": 7}}, ["recommend: material: expected a string"]),
+])
+def test_wrong_argument_types_get_one_line_errors(daemon, req, wanted):
+    assert_refused(*ask(daemon, req), *wanted)
+
+
+def test_unknown_arguments_are_named_not_ignored(daemon):
+    # a typo once fell back to the default silently (limitt: 50 events, not 3)
+    assert_refused(*ask(daemon, {"cmd": "events", "args": {"limitt": 3, "kin": "x"}}),
+                   "events: unknown arguments 'limitt', 'kin'; allowed: kind, limit, since_id, source")
+    assert_refused(*ask(daemon, {"cmd": "ping", "args": {"x": 1}}), "ping: unknown argument 'x'; allowed: none")
+    assert_refused(*ask(daemon, {"cmd": "suppress", "args": {"actoin": "off"}}), "suppress: unknown argument 'actoin'")
+    assert_refused(*ask(daemon, {"cmd": "ping", "arg": {}}), "unknown key(s) 'arg'")
+
+
+@pytest.mark.parametrize("line", [b"[" * 100_000 + b"\n", b'{"cmd": "events", "args": {"kind": '
+                                  + b"[" * 900 + b"]" * 900 + b"}}\n", b"1" * 5000 + b"\n"])
+def test_deep_or_huge_json_gets_a_reply(daemon, line):
+    # 100k-deep: RecursionError out of _handle, no reply; 900-deep parsed, then repr() recursed;
+    # a 5000-digit integer is a ValueError from json.loads
+    assert_refused(*ask(daemon, line), "malformed request")
+
+
+# -- D3: heavy work bounded ---------------------------------------------------------
+def test_factor_levels_are_small_integers(daemon):
+    # a level of 3e8 once made `recommend` run np.bincount over 3e8 bins on the loop (17.7 s)
+    assert_refused(*ask(daemon, {"cmd": "experiment_add", "args": {"tool": "T9", "material": "M",
+                                                                    "levels": {"A": 300_000_000}, "ra_um": 1.0}}),
+                   f"experiment_add: levels.A: 300000000 is out of range [1, {taguchi.MAX_LEVEL}]")
+    ok, _ = ask(daemon, {"cmd": "experiment_add", "args": {"tool": "T9", "material": "M", "levels": {"A": 2, "B": 1},
+                                                           "settings": {"A": 2000, "B": "coated"}, "ra_um": 1.2}})
+    assert ok == {"ok": True, "result": {"id": ok["result"]["id"]}}
+    rec, _ = ask(daemon, {"cmd": "recommend", "args": {"tool": "T9", "material": "M"}})
+    assert rec["ok"] and rec["result"]["objectives"]["surface"]["best"] == {"A": [2], "B": [1]}
+
+
+# -- D8: bounded connections --------------------------------------------------------
+class Server:
+    """A ControlServer on a private loop in this thread, with ping registered."""
+
+    def __init__(self, path, **kw):
+        self.loop = asyncio.new_event_loop()
+        self.srv = ControlServer(path, **kw)
+
+        async def ping(args):
+            return "pong"
+        self.srv.register("ping", ping)
+        self.loop.run_until_complete(self.srv.start())
+
+    def spin(self, until, timeout: float = 10.0, what: str = "condition"):
+        """Run the loop until ``until()`` holds (the server works only while its loop runs)."""
+        async def poll():
+            deadline = time.monotonic() + timeout
+            while not until():
+                assert time.monotonic() < deadline, f"timed out waiting for {what}"
+                await asyncio.sleep(0.01)
+        self.loop.run_until_complete(poll())
+
+    def close(self):
+        self.loop.run_until_complete(self.srv.close())
+        self.loop.close()
+
+
+@pytest.fixture
+def server(tmp_path):
+    made = []
+
+    def make(**kw):
+        made.append(Server(tmp_path / "c.sock", **kw))
+        return made[-1]
+    yield make
+    for s in made:
+        s.close()
+
+
+def connect(srv: Server) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX)
+    s.setblocking(False)
+    s.connect(str(srv.srv.path))
+    return s
+
+
+def recv_all(srv: Server, s: socket.socket, what: str) -> bytes:
+    """Everything the server sends until it closes the connection."""
+    buf, closed = bytearray(), []
+
+    def done():
+        try:
+            chunk = s.recv(1 << 16)
+        except BlockingIOError:
+            return False
+        buf.extend(chunk)
+        if not chunk:
+            closed.append(True)
+        return bool(closed)
+    srv.spin(done, what=what)
+    return bytes(buf)
+
+
+def test_connections_over_the_cap_are_refused_at_once(server):
+    srv = server(max_clients=2)
+    held = [connect(srv), connect(srv)]
+    srv.spin(lambda: srv.srv.clients == 2, what="two clients served")
+    extra = connect(srv)
+    reply = json.loads(recv_all(srv, extra, "the third client refused and closed"))
+    assert reply == {"ok": False, "error": "too many control connections (the daemon serves 2 at once); try again"}
+    assert srv.srv.refused == 1
+    held[0].close()
+    srv.spin(lambda: srv.srv.clients == 1, what="a slot freed")
+    again = connect(srv)
+    again.sendall(b'{"cmd": "ping"}\n')
+    again.shutdown(socket.SHUT_WR)      # half-closed: the request is still answered
+    assert json.loads(recv_all(srv, again, "pong")) == {"ok": True, "result": "pong"}
+    for c in (*held, extra, again):
+        c.close()
+
+
+def test_a_client_trickling_a_request_is_cut(server):
+    srv = server(request_timeout=0.3, idle_timeout=60.0)
+    s = connect(srv)
+    s.sendall(b'{"cmd": ')       # then nothing: 1 byte a second would do the same
+    t0 = time.monotonic()
+    assert recv_all(srv, s, "the slow client closed") == b""
+    assert time.monotonic() - t0 < 5.0
+    assert srv.srv.clients == 0
+    s.close()
+
+
+def test_an_idle_connection_is_closed(server):
+    srv = server(idle_timeout=0.3)
+    s = connect(srv)
+    srv.spin(lambda: srv.srv.clients == 1, what="client served")
+    assert recv_all(srv, s, "the idle client closed") == b""
+    srv.spin(lambda: srv.srv.clients == 0, what="slot freed")
+    s.close()
+
+
+def test_a_line_over_the_limit_is_refused_naming_the_limit(server):
+    srv = server()
+    assert MAX_LINE <= 64 << 10      # per connection x max_clients: the memory a crowd can pin
+    s = connect(srv)
+    s.setblocking(True)
+    s.sendall(b"x" * (MAX_LINE + 10))
+    s.setblocking(False)
+    reply = json.loads(recv_all(srv, s, "the long line refused"))
+    assert reply == {"ok": False, "error": f"request line longer than {MAX_LINE} bytes; closing the connection"}
+    s.close()
+
+
+def test_accept_errors_are_logged_once_per_period_with_a_count():
+    loop = asyncio.new_event_loop()
+    try:
+        handler = AcceptErrorLog(every_s=3600.0)
+        ctx = {"message": "socket.accept() out of system resource",
+               "exception": OSError(errno.EMFILE, "Too many open files")}
+        with structlog.testing.capture_logs() as logs:
+            for _ in range(1000):
+                handler(loop, ctx)
+        assert [e["event"] for e in logs] == ["control_accept_failed"]
+        assert logs[0]["times"] == 1 and "LimitNOFILE" in logs[0]["why"]
+        assert handler.count == 999        # counted for the next line
+    finally:
+        loop.close()
+
+
+def test_client_with_a_full_backlog_says_so_in_one_line(tmp_path):
+    # a listener that never accepts: its backlog fills and connect() gets EAGAIN
+    path = tmp_path / "full.sock"
+    lst = socket.socket(socket.AF_UNIX)
+    lst.bind(str(path))
+    lst.listen(0)
+    fillers = []
+    try:
+        while True:
+            c = socket.socket(socket.AF_UNIX)
+            c.setblocking(False)
+            try:
+                c.connect(str(path))
+            except BlockingIOError:
+                c.close()
+                break
+            fillers.append(c)
+            assert len(fillers) < 1000
+        with pytest.raises(client.DaemonUnavailable, match="not accepting connections now"):
+            client.call("ping", sock_path=path, timeout=1.0)
+    finally:
+        for c in fillers:
+            c.close()
+        lst.close()
+
+
+def test_client_reports_a_reply_that_is_not_json(tmp_path):
+    path = tmp_path / "bad.sock"
+    lst = socket.socket(socket.AF_UNIX)
+    lst.bind(str(path))
+    lst.listen(1)
+    import threading
+
+    def serve():
+        conn, _ = lst.accept()
+        conn.recv(1024)
+        conn.sendall(b"garbage\n")
+        conn.close()
+    t = threading.Thread(target=serve)
+    t.start()
+    try:
+        with pytest.raises(client.DaemonUnavailable, match="not JSON"):
+            client.call("ping", sock_path=path, timeout=5.0)
+    finally:
+        t.join(5)
+        lst.close()
+
+
+def test_daemon_table_sets_the_control_bounds(tmp_path):
+    d = InProcessDaemon(tmp_path, daemon='control_max_clients = 3\ncontrol_idle_timeout = "2min"\n'
+                                          'control_request_timeout = "500ms"')
+    try:
+        assert (d.control.max_clients, d.control.idle_timeout, d.control.request_timeout) == (3, 120.0, 0.5)
+        st = d.handle(b'{"cmd": "status"}\n')["result"]["daemon"]["control"]
+        assert st == {"clients": 0, "max_clients": 3, "refused": 0}
+    finally:
+        d.close()
+
+
+def test_a_large_reply_is_encoded_in_chunks_as_one_json_line():
+    from lathed.control import ENCODE_CHUNK, _encode, _encode_rows
+    rows = [{"id": i, "payload": {"x": [i, 1.5]}, "t": None} for i in range(2 * ENCODE_CHUNK + 7)]
+    assert _encode_rows(rows) == _encode({"ok": True, "result": rows})
+
+
+def test_heavy_request_work_runs_two_at_a_time_off_the_loop():
+    # a crowd of exports once took every worker thread at once (the store's and drivers' too)
+    import threading
+    from lathed.control import HEAVY_AT_ONCE, offload
+    gate, lock, running, peak = threading.Event(), threading.Lock(), [0], [0]
+
+    def work(i):
+        with lock:
+            running[0] += 1
+            peak[0] = max(peak[0], running[0])
+        gate.wait(10)
+        with lock:
+            running[0] -= 1
+        return i
+
+    async def crowd():
+        tasks = [asyncio.create_task(offload(work, i)) for i in range(6)]
+        while running[0] < HEAVY_AT_ONCE:        # the loop stays free while they work
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+        assert running[0] == HEAVY_AT_ONCE
+        gate.set()
+        return await asyncio.gather(*tasks)
+    assert asyncio.run(crowd()) == list(range(6))
+    assert peak[0] == HEAVY_AT_ONCE == 2
+
+
+def test_args_bound_lists_and_maps():
+    from lathed.args import Args
+    from lathed.control import RequestError
+    a = Args("cmd", {"names": ["a"] * 65, "m": {"x" * 65: 1.0}, "ok": ["a", "b"]})
+    with pytest.raises(RequestError, match="^cmd: names: 65 items; at most 64 allowed$"):
+        a.getlist("names")
+    with pytest.raises(RequestError, match="^cmd: m name: 65 characters; at most 64 allowed$"):
+        a.getmap("m")
+    assert a.getlist("ok") == ["a", "b"]
+    with pytest.raises(RequestError, match=r"^cmd: ok\[1\]: expected an integer, got str 'b'$"):
+        Args("cmd", {"ok": [1, "b"]}).getlist("ok", item=int)
