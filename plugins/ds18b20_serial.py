@@ -111,10 +111,9 @@ class DS18B20Serial(Driver):
                 self.rejected["disconnected_-127"] += 1
             elif not -55.0 <= celsius <= 125.0:
                 self.rejected["out_of_range"] += 1
-            else:
+            elif self.ctx.bus.publish(Sample(self.name, f"t_{name}", celsius, "°C", now)):
                 good += 1
                 self.readings[name] = (celsius, now)
-                self.ctx.bus.publish(Sample(self.name, f"t_{name}", celsius, "°C", now))
         self.accepted += good
         if good:
             self.mark_data()
