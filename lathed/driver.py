@@ -64,6 +64,10 @@ class GatedBus:
                                            math.isfinite(value) else repr(value), "reason": reason, "why": why,
                                            "suppressed_since_last": suppressed})
 
+    def forget(self, source: str, quantity: str) -> None:
+        self.plausible.forget(quantity)
+        self._bus.forget(source, quantity)
+
     def __getattr__(self, name: str):
         return getattr(self._bus, name)
 
