@@ -48,10 +48,11 @@ class GatedBus:
         if bad is None:
             self._bus.publish(msg)
             return True
-        self._report(msg.quantity, value, *bad)
+        self.report(msg.quantity, value, *bad)
         return False
 
-    def _report(self, quantity: str, value, reason: str, why: str) -> None:
+    def report(self, quantity: str, value, reason: str, why: str) -> None:
+        """Log and record a refused value, at most once per REPORT_EVERY_S per quantity and reason."""
         now = self._clock()
         last, suppressed = self._reported.get((quantity, reason), (None, 0))
         if last is not None and now - last < REPORT_EVERY_S:

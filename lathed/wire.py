@@ -12,7 +12,11 @@ Vibration stream (TCP, one direction, server -> client), little-endian frames:
     rpm      f    actual spindle speed at the frame's start, r/min
     data     n*channels float32, acceleration in m/s²
 
-``seq`` lets a reader see a gap (lost samples) or a restarted stream.
+``seq`` lets a reader see a gap (lost samples) or a restarted stream. A
+header whose rate is outside what an accelerometer DAQ samples at
+(VIB_RATE_MIN..VIB_RATE_MAX by default) or whose rpm is not a finite speed
+>= 0 is well-formed but implausible: ``vibration_header_problem`` names it,
+and the reader skips that frame's samples and stays in step.
 
 Temperature line (serial, 115200 8N1, the Arduino with DS18B20 sensors), one
 line per read cycle of all sensors:
@@ -36,6 +40,7 @@ rejects those.
 from __future__ import annotations
 
 import binascii
+import math
 import struct
 from dataclasses import dataclass
 
@@ -76,6 +81,20 @@ def unpack_vibration_header(head: bytes) -> tuple[int, int, int, int, float, flo
     if channels < 1 or n < 1 or rate < 1:
         raise FrameError(f"malformed frame header: channels={channels} n={n} rate={rate}")
     return channels, n, rate, seq, t0, rpm
+
+
+VIB_RATE_MIN, VIB_RATE_MAX = 100.0, 1_000_000.0    # Hz: what accelerometer DAQs sample at
+VIB_RPM_MAX = 100_000.0
+
+
+def vibration_header_problem(rate: float, rpm: float, rate_min: float = VIB_RATE_MIN,
+                             rate_max: float = VIB_RATE_MAX) -> tuple[str, str] | None:
+    """None if a decoded header is plausible, else (reason, one-line why)."""
+    if not rate_min <= rate <= rate_max:
+        return "rate", f"frame sample rate {rate:g} Hz outside the plausible {rate_min:g}..{rate_max:g} Hz"
+    if not (math.isfinite(rpm) and 0.0 <= rpm <= VIB_RPM_MAX):
+        return "rpm", f"frame spindle speed {rpm!r} r/min is not a finite speed in 0..{VIB_RPM_MAX:g}"
+    return None
 
 
 def xor_checksum(body: bytes) -> int:

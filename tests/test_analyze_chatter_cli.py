@@ -163,3 +163,18 @@ def test_csv_flat_tops_reported_as_clipping(tmp_path):
     assert sig.clipped > 100 and sig.first_clip_s is not None
     np.savetxt(f, np.sin(np.linspace(0, 40 * np.pi, 4001)))
     assert read_signal(f, rate_hz=RATE).clipped == 0
+
+
+def test_a_valid_1hz_wav_is_one_line_not_a_traceback(tmp_path, capsys):
+    """issue 18 D5: a 1 Hz recording raised ZeroDivisionError (a zero-sample window)."""
+    p = tmp_path / "slow.wav"
+    wavfile.write(p, 1, (np.sin(np.arange(200) * 0.3) * 10000).astype(np.int16))
+    code, out, err = _cli([str(p), "--rpm", "1000"], capsys)
+    assert code == 65 and out == ""
+    assert err == f"lathectl: sample rate 1 Hz is outside the 100..1e+06 Hz of an accelerometer recording ({p})\n"
+
+
+def test_rpm_beyond_any_spindle_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", str(tmp_path / "x.wav"), "--rpm", "1e308"])
+    assert e.value.code == 2 and "1e308 r/min is beyond any spindle" in capsys.readouterr().err
