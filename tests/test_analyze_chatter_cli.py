@@ -178,3 +178,17 @@ def test_rpm_beyond_any_spindle_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         _parser().parse_args(["chatter", str(tmp_path / "x.wav"), "--rpm", "1e308"])
     assert e.value.code == 2 and "1e308 r/min is beyond any spindle" in capsys.readouterr().err
+
+
+def test_float_wav_in_physical_units_is_not_clipped_and_nan_is_not_a_clip(tmp_path):
+    """issue 18 D12: a float WAV in m/s² peaking above 1.0 got "clipped samples" warnings; inf counted as clips."""
+    x = (np.sin(np.arange(RATE) * 0.05) * 30.0).astype(np.float32)
+    x[100:110] = np.inf
+    p = tmp_path / "ms2.wav"
+    wavfile.write(p, RATE, x)
+    sig = read_signal(p)
+    assert sig.clipped == 0 and "10 NaN/infinite samples filled" in sig.notes[0]
+    # a float recording that did saturate still shows it: flat tops at its extremes
+    x = np.clip(np.sin(np.arange(RATE) * 0.05) * 30.0, -20.0, 20.0).astype(np.float32)
+    wavfile.write(p, RATE, x)
+    assert read_signal(p).clipped > 0
