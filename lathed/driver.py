@@ -41,7 +41,7 @@ class GatedBus:
             value = msg.value
         elif isinstance(msg, Block):
             bad = self.plausible.check_block(msg.quantity, "m/s²" if msg.quantity == "acceleration" else "",
-                                             msg.data)
+                                             msg.data, msg.rate_hz, msg.rpm)
             value = None
         else:
             bad = None

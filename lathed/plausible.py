@@ -123,8 +123,17 @@ class Plausibility:
         self._last[quantity] = (float(value), t)
         return None
 
-    def check_block(self, quantity: str, unit: str, data: np.ndarray) -> tuple[str, str] | None:
-        """A waveform block: every sample finite and within its unit's range."""
+    def check_block(self, quantity: str, unit: str, data: np.ndarray, rate_hz: float = 1.0,
+                    rpm: float | None = None) -> tuple[str, str] | None:
+        """A waveform block: a finite positive rate, a spindle speed within the r/min
+        range (if given), every sample finite and within its unit's range."""
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            return self._refuse(quantity, "rate", f"{quantity}: sample rate {rate_hz!r} Hz is not a finite rate > 0")
+        if rpm is not None:
+            b = UNIT_DEFAULTS["r/min"]
+            if not (math.isfinite(rpm) and b.lo <= rpm <= b.hi):
+                return self._refuse(quantity, "rpm", f"{quantity}: spindle speed {rpm!r} r/min is not "
+                                                     f"in {b.lo:g}..{b.hi:g}")
         if data.size == 0:
             return None
         lo, hi = float(np.min(data)), float(np.max(data))

@@ -136,3 +136,17 @@ def test_modbus_float32_nan_reaches_neither_model_nor_guard_reference():
     assert d.ctx.bus.latest[("lathe", "spindle_rpm")].value == 1000.0
     assert d.ctx.bus.plausible.rejected == {"spindle_rpm_cmd": {"not_finite": 1},
                                              "spindle_rpm": {"not_finite": 1}}
+
+
+def test_blocks_checked_for_rate_rpm_and_samples():
+    import numpy as np
+    from lathed.bus import Block
+    c = ctx()
+    x = np.zeros(64)
+    assert c.bus.publish(Block("accel", "acceleration", 51200.0, 1.0, 0, x, 3000.0))
+    assert not c.bus.publish(Block("accel", "acceleration", 51200.0, 1.0, 64, x, math.nan))
+    assert not c.bus.publish(Block("accel", "acceleration", 0.0, 1.0, 64, x, 3000.0))
+    bad = x.copy()
+    bad[3] = math.inf
+    assert not c.bus.publish(Block("accel", "acceleration", 51200.0, 1.0, 64, bad, 3000.0))
+    assert c.bus.plausible.rejected == {"acceleration": {"rpm": 1, "rate": 1, "not_finite": 1}}
