@@ -7,8 +7,8 @@
     stale_after = "20s"     # a sensor with no valid reading for this long is stale;
                             # no valid reading from any: the port is re-opened
     checksum = "any"        # "crc16": refuse lines with the legacy 8-bit XOR
-    sensors = ["front_bearing", "rear_bearing", "motor", "room"]   # optional: the names
-                            # expected; any other is refused as unknown_sensor
+    sensors = ["front_bearing", "rear_bearing", "motor", "room"]
+                            # optional: the names expected; any other is refused as unknown_sensor
     max_sensors = 32        # without a list: names learned, at most this many at once
     forget_after = "10min"  # a name with no valid reading for this long is forgotten
 

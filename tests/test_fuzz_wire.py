@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from lathed.analysis.recording import RecordingError, read_signal
 from lathed.analysis.thermal_csv import ThermalCsvError, load_thermal_csv
-from lathed.bus import Bus
+from lathed.bus import Bus, Sample
 from lathed.config import Section
 from lathed.driver import DriverContext
 from lathed.wire import (VIB_HEADER, FrameError, LineError, format_temperature_line, parse_temperature_line,
@@ -98,7 +98,6 @@ def test_modbus_register_decoding(type_, order, regs):
     v = r.decode(regs[:r.count])
     assert isinstance(v, float)
     ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
-    from lathed.bus import Sample
     published = ctx.bus.publish(Sample("m", "spindle_rpm", v, "r/min", 1.0))
     assert published == (math.isfinite(v) and 0 <= v <= 100_000)
 

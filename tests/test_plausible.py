@@ -5,10 +5,11 @@ from __future__ import annotations
 import asyncio
 import math
 
+import numpy as np
 import pytest
 import structlog
 
-from lathed.bus import Bus, Sample
+from lathed.bus import Block, Bus, Sample
 from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.plausible import Plausibility
@@ -139,8 +140,6 @@ def test_modbus_float32_nan_reaches_neither_model_nor_guard_reference():
 
 
 def test_blocks_checked_for_rate_rpm_and_samples():
-    import numpy as np
-    from lathed.bus import Block
     c = ctx()
     x = np.zeros(64)
     assert c.bus.publish(Block("accel", "acceleration", 51200.0, 1.0, 0, x, 3000.0))
