@@ -149,3 +149,35 @@ def test_blocks_checked_for_rate_rpm_and_samples():
     bad[3] = math.inf
     assert not c.bus.publish(Block("accel", "acceleration", 51200.0, 1.0, 64, bad, 3000.0))
     assert c.bus.plausible.rejected == {"acceleration": {"rpm": 1, "rate": 1, "not_finite": 1}}
+
+
+class FakeStore:
+    def __init__(self):
+        self.records = []
+
+    def record_future(self, kind, source, payload):
+        import concurrent.futures
+        self.records.append((kind, source, payload))
+        f = concurrent.futures.Future()
+        f.set_result(None)
+        return f
+
+
+def test_supervisor_gates_every_driver_and_status_shows_the_refusals(capsys):
+    from lathed.config import Instance
+    from lathed.lathectl import _print_implausible
+    from lathed.supervisor import Plan, Supervisor
+    sec = Section("t.toml", "sensor.temps", {"port": "/dev/null"})
+    d = DS18B20Serial("temps", sec)
+    inst = Instance("sensor", "temps", "ds18b20_serial", sec, Section("t.toml", "sensor.temps", {}))
+    store = FakeStore()
+    sup = Supervisor(None, Plan(drivers={"temps": (inst, d)}), Bus(), store, lambda *a: None)
+    d.handle_line(format_temperature_line(0, 0, {"front_bearing": 30.0}), 100.0)
+    d.handle_line(format_temperature_line(1, 300, {"front_bearing": 124.99}), 100.3)
+    (entry,) = sup.status()["sensors"]
+    assert entry["implausible"] == {"t_front_bearing": {"rate": 1}}
+    assert entry["last_value"] == {"t_front_bearing": 30.0}
+    assert [(k, s) for k, s, _ in store.records] == [("implausible_value", "temps")]
+    capsys.readouterr()       # the warning logged
+    _print_implausible(entry)
+    assert capsys.readouterr().out == "    implausible values refused: t_front_bearing rate 1\n"
