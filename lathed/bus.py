@@ -76,6 +76,10 @@ class Bus:
             except asyncio.QueueFull:
                 sub.dropped += 1
 
+    def forget(self, source: str, quantity: str) -> None:
+        """A quantity its source no longer has (a sensor taken off the line)."""
+        self.latest.pop((source, quantity), None)
+
     def latest_of(self, source: str) -> dict[str, Sample]:
         return {q: s for (src, q), s in self.latest.items() if src == source}
 

@@ -8,23 +8,77 @@ commands) and it is retried with capped backoff.
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import TYPE_CHECKING, Any, ClassVar
 
+from lathed.bus import Block, Bus, Message, Sample
 from lathed.config import Section
+from lathed.plausible import Plausibility
 
 if TYPE_CHECKING:
     import structlog
 
-    from lathed.bus import Bus
     from lathed.command import Command
+
+REPORT_EVERY_S = 60.0    # an implausible value is logged and recorded at most this often per quantity and reason
+
+
+class GatedBus:
+    """The bus as a driver sees it: every value is checked for being finite and
+    physically plausible (lathed.plausible) before it is published, so no
+    analyzer, machine model or guard reference ever holds one that is not.
+    ``publish`` says whether the value went out; a refused one is counted in
+    status, logged and recorded (rate-limited), never silently dropped."""
+
+    def __init__(self, bus: Bus, plausible: Plausibility, log, record, clock=time.monotonic):
+        self._bus, self.plausible, self._log, self._record, self._clock = bus, plausible, log, record, clock
+        self._reported: dict[tuple[str, str], tuple[float, int]] = {}   # (quantity, reason) -> (t, suppressed)
+
+    def publish(self, msg: Message) -> bool:
+        if isinstance(msg, Sample):
+            bad = self.plausible.check(msg.quantity, msg.unit, msg.value, msg.t)
+            value = msg.value
+        elif isinstance(msg, Block):
+            bad = self.plausible.check_block(msg.quantity, "m/s²" if msg.quantity == "acceleration" else "",
+                                             msg.data, msg.rate_hz, msg.rpm)
+            value = None
+        else:
+            bad = None
+        if bad is None:
+            self._bus.publish(msg)
+            return True
+        self.report(msg.quantity, value, *bad)
+        return False
+
+    def report(self, quantity: str, value, reason: str, why: str) -> None:
+        """Log and record a refused value, at most once per REPORT_EVERY_S per quantity and reason."""
+        now = self._clock()
+        last, suppressed = self._reported.get((quantity, reason), (None, 0))
+        if last is not None and now - last < REPORT_EVERY_S:
+            self._reported[(quantity, reason)] = (last, suppressed + 1)
+            return
+        self._reported[(quantity, reason)] = (now, 0)
+        self._log.warning("implausible_value", quantity=quantity, reason=reason, why=why,
+                          suppressed_since_last=suppressed)
+        self._record("implausible_value", {"quantity": quantity, "value": value if value is None or
+                                           math.isfinite(value) else repr(value), "reason": reason, "why": why,
+                                           "suppressed_since_last": suppressed})
+
+    def forget(self, source: str, quantity: str) -> None:
+        self.plausible.forget(quantity)
+        self._bus.forget(source, quantity)
+
+    def __getattr__(self, name: str):
+        return getattr(self._bus, name)
 
 
 class DriverContext:
-    """What the supervisor hands a driver: the bus, a logger and the store."""
+    """What the supervisor hands a driver: the (gated) bus, a logger and the store."""
 
-    def __init__(self, bus: Bus, log: structlog.typing.FilteringBoundLogger, record):
-        self.bus = bus
+    def __init__(self, bus: Bus, log: structlog.typing.FilteringBoundLogger, record,
+                 plausible: Plausibility | None = None):
+        self.bus = GatedBus(bus, plausible or Plausibility(), log, record)
         self.log = log
         self.record = record   # record(kind, payload) -> None, durable, never raises
 
@@ -39,6 +93,8 @@ class Driver:
         self.name = name
         self.ctx: DriverContext | None = None
         self.last_data_t: float | None = None
+        # bounds of what a peer may plausibly send ([<table>.plausible]), checked by the framework
+        self.plausible = Plausibility.from_section(section.getsection("plausible", required=False))
 
     async def connect(self) -> None:
         """Open the link; raise on failure."""

@@ -60,6 +60,14 @@ def _store_line(st: dict) -> str:
     return line
 
 
+def _print_implausible(entry: dict) -> None:
+    """Values a peer sent that the plausibility check refused (lathed.plausible), by quantity and reason."""
+    bad = entry.get("implausible")
+    if bad:
+        print("    implausible values refused: " + ", ".join(
+            f"{q} {r} {n}" for q, reasons in bad.items() for r, n in reasons.items()))
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     st = remote(args, "status")
     if args.json:
@@ -78,9 +86,11 @@ def cmd_status(args: argparse.Namespace) -> int:
             continue
         rpm = "-" if m.get("spindle_rpm") is None else f"{m['spindle_rpm']:.0f} r/min"
         print(f"  {m['name']:<12} {m.get('kind') or '-':<10} {rpm:>12}  {m['detail']}")
+        _print_implausible(m)
     print("sensors:")
     for s in st["sensors"]:
         print(f"  {s['name']:<12} {s['detail']:<12} age {_age(s.get('age_s')):<8} {_fmt_value(s.get('last_value'))}")
+        _print_implausible(s)
     if not st["sensors"]:
         print("  (none)")
     print("analyzers:")

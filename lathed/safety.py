@@ -65,6 +65,11 @@ class SafetyGuard:
         now = self._clock()
         last = self._last.get((cmd.machine, cmd.action))
         ref = current if current is not None else (last[0] if last else None)
+        # a NaN reference makes every "step > max" comparison False: refuse instead
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float))
+                                or not math.isfinite(ref)):
+            which = "machine's present value" if current is not None else "last command sent"
+            return f"{cmd.action} reference ({which}) {ref!r} is not a finite number; cannot bound the step"
         if cmd.action == "spindle_rpm":
             if lim.rpm_max <= 0:
                 return "spindle speed commands are not allowed on this machine (spindle_rpm_max not set)"

@@ -215,7 +215,8 @@ class Supervisor:
         self._cmd_locks: dict[str, asyncio.Lock] = {}
         self._register_control = register_control
         for name, (inst, drv) in plan.drivers.items():
-            drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name))
+            drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name),
+                                    getattr(drv, "plausible", None))
             self.runners[name] = Runner(inst.category, name, drv, *self._retry(inst), self.record)
         self._controls: dict[str, dict[str, Any]] = {}
         for name, (inst, an) in plan.analyzers.items():
@@ -333,7 +334,7 @@ class Supervisor:
             base = {"name": name, "plugin": self.plan.drivers[name][0].plugin, "state": r.state,
                     "detail": r.describe(), "last_error": r.last_error, "failures": r.failures,
                     "age_s": age}
-            extra = _safe(drv.status)
+            extra = {**_safe(drv.ctx.bus.plausible.status), **_safe(drv.status)}
             if drv.role == "machine":
                 machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"), **extra})
             else:

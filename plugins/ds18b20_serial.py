@@ -6,30 +6,48 @@
     baudrate = 115200
     stale_after = "20s"     # a sensor with no valid reading for this long is stale;
                             # no valid reading from any: the port is re-opened
+    checksum = "any"        # "crc16": refuse lines with the legacy 8-bit XOR
+    sensors = ["front_bearing", "rear_bearing", "motor", "room"]
+                            # optional: the names expected; any other is refused as unknown_sensor
+    max_sensors = 32        # without a list: names learned, at most this many at once
+    forget_after = "10min"  # a name with no valid reading for this long is forgotten
 
 The Arduino sends one line per read cycle of all its sensors, every 6 s:
 
-    T,<seq>,<uptime_ms>,<name>=<celsius>[,<name>=<celsius>...]*<XX>\\r\\n
+    T,<seq>,<uptime_ms>,<name>=<celsius>[,<name>=<celsius>...]*<CCCC>\\r\\n
 
-``seq`` counts read cycles since the Arduino booted, ``XX`` is the XOR of
-every byte from ``T`` up to ``*`` in hex. Each sensor name becomes a
-quantity ``t_<name>`` in °C.
+``seq`` counts read cycles since the Arduino booted, ``CCCC`` is the
+CRC-16 of every byte from ``T`` up to ``*`` in hex (two hex digits: the
+legacy XOR, accepted unless ``checksum = "crc16"``). Each sensor name
+(1-24 of ``A-Za-z0-9_``) becomes a quantity ``t_<name>`` in °C, which the
+framework checks for plausibility (range, rate: lathed.plausible) before it
+reaches the bus.
 
 What is rejected, and counted by reason in ``lathectl status``:
 ``power_on_85`` (the DS18B20's 85.0 before its first conversion),
 ``disconnected_-127`` (its reading when the wire is off), ``out_of_range``
 (outside the part's -55..125 °C), ``malformed`` (no checksum, bad checksum,
-bad fields, over-long garbage), ``duplicate`` (a line whose seq was already
-seen, e.g. replayed after a reconnect). ``lost_lines`` counts the gaps in
-seq (lines sent while nobody listened), ``arduino_restarted`` the times its
-uptime went back. A sensor that stops giving valid readings goes stale
-(its last value kept, marked stale); when none gives one for
-``stale_after`` or the port disappears (USB cable pulled), the port is
-closed and re-opened with backoff until it is back.
+bad fields, over-long garbage), ``weak_checksum`` (an XOR line when CRC-16
+is required), ``bad_name``, ``unknown_sensor`` (not in ``sensors``),
+``too_many_sensors`` (a new name beyond ``max_sensors``), ``duplicate`` (the
+same line, same seq and uptime, again), ``implausible`` (refused by the
+plausibility check).
+
+The sequence state recovers by itself: ``arduino_restarted`` counts the times
+its uptime went back (a reboot); ``resync`` the times seq went back while
+uptime went on (a board swap) or jumped further than the line could have
+carried lines in the uptime elapsed (a corrupted line): the new numbering
+is taken, nothing is locked out. ``lost_lines`` counts the plausible gaps in
+seq (lines sent while nobody listened, also across a reconnect). After a
+reconnect the first line is taken whatever its seq (no duplicate, no resync). A sensor that stops giving valid readings goes stale (its last
+value kept, marked stale) and is forgotten after ``forget_after``; when
+none gives one for ``stale_after`` or the port disappears (USB cable
+pulled), the port is closed and re-opened with backoff until it is back.
 """
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 from collections import Counter
 
@@ -44,6 +62,8 @@ from lathed.wire import LineError, parse_temperature_line
 POWER_ON_C = 85.0
 DISCONNECTED_C = -127.0
 MAX_LINE = 512   # bytes; a real line is < 100, so anything longer is noise
+MIN_LINE = 10    # bytes of the shortest line, b"T,0,0*0000" less its end: bounds lines per second
+NAME = re.compile(r"[A-Za-z0-9_]{1,24}")
 
 
 class DS18B20Serial(Driver):
@@ -55,14 +75,30 @@ class DS18B20Serial(Driver):
         self.port = section.getstr("port")
         self.baudrate = section.getint("baudrate", 115200, minval=300, maxval=4_000_000)
         self.stale_after = section.getduration("stale_after", 20.0, minval=0.1, maxval=3600)
+        self.require_crc = section.getstr("checksum", "any", choices=("any", "crc16")) == "crc16"
+        expected = section.getlist("sensors", None)
+        if expected is not None:
+            bad = [n for n in expected if not NAME.fullmatch(n)]
+            if bad or not expected:
+                raise section.error("sensors", f"{bad[0]!r} is not a sensor name (1-24 of A-Za-z0-9_)"
+                                    if bad else "an empty list would refuse every sensor")
+        self.expected = frozenset(expected) if expected is not None else None
+        self.max_sensors = section.getint("max_sensors", 32, minval=1, maxval=256)
+        self.forget_after = section.getduration("forget_after", 600.0, minval=1.0, maxval=30 * 86400)
+        if self.forget_after <= self.stale_after:
+            raise section.error("forget_after", f"must be longer than stale_after ({self.stale_after:g} s)")
+        # lines per ms the link can carry at most: seq cannot advance faster
+        self._lines_per_ms = self.baudrate / 10 / 1000 / MIN_LINE
         self.ser: serial.Serial | None = None
         self.rejected: Counter = Counter()
         self.accepted = 0
         self.lines = 0
         self.last_line_error: str | None = None
         self.readings: dict[str, tuple[float, float]] = {}   # sensor -> (celsius, t)
-        self._last_seq: int | None = None
-        self._last_uptime: int | None = None
+        self.checksums: Counter = Counter()                  # lines by checksum kind
+        self.forgotten = 0
+        self._last: tuple[int, int] | None = None            # (seq, uptime_ms) of the last line taken
+        self._fresh = True                                   # no line taken since (re)connecting
         self._partial = b""
 
     async def connect(self) -> None:
@@ -73,6 +109,7 @@ class DS18B20Serial(Driver):
         try:
             self.ser = await asyncio.to_thread(opener)
             self._partial = b""
+            self._fresh = True   # another board may be on the port now: its numbering is taken as it comes
         except (serial.SerialException, OSError) as e:
             raise ConnectionError(f"cannot open {self.port}: {e} (Arduino unplugged?)") from None
 
@@ -89,36 +126,78 @@ class DS18B20Serial(Driver):
             self.last_line_error = "line too long or not terminated (noise on the line?)"
             return 0
         try:
-            seq, uptime, readings = parse_temperature_line(raw)
+            seq, uptime, readings, checksum = parse_temperature_line(raw)
         except LineError as e:
             self.rejected["malformed"] += 1
             self.last_line_error = str(e)
             return 0
-        if self._last_seq is not None:
-            if self._last_uptime is not None and uptime < self._last_uptime:
-                self._restarted()
-            elif seq <= self._last_seq:
-                self.rejected["duplicate"] += 1
-                return 0
-            elif seq > self._last_seq + 1:
-                self.rejected["lost_lines"] += seq - self._last_seq - 1
-        self._last_seq, self._last_uptime = seq, uptime
+        if self.require_crc and checksum != "crc16":
+            self.rejected["weak_checksum"] += 1
+            self.last_line_error = "line has the legacy 8-bit XOR checksum; checksum = \"crc16\" requires CRC-16"
+            return 0
+        self.checksums[checksum] += 1
+        if not self._sequence(seq, uptime):
+            return 0
+        self._forget_silent(now)
         good = 0
         for name, celsius in readings.items():
-            if celsius == POWER_ON_C:
+            if not NAME.fullmatch(name):
+                self.rejected["bad_name"] += 1
+                self.last_line_error = f"sensor name {name[:32]!r} is not 1-24 of A-Za-z0-9_"
+            elif self.expected is not None and name not in self.expected:
+                self.rejected["unknown_sensor"] += 1
+                self.last_line_error = f"sensor {name!r} is not in sensors = [...]"
+            elif name not in self.readings and self.expected is None and len(self.readings) >= self.max_sensors:
+                self.rejected["too_many_sensors"] += 1
+                self.last_line_error = f"new sensor {name!r} beyond max_sensors = {self.max_sensors}"
+            elif celsius == POWER_ON_C:
                 self.rejected["power_on_85"] += 1
             elif celsius == DISCONNECTED_C:
                 self.rejected["disconnected_-127"] += 1
             elif not -55.0 <= celsius <= 125.0:
                 self.rejected["out_of_range"] += 1
-            else:
+            elif self.ctx.bus.publish(Sample(self.name, f"t_{name}", celsius, "°C", now)):
                 good += 1
                 self.readings[name] = (celsius, now)
-                self.ctx.bus.publish(Sample(self.name, f"t_{name}", celsius, "°C", now))
+            else:
+                self.rejected["implausible"] += 1
         self.accepted += good
         if good:
             self.mark_data()
         return good
+
+    def _sequence(self, seq: int, uptime: int) -> bool:
+        """Follow the Arduino's numbering; False only for a replay of the last line."""
+        last, self._last = self._last, (seq, uptime)
+        fresh, self._fresh = self._fresh, False
+        if last is None:
+            return True
+        last_seq, last_uptime = last
+        if (seq, uptime) == last and not fresh:
+            self.rejected["duplicate"] += 1
+            return False
+        if uptime < last_uptime:
+            self._restarted()
+        elif seq <= last_seq or seq - last_seq > 2 + (uptime - last_uptime) * self._lines_per_ms:
+            # a swapped board, or a line whose seq no link could have reached: take the new numbering
+            # (after a reconnect that is simply where the numbering now is)
+            if fresh:
+                return True
+            self.rejected["resync"] += 1
+            self.ctx.log.warning("serial_resync", port=self.port, seq_from=last_seq, seq_to=seq,
+                                 uptime_ms=uptime - last_uptime)
+        elif seq > last_seq + 1:
+            self.rejected["lost_lines"] += seq - last_seq - 1
+        return True
+
+    def _forget_silent(self, now: float) -> None:
+        for name, (_, t) in list(self.readings.items()):
+            if now - t > self.forget_after:
+                del self.readings[name]
+                self.ctx.bus.forget(self.name, f"t_{name}")
+                self.forgotten += 1
+                self.ctx.log.info("sensor_forgotten", port=self.port, sensor=name,
+                                  silent_s=round(now - t))
 
     def _restarted(self) -> None:
         self.rejected["arduino_restarted"] += 1
@@ -148,6 +227,7 @@ class DS18B20Serial(Driver):
     def status(self) -> dict:
         now = time.time()
         return {"accepted": self.accepted, "rejected": dict(self.rejected), "lines": self.lines,
+                "checksums": dict(self.checksums), "forgotten": self.forgotten,
                 "last_line_error": self.last_line_error, "port": self.port,
                 "sensors": {n: {"celsius": v, "age_s": round(now - t, 3),
                                 "stale": self.ser is None or now - t > self.stale_after}

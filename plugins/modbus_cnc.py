@@ -40,6 +40,11 @@ The machine model (lathed.machine) is filled from registers by name:
 ``spindle_rpm``, ``part_count``, ``cycle_time_s``, ``program_number``
 (program), ``program_state`` (0 idle, 1 running, 2 alarm), ``alarm_code``
 (0: none), and ``<axis>_mm`` / ``<axis>_deg`` for axis positions (x_mm, b_deg).
+
+Every value read passes the framework's plausibility check (lathed.plausible,
+``[machine.lathe.plausible]``) before it reaches the model, the bus or
+``current()``: a float32 NaN, or a speed outside 0..100000 r/min, is refused
+and counted, and the register's last good value goes stale.
 """
 from __future__ import annotations
 
@@ -306,9 +311,11 @@ class ModbusCNC(Driver):
             for r in members:
                 off = r.address - start
                 v = r.decode(rr.registers[off:off + r.count])
-                self.values[r.name] = (v, now)
-                self._to_model(r.name, v, now)
-                self.ctx.bus.publish(Sample(self.name, r.name, v, r.unit, now))
+                # a float32 NaN or an implausible speed must reach neither the
+                # machine model nor current() (the guard's step reference)
+                if self.ctx.bus.publish(Sample(self.name, r.name, v, r.unit, now)):
+                    self.values[r.name] = (v, now)
+                    self._to_model(r.name, v, now)
         self.polls += 1
         self.mark_data()
 

@@ -5,14 +5,21 @@
     host = "127.0.0.1"
     port = 15021
     timeout = "2s"          # no frame for this long: the link is re-opened
+    rate_min = 100.0        # Hz: a frame claiming a sample rate outside
+    rate_max = 1000000.0    #     rate_min..rate_max is refused
 
 Publishes each frame as a Block (quantity "acceleration", m/s²) and its RMS
 as a Sample. Gaps in the stream's sample counter are counted, never hidden.
+A frame whose header is implausible (sample rate out of range, spindle speed
+NaN or negative) is refused, counted by reason in ``refused_frames`` and
+reported, and its samples skipped so the stream stays in step; a header
+that is not one (bad magic) re-opens the link.
 """
 from __future__ import annotations
 
 import asyncio
 import math
+from collections import Counter
 
 import numpy as np
 
@@ -20,7 +27,7 @@ from lathed import hookimpl
 from lathed.bus import Block, Sample
 from lathed.config import Section
 from lathed.driver import Driver
-from lathed.wire import VIB_HEADER, unpack_vibration_header
+from lathed.wire import VIB_HEADER, VIB_RATE_MAX, VIB_RATE_MIN, unpack_vibration_header, vibration_header_problem
 
 MAX_FRAME_SAMPLES = 1 << 16
 
@@ -34,6 +41,11 @@ class VibrationTCP(Driver):
         self.host = section.getstr("host")
         self.port = section.getint("port", minval=1, maxval=65535)
         self.timeout = section.getduration("timeout", 2.0, minval=0.05, maxval=600)
+        self.rate_min = section.getfloat("rate_min", VIB_RATE_MIN, minval=1.0, maxval=VIB_RATE_MAX)
+        self.rate_max = section.getfloat("rate_max", VIB_RATE_MAX, minval=1.0, maxval=100 * VIB_RATE_MAX)
+        if self.rate_min > self.rate_max:
+            raise section.error("rate_min", f"{self.rate_min:g} is above rate_max {self.rate_max:g}")
+        self.refused_frames: Counter = Counter()
         self.reader: asyncio.StreamReader | None = None
         self.writer: asyncio.StreamWriter | None = None
         self.frames = 0
@@ -68,6 +80,13 @@ class VibrationTCP(Driver):
             except TimeoutError:
                 raise TimeoutError(f"no vibration frame from {self.host}:{self.port} for {self.timeout:g} s "
                                    "(DAQ stopped or cable out?)") from None
+            bad = vibration_header_problem(rate, rpm, self.rate_min, self.rate_max)
+            if bad is not None:
+                # well-formed but implausible: skip its samples, the stream stays in step
+                self.refused_frames[bad[0]] += 1
+                self.ctx.bus.report("acceleration", None, *bad)
+                self._next_seq = None
+                continue
             data = np.frombuffer(body, dtype="<f4").reshape(n, channels)[:, 0].astype(np.float64)
             if self._next_seq is not None and seq != self._next_seq:
                 if seq > self._next_seq:
@@ -82,7 +101,8 @@ class VibrationTCP(Driver):
             self.ctx.bus.publish(Sample(self.name, "rms", math.sqrt(float(data @ data) / n), "m/s²", t0))
 
     def status(self) -> dict:
-        return {"rate_hz": self.rate_hz, "frames": self.frames, "lost_samples": self.lost_samples}
+        return {"rate_hz": self.rate_hz, "frames": self.frames, "lost_samples": self.lost_samples,
+                "refused_frames": dict(self.refused_frames)}
 
 
 @hookimpl

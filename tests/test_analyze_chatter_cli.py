@@ -163,3 +163,32 @@ def test_csv_flat_tops_reported_as_clipping(tmp_path):
     assert sig.clipped > 100 and sig.first_clip_s is not None
     np.savetxt(f, np.sin(np.linspace(0, 40 * np.pi, 4001)))
     assert read_signal(f, rate_hz=RATE).clipped == 0
+
+
+def test_a_valid_1hz_wav_is_one_line_not_a_traceback(tmp_path, capsys):
+    """issue 18 D5: a 1 Hz recording raised ZeroDivisionError (a zero-sample window)."""
+    p = tmp_path / "slow.wav"
+    wavfile.write(p, 1, (np.sin(np.arange(200) * 0.3) * 10000).astype(np.int16))
+    code, out, err = _cli([str(p), "--rpm", "1000"], capsys)
+    assert code == 65 and out == ""
+    assert err == f"lathectl: sample rate 1 Hz is outside the 100..1e+06 Hz of an accelerometer recording ({p})\n"
+
+
+def test_rpm_beyond_any_spindle_is_a_usage_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", str(tmp_path / "x.wav"), "--rpm", "1e308"])
+    assert e.value.code == 2 and "1e308 r/min is beyond any spindle" in capsys.readouterr().err
+
+
+def test_float_wav_in_physical_units_is_not_clipped_and_nan_is_not_a_clip(tmp_path):
+    """issue 18 D12: a float WAV in m/s² peaking above 1.0 got "clipped samples" warnings; inf counted as clips."""
+    x = (np.sin(np.arange(RATE) * 0.05) * 30.0).astype(np.float32)
+    x[100:110] = np.inf
+    p = tmp_path / "ms2.wav"
+    wavfile.write(p, RATE, x)
+    sig = read_signal(p)
+    assert sig.clipped == 0 and "10 NaN/infinite samples filled" in sig.notes[0]
+    # a float recording that did saturate still shows it: flat tops at its extremes
+    x = np.clip(np.sin(np.arange(RATE) * 0.05) * 30.0, -20.0, 20.0).astype(np.float32)
+    wavfile.write(p, RATE, x)
+    assert read_signal(p).clipped > 0

@@ -123,3 +123,10 @@ def test_too_slow_blocks_dropped_then_followed():
     rng = np.random.default_rng(3)
     wins = _run(det, rng.normal(0, 1, int(RATE)), 1800.0)
     assert wins and not det.too_slow
+
+
+@pytest.mark.parametrize("name", sorted(DETECTORS))
+def test_a_rate_too_low_for_a_window_is_refused_at_configuration(name):
+    """issue 18 D5: at 1 Hz a window held zero samples (ZeroDivisionError) or a hop of 0 never advanced."""
+    with pytest.raises(ValueError, match=rf"sample rate 1 Hz is too low for the {name} detector"):
+        make_detector(name, 1.0)

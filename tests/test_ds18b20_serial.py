@@ -13,7 +13,7 @@ from lathed.config import Section
 from lathed.driver import DriverContext
 from lathed.sim.serial_peer import SerialPeer
 from lathed.supervisor import Runner
-from lathed.wire import format_temperature_line
+from lathed.wire import crc16, format_temperature_line, xor_checksum
 from plugins.ds18b20_serial import DS18B20Serial
 
 
@@ -43,13 +43,88 @@ def test_sequence_duplicates_gaps_and_restarts():
     d = sensor()
     d.handle_line(line(5, 1000, room=20.0), 1.0)
     assert d.handle_line(line(5, 1000, room=20.0), 1.1) == 0          # the same line again
-    assert d.handle_line(line(4, 1100, room=20.0), 1.2) == 0          # seq back, clock not: not new
-    assert d.rejected["duplicate"] == 2
+    assert d.rejected["duplicate"] == 1
     d.handle_line(line(9, 1600, room=20.0), 2.0)
     assert d.rejected["lost_lines"] == 3
     assert d.handle_line(line(0, 50, room=20.0), 3.0) == 1            # rebooted: uptime went back
     assert d.rejected["arduino_restarted"] == 1
     assert d.accepted == 3
+
+
+def test_one_line_with_a_huge_seq_does_not_lock_out_the_temperatures():
+    """issue 18 D4: seq 10**12 with uptime 0 made every later line a duplicate, until restart."""
+    d = sensor()
+    d.handle_line(line(5, 30_000, room=20.0), 1.0)
+    assert d.handle_line(line(10**12, 0, room=20.0), 2.0) == 1         # uptime back: taken as a reboot
+    assert d.handle_line(line(6, 36_000, room=20.1), 7.0) == 1        # seq back, uptime on: resync
+    assert d.handle_line(line(7, 42_000, room=20.2), 13.0) == 1
+    assert d.rejected["resync"] == 1 and "duplicate" not in d.rejected
+    # a jump no 115200 baud line could carry in 6 s of uptime: resync, not a billion lost lines
+    assert d.handle_line(line(10**9, 48_000, room=20.3), 19.0) == 1
+    assert d.handle_line(line(9, 54_000, room=20.3), 25.0) == 1
+    assert d.rejected["resync"] == 3 and d.rejected.get("lost_lines", 0) == 0
+
+
+def test_a_board_swapped_for_one_with_a_lower_seq_is_followed():
+    d = sensor()
+    d.handle_line(line(500, 3_000_000, room=20.0), 1.0)
+    assert d.handle_line(line(3, 3_006_000, room=20.1), 7.0) == 1
+    assert d.handle_line(line(4, 3_012_000, room=20.1), 13.0) == 1
+    assert d.rejected["resync"] == 1
+
+
+def test_reconnect_starts_the_sequence_afresh(tmp_path):
+    link = tmp_path / "tty"
+    peer = SerialPeer(link)
+    peer.open()
+    try:
+        d = sensor(str(link))
+        d.handle_line(line(0, 1000, room=20.0), 1.0)
+        d.handle_line(line(10**12, 5000, room=20.0), 1.0)
+        asyncio.run(d.connect())
+        assert d.handle_line(line(10**12, 5000, room=20.0), 2.0) == 1     # not a duplicate after a reconnect
+        assert d.handle_line(line(2, 6000, room=20.0), 3.0) == 1
+        assert d.rejected == {"resync": 2}     # before the reconnect, and the one after the stale seq
+        asyncio.run(d.close())
+    finally:
+        peer.close()
+
+
+def test_crc16_lines_and_legacy_xor():
+    d = sensor()
+    assert line(0, 0, room=20.0).endswith(b"*%04X\r\n" % crc16(b"T,0,0,room=20.0000"))
+    # two flips in one bit column pass the XOR; the CRC catches them
+    good = format_temperature_line(1, 6000, {"room": 20.0}, checksum="xor8")
+    flipped = good.replace(b"room=20", b"room=31")   # '2'^'3' == '0'^'1': the XOR is unchanged
+    assert xor_checksum(good[:good.index(b"*")]) == xor_checksum(flipped[:flipped.index(b"*")])
+    assert d.handle_line(good, 1.0) == 1 and d.checksums == {"xor8": 1}
+    crc_flipped = line(2, 12000, room=20.0).replace(b"room=20", b"room=31")
+    assert d.handle_line(crc_flipped, 2.0) == 0 and "crc16 checksum mismatch" in d.last_line_error
+    strict = DS18B20Serial("temps", Section("t.toml", "sensor.temps", {"port": "/dev/null", "checksum": "crc16"}))
+    strict.ctx = d.ctx
+    assert strict.handle_line(good, 3.0) == 0 and strict.rejected == {"weak_checksum": 1}
+
+
+def test_sensor_names_checked_capped_and_forgotten():
+    d = sensor()
+    d.max_sensors = 3
+    junk = {"room": 20.0, "a b": 20.0, "x" * 40: 20.0, "s1": 20.0, "s2": 20.0, "s3": 20.0}
+    assert d.handle_line(line(0, 0, **junk), 1.0) == 3
+    assert d.rejected == {"bad_name": 2, "too_many_sensors": 1}
+    assert sorted(d.status()["sensors"]) == ["room", "s1", "s2"]
+    # a name silent for forget_after is forgotten, from status and the bus, freeing its place
+    d.handle_line(line(1, 6000, room=20.0, s1=20.0), 1.0 + d.forget_after / 2)
+    d.handle_line(line(2, 12000, room=20.0, s3=20.0), 2.0 + d.forget_after)
+    assert sorted(d.status()["sensors"]) == ["room", "s1", "s3"] and d.forgotten == 1
+    assert ("temps", "t_s2") not in d.ctx.bus.latest
+
+
+def test_expected_sensors_listed():
+    d = DS18B20Serial("temps", Section("t.toml", "sensor.temps", {"port": "/dev/null",
+                                                                  "sensors": ["room", "motor"]}))
+    d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
+    assert d.handle_line(line(0, 0, room=20.0, motor=30.0, junk=1.0), 1.0) == 2
+    assert d.rejected == {"unknown_sensor": 1}
 
 
 def test_a_sensor_that_stops_reporting_goes_stale():

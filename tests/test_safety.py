@@ -93,6 +93,21 @@ def test_nothing_outside_limits_ever_passes(value, current):
         assert math.isfinite(value) and 300 <= value <= 6000 and abs(value - current) <= 2000
 
 
+@pytest.mark.parametrize("current", [math.nan, math.inf, -math.inf])
+def test_non_finite_reference_refused(current):
+    """issue 18 D6: abs(v - nan) > step is False, so a NaN present value let any step through."""
+    g, _ = guard()
+    why = g.check(cmd("spindle_rpm", 6000.0), current=current)
+    assert why is not None and "not a finite number" in why and "present value" in why
+
+
+@given(st.floats(allow_nan=True, allow_infinity=True), st.floats(allow_nan=True, allow_infinity=True))
+def test_nothing_passes_against_any_reference(value, current):
+    g, _ = guard()
+    if g.check(cmd("spindle_rpm", value), current=current) is None:
+        assert math.isfinite(current) and abs(value - current) <= 2000
+
+
 def test_limits_from_config():
     lim = Limits.from_section(Section("f", "machine.l.limits", {"spindle_rpm_max": 4000.0,
                                                                 "spindle_rpm_min": 100.0}))

@@ -85,3 +85,20 @@ def test_empty_or_all_bad_is_65(tmp_path, text):
 def test_unknown_columns_are_listed_not_silently_dropped(tmp_path):
     d, rep = load_thermal_csv(write(tmp_path, "time_s,part_id,t_motor_c,displacement_um\n0,a,20,0\n6,b,20.5,1\n"))
     assert rep.ignored_columns == ["part_id"] and rep.to_json()["ignored_columns"] == ["part_id"]
+
+
+@pytest.mark.parametrize("col, value, allowed", [
+    ("t_front_bearing_c", "1e308", "-55..150"), ("displacement_um", "-1e300", "-100000..100000"),
+    ("spindle_rpm", "1e9", "0..100000"), ("time_s", "1e308", "-1e+10..1e+10")])
+def test_physically_implausible_value_refused_naming_file_line_column(tmp_path, col, value, allowed):
+    """issue 18 D12: a 1e308 reading gave "error nan µm" and an effect found, exit 0."""
+    rows = {"time_s": ["0", "1", "2"], "spindle_rpm": ["1000"] * 3, "t_front_bearing_c": ["20", "21", "22"],
+            "displacement_um": ["0", "1", "2"]}
+    rows[col][1] = value
+    text = "time_s,spindle_rpm,t_front_bearing_c,displacement_um\n" + "".join(
+        ",".join(rows[c][i] for c in ("time_s", "spindle_rpm", "t_front_bearing_c", "displacement_um")) + "\n"
+        for i in range(3))
+    p = write(tmp_path, text)
+    with pytest.raises(ThermalCsvError) as e:
+        load_thermal_csv(p)
+    assert str(e.value) == f"{col} = {value} is outside the physically plausible {allowed} ({p}, line 3, column {col})"

@@ -44,6 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+MIN_WINDOW_SAMPLES = 16
 _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
 
 
@@ -103,6 +104,13 @@ class RevolutionDetector:
             self.params[key] = v
         if self.params["fmin_hz"] >= self.params["fmax_hz"]:
             raise ValueError(f"detector {self.name!r}: fmin_hz must be below fmax_hz")
+        # the shortest window and hop must hold samples, or a window is empty
+        # (division by zero) and a hop of 0 never advances (issue 18 D5)
+        short = min(self.params["min_window_s"] / MIN_WINDOW_SAMPLES, self.params["min_hop_s"])
+        if short * self.rate < 1.0:
+            raise ValueError(f"sample rate {self.rate:g} Hz is too low for the {self.name} detector: it needs "
+                             f"at least {1.0 / short:g} Hz ({MIN_WINDOW_SAMPLES} samples per "
+                             f"{self.params['min_window_s']:g} s window)")
         self.threshold = self.params["threshold"]
         self._x = np.empty(_HIST)
         self._th = np.empty(_HIST)

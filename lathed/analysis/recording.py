@@ -1,5 +1,7 @@
 """Reading vibration recordings: WAV (PCM 8/16/24/32-bit, float 32/64,
-WAVE_FORMAT_EXTENSIBLE) and CSV, with clipped-sample detection.
+WAVE_FORMAT_EXTENSIBLE) and CSV, with clipped-sample detection: PCM samples
+at the converter's full scale; float WAV and CSV (no known full scale, often
+physical units) runs of equal samples at the recording's extremes.
 
 The standard library's ``wave`` cannot read float WAV, so the RIFF chunks are
 parsed here.  Errors are ``RecordingError`` carrying a one-line message that
@@ -98,7 +100,9 @@ def _read_wav(raw: bytes, src: str, channel: int) -> Signal:
     full = None
     if tag == _FLOAT and width in (4, 8):
         x = np.ascontiguousarray(buf).view("<f4" if width == 4 else "<f8").ravel().astype(float)
-        clip_mask = np.abs(x) >= 1.0
+        # a float WAV may hold physical units (m/s²): no full scale is known, so
+        # saturation is what it leaves, flat tops at the extremes (as in a CSV)
+        clip_mask = _flat_tops(x)
     elif tag == _PCM and width in (1, 2, 3, 4):
         if width == 1:
             ints = buf[:, 0].astype(np.int64) - 128          # 8-bit WAV is unsigned
@@ -196,7 +200,7 @@ def _flat_tops(x: np.ndarray, run: int = 3) -> np.ndarray:
     if not fin.any():
         return np.zeros(len(x), dtype=bool)
     hi, lo = np.max(x[fin]), np.min(x[fin])
-    at = (x == hi) | (x == lo)
+    at = ((x == hi) | (x == lo)) & fin      # a NaN or inf sample is missing, not clipped
     if at.sum() < run:
         return np.zeros(len(x), dtype=bool)
     edges = np.flatnonzero(np.r_[True, x[1:] != x[:-1], True])

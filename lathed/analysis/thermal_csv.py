@@ -5,8 +5,9 @@ Columns: ``time_s``, optional ``spindle_rpm``, temperature columns
 under its reason, when a DS18B20 glitch shows (85.0 °C is the power-on value
 read before the first conversion; −127 °C means the sensor is disconnected),
 a cell is empty or not a number (or NaN), or its time stamp repeats or runs
-backwards. A file that cannot be read, lacks a required column or has no
-usable row raises :class:`ThermalCsvError` with one line naming file and line.
+backwards. A file that cannot be read, lacks a required column, has a value
+outside what its quantity can physically be (lathed.plausible's bounds of its
+unit: °C, r/min, µm; time_s within ±1e10 s) or has no usable row raises :class:`ThermalCsvError` with one line naming file and line.
 """
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from lathed.analysis.thermal import ThermalData
+from lathed.plausible import UNIT_DEFAULTS
 
 EX_DATAERR = 65
 EX_NOINPUT = 66
@@ -58,6 +60,21 @@ class LoadReport:
 
 def _is_temp(name: str) -> bool:
     return name.startswith("t_") and name.endswith("_c") and len(name) > 4
+
+
+TIME_S_MAX = 1e10    # s: covers Unix time stamps; beyond it the column is not seconds
+
+
+def _plausible(col: str, temps: list[str]) -> tuple[float, float]:
+    if col in temps:
+        b = UNIT_DEFAULTS["°C"]
+    elif col == "spindle_rpm":
+        b = UNIT_DEFAULTS["r/min"]
+    elif col == "displacement_um":
+        b = UNIT_DEFAULTS["µm"]
+    else:
+        return -TIME_S_MAX, TIME_S_MAX
+    return b.lo, b.hi
 
 
 def load_thermal_csv(path: str | Path, need_displacement: bool = True) -> tuple[ThermalData, LoadReport]:
@@ -112,6 +129,11 @@ def load_thermal_csv(path: str | Path, need_displacement: bool = True) -> tuple[
             if math.isnan(v) or math.isinf(v):
                 reason = reason or "nan"
                 continue
+            lo, hi = _plausible(c, temps)
+            if not lo <= v <= hi and not (c in temps and v == DS18B20_DISCONNECTED_C):
+                # wrong units or a corrupt file, not a glitch of one row: refuse it whole
+                raise ThermalCsvError(f"{c} = {cell} is outside the physically plausible {lo:g}..{hi:g} "
+                                      f"({path}, line {lineno}, column {c})")
             if c in temps and v == DS18B20_DISCONNECTED_C:
                 reason = "sensor_disconnected_-127"
             elif c in temps and v == DS18B20_POWER_ON_C and reason != "sensor_disconnected_-127":

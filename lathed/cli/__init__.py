@@ -17,3 +17,14 @@ def positive(text: str) -> float:
     if not (v > 0 and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
     return v
+
+
+SPINDLE_RPM_MAX = 100_000.0    # beyond any machine-tool spindle (lathed.plausible's r/min bound)
+
+
+def spindle_rpm(text: str) -> float:
+    """argparse type: a spindle speed, > 0 and at most SPINDLE_RPM_MAX r/min."""
+    v = positive(text)
+    if v > SPINDLE_RPM_MAX:
+        raise argparse.ArgumentTypeError(f"{text} r/min is beyond any spindle (at most {SPINDLE_RPM_MAX:g})")
+    return v

@@ -18,9 +18,10 @@ import sys
 
 import numpy as np
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive, spindle_rpm
 from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analysis.recording import RecordingError, read_signal
+from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
 
 BLOCK = 4096
 
@@ -42,7 +43,7 @@ def register_analyze(sub) -> None:
                                    "recording, or from --reference (a stable cut).")
     p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float) or CSV "
                    "(time_s plus one signal column, or one column with --rate)")
-    p.add_argument("--rpm", type=positive, required=True, help="spindle speed in r/min")
+    p.add_argument("--rpm", type=spindle_rpm, required=True, help="spindle speed in r/min")
     p.add_argument("--rate", type=positive, metavar="HZ", help="sample rate of a CSV without time_s")
     p.add_argument("--channel", type=_channel, default=0, metavar="K",
                    help="WAV channel / CSV signal column, from 0 (default 0)")
@@ -76,11 +77,16 @@ def run(args, extra_detectors: dict | None = None) -> int:
     except RecordingError as e:
         _err(str(e))
         return EX_NOINPUT if e.missing else EX_DATAERR
+    if not VIB_RATE_MIN <= sig.rate_hz <= VIB_RATE_MAX:
+        _err(f"sample rate {sig.rate_hz:g} Hz is outside the {VIB_RATE_MIN:g}..{VIB_RATE_MAX:g} Hz of an "
+             f"accelerometer recording ({args.file})")
+        return EX_DATAERR
     try:
         det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors)
     except ValueError as e:
-        _err(f"{e} (--detector)")
-        return 2
+        known = args.detector in DETECTORS or args.detector in (extra_detectors or {})
+        _err(f"{e} ({args.file if known else '--detector'})")
+        return EX_DATAERR if known else 2
     try:
         if ref is not None:
             if abs(ref.rate_hz - sig.rate_hz) > 1e-6 * sig.rate_hz:

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from lathed.cli import EX_CANTCREAT, positive
+from lathed.cli import EX_CANTCREAT, positive, spindle_rpm
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import parse_mode
 
@@ -27,7 +27,7 @@ def _range(text: str) -> tuple[float, float]:
     parts = text.split(":")
     if len(parts) != 2:
         raise argparse.ArgumentTypeError(f"range {text!r}: expected MIN:MAX in r/min")
-    lo, hi = (positive(p) for p in parts)
+    lo, hi = (spindle_rpm(p) for p in parts)
     if not lo < hi:
         raise argparse.ArgumentTypeError(f"range {text!r}: MIN must be below MAX")
     return lo, hi
@@ -43,7 +43,7 @@ def register_analyze(sub) -> None:
                         "angle from the surface normal (repeat for several modes)")
     p.add_argument("--kf", type=positive, required=True, metavar="N_PER_M2",
                    help="cutting-force coefficient along the chip-thickness direction")
-    p.add_argument("--rpm", type=positive, help="also report the limiting depth at this speed")
+    p.add_argument("--rpm", type=spindle_rpm, help="also report the limiting depth at this speed")
     p.add_argument("--range", dest="rpm_range", type=_range, default=(500.0, 6000.0),
                    metavar="MIN:MAX", help="spindle speed range in r/min (default 500:6000)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")

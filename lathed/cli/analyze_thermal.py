@@ -3,6 +3,7 @@ run, find the effects the static regression lacks, report before/after."""
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -88,6 +89,10 @@ def run(args) -> int:
         a = analyze(train, test)
     except ValueError as e:
         return _fail(f"{e} ({args.train})", EX_DATAERR)
+    if not (math.isfinite(a.baseline.test_rmse_um) and math.isfinite(a.final.test_rmse_um)):
+        # never report "error nan µm" and an effect found on numbers that overflowed
+        return _fail(f"the fit gave no finite error (values too large to fit together?) ({args.train})",
+                     EX_DATAERR)
     _warn_rejected(args.train, rep)
     if trep is not None:
         _warn_rejected(args.test, trep)

@@ -3,7 +3,8 @@ modem of two pseudo-terminals for the grinder's Modbus RTU line.
 
 The pty's slave end is what a real USB-serial Arduino would be
 (/dev/ttyACM0); a symlink at a stable path points to it so the config
-can name it.
+can name it. Lines carry the CRC-16 checksum (lathed.wire), as the current
+firmware sends them.
 """
 from __future__ import annotations
 

@@ -1,0 +1,168 @@
+"""Is a value from a peer physically plausible? Judged before it reaches the bus.
+
+Every value a driver publishes passes this check (lathed.driver.GatedBus), so
+analyzers, the machine model and the safety guard never see a NaN, a value
+outside what the quantity can physically be, or a jump faster than it can
+physically change (a 124.99 °C bearing 0.3 s after 30 °C is a bit error, not
+heat). Numeric only, no asyncio.
+
+Bounds per quantity come from the instance's ``plausible`` sub-table, by exact
+quantity name or a glob, else from the defaults of the value's unit::
+
+    [sensor.temps.plausible]
+    confirm = 3                                    # consistent readings that confirm a jump
+    t_front_bearing = { min = 10, max = 90, rate = 1.0 }
+    "t_*" = { rate = 2.0, tol = 0.5 }              # °C per s; tol: change always allowed
+
+``rate`` is judged against the last ACCEPTED value and the time since it, so
+after a long gap (a reconnect, a sensor back on its wire) any value within
+the range the elapsed time allows is accepted. A jump faster than ``rate`` is
+refused, unless ``confirm`` readings in a row agree with one another at that
+rate: then the new level is real (a sensor moved, or the first value accepted
+was the wrong one) and it is accepted and counted as ``rebased``. A single
+spike is never accepted; a wrong level cannot hold the sensor out forever.
+"""
+from __future__ import annotations
+
+import fnmatch
+import math
+from collections import Counter
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from lathed.config import Section
+
+INF = math.inf
+
+
+@dataclass(frozen=True)
+class Bounds:
+    lo: float = -INF
+    hi: float = INF
+    rate: float = INF     # largest change per second between accepted values
+    tol: float = 0.0      # a change always allowed (resolution, noise)
+
+
+# What the quantity can physically be, by unit. A unit not listed: finite only.
+UNIT_DEFAULTS: dict[str, Bounds] = {
+    # a machine structure or motor: DS18B20 range, and no spindle warms 2 °C in a second
+    "°C": Bounds(-55.0, 150.0, rate=2.0, tol=0.5),
+    "r/min": Bounds(0.0, 100_000.0),
+    "mm": Bounds(-100_000.0, 100_000.0),          # no machine axis travels 100 m
+    "µm": Bounds(-100_000.0, 100_000.0),
+    "deg": Bounds(-1e7, 1e7),                     # rotary axes count whole turns
+    "m/s²": Bounds(-1e6, 1e6),                    # 100 000 g: beyond any shock accelerometer
+    "%": Bounds(-1000.0, 1000.0),
+    "s": Bounds(0.0, 1e9),
+}
+CONFIRM = 3
+
+
+class Plausibility:
+    """The bounds of one driver's quantities and the state the rate check needs."""
+
+    def __init__(self, rules: dict[str, Bounds] | None = None, confirm: int = CONFIRM):
+        self.rules = dict(rules or {})
+        self.confirm = confirm
+        self._last: dict[str, tuple[float, float]] = {}          # quantity -> last accepted (value, t)
+        self._chain: dict[str, tuple[float, float, int]] = {}    # quantity -> (value, t, n) of a jump
+        self.rejected: dict[str, Counter] = {}                   # quantity -> reason -> count
+        self.rebased: Counter = Counter()
+
+    @classmethod
+    def from_section(cls, sec: Section) -> Plausibility:
+        confirm = sec.getint("confirm", CONFIRM, minval=1, maxval=100)
+        rules = {}
+        for sub in sec.subsections():
+            b = Bounds(sub.getfloat("min", -INF), sub.getfloat("max", INF),
+                       sub.getfloat("rate", INF, above=0.0), sub.getfloat("tol", 0.0, minval=0.0))
+            if b.lo > b.hi:
+                raise sub.error("min", f"{b.lo:g} is above max {b.hi:g}")
+            sub.check_unused()
+            rules[sub.name] = b
+        sec.check_unused()
+        return cls(rules, confirm)
+
+    def bounds(self, quantity: str, unit: str) -> Bounds | None:
+        """The quantity's rule (exact name, then the first glob that matches) merged
+        over its unit's defaults; None: no bounds, finite is enough."""
+        base = UNIT_DEFAULTS.get(unit)
+        rule = self.rules.get(quantity)
+        if rule is None:
+            rule = next((b for pat, b in self.rules.items() if fnmatch.fnmatchcase(quantity, pat)), None)
+        if rule is None:
+            return base
+        if base is None:
+            return rule
+        # keys the rule leaves out keep the unit's default
+        return replace(base, **{k: getattr(rule, k) for k in ("lo", "hi", "rate", "tol")
+                                if getattr(rule, k) != getattr(Bounds(), k)})
+
+    def check(self, quantity: str, unit: str, value: float, t: float) -> tuple[str, str] | None:
+        """None: accept (and remember) the value; else (reason, one-line why)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            return self._refuse(quantity, "not_finite", f"{quantity} = {value!r} is not a finite number")
+        b = self.bounds(quantity, unit)
+        if b is not None:
+            if not b.lo <= value <= b.hi:
+                return self._refuse(quantity, "out_of_range",
+                                    f"{quantity} = {value:g} {unit} outside the plausible [{b.lo:g}, {b.hi:g}]")
+            last = self._last.get(quantity)
+            if last is not None and not _within(b, last, value, t):
+                chain = self._chain.get(quantity)
+                n = chain[2] + 1 if chain is not None and _within(b, chain[:2], value, t) else 1
+                if n < self.confirm:
+                    self._chain[quantity] = (value, t, n)
+                    dt = t - last[1]
+                    return self._refuse(quantity, "rate",
+                                        f"{quantity} jumped {value - last[0]:+g} {unit} in {dt:.3g} s from "
+                                        f"{last[0]:g}; faster than the plausible {b.rate:g} {unit}/s")
+                self.rebased[quantity] += 1
+        self._chain.pop(quantity, None)
+        self._last[quantity] = (float(value), t)
+        return None
+
+    def check_block(self, quantity: str, unit: str, data: np.ndarray, rate_hz: float = 1.0,
+                    rpm: float | None = None) -> tuple[str, str] | None:
+        """A waveform block: a finite positive rate, a spindle speed within the r/min
+        range (if given), every sample finite and within its unit's range."""
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            return self._refuse(quantity, "rate", f"{quantity}: sample rate {rate_hz!r} Hz is not a finite rate > 0")
+        if rpm is not None:
+            b = UNIT_DEFAULTS["r/min"]
+            if not (math.isfinite(rpm) and b.lo <= rpm <= b.hi):
+                return self._refuse(quantity, "rpm", f"{quantity}: spindle speed {rpm!r} r/min is not "
+                                                     f"in {b.lo:g}..{b.hi:g}")
+        if data.size == 0:
+            return None
+        lo, hi = float(np.min(data)), float(np.max(data))
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            bad = int(np.count_nonzero(~np.isfinite(data)))
+            return self._refuse(quantity, "not_finite", f"{quantity}: {bad} of {data.size} samples not finite")
+        b = self.bounds(quantity, unit)
+        if b is not None and (lo < b.lo or hi > b.hi):
+            return self._refuse(quantity, "out_of_range", f"{quantity}: samples {lo:g}..{hi:g} {unit} outside "
+                                                          f"the plausible [{b.lo:g}, {b.hi:g}]")
+        return None
+
+    def forget(self, quantity: str) -> None:
+        self._last.pop(quantity, None)
+        self._chain.pop(quantity, None)
+
+    def _refuse(self, quantity: str, reason: str, why: str) -> tuple[str, str]:
+        self.rejected.setdefault(quantity, Counter())[reason] += 1
+        return reason, why
+
+    def status(self) -> dict:
+        out = {}
+        if self.rejected:
+            out["implausible"] = {q: dict(c) for q, c in sorted(self.rejected.items())}
+        if self.rebased:
+            out["implausible_rebased"] = dict(self.rebased)
+        return out
+
+
+def _within(b: Bounds, last: tuple[float, float], value: float, t: float) -> bool:
+    dt = max(t - last[1], 0.0)      # a clock step back allows no more than tol
+    return abs(value - last[0]) <= b.tol + b.rate * dt
