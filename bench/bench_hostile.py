@@ -604,7 +604,9 @@ def run(a) -> dict:
             sampler.join()
             sampler.poll()                  # the last events before the stop
             t_stop = time.time()
-            final = sampler.status[-1][1] if sampler.status and sampler.status[-1][1] else None
+            # the newest status the daemon answered (the last call may have failed: counted above)
+            final = next((s for _, s, _ in reversed(sampler.status) if s is not None), None)
+            res["last_status_failed"] = bool(sampler.status) and sampler.status[-1][1] is None
         finally:
             slow.join()
             fz.join()
@@ -629,7 +631,8 @@ def run(a) -> dict:
                 and s["daemon"].get("loop_lag_ms") and t_load < t <= t_end + s["daemon"]["loop_lag_ms"]["window_s"]]
     before = [s for t, s, _ in sampler.status if s is not None and t < t_load]
     first = (before[-1] if before else (ok_during[0][1] if ok_during else None))
-    after_ok = [s for t, s, _ in sampler.status if s is not None and t > t_end]
+    # the histogram up to a few seconds after the load: a stall at its end is recorded when the loop wakes
+    after_ok = [s for t, s, _ in sampler.status if s is not None and t > t_end + 5.0]
     last = after_ok[0] if after_ok else (ok_during[-1][1] if ok_during else None)
     hist = lag_from_histograms(first and first["daemon"].get("loop_lag_ms", {}).get("since_start"),
                                last and last["daemon"].get("loop_lag_ms", {}).get("since_start"))
@@ -662,14 +665,14 @@ def run(a) -> dict:
         for an in final.get("analyzers", []):
             if an["name"].startswith("hostile_"):
                 peers[an["name"]] = {"state": an["state"], "last_error": an.get("last_error")}
-    for name in ("hostile_vib", "hostile_temps", "hostile_chatter", "hostile_thermal"):
-        faults = sum(e["source"] == name and e["kind"].endswith("_fault") for e in sampler.events.values())
-        peers.setdefault(name, {})["fault_events"] = faults
         res["store"] = {k: final["daemon"]["store"].get(k) for k in ("written", "failed", "queued", "last_error")}
         res["daemon_state"] = final["daemon"]["state"]
     else:
         res["store"] = None
         res["daemon_state"] = "no status reply after the load"
+    for name in ("hostile_vib", "hostile_temps", "hostile_chatter", "hostile_thermal"):
+        faults = sum(e["source"] == name and e["kind"].endswith("_fault") for e in sampler.events.values())
+        peers.setdefault(name, {})["fault_events"] = faults
     res["peers"] = peers
     res["peer_sent"] = {"hostile_vib": vib.sent, "hostile_temps": ser.sent}
     res["fuzz"] = fz.outcomes
@@ -728,7 +731,7 @@ def report(r: dict) -> None:
               f"({v['chatter_alarm']}/{v['suppression_action']}/{v['compensation']}/{v['speed_writes_received']} "
               f"in {v['minutes']:.1f} min) | still acting |")
     for name, p in r["peers"].items():
-        print(f"| peer {name} | {json.dumps(p, default=str)[:300]} | bad input seen and counted |")
+        print(f"| peer {name} | {json.dumps(p, default=str)[:500]} | bad input seen and counted |")
     print(f"| hostile frames / lines sent | vib {json.dumps(r['peer_sent']['hostile_vib'])}; "
           f"temps {json.dumps(r['peer_sent']['hostile_temps'])} | |")
     fz = {k: v for k, v in r["fuzz"].items()}

@@ -18,6 +18,7 @@ INTERVAL_S = 0.05
 WINDOW_S = 10.0
 # histogram bin upper edges, ms; the last bin is everything above the last edge
 EDGES_MS = (1, 2, 5, 10, 20, 30, 50, 75, 100, 200, 500, 1000, 2000, 5000, 10000, 30000)
+MAX_BACKFILL = 100_000    # swallowed wakes counted per stall (83 min at 50 ms)
 
 
 class LagStats:
@@ -30,10 +31,23 @@ class LagStats:
         self.n = 0
         self.max_ms = 0.0
 
-    def add(self, t: float, lag_ms: float) -> None:
-        self._recent.append((t, lag_ms))
+    def add(self, t: float, lag_ms: float, interval_ms: float = 0.0) -> None:
+        """One wake ``lag_ms`` late. With the wake-up interval, a stall also
+        counts the wakes it swallowed (each as late as it would have been):
+        otherwise a 20 s freeze weighs as one sample among thousands."""
+        self._one(t, lag_ms)
+        if interval_ms > 0:
+            missed = lag_ms - interval_ms
+            for _ in range(MAX_BACKFILL):
+                if missed < interval_ms:
+                    break
+                self._one(t, missed)
+                missed -= interval_ms
         while self._recent and self._recent[0][0] < t - self.window_s:
             self._recent.popleft()
+
+    def _one(self, t: float, lag_ms: float) -> None:
+        self._recent.append((t, lag_ms))
         self.counts[bisect.bisect_left(EDGES_MS, lag_ms)] += 1
         self.n += 1
         self.max_ms = max(self.max_ms, lag_ms)
@@ -58,4 +72,4 @@ async def watch(stats: LagStats, interval: float = INTERVAL_S) -> None:
         due = loop.time() + interval
         await asyncio.sleep(interval)
         now = loop.time()
-        stats.add(now, max(0.0, (now - due) * 1000.0))
+        stats.add(now, max(0.0, (now - due) * 1000.0), interval * 1000.0)

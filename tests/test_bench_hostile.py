@@ -21,6 +21,7 @@ def test_short_hostile_run_reports_every_field(tmp_path):
                        capture_output=True, text=True, timeout=220)
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads(out.read_text())
+    print(p.stdout)
     assert r["bench_errors"] == []
     rec = r["records"]
     assert rec["error"] is None

@@ -23,3 +23,14 @@ def test_p99_sees_one_slow_wake_in_fifty():
     for i in range(50):
         st.add(i * 0.05, 80.0 if i == 7 else 0.5)
     assert st.summary()["p99"] == 80.0 and st.summary()["p50"] == 0.5
+
+
+def test_a_stall_counts_the_wakes_it_swallowed():
+    st = LagStats(window_s=60.0)
+    for i in range(1000):                # 50 s of prompt 50 ms wakes
+        st.add(i * 0.05, 0.5, 50.0)
+    st.add(50.0 + 2.0, 2000.0, 50.0)     # then a 2 s freeze: 40 wakes that never happened
+    s = st.summary()
+    assert s["since_start"]["n"] == 1000 + 40
+    assert s["p99"] > 50.0               # one sample alone would leave p99 at 0.5 ms
+    assert s["max"] == 2000.0
