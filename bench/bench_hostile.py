@@ -234,7 +234,7 @@ def raw_request(sock: Path, data: bytes, timeout: float = 5.0) -> tuple[str, dic
     finally:
         s.close()
     try:
-        reply = json.loads(buf)
+        reply = json.loads(buf.split(b"\n", 1)[0])
     except ValueError:
         return "reply not JSON", None
     if reply.get("ok"):
@@ -277,7 +277,8 @@ def fuzz_request(rng: random.Random) -> tuple[str, bytes]:
         return "inspect 400 digits", (b'{"cmd": "inspect", "args": {"part": "1", "ra_um": ' + b"7" * 400
                                       + b"}}\n")
     if k == 6:
-        return "random bytes", bytes(rng.randrange(256) for _ in range(rng.randrange(1, 2000))) + b"\n"
+        junk = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 2000))).replace(b"\n", b" ")
+        return "random bytes", junk + b"\n"
     cmd = rng.choice(COMMANDS)
     args = {rng.choice(ARG_NAMES): rng.choice(WRONG) for _ in range(rng.randrange(1, 4))}
     return "wrong types", json.dumps({"cmd": cmd, "args": args}).encode() + b"\n"
@@ -436,6 +437,7 @@ class Sampler(Stopper):
         self.events: dict[int, dict] = {}
         self.speed_writes: dict[tuple, float] = {}                       # (part, sim_t) -> wall_t
         self.rss: list[tuple[float, float]] = []
+        self.offsets: list[tuple[float, float]] = []                     # (t, offset_x_um the lathe holds)
         self.events_failed = 0
         self._since = 0
 
@@ -469,6 +471,7 @@ class Sampler(Stopper):
             self.events_failed += 1
         try:
             st = call("status", {"parts": 64}, sock_path=self.sim_sock, timeout=5.0)
+            self.offsets.append((t, st["registers"]["offset_x_um"]))
             for p in st["parts"]:
                 for w in p["speed_writes"]:
                     self.speed_writes[(p["part"], w["sim_t"])] = w.get("wall_t") or t
@@ -496,6 +499,20 @@ def lag_from_histograms(first: dict | None, last: dict | None) -> dict | None:
     bar_bin = edges.index(LAG_BAR_MS)     # bin i holds (edges[i-1], edges[i]]
     above = sum(counts[bar_bin + 1:])
     return {"n": n, "p50_le": upper(50), "p99_le": upper(99), "above_bar": above}
+
+
+COUNTERS = {"chatter_alarms": ("chatter", "alarms"), "suppression_actions": ("suppress", "actions"),
+            "thermal_writes": ("thermal", "writes")}
+
+
+def counters(sampler: Sampler, t: float) -> dict:
+    """The loops' own counters in the newest status the daemon answered by ``t`` (or the first after)."""
+    answered = [(ts, s) for ts, s, _ in sampler.status if s is not None]
+    upto = [s for ts, s in answered if ts <= t] or [s for _, s in answered[:1]]
+    if not upto:
+        return {}
+    ans = {an["name"]: an for an in upto[-1]["analyzers"]}
+    return {k: ans[name][field] for k, (name, field) in COUNTERS.items() if field in ans.get(name, {})}
 
 
 def in_db(db: Path, fz: Fuzzer, sampler: Sampler) -> dict:
@@ -649,11 +666,17 @@ def run(a) -> dict:
     for ph, (t0, t1) in phases.items():
         ev = [e for e in sampler.events.values() if t0 <= e["t"] < t1]
         span = (t1 - t0) if ph != "before" else a.warmup
+        c0, c1 = (counters(sampler, t0) if ph != "before" else {}), counters(sampler, t1)
+        offs = [o for t, o in sampler.offsets if t0 <= t < t1]
         acts[ph] = {"minutes": span / 60.0,
-                    "chatter_alarm": sum(e["kind"] == "chatter_alarm" and e["source"] == "chatter" for e in ev),
-                    "suppression_action": sum(e["kind"] == "suppression_action" for e in ev),
-                    "compensation": sum(e["kind"] == "compensation" and e["source"] == "thermal" for e in ev),
-                    "speed_writes_received": sum(t0 <= w < t1 for w in sampler.speed_writes.values())}
+                    **{k: (c1[k] - c0.get(k, 0)) if k in c1 else None for k in COUNTERS},
+                    "speed_writes_received": sum(t0 <= w < t1 for w in sampler.speed_writes.values()),
+                    "offset_changes_received": sum(x != y for x, y in zip(offs, offs[1:])),
+                    "chatter_alarm_events": sum(e["kind"] == "chatter_alarm" and e["source"] == "chatter"
+                                                for e in ev),
+                    "suppression_action_events": sum(e["kind"] == "suppression_action" for e in ev),
+                    "compensation_events": sum(e["kind"] == "compensation" and e["source"] == "thermal"
+                                               for e in ev)}
     res["loops"] = acts
     peers = {}
     if final is not None:
@@ -723,12 +746,12 @@ def report(r: dict) -> None:
           f"{_f(r.get('rss_end_mb'), 0)} MB | |")
     print(f"| RSS after / start | {_f(r.get('rss_ratio'), 3)} | <= {1 + RSS_BAR:.2f} |")
     for ph, v in r["loops"].items():
-        m = max(v["minutes"], 1e-9)
-        print(f"| {ph} load: chatter alarms / suppression actions / compensations / speed writes received, "
-              f"per minute | {v['chatter_alarm'] / m:.1f} / {v['suppression_action'] / m:.1f} / "
-              f"{v['compensation'] / m:.1f} / {v['speed_writes_received'] / m:.1f} "
-              f"({v['chatter_alarm']}/{v['suppression_action']}/{v['compensation']}/{v['speed_writes_received']} "
-              f"in {v['minutes']:.1f} min) | still acting |")
+        print(f"| {ph} load ({v['minutes']:.1f} min): chatter alarms / suppression actions / thermal writes "
+              f"(daemon's counters); speed writes / offset changes the lathe received; alarm / suppression / "
+              f"compensation records | {_f(v['chatter_alarms'])} / {_f(v['suppression_actions'])} / "
+              f"{_f(v['thermal_writes'])}; {v['speed_writes_received']} / {v['offset_changes_received']}; "
+              f"{v['chatter_alarm_events']} / {v['suppression_action_events']} / {v['compensation_events']} "
+              "| still acting |")
     for name, p in r["peers"].items():
         print(f"| peer {name} | {json.dumps(p, default=str)[:500]} | bad input seen and counted |")
     print(f"| hostile frames / lines sent | vib {json.dumps(r['peer_sent']['hostile_vib'])}; "
@@ -754,11 +777,16 @@ def report(r: dict) -> None:
     print(f"- RSS back within {RSS_BAR:.0%} of its start: {verdict(ratio is not None and ratio <= 1 + RSS_BAR)}"
           f" ({_f(ratio, 3)})")
     dur, aft = r["loops"]["during"], r["loops"]["after"]
-    acting = dur["chatter_alarm"] > 0 and dur["suppression_action"] > 0 and aft["chatter_alarm"] > 0 \
-        and dur["compensation"] + aft["compensation"] > 0
-    print(f"- chatter and thermal loops still acting: {verdict(acting)} (during: {dur['chatter_alarm']} alarms, "
-          f"{dur['suppression_action']} suppressions, {dur['compensation']} compensations; after: "
-          f"{aft['chatter_alarm']} / {aft['suppression_action']} / {aft['compensation']})")
+    n = lambda v, k: v[k] or 0  # noqa: E731
+    acting = all(n(v, "chatter_alarms") > 0 and n(v, "suppression_actions") > 0 and v["speed_writes_received"] > 0
+                 for v in (dur, aft)) and n(dur, "thermal_writes") + n(aft, "thermal_writes") > 0 \
+        and dur["offset_changes_received"] + aft["offset_changes_received"] > 0
+    print(f"- chatter and thermal loops still acting: {verdict(acting)} (during / after: "
+          f"{_f(dur['chatter_alarms'])} / {_f(aft['chatter_alarms'])} alarms, {_f(dur['suppression_actions'])} / "
+          f"{_f(aft['suppression_actions'])} suppressions, {dur['speed_writes_received']} / "
+          f"{aft['speed_writes_received']} speed writes received, {_f(dur['thermal_writes'])} / "
+          f"{_f(aft['thermal_writes'])} thermal writes, {dur['offset_changes_received']} / "
+          f"{aft['offset_changes_received']} offset changes received)")
 
 
 def main() -> int:

@@ -37,8 +37,10 @@ def test_short_hostile_run_reports_every_field(tmp_path):
     for k in ("rss_start_mb", "rss_peak_mb", "rss_after_mb", "rss_end_mb", "rss_ratio"):
         assert r[k] > 0, k
     for ph in ("before", "during", "after"):
-        assert set(r["loops"][ph]) == {"minutes", "chatter_alarm", "suppression_action", "compensation",
-                                       "speed_writes_received"}
+        assert set(r["loops"][ph]) == {"minutes", "chatter_alarms", "suppression_actions", "thermal_writes",
+                                       "speed_writes_received", "offset_changes_received", "chatter_alarm_events",
+                                       "suppression_action_events", "compensation_events"}
+        assert r["loops"][ph]["chatter_alarms"] is not None and r["loops"][ph]["thermal_writes"] is not None
     # the hostile peers were connected, sent bad input, and the daemon's status shows them
     assert r["peer_sent"]["hostile_vib"]["valid"] > 0 and r["peer_sent"]["hostile_temps"]["valid"] > 0
     assert sum(v for k, v in r["peer_sent"]["hostile_temps"].items() if k != "valid") > 0
