@@ -632,7 +632,7 @@ def run(a) -> dict:
             ser.join()
             ser.close()
         res["records"] = in_db(tmp / "state" / "lathed.db", fz, sampler)
-        res["log_tail"] = (tmp / "lathed.log").read_text(errors="replace").splitlines()[-5:]
+        res["log_tail"] = [ln[:300] for ln in (tmp / "lathed.log").read_text(errors="replace").splitlines()[-5:]]
         res["log_errors"] = sum('"level": "error"' in ln or "[error" in ln
                                 for ln in (tmp / "lathed.log").read_text(errors="replace").splitlines())
     # -- figures ---------------------------------------------------------------------
