@@ -731,6 +731,8 @@ def report(r: dict) -> None:
     print(f"| ... events reported by `events` | {rec['events'][0]} / {rec['events'][1]} | all found |")
     print(f"| spindle writes the lathe received / command_sent records | {rec['speed_writes'][0]} / "
           f"{rec['speed_writes'][1]} | every write recorded |")
+    print(f"| valid experiment_add / parts / inspect requests that got no acknowledgement | "
+          f"{r['valid_requests_failed']} | 0 |")
     print(f"| store written / failed / queued (last status) | {_f(st.get('written'))} / {_f(st.get('failed'))} / "
           f"{_f(st.get('queued'))} | failed 0, queue drained |")
     print(f"| event-loop lag during load, p50 (median of {lag['windows']} status windows) | "
