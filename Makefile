@@ -33,6 +33,11 @@ bench-thermal: $(STAMP)
 	$(BIN)/python bench/bench_thermal.py
 bench-store: $(STAMP)
 	$(BIN)/python bench/bench_store.py
-bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store
+# issue 18: 10 minutes of hostile load (DURATION=60 for a quick look)
+DURATION ?= 600
+bench-hostile: $(STAMP)
+	$(BIN)/python bench/bench_hostile.py --duration $(DURATION)
+bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-hostile
 
-.PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store
+.PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
+	bench-hostile

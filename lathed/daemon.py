@@ -25,6 +25,7 @@ from lathed.cli import EX_CANTCREAT
 from lathed.client import SOCKET_NAME, default_runtime_dir
 from lathed.args import Args
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
+from lathed.looplag import LagStats, watch
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
@@ -116,6 +117,7 @@ class Daemon:
         self._stop = asyncio.Event()
         self.last_prune: dict | None = None
         self._step = "starting"
+        self.loop_lag = LagStats()
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
@@ -144,6 +146,7 @@ class Daemon:
                  startup_s=round(time.monotonic() - self.started, 3))
         notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")
         watchdog = asyncio.create_task(self._watchdog())
+        lag_watch = asyncio.create_task(watch(self.loop_lag))
         pruning = asyncio.create_task(self._prune()) if self.settings.keep_days > 0 else None
         await self._stop.wait()
         if pruning is not None:
@@ -159,6 +162,7 @@ class Daemon:
         guard.daemon = True
         guard.start()
         watchdog.cancel()
+        lag_watch.cancel()
         starting.cancel()
         await asyncio.gather(starting, return_exceptions=True)
         self._step = "stopping analyzers and drivers"
@@ -247,6 +251,7 @@ class Daemon:
         Args("status", args).check_unused()
         return {"daemon": {"state": self.status_state(), "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
+                           "loop_lag_ms": self.loop_lag.summary(),
                            "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
                                                                 "last_prune": self.last_prune},
                            "simulator": None if self.sim_process is None else

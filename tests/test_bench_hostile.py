@@ -1,0 +1,53 @@
+"""bench/bench_hostile.py (issue 18's hostile load) runs and reports every figure.
+
+The bars themselves are the benchmark's verdict (`make bench-hostile`), not asserted here.
+"""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_short_hostile_run_reports_every_field(tmp_path):
+    out = tmp_path / "figures.json"
+    p = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_hostile.py"), "--duration", "20",
+                        "--warmup", "15", "--after", "10", "--json", str(out)],
+                       capture_output=True, text=True, timeout=220)
+    assert p.returncode == 0, p.stderr[-2000:]
+    r = json.loads(out.read_text())
+    print(p.stdout)
+    assert r["bench_errors"] == []
+    rec = r["records"]
+    assert rec["error"] is None
+    for key in ("experiments", "inspections", "events", "speed_writes"):
+        acked, found = rec[key]
+        assert isinstance(acked, int) and isinstance(found, int)
+    assert rec["experiments"][0] > 0 and rec["events"][0] > 0     # the load did acknowledge records
+    assert set(r["store"]) == {"written", "failed", "queued", "last_error"}
+    lag = r["loop_lag_ms"]
+    assert lag["windows"] > 0 and lag["max"] is not None and lag["histogram"]["n"] > 0
+    assert lag["histogram"]["p99_le"] is not None and lag["p50_median_of_windows"] is not None
+    assert r["status_calls"]["during_ok"] + r["status_calls"]["during_failed"] > 0
+    for k in ("rss_start_mb", "rss_peak_mb", "rss_after_mb", "rss_end_mb", "rss_ratio"):
+        assert r[k] > 0, k
+    for ph in ("before", "during", "after"):
+        assert set(r["loops"][ph]) == {"minutes", "chatter_alarms", "suppression_actions", "thermal_writes",
+                                       "speed_writes_received", "offset_changes_received", "chatter_alarm_events",
+                                       "suppression_action_events", "compensation_events"}
+        assert r["loops"][ph]["chatter_alarms"] is not None and r["loops"][ph]["thermal_writes"] is not None
+    # the hostile peers were connected, sent bad input, and the daemon's status shows them
+    assert r["peer_sent"]["hostile_vib"]["valid"] > 0 and r["peer_sent"]["hostile_temps"]["valid"] > 0
+    assert sum(v for k, v in r["peer_sent"]["hostile_temps"].items() if k != "valid") > 0
+    assert {"hostile_vib", "hostile_temps", "hostile_chatter", "hostile_thermal"} <= set(r["peers"])
+    assert "rejected" in r["peers"]["hostile_temps"] and "failures" in r["peers"]["hostile_vib"]
+    assert sum(sum(o.values()) for o in r["fuzz"].values()) > 10
+    assert r["slow_clients"]["opened"] >= 200
+    for line in ("no record acknowledged and lost", "event-loop lag p99", "RSS back within",
+                 "chatter and thermal loops still acting"):
+        assert line in p.stdout
