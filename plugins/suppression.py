@@ -104,6 +104,8 @@ class SuppressionAnalyzer(Analyzer):
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
+        self.in_cut: dict[str, bool] = {}
+        self._avoided: set[str] = set()
         self.feed_mm = 0.3
         self.rpm: float | None = None
         self.part_count: float | None = None
@@ -164,14 +166,25 @@ class SuppressionAnalyzer(Analyzer):
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
         elif s.quantity == "depth_of_cut_mm":
-            was, self.depth_mm = self.depth_mm, s.value
-            if s.value > 0 and was <= 0:
-                self.policy = self._policy()    # a new cut: bans and budget start afresh
-                self.pending = None
-                if self.avoid:
-                    await self._avoid()
-            if s.value <= 0 and was > 0:
-                self._stop_ssv()
+            self.depth_mm = s.value
+            await self._cut_seen("depth", s.value > 0)
+
+    async def _cut_seen(self, by: str, on: bool) -> None:
+        """The machine's depth register or the chatter analyzer's cut state
+        (whichever this machine has; the first to see the chip starts the cut)."""
+        was = bool(self.in_cut)
+        self.in_cut[by] = on
+        if not on:
+            del self.in_cut[by]
+        if self.in_cut and not was:
+            self.policy = self._policy()    # a new cut: bans and budget start afresh
+            self.pending = None
+        if self.avoid and by == "depth" and on and self.depth_mm > 0 and "depth" not in self._avoided:
+            self._avoided.add("depth")
+            await self._avoid()
+        if was and not self.in_cut:
+            self._avoided.clear()
+            self._stop_ssv()
 
     def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
         """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
@@ -206,6 +219,9 @@ class SuppressionAnalyzer(Analyzer):
                "chatter_frequency_hz": "frequency"}.get(s.quantity)
         if key:
             self.chat[key] = s.value
+            return
+        if s.quantity == "cutting":
+            await self._cut_seen("chatter", s.value > 0.5)
             return
         if s.quantity != "chatter_alarm":
             return

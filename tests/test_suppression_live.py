@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from tests.conftest import ROOT, Daemon, sim_call, sim_config, wait_until
+from tests.conftest import DEPTH_REGISTER, ROOT, Daemon, sim_call, sim_config, wait_until
 
 DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
 
@@ -163,7 +163,9 @@ def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
 
 
 def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon):
-    d = sim_daemon(analyzers=default_table("chatter") + "\n" + default_table("suppress") + "\navoid = true\n")
+    # predicting needs the depth: a machine that reports it
+    d = sim_daemon(analyzers=default_table("chatter") + "\n" + default_table("suppress") + "\navoid = true\n",
+                   registers=DEPTH_REGISTER)
     wait_until(lambda: d.item("analyzers", "suppress")["state"] == "running", what="suppression running")
     assert suppress(d, "status")["avoid"] is True
     assert "avoids predicted chatter at cut entry" in d.ctl("suppress", "status").stdout
