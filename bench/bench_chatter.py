@@ -9,6 +9,13 @@ shop-floor traps (flat/interrupted surface, cut entry and re-entry, speed
 change during a stable cut, strong runout).  Every detector learns its
 baseline automatically at the start of each cut (no reference given).
 
+Real recordings: when ../shared/data/real/turning-chatter exists beside the
+checkout (four recordings of Khasawneh, Otto, Yesilli, "Turning dataset for
+chatter diagnosis using machine learning", Mendeley Data v1,
+doi:10.17632/hvm4wh3jzx.1, CC BY 4.0), a second table gives each detector's
+verdict on each file against the data set's label (no reference: the baseline
+is learned from the recording's start, as on a cut).
+
 Per detector: false alarms (stable/trap cases with any alarm, and chatter
 cases alarmed before the cut became unstable), misses (chatter cases never
 alarmed), median and worst detection delay in spindle revolutions after the
@@ -114,6 +121,44 @@ def score(name, recs, params, per_case=None, refs=None):
     return fa, miss, delays, fa_cases
 
 
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "turning-chatter"
+
+
+def real_recordings():
+    """(name, label, rpm, Signal) of the shared recordings; label and speed from the name
+    (label_speed_depth, the data set's convention)."""
+    from lathed.analysis.recording import read_signal
+    out = []
+    for p in sorted(REAL.glob("*.mat")):
+        kind, rpm, _ = p.stem.split("_")
+        out.append((p.stem, {"s": "stable", "c": "chatter"}[kind], float(rpm), read_signal(p, var="tsDS")))
+    return out
+
+
+def real_table(names) -> list[str]:
+    recs = real_recordings()
+    if not recs:
+        return [f"(real recordings not found at {REAL}: table skipped)"]
+    lines = ["| recording | label | " + " | ".join(names) + " |",
+             "|---|---|" + "---|" * len(names)]
+    right = {n: 0 for n in names}
+    for stem, label, rpm, sig in recs:
+        cells = []
+        for n in names:
+            det = make_detector(n, sig.rate_hz)
+            wins = []
+            for i in range(0, len(sig.data), BLOCK):
+                wins += det.process(sig.data[i:i + BLOCK], rpm)
+            first = next((w.t_s for w in wins if w.alarm), None)
+            verdict = "chatter" if first is not None else "stable"
+            right[n] += verdict == label
+            cells.append(verdict + (f" at {first:.2f} s" if first is not None else "")
+                         + ("" if verdict == label else " **wrong**"))
+        lines.append(f"| {stem} ({sig.duration_s:.1f} s, {rpm:g} r/min) | {label} | " + " | ".join(cells) + " |")
+    lines.append("| right | | " + " | ".join(f"{right[n]}/{len(recs)}" for n in names) + " |")
+    return lines
+
+
 def throughput(name, params, signal, rpm, rate, reps=3):
     out = []
     for _ in range(reps):
@@ -217,6 +262,9 @@ def main(argv=None) -> int:
     for label, res in results.items():
         if res["false_alarm_cases"]:
             print(f"- {label} false alarms on: {'; '.join(res['false_alarm_cases'])}")
+    print("\nReal recordings (Khasawneh, Otto, Yesilli, Mendeley Data doi:10.17632/hvm4wh3jzx.1, "
+          "CC BY 4.0; accelerometer, 10 kHz; baseline learned from each recording's start):\n")
+    print("\n".join(real_table(names)))
     print("\nSimulator (lathed.analysis.regen.RegenerativeTurning, 2000 r/min, 512-sample blocks): "
           + "; ".join(f"{k}: {v * 1000:.0f} ms CPU per simulated second" for k, v in sim_cost.items()))
     if args.json:
