@@ -82,7 +82,21 @@ def corpus(duration: float = 3.0):
          [S(d / 2, 2000, 1.0), S(d / 2, 2000, 2.5)], {"flat_fraction": 0.10}),
         ("chatter with runout 40 um 1000 r/min 1->2.2 mm", "chatter",
          [S(d / 2, 1000, 1.0), S(d / 2, 1000, 2.2)], {"runout_um": 40.0}),
-    ]
+    ] + mild_cases(d)
+
+
+def mild_cases(d: float):
+    """Slow-growing chatter (issue 12): 8 % above the stability limit at several speeds,
+    so it grows over tens of revolutions instead of a few (the paper's chatter is mild)."""
+    from lathed.analysis.lobes import StabilityLobes
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+    lobes = StabilityLobes(DEFAULT_MODES, DEFAULT_KF)
+    out = []
+    for rpm in (1000.0, 2000.0, 3000.0, 4500.0):
+        b = round(1.08 * float(lobes.b_lim_at(rpm)[0][0]) * 1e3, 2)
+        out.append((f"mild chatter {rpm:.0f} r/min 1->{b:g} mm (1.08 x limit)", "chatter",
+                    [S(d / 3, rpm, 1.0), S(4 * d / 3, rpm, b)], {}))
+    return out
 
 
 def run_detector(det, rec):
@@ -240,7 +254,7 @@ def main(argv=None) -> int:
         tp = throughput(name, params, tp_rec.signal, 2000.0, tp_rec.rate_hz)
         med = statistics.median(delays) if delays else float("nan")
         worst = max(delays) if delays else float("nan")
-        ok = fa == 0 and miss == 0 and med <= 3.0 and tp >= 200
+        ok = fa == 0 and miss == 0 and med <= 2.0 and tp >= 200
         results[label] = {"false_alarms": fa, "misses": miss, "median_delay_rev": med,
                          "worst_delay_rev": worst, "x_real_time": tp, "false_alarm_cases": fa_cases,
                          "meets_targets": ok}
@@ -258,7 +272,7 @@ def main(argv=None) -> int:
     print("\nDelay: revolutions from chatter becoming visible (pass-to-pass surface waviness "
           ">= 2 um rms over a revolution and not shrinking over the next two) to the alarm; "
           "negative = before. "
-          "Targets: 0 false alarms, 0 missed, median delay <= 3 rev, >= 200x real time.")
+          "Targets (issue 12): 0 false alarms, 0 missed, median delay <= 2 rev, >= 200x real time.")
     for label, res in results.items():
         if res["false_alarm_cases"]:
             print(f"- {label} false alarms on: {'; '.join(res['false_alarm_cases'])}")
