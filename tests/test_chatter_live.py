@@ -72,6 +72,22 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     assert cleared[0]["payload"]["machine"] == "lathe"
 
 
+def test_cut_state_without_a_depth_register(sim_daemon):
+    d = sim_daemon(analyzers=CHATTER)
+    assert not re.search(r"^depth_of_cut_mm", d.cfg.read_text(), re.M)     # the default map has none
+    assert sim_set(d, 1.0) == {"depth_mm": 1.0}
+    # the cut is seen (by the spindle load or the vibration) and lathectl status says so
+    st = wait_until(lambda: (s := chatter(d))["cutting"] and s, timeout=20, interval=0.1, what="a cut seen")
+    assert st["cut_seen_by"] in ("load", "vibration") and st["cut_state"] in ("learning", "watching")
+    wait_until(lambda: re.search(r"^\s+chatter\s.*\b(?:learning|watching) \(cut seen by (?:load|vibration)\)",
+                                 d.ctl("status").stdout, re.M), timeout=10, interval=0.1,
+               what="cut state in lathectl status")
+    # and its end, when the tool retracts
+    st = wait_until(lambda: not (s := chatter(d))["cutting"] and s, timeout=20, interval=0.1,
+                    what="the cut's end")
+    assert st["cut_state"] == "idle" and st["cut_seen_by"] is None
+
+
 def test_no_false_alarm_on_stable_cuts(sim_daemon):
     d = sim_daemon(analyzers=CHATTER)
     assert sim_set(d, 1.0) == {"depth_mm": 1.0}
