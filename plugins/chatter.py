@@ -42,6 +42,10 @@ from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
 
 
+# A speed change this early in a cut, before any alarm, restarts the baseline.
+ENTRY_REVS = 20.0
+
+
 class ChatterAnalyzer(Analyzer):
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
@@ -59,6 +63,9 @@ class ChatterAnalyzer(Analyzer):
         self.vib_cut: VibrationCutDetector | None = None
         self.seen = {c: False for c in self.cut_from}
         self.cut_by: str | None = None
+        self._cut_rpm: float | None = None     # speed the cut started at (None: no cut)
+        self._cut_revs = 0.0
+        self._cut_alarmed = False
         psec = section.getsection("params", required=False)
         self.params = {k: psec.get(k) for k in psec.keys()}
         if self.detector_name in DETECTORS:   # plugin detectors are checked when they start
@@ -123,6 +130,7 @@ class ChatterAnalyzer(Analyzer):
                 self.detector.reset()     # a new cut: learn its baseline afresh
             self.state = "learning"
             self.cut_by = name
+            self._cut_rpm = None
         elif self.cutting and not cutting:
             if self.detector is not None and self.detector.alarm:
                 self._cleared("cut ended")
@@ -154,6 +162,16 @@ class ChatterAnalyzer(Analyzer):
             self.detector = self._new_detector(b.rate_hz)
             self.rate_hz = b.rate_hz
         self.blocks += 1
+        if self._cut_rpm is None:
+            self._cut_rpm, self._cut_revs, self._cut_alarmed = rpm, 0.0, False
+        elif (abs(rpm - self._cut_rpm) > 0.05 * self._cut_rpm and not self._cut_alarmed
+              and self._cut_revs < ENTRY_REVS):
+            # a speed change at entry that no alarm asked for (suppression's avoid, the
+            # program): the baseline learned at the old speed does not hold at the new one
+            self.detector.reset()
+            self.state = "learning"
+            self._cut_rpm = rpm
+        self._cut_revs += len(data) / b.rate_hz * rpm / 60.0
         was = self.detector.alarm
         windows = self.detector.process(data, rpm)
         now = time.time()
@@ -171,6 +189,7 @@ class ChatterAnalyzer(Analyzer):
             pub(Sample(self.name, "chatter_alarm", 1.0 if w.alarm else 0.0, "", t))
             self.state = "learning" if w.learning else ("chatter" if w.alarm else "watching")
             if w.alarm and not was:
+                self._cut_alarmed = True
                 self.alarms += 1
                 self.alarm_started = t
                 self.ctx.log.warning("chatter_alarm", index=round(w.index, 3), threshold=w.threshold,
