@@ -29,6 +29,11 @@ whether the guard let it through). ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
 
+The depth the lobes need comes from a depth_of_cut_mm register where the
+machine has one, else from the spindle load (spindle_load_pct: the cutting
+torque over the no-chip load, Kt * b * feed * D/2 = torque, solved for b;
+it needs kt, peak_torque_nm, diameter_mm and the feed register right).
+
 With ``avoid = true`` the lobes are also used before any alarm: when a cut
 starts at a depth the lobes call unstable at the programmed speed (the same
 rule the lobes strategy picks speeds by: the worst b_lim within +-3 % of
@@ -173,6 +178,9 @@ class SuppressionAnalyzer(Analyzer):
             await self._cut_seen("depth", s.value > 0)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             self._depth_from_load(s.value)
+            if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
+                self._avoided.add("load")
+                await self._avoid()
 
     def _depth_from_load(self, load_pct: float) -> None:
         """Without a depth register the lobes need the depth: the cutting torque the
@@ -199,7 +207,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.in_cut and not was:
             self.policy = self._policy()    # a new cut: bans and budget start afresh
             self.pending = None
-        if self.avoid and by == "depth" and on and self.depth_mm > 0 and "depth" not in self._avoided:
+        if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
             await self._avoid()
         if was and not self.in_cut:
