@@ -162,10 +162,11 @@ def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
     assert d.item("analyzers", "suppress")["last_action"]["sent"] is False
 
 
-def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon):
-    # predicting needs the depth: a machine that reports it
+@pytest.mark.parametrize("registers", [DEPTH_REGISTER, ""], ids=["depth register", "depth from spindle load"])
+def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon, registers):
+    # predicting needs the depth: a machine's depth register, else the spindle load's estimate
     d = sim_daemon(analyzers=default_table("chatter") + "\n" + default_table("suppress") + "\navoid = true\n",
-                   registers=DEPTH_REGISTER)
+                   registers=registers)
     wait_until(lambda: d.item("analyzers", "suppress")["state"] == "running", what="suppression running")
     assert suppress(d, "status")["avoid"] is True
     assert "avoids predicted chatter at cut entry" in d.ctl("suppress", "status").stdout
@@ -184,7 +185,8 @@ def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_dae
     for e in acts:
         p = e["payload"]
         assert p["sent"] and p["strategy"] == "sss_lobes" and p["expected_stable"] is True, p
-        assert p["reason"].startswith("predicted at cut entry: 3 mm deep, the lobes allow ")
+        depth = float(re.match(r"predicted at cut entry: ([\d.]+) mm deep, the lobes allow ", p["reason"])[1])
+        assert depth == 3.0 if registers else abs(depth - 3.0) < 0.3, p["reason"]
         assert p["chatter_index"] is None and p["rpm_after"] <= 1.3 * p["rpm_before"] + 1
     # each 3 mm part: the speed is written within a few revolutions of the tool entering. At
     # 1500 r/min the entry's waviness already grows (the simulator calls it visible from the first
