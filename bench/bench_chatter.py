@@ -9,6 +9,13 @@ shop-floor traps (flat/interrupted surface, cut entry and re-entry, speed
 change during a stable cut, strong runout).  Every detector learns its
 baseline automatically at the start of each cut (no reference given).
 
+Real recordings: when ../shared/data/real/turning-chatter exists beside the
+checkout (four recordings of Khasawneh, Otto, Yesilli, "Turning dataset for
+chatter diagnosis using machine learning", Mendeley Data v1,
+doi:10.17632/hvm4wh3jzx.1, CC BY 4.0), a second table gives each detector's
+verdict on each file against the data set's label (no reference: the baseline
+is learned from the recording's start, as on a cut).
+
 Per detector: false alarms (stable/trap cases with any alarm, and chatter
 cases alarmed before the cut became unstable), misses (chatter cases never
 alarmed), median and worst detection delay in spindle revolutions after the
@@ -75,7 +82,21 @@ def corpus(duration: float = 3.0):
          [S(d / 2, 2000, 1.0), S(d / 2, 2000, 2.5)], {"flat_fraction": 0.10}),
         ("chatter with runout 40 um 1000 r/min 1->2.2 mm", "chatter",
          [S(d / 2, 1000, 1.0), S(d / 2, 1000, 2.2)], {"runout_um": 40.0}),
-    ]
+    ] + mild_cases(d)
+
+
+def mild_cases(d: float):
+    """Slow-growing chatter (issue 12): 8 % above the stability limit at several speeds,
+    so it grows over tens of revolutions instead of a few (the paper's chatter is mild)."""
+    from lathed.analysis.lobes import StabilityLobes
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+    lobes = StabilityLobes(DEFAULT_MODES, DEFAULT_KF)
+    out = []
+    for rpm in (1000.0, 2000.0, 3000.0, 4500.0):
+        b = round(1.08 * float(lobes.b_lim_at(rpm)[0][0]) * 1e3, 2)
+        out.append((f"mild chatter {rpm:.0f} r/min 1->{b:g} mm (1.08 x limit)", "chatter",
+                    [S(d / 3, rpm, 1.0), S(4 * d / 3, rpm, b)], {}))
+    return out
 
 
 def run_detector(det, rec):
@@ -112,6 +133,44 @@ def score(name, recs, params, per_case=None, refs=None):
         if per_case is not None:
             per_case.append((rec.name, delays[-1]))
     return fa, miss, delays, fa_cases
+
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "turning-chatter"
+
+
+def real_recordings():
+    """(name, label, rpm, Signal) of the shared recordings; label and speed from the name
+    (label_speed_depth, the data set's convention)."""
+    from lathed.analysis.recording import read_signal
+    out = []
+    for p in sorted(REAL.glob("*.mat")):
+        kind, rpm, _ = p.stem.split("_")
+        out.append((p.stem, {"s": "stable", "c": "chatter"}[kind], float(rpm), read_signal(p, var="tsDS")))
+    return out
+
+
+def real_table(names) -> list[str]:
+    recs = real_recordings()
+    if not recs:
+        return [f"(real recordings not found at {REAL}: table skipped)"]
+    lines = ["| recording | label | " + " | ".join(names) + " |",
+             "|---|---|" + "---|" * len(names)]
+    right = {n: 0 for n in names}
+    for stem, label, rpm, sig in recs:
+        cells = []
+        for n in names:
+            det = make_detector(n, sig.rate_hz)
+            wins = []
+            for i in range(0, len(sig.data), BLOCK):
+                wins += det.process(sig.data[i:i + BLOCK], rpm)
+            first = next((w.t_s for w in wins if w.alarm), None)
+            verdict = "chatter" if first is not None else "stable"
+            right[n] += verdict == label
+            cells.append(verdict + (f" at {first:.2f} s" if first is not None else "")
+                         + ("" if verdict == label else " **wrong**"))
+        lines.append(f"| {stem} ({sig.duration_s:.1f} s, {rpm:g} r/min) | {label} | " + " | ".join(cells) + " |")
+    lines.append("| right | | " + " | ".join(f"{right[n]}/{len(recs)}" for n in names) + " |")
+    return lines
 
 
 def throughput(name, params, signal, rpm, rate, reps=3):
@@ -195,7 +254,7 @@ def main(argv=None) -> int:
         tp = throughput(name, params, tp_rec.signal, 2000.0, tp_rec.rate_hz)
         med = statistics.median(delays) if delays else float("nan")
         worst = max(delays) if delays else float("nan")
-        ok = fa == 0 and miss == 0 and med <= 3.0 and tp >= 200
+        ok = fa == 0 and miss == 0 and med <= 2.0 and tp >= 200
         results[label] = {"false_alarms": fa, "misses": miss, "median_delay_rev": med,
                          "worst_delay_rev": worst, "x_real_time": tp, "false_alarm_cases": fa_cases,
                          "meets_targets": ok}
@@ -213,10 +272,13 @@ def main(argv=None) -> int:
     print("\nDelay: revolutions from chatter becoming visible (pass-to-pass surface waviness "
           ">= 2 um rms over a revolution and not shrinking over the next two) to the alarm; "
           "negative = before. "
-          "Targets: 0 false alarms, 0 missed, median delay <= 3 rev, >= 200x real time.")
+          "Targets (issue 12): 0 false alarms, 0 missed, median delay <= 2 rev, >= 200x real time.")
     for label, res in results.items():
         if res["false_alarm_cases"]:
             print(f"- {label} false alarms on: {'; '.join(res['false_alarm_cases'])}")
+    print("\nReal recordings (Khasawneh, Otto, Yesilli, Mendeley Data doi:10.17632/hvm4wh3jzx.1, "
+          "CC BY 4.0; accelerometer, 10 kHz; baseline learned from each recording's start):\n")
+    print("\n".join(real_table(names)))
     print("\nSimulator (lathed.analysis.regen.RegenerativeTurning, 2000 r/min, 512-sample blocks): "
           + "; ".join(f"{k}: {v * 1000:.0f} ms CPU per simulated second" for k, v in sim_cost.items()))
     if args.json:

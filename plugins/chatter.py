@@ -3,19 +3,31 @@
     [analyzer.chatter]
     plugin = "chatter"
     input = "accel"            # the vibration sensor instance
-    machine = "lathe"          # whose cut state (depth_of_cut_mm) and speed frame the analysis
+    machine = "lathe"          # whose speed (and cut state registers) frame the analysis
+    cut_from = ["load", "vibration"]   # what says the tool is in the cut (see below)
     detector = "chaos_sync"    # any built-in or plugin detector
     tool = "T0101"             # recorded with every chatter event
     material = "C45"
     [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.detectors)
     threshold = 2.0
 
-The detector runs only while the machine reports a depth of cut: it learns
-its baseline at the start of each cut (air cutting would otherwise make the
-entry look like chatter). For each analysis window it publishes, under its
-own name, ``chatter_index``, ``chatter_threshold``, ``chatter_frequency_hz``
-and then ``chatter_alarm`` (1/0); it records ``chatter_alarm`` and
-``chatter_cleared`` events with the critical values.
+The detector runs only while the tool is in the cut (air cutting would
+otherwise make the entry look like chatter); it learns its baseline at the
+start of each cut.  ``cut_from`` names the sources of the cut state
+(lathed.analysis.cut_state), any of:
+
+  "load"       the machine's spindle_load_pct register above its no-chip load
+               by load_margin_pct (a standard CNC register; seen one poll late)
+  "vibration"  the accelerometer: frame rms against the air-cut floor (sees
+               the entry within a few ms; needs an air cut to learn the floor)
+  "depth"      a depth_of_cut_mm register > 0 (machines that report one)
+
+The cut starts when the first source sees the chip and ends when none does.
+The cut state is published as ``cutting`` (1/0) and shown in the status.  For
+each analysis window it publishes, under its own name, ``chatter_index``,
+``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
+(1/0); it records ``chatter_alarm`` and ``chatter_cleared`` events with the
+critical values.
 """
 from __future__ import annotations
 
@@ -23,10 +35,15 @@ import math
 import time
 
 from lathed import hookimpl
+from lathed.analysis.cut_state import SOURCES, LoadCutDetector, VibrationCutDetector
 from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
+
+
+# A speed change this early in a cut, before any alarm, restarts the baseline.
+ENTRY_REVS = 20.0
 
 
 class ChatterAnalyzer(Analyzer):
@@ -37,6 +54,18 @@ class ChatterAnalyzer(Analyzer):
         self.detector_name = section.getstr("detector", DEFAULT_DETECTOR)
         self.tool = section.getstr("tool", "")
         self.material = section.getstr("material", "")
+        self.cut_from = section.getlist("cut_from", ["load", "vibration"])
+        bad = [c for c in self.cut_from if c not in SOURCES]
+        if bad or not self.cut_from:
+            raise section.error("cut_from", f"expected a non-empty list of {', '.join(SOURCES)}; "
+                                            f"got {self.cut_from!r}")
+        self.load_cut = LoadCutDetector(section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0))
+        self.vib_cut: VibrationCutDetector | None = None
+        self.seen = {c: False for c in self.cut_from}
+        self.cut_by: str | None = None
+        self._cut_rpm: float | None = None     # speed the cut started at (None: no cut)
+        self._cut_revs = 0.0
+        self._cut_alarmed = False
         psec = section.getsection("params", required=False)
         self.params = {k: psec.get(k) for k in psec.keys()}
         if self.detector_name in DETECTORS:   # plugin detectors are checked when they start
@@ -49,6 +78,7 @@ class ChatterAnalyzer(Analyzer):
         self.cutting = False
         self.rpm: float | None = None
         self.depth_mm: float | None = None
+        self.load_pct: float | None = None
         self.state = "idle"
         self.last = None
         self.alarms = 0
@@ -71,7 +101,7 @@ class ChatterAnalyzer(Analyzer):
                 msg = await sub.get()
                 if isinstance(msg, Sample):
                     self._on_machine(msg)
-                elif isinstance(msg, Block) and self.cutting:
+                elif isinstance(msg, Block):
                     self._on_block(msg)
         finally:
             self.ctx.bus.unsubscribe(sub)
@@ -82,19 +112,49 @@ class ChatterAnalyzer(Analyzer):
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
         elif s.quantity == "depth_of_cut_mm":
-            cutting = s.value > 0
-            self.depth_mm = s.value if cutting else self.depth_mm
-            if cutting and not self.cutting:
-                if self.detector is not None:
-                    self.detector.reset()     # a new cut: learn its baseline afresh
-                self.state = "learning"
-            elif self.cutting and not cutting:
-                if self.detector is not None and self.detector.alarm:
-                    self._cleared("cut ended")
-                self.state = "idle"
+            if s.value > 0:
+                self.depth_mm = s.value
+            if "depth" in self.seen:
+                self._source("depth", s.value > 0, s.t)
+        elif s.quantity == "spindle_load_pct":
+            self.load_pct = s.value
+            if "load" in self.seen:
+                self._source("load", self.load_cut.update(s.value, self.rpm), s.t)
+
+    def _source(self, name: str, on: bool, t: float) -> None:
+        """One source's verdict; the cut is on while any source sees the chip."""
+        self.seen[name] = on
+        cutting = any(self.seen.values())
+        if cutting and not self.cutting:
+            if self.detector is not None:
+                self.detector.reset()     # a new cut: learn its baseline afresh
+            self.state = "learning"
+            self.cut_by = name
+            self._cut_rpm = None
+        elif self.cutting and not cutting:
+            if self.detector is not None and self.detector.alarm:
+                self._cleared("cut ended")
+            self.state = "idle"
+            self.cut_by = None
+        if cutting != self.cutting:
             self.cutting = cutting
+            self.ctx.bus.publish(Sample(self.name, "cutting", 1.0 if cutting else 0.0, "", t))
+            self.ctx.log.info("cut_state", cutting=cutting, source=name)
 
     def _on_block(self, b: Block) -> None:
+        data = b.data
+        if "vibration" in self.seen:
+            if self.vib_cut is None or self.vib_cut.rate != b.rate_hz:
+                self.vib_cut = VibrationCutDetector(b.rate_hz)
+            at = self.vib_cut.process(data)
+            if at is not None:
+                on = bool(self.vib_cut.cutting)
+                was = self.cutting
+                self._source("vibration", on, b.t0 + at / b.rate_hz)
+                if self.cutting and not was:
+                    data = data[at:]          # the revolution before the chip is air, not the cut
+        if not self.cutting or len(data) == 0:
+            return
         rpm = b.rpm if b.rpm else self.rpm
         if not rpm or rpm <= 0:
             return
@@ -102,8 +162,18 @@ class ChatterAnalyzer(Analyzer):
             self.detector = self._new_detector(b.rate_hz)
             self.rate_hz = b.rate_hz
         self.blocks += 1
+        if self._cut_rpm is None:
+            self._cut_rpm, self._cut_revs, self._cut_alarmed = rpm, 0.0, False
+        elif (abs(rpm - self._cut_rpm) > 0.05 * self._cut_rpm and not self._cut_alarmed
+              and self._cut_revs < ENTRY_REVS):
+            # a speed change at entry that no alarm asked for (suppression's avoid, the
+            # program): the baseline learned at the old speed does not hold at the new one
+            self.detector.reset()
+            self.state = "learning"
+            self._cut_rpm = rpm
+        self._cut_revs += len(data) / b.rate_hz * rpm / 60.0
         was = self.detector.alarm
-        windows = self.detector.process(b.data, rpm)
+        windows = self.detector.process(data, rpm)
         now = time.time()
         self.lag_ms = 1000 * (now - (b.t0 + len(b.data) / b.rate_hz))
         for w in windows:
@@ -119,6 +189,7 @@ class ChatterAnalyzer(Analyzer):
             pub(Sample(self.name, "chatter_alarm", 1.0 if w.alarm else 0.0, "", t))
             self.state = "learning" if w.learning else ("chatter" if w.alarm else "watching")
             if w.alarm and not was:
+                self._cut_alarmed = True
                 self.alarms += 1
                 self.alarm_started = t
                 self.ctx.log.warning("chatter_alarm", index=round(w.index, 3), threshold=w.threshold,
@@ -126,6 +197,7 @@ class ChatterAnalyzer(Analyzer):
                 self.ctx.record("chatter_alarm", {
                     "machine": self.machine, "index": w.index, "threshold": w.threshold,
                     "chatter_frequency_hz": w.chatter_frequency_hz, "rpm": rpm, "depth_mm": self.depth_mm,
+                    "load_pct": self.load_pct, "cut_seen_by": self.cut_by,
                     "tool": self.tool, "material": self.material, "detector": self.detector_name,
                     "sample_t": t})
             elif was and not w.alarm:
@@ -144,12 +216,14 @@ class ChatterAnalyzer(Analyzer):
     def status(self) -> dict:
         w = self.last
         idx = None if w is None or math.isnan(w.index) else round(w.index, 3)
-        return {"detector": self.detector_name, "cut_state": self.state, "index": idx,
+        return {"detector": self.detector_name, "cut_state": self.state, "cutting": self.cutting,
+                "cut_from": self.cut_from, "cut_seen_by": self.cut_by, "index": idx,
                 "threshold": None if w is None else w.threshold,
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
                 "alarms": self.alarms, "windows": self.windows,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
-                "summary": f"{self.state}" + (f", index {idx} / threshold {w.threshold:g}" if idx else "")
+                "summary": f"{self.state}" + (f" (cut seen by {self.cut_by})" if self.cut_by else "")
+                           + (f", index {idx} / threshold {w.threshold:g}" if idx else "")
                            + f", {self.alarms} alarm(s)"}
 
 

@@ -29,6 +29,11 @@ whether the guard let it through). ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
 
+The depth the lobes need comes from a depth_of_cut_mm register where the
+machine has one, else from the spindle load (spindle_load_pct: the cutting
+torque over the no-chip load, Kt * b * feed * D/2 = torque, solved for b;
+it needs kt, peak_torque_nm, diameter_mm and the feed register right).
+
 With ``avoid = true`` the lobes are also used before any alarm: when a cut
 starts at a depth the lobes call unstable at the programmed speed (the same
 rule the lobes strategy picks speeds by: the worst b_lim within +-3 % of
@@ -105,6 +110,10 @@ class SuppressionAnalyzer(Analyzer):
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
+        self.depth_from: str | None = None      # "register" | "spindle load"
+        self.idle_load_pct: float | None = None
+        self.in_cut: dict[str, bool] = {}
+        self._avoided: set[str] = set()
         self.feed_mm = 0.3
         self.rpm: float | None = None
         self.part_count: float | None = None
@@ -165,14 +174,48 @@ class SuppressionAnalyzer(Analyzer):
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
         elif s.quantity == "depth_of_cut_mm":
-            was, self.depth_mm = self.depth_mm, s.value
-            if s.value > 0 and was <= 0:
-                self.policy = self._policy()    # a new cut: bans and budget start afresh
-                self.pending = None
-                if self.avoid:
-                    await self._avoid()
-            if s.value <= 0 and was > 0:
-                self._stop_ssv()
+            self.depth_from = "register"
+            self.depth_mm = s.value
+            await self._cut_seen("depth", s.value > 0)
+        elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
+            self._depth_from_load(s.value)
+            if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
+                self._avoided.add("load")
+                await self._avoid()
+
+    def _depth_from_load(self, load_pct: float) -> None:
+        """Without a depth register the lobes need the depth: the cutting torque the
+        drive reports over the spindle's no-chip load, Kt b h r = T, solved for b."""
+        if self.rpm is None or self.rpm <= 0:
+            return
+        self.idle_load_pct = load_pct if self.idle_load_pct is None else min(self.idle_load_pct, load_pct)
+        torque = (load_pct - self.idle_load_pct) / 100.0 * self.limits.peak_torque_nm
+        b_m = torque / (self.kt * self.feed_mm / 1000 * self.diameter_m / 2)
+        if b_m * 1000 > 0.05 and self.in_cut and abs(b_m * 1000 - self.depth_mm) > 0.1 * self.depth_mm:
+            self.depth_mm = b_m * 1000
+            self.depth_from = "spindle load"
+            if self.policy is not None:
+                # this cut's policy (bans, budget) keeps going with the depth known now
+                self.policy.strategy = self._policy().strategy
+
+    async def _cut_seen(self, by: str, on: bool) -> None:
+        """The machine's depth register or the chatter analyzer's cut state
+        (whichever this machine has; the first to see the chip starts the cut)."""
+        was = bool(self.in_cut)
+        self.in_cut[by] = on
+        if not on:
+            del self.in_cut[by]
+        if self.in_cut and not was:
+            self.policy = self._policy()    # a new cut: bans and budget start afresh
+            self.pending = None
+        if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
+            self._avoided.add("depth")
+            await self._avoid()
+        if was and not self.in_cut:
+            if self.depth_from == "spindle load":
+                self.depth_mm = 0.0
+            self._avoided.clear()
+            self._stop_ssv()
 
     def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
         """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
@@ -207,6 +250,9 @@ class SuppressionAnalyzer(Analyzer):
                "chatter_frequency_hz": "frequency"}.get(s.quantity)
         if key:
             self.chat[key] = s.value
+            return
+        if s.quantity == "cutting":
+            await self._cut_seen("chatter", s.value > 0.5)
             return
         if s.quantity != "chatter_alarm":
             return
@@ -304,7 +350,7 @@ class SuppressionAnalyzer(Analyzer):
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": len(self.actions), "last_action": self.actions[-1] if self.actions else None,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
-                "avoid": self.avoid,
+                "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
                            + f", {len(self.actions)} action(s)"}

@@ -59,10 +59,12 @@ def sim_call(path: str | Path, cmd: str, args: dict | None = None) -> object:
 
 
 REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.registers]", 1)[1].split("\n[", 1)[0]
+# the simulated CNC has it; the default config does not map it (real controls rarely report it)
+DEPTH_REGISTER = 'depth_of_cut_mm = { address = 20, type = "float32", unit = "mm" }\n'
 
 
 def sim_config(tmp: Path, extra: str = "", analyzers: str = "", time_scale: float = 30.0,
-               daemon: str = "", simulator: str = "") -> tuple[Path, dict]:
+               daemon: str = "", simulator: str = "", registers: str = "") -> tuple[Path, dict]:
     """A config running the simulator on free ports in a private directory."""
     mport, vport = free_port(), free_port()
     link = tmp / "ttyARDUINO"
@@ -100,6 +102,7 @@ offset_rate_max_um_s = 5.0
 
 [machine.lathe.registers]
 {REGISTERS}
+{registers}
 
 [sensor.temps]
 plugin = "ds18b20_serial"
@@ -176,8 +179,8 @@ def sim_daemon(tmp_path):
     started = []
 
     def start(extra: str = "", analyzers: str = "", env: dict | None = None, time_scale: float = 30.0,
-              daemon: str = ""):
-        cfg, paths = sim_config(tmp_path, extra, analyzers, time_scale, daemon)
+              daemon: str = "", registers: str = ""):
+        cfg, paths = sim_config(tmp_path, extra, analyzers, time_scale, daemon, registers=registers)
         d = Daemon(cfg, paths["socket"], env)
         d.paths = paths
         started.append(d)

@@ -48,7 +48,9 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     assert a["source"] == "chatter"
     p = a["payload"]
     assert p["machine"] == "lathe" and p["tool"] == "T0101" and p["material"] == "C45"
-    assert p["depth_mm"] == 3.0
+    # the default config maps no depth register: the cut is seen by the load or the vibration
+    assert p["depth_mm"] is None and p["cut_seen_by"] in ("load", "vibration")
+    assert p["load_pct"] > 20     # a 3 mm chip at 30 mm diameter loads the spindle
     assert p["detector"] == chatter(d)["detector"]
     assert p["index"] > p["threshold"] > 0
     assert 50 < p["chatter_frequency_hz"] < 2000      # the structure's modes are at 190 and 620 Hz
@@ -56,6 +58,7 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     # the analyzer's own status reports it
     st = chatter(d)
     assert st["alarms"] >= 1 and st["windows"] > 0
+    assert st["cut_from"] == ["load", "vibration"]
     assert st["threshold"] is not None
     wait_until(lambda: chatter(d)["cut_state"] == "chatter" or events(d, "chatter_cleared"),
                timeout=15, what="chatter state or a cleared alarm")
@@ -67,6 +70,22 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     cleared = wait_until(lambda: events(d, "chatter_cleared"), timeout=30, interval=0.2,
                          what="chatter_cleared event")
     assert cleared[0]["payload"]["machine"] == "lathe"
+
+
+def test_cut_state_without_a_depth_register(sim_daemon):
+    d = sim_daemon(analyzers=CHATTER)
+    assert not re.search(r"^depth_of_cut_mm", d.cfg.read_text(), re.M)     # the default map has none
+    assert sim_set(d, 1.0) == {"depth_mm": 1.0}
+    # the cut is seen (by the spindle load or the vibration) and lathectl status says so
+    st = wait_until(lambda: (s := chatter(d))["cutting"] and s, timeout=20, interval=0.1, what="a cut seen")
+    assert st["cut_seen_by"] in ("load", "vibration") and st["cut_state"] in ("learning", "watching")
+    wait_until(lambda: re.search(r"^\s+chatter\s.*\b(?:learning|watching) \(cut seen by (?:load|vibration)\)",
+                                 d.ctl("status").stdout, re.M), timeout=10, interval=0.1,
+               what="cut state in lathectl status")
+    # and its end, when the tool retracts
+    st = wait_until(lambda: not (s := chatter(d))["cutting"] and s, timeout=20, interval=0.1,
+                    what="the cut's end")
+    assert st["cut_state"] == "idle" and st["cut_seen_by"] is None
 
 
 def test_no_false_alarm_on_stable_cuts(sim_daemon):

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from lathed import lathectl
-from tests.conftest import Daemon, sim_config, wait_until
+from tests.conftest import DEPTH_REGISTER, Daemon, sim_config, wait_until
 from tests.test_taguchi import FACTORS, PHADKE_BEST, phadke_trials
 
 HERE = Path(__file__).resolve().parent
@@ -39,7 +39,7 @@ def daemon(tmp_path_factory):
     plugins = tmp_path / "plugins"
     plugins.mkdir()
     shutil.copy(HERE / "fake_chatter_plugin.py", plugins / "fake_chatter.py")
-    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS)
+    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS, registers=DEPTH_REGISTER)
     cfg.write_text(cfg.read_text().replace("[daemon]\n", f'[daemon]\nplugin_dirs = ["{plugins}"]\n', 1))
     d = Daemon(cfg, paths["socket"])
     try:

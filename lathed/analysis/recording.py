@@ -1,7 +1,8 @@
 """Reading vibration recordings: WAV (PCM 8/16/24/32-bit, float 32/64,
-WAVE_FORMAT_EXTENSIBLE) and CSV, with clipped-sample detection: PCM samples
-at the converter's full scale; float WAV and CSV (no known full scale, often
-physical units) runs of equal samples at the recording's extremes.
+WAVE_FORMAT_EXTENSIBLE), CSV, and MATLAB .mat (a named variable: one column
+of samples, or time and value columns), with clipped-sample detection: PCM
+samples at the converter's full scale; float WAV, CSV and .mat (no known full
+scale, often physical units) runs of equal samples at the recording's extremes.
 
 The standard library's ``wave`` cannot read float WAV, so the RIFF chunks are
 parsed here.  Errors are ``RecordingError`` carrying a one-line message that
@@ -42,8 +43,10 @@ class Signal:
         return len(self.data) / self.rate_hz
 
 
-def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None) -> Signal:
-    """Read ``path`` (.wav, or anything else as CSV) and return one channel."""
+def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None,
+                var: str | None = None) -> Signal:
+    """Read ``path`` (.wav, .mat, or anything else as CSV) and return one channel.
+    ``var`` names the variable of a .mat file (default: its only numeric one)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -55,7 +58,9 @@ def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None
         raise RecordingError(f"cannot read {p}: {e.strerror}", missing=True) from None
     if not raw.strip():
         raise RecordingError(f"{p} is empty")
-    if raw[:4] == b"RIFF" or p.suffix.lower() == ".wav":
+    if p.suffix.lower() == ".mat" or raw[:6] == b"MATLAB":
+        sig = _read_mat(raw, str(p), channel, rate_hz, var)
+    elif raw[:4] == b"RIFF" or p.suffix.lower() == ".wav":
         sig = _read_wav(raw, str(p), channel)
         if rate_hz is not None and abs(rate_hz - sig.rate_hz) > 1e-6 * sig.rate_hz:
             sig.notes.append(f"--rate {rate_hz:g} ignored: the WAV header says {sig.rate_hz:g} Hz")
@@ -127,6 +132,57 @@ def _with_clips(sig: Signal, mask: np.ndarray) -> Signal:
         sig.clipped = n
         sig.first_clip_s = float(np.argmax(mask)) / sig.rate_hz
     return sig
+
+
+# -- MATLAB ---------------------------------------------------------------------------
+def _read_mat(raw: bytes, src: str, channel: int, rate_hz: float | None, var: str | None) -> Signal:
+    from scipy.io import loadmat     # only here: the daemon never reads .mat
+    from scipy.io.matlab import MatReadError
+
+    try:
+        mat = loadmat(io.BytesIO(raw))
+    except (MatReadError, ValueError, TypeError, IndexError, NotImplementedError, OSError,
+            struct.error) as e:
+        raise RecordingError(f"{src} is not a MATLAB v4-v7.2 .mat file scipy can read ({e}); "
+                             "v7.3 files are HDF5: save with -v7") from None
+    names = [k for k, v in mat.items() if not k.startswith("__") and isinstance(v, np.ndarray)
+             and v.dtype.kind in "iuf" and v.size > 1]
+    if var is None:
+        if len(names) != 1:
+            raise RecordingError(f"{src}: name the variable to read with --var "
+                                 f"(numeric variables: {', '.join(names) or 'none'})")
+        var = names[0]
+    if var not in mat:
+        raise RecordingError(f"{src}: no variable {var!r} (numeric variables: {', '.join(names) or 'none'})")
+    a = np.asarray(mat[var])
+    if a.dtype.kind not in "iuf" or a.ndim > 2 or a.size < 2:
+        raise RecordingError(f"{src}: variable {var!r} is {a.dtype} of shape {a.shape}, "
+                             "not a numeric vector or N x K matrix")
+    if a.ndim == 1 or 1 in a.shape:
+        a = a.reshape(-1, 1)
+    elif a.shape[0] < a.shape[1]:
+        a = a.T                       # one row per channel: samples along the rows
+    a = a.astype(float)
+    notes: list[str] = []
+    # a first column that increases evenly is the time (the published sets' layout)
+    t = a[:, 0]
+    dt = np.diff(t)
+    if a.shape[1] >= 2 and len(t) > 2 and np.all(dt > 0) \
+            and np.max(np.abs(dt - np.median(dt))) <= 0.01 * np.median(dt):
+        rate = 1.0 / float(np.median(dt))
+        cols = a[:, 1:]
+        if rate_hz is not None and abs(rate - rate_hz) > 0.01 * rate:
+            notes.append(f"--rate {rate_hz:g} ignored: the time column of {var!r} gives {rate:g} Hz")
+    else:
+        if rate_hz is None:
+            raise RecordingError(f"{src}: variable {var!r} has no time column, so the sample rate is "
+                                 "unknown (give --rate HZ)")
+        rate, cols = float(rate_hz), a
+    if not 0 <= channel < cols.shape[1]:
+        raise RecordingError(f"{src}: signal column {channel} of {var!r} does not exist "
+                             f"({cols.shape[1]} signal column(s), numbered from 0)")
+    x = np.ascontiguousarray(cols[:, channel])
+    return _with_clips(Signal(x, rate, f"{src}:{var}", cols.shape[1], notes=notes), _flat_tops(x))
 
 
 # -- CSV -------------------------------------------------------------------------------

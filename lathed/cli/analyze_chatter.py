@@ -1,7 +1,10 @@
 """``lathectl analyze chatter``: run a chatter detector over a recording.
 
-    lathectl analyze chatter FILE --rpm N [--rate HZ] [--channel K]
+    lathectl analyze chatter FILE --rpm N [--rate HZ] [--channel K] [--var NAME]
         [--reference REF] [--detector NAME] [--json] [--plot OUT.png]
+
+FILE is WAV, CSV (time_s and value columns, or one column with --rate) or a
+MATLAB .mat (--var names the variable: samples, or time and value columns).
 
 ``--json`` prints one object: verdict ("chatter"|"stable"), first_alarm_s,
 chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
@@ -37,12 +40,14 @@ def _channel(text: str) -> int:
 
 
 def register_analyze(sub) -> None:
-    p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV or CSV)",
+    p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV, CSV or .mat)",
                        description="Run a chatter detector over a recorded accelerometer signal. "
                                    "The baseline is learned from the first revolutions of the "
                                    "recording, or from --reference (a stable cut).")
-    p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float) or CSV "
-                   "(time_s plus one signal column, or one column with --rate)")
+    p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float), CSV "
+                   "(time_s plus one signal column, or one column with --rate) or MATLAB .mat")
+    p.add_argument("--var", metavar="NAME", help="variable of a .mat file (default: its only "
+                   "numeric one); a first column of evenly increasing times is the time")
     p.add_argument("--rpm", type=spindle_rpm, required=True, help="spindle speed in r/min")
     p.add_argument("--rate", type=positive, metavar="HZ", help="sample rate of a CSV without time_s")
     p.add_argument("--channel", type=_channel, default=0, metavar="K",
@@ -72,8 +77,9 @@ def run(args, extra_detectors: dict | None = None) -> int:
         _err(f"spindle speed must be > 0 r/min, got {args.rpm} (--rpm)")
         return 2
     try:
-        sig = read_signal(args.file, args.channel, args.rate)
-        ref = read_signal(args.reference, args.channel, args.rate) if args.reference else None
+        var = getattr(args, "var", None)
+        sig = read_signal(args.file, args.channel, args.rate, var)
+        ref = read_signal(args.reference, args.channel, args.rate, var) if args.reference else None
     except RecordingError as e:
         _err(str(e))
         return EX_NOINPUT if e.missing else EX_DATAERR

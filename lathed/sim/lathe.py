@@ -32,6 +32,8 @@ from lathed.sim.thermal import SpindleThermal
 LATHE_MODES = (Mode(190.0, 0.03, 7.5e7, 0.0), Mode(620.0, 0.035, 4.0e8, 30.0))
 LATHE_KF = 2.0e9    # N/m² along the chip-thickness direction (medium carbon steel)
 LATHE_KT = 1.5e9    # N/m² tangential: sets the spindle torque a cut needs
+LATHE_PEAK_TORQUE_NM = 35.8   # the spindle drive's rating: 100 % load
+IDLE_LOAD_PCT = 2.0           # bearings and seals at speed, no chip
 
 
 @dataclass(frozen=True)
@@ -194,6 +196,7 @@ class SimLathe:
         self.probe_displacement_um = 0.0
         self.probe_seq = 0
         self.program_number = 1000
+        self.load_pct = 0.0
         self.lobes = StabilityLobes(LATHE_MODES, LATHE_KF)
         self.watch = VisibleChatter(rate_hz)
         self.n_samples = 0
@@ -271,9 +274,18 @@ class SimLathe:
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
         block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev)
+        self._load(depth, block)
         self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)
         return np.asarray(block.accel, dtype=np.float32)
+
+    def _load(self, depth_mm: float, block: SimBlock) -> None:
+        """Spindle load as a drive reports it: cutting torque (Kt b h r, the chip
+        actually removed, so chatter's lost contact shows) over the rated torque."""
+        torque = LATHE_KT * depth_mm * 1e-3 * float(np.mean(np.maximum(block.h_m, 0.0))) \
+            * self.part.diameter_mm / 2e3
+        idle = IDLE_LOAD_PCT if self.rpm > 0 else 0.0
+        self.load_pct = idle + 100.0 * torque / LATHE_PEAK_TORQUE_NM
 
     def _watch(self, was: str, n: int, block: SimBlock) -> None:
         i = self.n_samples                  # this block's first sample
@@ -305,6 +317,7 @@ class SimLathe:
             "spindle_rpm_cmd": self.rpm_cmd,
             "spindle_rpm": self.rpm,
             "spindle_override_pct": 100.0 * self.rpm_cmd / self.part.rpm,
+            "spindle_load_pct": self.load_pct,
             "x_mm": (radius - self.depth_mm if cutting else radius + 5.0) + self.offset_x_um / 1000.0,
             "y_mm": self.y_mm,
             "b_deg": 0.0,

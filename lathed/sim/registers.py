@@ -25,6 +25,7 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     "tool_number":           (25, "uint16", False, ""),
     "probe_displacement_um": (26, "float32", False, "µm"),
     "probe_seq":             (28, "uint16", False, ""),
+    "spindle_load_pct":      (30, "float32", False, "%"),
 }
 N_REGISTERS = 32
 

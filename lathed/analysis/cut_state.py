@@ -1,0 +1,117 @@
+"""Is the tool in the cut?  Decided from what a machine offers.
+
+Real controls (Fanuc, Siemens, Heidenhain, Haas) report spindle speed,
+spindle load, feed and program state, rarely the depth of cut.  Each source
+here turns one of them into cutting / not cutting:
+
+  depth      a depth-of-cut register > 0 (machines that have one; exact)
+  load       spindle load above the spindle's own no-chip load by a margin
+             (a standard register; polled, so the entry is seen one poll late)
+  vibration  the accelerometer itself: a chip excites the structure, an air
+             cut does not.  Frame rms (a few ms) against the air-cut floor
+             learned while not cutting; sees the entry within the frame, so
+             within one revolution at 3000 r/min.  Gain-invariant (a ratio).
+
+``CutState`` ORs the sources a machine's config names: the first to see the
+chip starts the cut, the cut ends when none sees it.  No asyncio here.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SOURCES = ("depth", "load", "vibration")
+
+
+class VibrationCutDetector:
+    """Air cut vs chip from the vibration signal.
+
+    Frames of ``frame_s``; the air-cut floor is a slow running low level of
+    the frame rms while not cutting (so a gain change or a warmer spindle is
+    followed).  Entry: a frame ``on_ratio`` x above the floor.  Exit: frames
+    below ``off_ratio`` x the floor for ``off_s`` (longer than a flat's gap in
+    an interrupted cut, so the cut does not end at every revolution).  Until
+    an air cut has been seen the floor is unknown and the state is None.
+    """
+
+    def __init__(self, rate_hz: float, frame_s: float = 0.004, on_ratio: float = 4.0,
+                 off_ratio: float = 2.0, off_s: float = 0.15, floor_s: float = 0.2) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"sample rate must be > 0 Hz, got {rate_hz}")
+        if not 1.0 < off_ratio < on_ratio:
+            raise ValueError(f"vibration cut detection needs 1 < off_ratio < on_ratio, "
+                             f"got {off_ratio:g} and {on_ratio:g}")
+        self.rate = float(rate_hz)
+        self.frame = max(8, int(frame_s * rate_hz))
+        self.on_ratio, self.off_ratio = on_ratio, off_ratio
+        self.off_frames = max(1, int(off_s * rate_hz / self.frame))
+        self.floor_frames = max(4, int(floor_s * rate_hz / self.frame))
+        self.floor: float | None = None
+        self.cutting: bool | None = None
+        self._air: list[float] = []
+        self._quiet = 0
+        self._rest = np.empty(0)
+
+    def process(self, x: np.ndarray) -> int | None:
+        """Feed samples; returns the sample offset in ``x`` where the state changed
+        (the last change in this block), or None."""
+        x = np.asarray(x, dtype=float).ravel()
+        buf = np.concatenate((self._rest, x))
+        nf = len(buf) // self.frame
+        self._rest = buf[nf * self.frame:]
+        if nf == 0:
+            return None
+        frames = buf[:nf * self.frame].reshape(nf, self.frame)
+        rms = np.sqrt(np.mean((frames - frames.mean(axis=1, keepdims=True)) ** 2, axis=1))
+        offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
+        changed = None
+        for i, r in enumerate(rms):
+            if not self.cutting:
+                if self.floor is not None and r > self.on_ratio * self.floor:
+                    self.cutting, self._quiet = True, 0
+                    changed = max(0, offset0 + i * self.frame)
+                    continue
+                self._air.append(float(r))
+                if len(self._air) > self.floor_frames:
+                    del self._air[0]
+                if len(self._air) >= min(4, self.floor_frames):
+                    # a low quantile: a knock or a ramp's ringing does not lift it
+                    self.floor = max(float(np.quantile(self._air, 0.25)), 1e-300)
+                    if self.cutting is None:
+                        self.cutting = False
+            else:
+                self._quiet = self._quiet + 1 if r < self.off_ratio * self.floor else 0
+                if self._quiet >= self.off_frames:
+                    self.cutting = False
+                    self._air = []
+                    changed = max(0, offset0 + (i + 1) * self.frame)
+        return changed
+
+
+class LoadCutDetector:
+    """Cutting while the spindle load is ``margin_pct`` above its no-chip load.
+
+    The no-chip load (bearings, seals; it rises with speed) is the lowest load
+    seen at the current speed band while the spindle turns, or ``idle_pct``
+    until one is seen."""
+
+    def __init__(self, margin_pct: float = 5.0, idle_pct: float = 5.0) -> None:
+        self.margin = float(margin_pct)
+        self.idle_default = float(idle_pct)
+        self._idle: dict[int, float] = {}
+        self.cutting = False
+
+    @staticmethod
+    def _band(rpm: float | None) -> int:
+        return -1 if not rpm or rpm <= 0 else int(round(math.log(rpm) / math.log(1.1)))
+
+    def update(self, load_pct: float, rpm: float | None) -> bool:
+        band = self._band(rpm)
+        idle = self._idle.get(band, self.idle_default)
+        if rpm and rpm > 0 and load_pct < idle + self.margin:
+            self._idle[band] = min(idle, load_pct) if band in self._idle else min(self.idle_default,
+                                                                                  load_pct)
+            idle = self._idle[band]
+        self.cutting = load_pct >= idle + self.margin
+        return self.cutting

@@ -1,0 +1,59 @@
+"""Cut state without a depth register: from the vibration and from the spindle load."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lathed.analysis.cut_state import LoadCutDetector, VibrationCutDetector
+from lathed.analysis.regen import Segment as S, simulate_cut
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES
+
+RATE = 51200.0
+FRAME = 1024        # the vibration stream's 20 ms frames
+
+
+def cut_events(signal: np.ndarray, gain: float = 1.0) -> list[tuple[int, bool]]:
+    det = VibrationCutDetector(RATE)
+    out = []
+    for i in range(0, len(signal), FRAME):
+        at = det.process(gain * signal[i:i + FRAME])
+        if at is not None:
+            out.append((i + at, bool(det.cutting)))
+    return out
+
+
+@pytest.mark.parametrize("gain", [1.0, 10.0, 0.01])
+def test_vibration_sees_entry_within_one_revolution_at_3000_rpm(gain):
+    air, cut = 0.4, 1.0
+    rec = simulate_cut([S(air, 3000, 0.0), S(cut, 3000, 0.8), S(0.5, 3000, 0.0)], modes=LATHE_MODES,
+                       kf_n_per_m2=LATHE_KF, seed=4)
+    ev = cut_events(rec.signal, gain)
+    entry = int(air * RATE)
+    rev = int(RATE * 60 / 3000)
+    assert ev and ev[0][1] is True, ev
+    assert entry <= ev[0][0] <= entry + rev, (ev, entry, rev)
+    # and the end of the cut once the tool is out (the ringing decays first)
+    assert len(ev) == 2 and ev[1][1] is False and ev[1][0] > int((air + cut) * RATE), ev
+
+
+def test_interrupted_cut_stays_one_cut():
+    # a 30 % flat takes the tool out every revolution: still one cut
+    rec = simulate_cut([S(0.4, 1000, 0.0), S(1.5, 1000, 1.0)], modes=LATHE_MODES, kf_n_per_m2=LATHE_KF,
+                       flat_fraction=0.3, seed=2)
+    ev = cut_events(rec.signal)
+    assert [on for _, on in ev] == [True], ev
+
+
+def test_no_cut_while_the_spindle_only_turns():
+    rec = simulate_cut([S(1.0, 2000, 0.0), S(0.5, 2600, 0.0, 0.3)], modes=LATHE_MODES,
+                       kf_n_per_m2=LATHE_KF, seed=3)
+    assert cut_events(rec.signal) == []
+
+
+def test_load_learns_the_spindles_no_chip_load():
+    det = LoadCutDetector(margin_pct=5.0)
+    assert det.update(2.0, 1500) is False          # bearings and seals only
+    assert det.update(8.0, 1500) is True           # 6 % over the no-chip load: a chip
+    assert det.update(2.5, 1500) is False
+    assert det.update(0.0, 0.0) is False           # spindle stopped
+    assert det.update(20.0, 2500) is True
