@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_daemon import config, free_port, rss_mb  # noqa: E402
+from bench_daemon import config, rss_mb  # noqa: E402
 from bench_loop import DEPTH_MM, start  # noqa: E402
 
 from lathed.client import call  # noqa: E402

@@ -258,10 +258,11 @@ class Supervisor:
         try:
             fut = self.store.record_future(kind, source, payload)
         except Exception as e:
-            log.error("record_failed", kind=kind, source=source, error=_one_line(e))
+            log.error("record_failed", kind=kind, source=source, error=_one_line(e), payload=payload)
             return
+        # the payload goes to the log: a refused audit (disk full) survives at least there
         fut.add_done_callback(lambda f: f.exception() and log.error(
-            "record_failed", kind=kind, source=source, error=str(f.exception())))
+            "record_failed", kind=kind, source=source, error=str(f.exception()), payload=payload))
 
     def _recorder(self, source: str):
         return lambda kind, payload=None: self.record(kind, source, payload)

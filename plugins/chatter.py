@@ -84,6 +84,8 @@ class ChatterAnalyzer(Analyzer):
         self.alarms = 0
         self.windows = 0
         self.blocks = 0
+        self.unusable_blocks = 0
+        self._bad_rates: set[float] = set()
         self.lag_ms: float | None = None
         self.alarm_started: float | None = None
 
@@ -159,7 +161,17 @@ class ChatterAnalyzer(Analyzer):
         if not rpm or rpm <= 0:
             return
         if self.detector is None or self.rate_hz != b.rate_hz:
-            self.detector = self._new_detector(b.rate_hz)
+            try:
+                self.detector = self._new_detector(b.rate_hz)
+            except ValueError as e:
+                # a stream at a rate the detector cannot window: counted and said once, never a crash loop
+                self.unusable_blocks += 1
+                if b.rate_hz not in self._bad_rates:
+                    self._bad_rates.add(b.rate_hz)
+                    self.ctx.log.error("unusable_vibration_rate", rate_hz=b.rate_hz, error=str(e))
+                    self.ctx.record("unusable_vibration_rate", {"rate_hz": b.rate_hz, "error": str(e)})
+                self.detector = None
+                return
             self.rate_hz = b.rate_hz
         self.blocks += 1
         if self._cut_rpm is None:
@@ -220,7 +232,7 @@ class ChatterAnalyzer(Analyzer):
                 "cut_from": self.cut_from, "cut_seen_by": self.cut_by, "index": idx,
                 "threshold": None if w is None else w.threshold,
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
-                "alarms": self.alarms, "windows": self.windows,
+                "alarms": self.alarms, "windows": self.windows, "unusable_blocks": self.unusable_blocks,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
                 "summary": f"{self.state}" + (f" (cut seen by {self.cut_by})" if self.cut_by else "")
                            + (f", index {idx} / threshold {w.threshold:g}" if idx else "")

@@ -118,7 +118,8 @@ class SuppressionAnalyzer(Analyzer):
         self.rpm: float | None = None
         self.part_count: float | None = None
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
-        self.actions: list[dict] = []
+        self.actions = 0                       # a count: the records keep every action
+        self.last_action: dict | None = None
         self.pending: Decision | None = None
         self.pending_trigger = "alarm"
         self._ssv_task: asyncio.Task | None = None
@@ -287,7 +288,8 @@ class SuppressionAnalyzer(Analyzer):
                 self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
                 payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
         payload.update(sent=result["sent"], refused=result["reason"], by=source)
-        self.actions.append(payload)
+        self.actions += 1
+        self.last_action = payload
         self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,
                           rpm_after=d.rpm_after, sent=result["sent"], trigger=trigger)
         self.ctx.record("suppression_action", payload)
@@ -348,12 +350,12 @@ class SuppressionAnalyzer(Analyzer):
         lat = sorted(self.latency_ms)
         return {"mode": self.mode, "strategy": self.strategy_name, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
-                "actions": len(self.actions), "last_action": self.actions[-1] if self.actions else None,
+                "actions": self.actions, "last_action": self.last_action,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
-                           + f", {len(self.actions)} action(s)"}
+                           + f", {self.actions} action(s)"}
 
 
 @hookimpl
