@@ -8,6 +8,7 @@ import asyncio
 from pathlib import Path
 
 from lathed import daemon as daemonmod
+from lathed.store import Store
 
 CONFIG = """
 [daemon]
@@ -61,7 +62,10 @@ class InProcessDaemon:
         cfg = tmp / "lathed.toml"
         cfg.write_text(CONFIG.format(tmp=tmp, daemon=daemon, registers=REGISTERS))
         self.loop = asyncio.new_event_loop()
-        self.daemon = daemonmod.Daemon(*daemonmod.prepare(cfg, strict=True))
+        cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=True)
+        settings.state_dir.mkdir(parents=True, exist_ok=True)
+        store = Store(settings.state_dir / "lathed.db", machine_id=settings.name)
+        self.daemon = daemonmod.Daemon(cfg, settings, loader, plan, sim, store)
         self.control = self.daemon.control
         self.task = self.loop.create_task(self.daemon.run())
         self.run(self._ready())
