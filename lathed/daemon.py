@@ -161,21 +161,24 @@ class Daemon:
         guard = threading.Timer(STOP_GRACE_S, self._stop_overdue)
         guard.daemon = True
         guard.start()
-        watchdog.cancel()
-        lag_watch.cancel()
-        starting.cancel()
-        await asyncio.gather(starting, return_exceptions=True)
-        self._step = "stopping analyzers and drivers"
-        await self.supervisor.stop()
-        self._step = "closing the control socket"
-        await self.control.close()
-        self._step = "stopping the simulator"
-        if self.sim_process is not None:
-            from lathed.sim.launch import stop
-            await stop(self.sim_process)
-        self.supervisor.record("daemon_stopped", "lathed", {})
-        self._step = "closing the store"
-        await asyncio.to_thread(self.store.close)
+        try:
+            watchdog.cancel()
+            lag_watch.cancel()
+            starting.cancel()
+            await asyncio.gather(starting, return_exceptions=True)
+            self._step = "stopping analyzers and drivers"
+            await self.supervisor.stop()
+            self._step = "closing the control socket"
+            await self.control.close()
+            self._step = "stopping the simulator"
+            if self.sim_process is not None:
+                from lathed.sim.launch import stop
+                await stop(self.sim_process)
+            self.supervisor.record("daemon_stopped", "lathed", {})
+            self._step = "closing the store"
+            await asyncio.to_thread(self.store.close)
+        finally:   # stopped in time: the guard must not fire later in a process that lives on
+            guard.cancel()
         return self.exit_code
 
     async def _prune(self) -> None:

@@ -5,6 +5,7 @@ far cheaper than a daemon on the simulator."""
 from __future__ import annotations
 
 import asyncio
+import threading
 from pathlib import Path
 
 from lathed import daemon as daemonmod
@@ -89,3 +90,6 @@ class InProcessDaemon:
         self.daemon._stop.set()
         self.loop.run_until_complete(asyncio.wait_for(self.task, 30))
         self.loop.close()
+        # a stop guard left armed would os._exit the test process 15 s later
+        timers = [t for t in threading.enumerate() if isinstance(t, threading.Timer) and t.is_alive()]
+        assert not timers, f"threads left behind by a clean stop: {timers}"
