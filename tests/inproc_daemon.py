@@ -91,5 +91,8 @@ class InProcessDaemon:
         self.loop.run_until_complete(asyncio.wait_for(self.task, 30))
         self.loop.close()
         # a stop guard left armed would os._exit the test process 15 s later
-        timers = [t for t in threading.enumerate() if isinstance(t, threading.Timer) and t.is_alive()]
+        timers = [t for t in threading.enumerate() if isinstance(t, threading.Timer)]
+        for t in timers:
+            t.join(5.0)     # a cancelled guard ends at once; an armed one would wait 15 s
+        timers = [t for t in timers if t.is_alive()]
         assert not timers, f"threads left behind by a clean stop: {timers}"
