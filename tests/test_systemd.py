@@ -1,6 +1,7 @@
 """The unit file passes systemd-analyze verify (where systemd-analyze exists)."""
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -27,3 +28,13 @@ def test_unit_is_notify_with_watchdog_and_state():
     for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "StateDirectory=lathed",
                  "RuntimeDirectory=lathed", "SupplementaryGroups=dialout", "User=lathed", "AF_CAN"):
         assert line in unit
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_unit_exposure_is_at_most_2_5():
+    # issue 17 item 6: the cheap settings all on, each left off named in the unit with its reason
+    r = subprocess.run(["systemd-analyze", "security", "--offline=yes", str(ROOT / "systemd" / "lathed.service")],
+                       capture_output=True, text=True)
+    m = re.search(r"Overall exposure level for lathed\.service: ([\d.]+)", r.stdout + r.stderr)
+    assert m, r.stdout + r.stderr
+    assert float(m[1]) <= 2.5, r.stdout
