@@ -132,8 +132,16 @@ def cmd_events(args: argparse.Namespace) -> int:
     return 0
 
 
+class Parser(argparse.ArgumentParser):
+    """Bad arguments are one line naming the command and what is wrong, exit 2
+    (sub-commands' parsers are of this class too: argparse makes them so)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lathectl", description="Operate and query lathed.")
+    p = Parser(prog="lathectl", description="Operate and query lathed.")
     p.add_argument("--socket", help="control socket of the daemon (default: $LATHED_SOCKET, "
                                     "/run/lathed/lathed.sock, or the one in this environment)")
     p.add_argument("--version", action="version", version=f"lathectl {__version__}")

@@ -131,12 +131,13 @@ retry_max = "1s"
 
 
 class Daemon:
-    def __init__(self, cfg: Path, socket_path: Path, env: dict | None = None):
+    def __init__(self, cfg: Path, socket_path: Path, env: dict | None = None, new_session: bool = False):
         self.cfg = cfg
         self.socket = socket_path
         self.log = open(cfg.with_suffix(".log"), "wb")
         self.proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=self.log,
-                                     stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+                                     stderr=subprocess.STDOUT, env={**os.environ, **(env or {})},
+                                     start_new_session=new_session)
 
     def ctl(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
         r = subprocess.run([str(BIN / "lathectl"), "--socket", str(self.socket), *args],
@@ -179,9 +180,9 @@ def sim_daemon(tmp_path):
     started = []
 
     def start(extra: str = "", analyzers: str = "", env: dict | None = None, time_scale: float = 30.0,
-              daemon: str = "", registers: str = ""):
+              daemon: str = "", registers: str = "", new_session: bool = False):
         cfg, paths = sim_config(tmp_path, extra, analyzers, time_scale, daemon, registers=registers)
-        d = Daemon(cfg, paths["socket"], env)
+        d = Daemon(cfg, paths["socket"], env, new_session)
         d.paths = paths
         started.append(d)
         d.wait_ready()

@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import socket
 import subprocess
+
+import pytest
 
 from tests.conftest import BIN, sim_call, wait_until
 
@@ -92,6 +95,22 @@ def test_sigterm_stops_cleanly_and_notifies(sim_daemon, tmp_path):
     assert any(m.startswith("READY=1") for m in msgs)
     assert d.stop() == 0
     srv.close()
+
+
+def test_ctrl_c_on_the_terminal_stops_drivers_before_the_simulator_without_a_traceback(sim_daemon):
+    # issue 17 item 1: a terminal's Ctrl-C is SIGINT to the whole foreground group. The simulator
+    # used to get it too, stop first, and leave the drivers faulting and a traceback behind.
+    d = sim_daemon(new_session=True)
+    sim = wait_until(lambda: d.item("machines", "lathe")["state"] == "connected" and
+                     next(json.loads(ln)["pid"] for ln in d.output().splitlines() if '"simulator_ready"' in ln),
+                     what="the lathe connected to the simulator")
+    os.killpg(d.proc.pid, signal.SIGINT)
+    assert d.proc.wait(30) == 0
+    out = d.output()
+    tail = out[out.index('"stopping"'):]
+    assert "Traceback" not in out and "_fault" not in tail, tail
+    with pytest.raises(ProcessLookupError):      # stopped and reaped by lathed, not orphaned
+        os.kill(sim, 0)
 
 
 def test_retention_prunes_old_records_while_running(sim_daemon):

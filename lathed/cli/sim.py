@@ -12,6 +12,22 @@ from lathed.client import DaemonUnavailable, RemoteError, default_socket
 from lathed.lathectl import print_json
 
 
+DEPTH_MAX_MM = 50.0   # beyond any turning pass
+
+
+def depth_value(text: str) -> float | None:
+    """argparse type: a depth of cut in mm, or 'program' (None: the program's own)."""
+    if text == "program":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is neither a depth in mm nor 'program'") from None
+    if not 0.0 <= v <= DEPTH_MAX_MM:
+        raise argparse.ArgumentTypeError(f"{text} mm is not a depth of cut (0..{DEPTH_MAX_MM:g} mm)")
+    return v
+
+
 def call(path: Path, cmd: str, args: dict) -> object:
     with socket.socket(socket.AF_UNIX) as s:
         s.settimeout(10)
@@ -51,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.sim_socket) if args.sim_socket else \
         (Path(args.socket) if args.socket else default_socket()).with_name("sim.sock")
     if args.what == "depth":
-        r = call(path, "set", {"depth_mm": None if args.value == "program" else float(args.value)})
+        r = call(path, "set", {"depth_mm": args.value})
     elif args.what == "outage":
         r = call(path, "outage", {"peer": args.peer, "seconds": args.seconds})
     else:
@@ -65,7 +81,7 @@ def register(sub) -> None:
     p.add_argument("--sim-socket", help="the simulator's control socket (default: sim.sock beside lathed's)")
     s = p.add_subparsers(dest="what", required=True)
     d = s.add_parser("depth", help="override the depth of cut (mm), or 'program' to go back")
-    d.add_argument("value")
+    d.add_argument("value", type=depth_value, help="mm, or 'program'")
     o = s.add_parser("outage", help="take a peer down and bring it back")
     o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
     o.add_argument("seconds", type=float)

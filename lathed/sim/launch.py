@@ -69,7 +69,9 @@ async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subproce
     if problems:
         log.error("simulator_refused", why="unsafe place for its tty links", problems=problems)
         return None
-    proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE)
+    # its own session: a Ctrl-C on the terminal reaches lathed only, which stops its
+    # drivers before the simulator (--exit-with-parent covers lathed dying)
+    proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE, start_new_session=True)
     try:
         line = await asyncio.wait_for(proc.stdout.readline(), timeout)
     except asyncio.TimeoutError:

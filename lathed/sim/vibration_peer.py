@@ -31,8 +31,8 @@ class VibrationPeer:
         self.clients.add(writer)
         try:
             await reader.read()          # the stream is one-way; wait for the client to go
-        except ConnectionError:
-            pass
+        except (ConnectionError, asyncio.CancelledError):
+            pass     # cancelled at stop: ending quietly spares asyncio's traceback (Python 3.11)
         finally:
             self.clients.discard(writer)
             writer.close()

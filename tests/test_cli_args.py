@@ -1,0 +1,20 @@
+"""Bad lathectl arguments: one line naming the command and what is wrong, exit 2 (issue 17 item 1)."""
+from __future__ import annotations
+
+import pytest
+
+from lathed.lathectl import main
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["sim", "depth", "abc"], "lathectl sim depth: argument value: 'abc' is neither a depth in mm nor 'program'"),
+    (["sim", "depth", "nan"], "is not a depth of cut"),
+    (["sim", "depth", "-1"], "is not a depth of cut"),
+    (["nope"], "lathectl: argument COMMAND: invalid choice: 'nope'"),
+    (["analyze", "chatter", "x.wav"], "lathectl analyze chatter: the following arguments are required: --rpm"),
+])
+def test_bad_arguments_are_one_line_and_exit_2(argv, needle, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and needle in err, err
