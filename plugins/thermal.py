@@ -115,9 +115,18 @@ class ThermalAnalyzer(Analyzer):
         if self.model_path or not self.models_dir.is_dir():
             return
         versions = sorted(self.models_dir.glob("thermal-v*.toml"), key=lambda p: int(p.stem.split("-v")[1]))
-        if versions:
-            self.model = load_model(versions[-1], self._candidates())
-            self.model_name = versions[-1].name
+        for i, path in enumerate(reversed(versions)):
+            try:
+                self.model = load_model(path, self._candidates())
+            except (OSError, ValueError, KeyError, TypeError) as e:
+                # a damaged file (a disk fault, a hand edit): the previous version, said loudly
+                older = versions[-2 - i].name if i + 1 < len(versions) else "eq14"
+                self.ctx.log.error("thermal_model_unreadable", file=path.name, error=str(e), using=older)
+                self.ctx.record("thermal_model_unreadable", {"file": path.name, "error": str(e),
+                                                             "using": older})
+                continue
+            self.model_name = path.name
+            return
 
     async def run(self) -> None:
         self.ctx.register_control("thermal", self._control)

@@ -388,7 +388,8 @@ def save_model(model: ThermalModel, path: str | Path, meta: Mapping[str, Any] | 
     d = model.to_dict()
     if meta:
         d["meta"] = dict(meta)
-    Path(path).write_bytes(tomli_w.dumps(d).encode())
+    from lathed.atomic import write_atomic
+    write_atomic(path, tomli_w.dumps(d).encode())
 
 
 def load_model(path: str | Path, candidates: Sequence[Candidate] = ()) -> ThermalModel:
