@@ -24,6 +24,8 @@ from typing import Any, Awaitable, Callable
 
 import structlog
 
+from lathed import caller
+
 log = structlog.get_logger("lathed.control")
 
 Handler = Callable[[dict[str, Any]], Awaitable[Any]]
@@ -76,8 +78,9 @@ async def offload(fn: Callable[..., Any], *args: Any) -> Any:
 
 class ControlServer:
     def __init__(self, path: Path, max_clients: int = 64, idle_timeout: float = 60.0,
-                 request_timeout: float = 5.0):
+                 request_timeout: float = 5.0, operator_groups: list[str] | None = None):
         self.path = path
+        self.operator_groups = list(operator_groups or [])   # empty: whoever may connect may act
         self.handlers: dict[str, Handler] = {}
         self._server: asyncio.AbstractServer | None = None
         # (device, inode, ctime) of the socket we bound: a socket bound since may reuse the inode
@@ -129,6 +132,9 @@ class ControlServer:
             return
         self.clients += 1
         try:
+            # who is on the other end, once per connection, from the kernel; this task's
+            # context carries it into every handler and record of this connection
+            caller.CALLER.set(caller.peer(writer.get_extra_info("socket"), self.operator_groups))
             while True:
                 try:
                     # idle until a request starts; then the whole line within request_timeout

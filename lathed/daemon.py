@@ -60,6 +60,8 @@ class Settings:
         self.control_max_clients = sec.getint("control_max_clients", 64, minval=1, maxval=1024)
         self.control_idle_timeout = sec.getduration("control_idle_timeout", 60.0, minval=0.1, maxval=86400.0)
         self.control_request_timeout = sec.getduration("control_request_timeout", 5.0, minval=0.1, maxval=600.0)
+        # groups whose members may change things over the socket; others read (empty: all may)
+        self.control_operator_groups = sec.getlist("control_operator_groups", [])
         sec.check_unused()
         st = cfg.store
         # 0: every record is kept. Otherwise records older than this are deleted,
@@ -111,7 +113,8 @@ class Daemon:
         self.bus = Bus()
         self.store = store
         self.control = ControlServer(settings.socket_path, settings.control_max_clients,
-                                     settings.control_idle_timeout, settings.control_request_timeout)
+                                     settings.control_idle_timeout, settings.control_request_timeout,
+                                     settings.control_operator_groups)
         self.supervisor: Supervisor | None = None
         self.sim_process = None
         self._stop = asyncio.Event()

@@ -15,6 +15,7 @@ from typing import Any
 
 import structlog
 
+from lathed import caller
 from lathed.analyzer import Analyzer, AnalyzerContext
 from lathed.args import Args
 from lathed.bus import Bus
@@ -254,7 +255,12 @@ class Supervisor:
 
     # -- records ------------------------------------------------------------
     def record(self, kind: str, source: str, payload: dict | None = None) -> None:
-        """Record an event durably; a failure to record is logged, never silent."""
+        """Record an event durably; a failure to record is logged, never silent. An event
+        recorded while a control request is handled names its caller (``caller``: uid, user
+        and pid from the kernel, beside any name the client gave, e.g. a web user)."""
+        who = caller.current()
+        if who is not None:
+            payload = {**(payload or {}), "caller": who.audit()}
         try:
             fut = self.store.record_future(kind, source, payload)
         except Exception as e:

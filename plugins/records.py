@@ -21,6 +21,7 @@ from lathed import hookimpl, records
 from lathed.analysis import taguchi
 from lathed.analyzer import Analyzer
 from lathed.args import Args
+from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.config import Section
 from lathed.control import RequestError, offload
@@ -94,6 +95,7 @@ class Records(Analyzer):
         return await offload(records.parts, self._query, abnormal, pending, limit)
 
     async def _cmd_inspect(self, args: dict) -> Any:
+        require_operator("inspect")
         a = Args("inspect", args)
         ref = a.getstr("part", maxlen=64)
         ra = a.getfloat("ra_um", None, minval=0.0, maxval=MAX_UM)
@@ -112,6 +114,7 @@ class Records(Analyzer):
         return await offload(records.find_part, self._query, str(part["id"]))
 
     async def _cmd_experiment_add(self, args: dict) -> Any:
+        require_operator("experiment_add")
         a = Args("experiment_add", args)
         tool, material = self._tool(a), self._material(a)
         # level numbers index the orthogonal array's columns: small integers (the analysis counts per level)

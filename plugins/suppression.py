@@ -60,6 +60,7 @@ from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, 
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.analyzer import Analyzer
 from lathed.args import Args
+from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
@@ -322,6 +323,8 @@ class SuppressionAnalyzer(Analyzer):
         action = a.getstr("action", "status", choices=(*MODES, "now", "status"))
         by = a.getstr("by", "operator")
         a.check_unused()
+        if action != "status":
+            require_operator(f"suppress {action}")
         if action in MODES:
             old, self.mode = self.mode, action
             self.ctx.record("suppression_mode", {"machine": self.machine, "from": old, "to": action,

@@ -45,6 +45,7 @@ from lathed import hookimpl
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
 from lathed.analyzer import Analyzer
 from lathed.args import Args
+from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
@@ -322,6 +323,7 @@ class ThermalAnalyzer(Analyzer):
         a.check_unused()
         if action == "status":
             return self.status()
+        require_operator(f"thermal {action}")
         if action == "touchoff":
             missing = [p for p in self._sensor_places() if p not in self.temps]
             if missing:

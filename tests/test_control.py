@@ -333,3 +333,44 @@ def test_args_bound_lists_and_maps():
     assert a.getlist("ok") == ["a", "b"]
     with pytest.raises(RequestError, match=r"^cmd: ok\[1\]: expected an integer, got str 'b'$"):
         Args("cmd", {"ok": [1, "b"]}).getlist("ok", item=int)
+
+
+def test_the_kernel_names_the_caller_and_only_operator_groups_may_act():
+    # issue 17 item 3: who did it comes from SO_PEERCRED, not from what the client types;
+    # with control_operator_groups set, others (here: nobody) may read but not act
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+    tmp = Path(tempfile.mkdtemp(prefix="lathed-caller-"))
+    tmp.chmod(0o755)                  # nobody must reach the socket (pytest's tmp is 0700)
+    d = InProcessDaemon(tmp, daemon='control_operator_groups = ["lathed-operators-test"]')
+    try:
+        for p in (tmp / "run", d.control.path):
+            p.chmod(0o777)
+
+        async def lathectl(cmd: str, args: dict, user: int | None = None) -> tuple[int, str, str, int]:
+            # the interpreter lives under /root: exec as root, then become `user` before connecting
+            drop = "" if user is None else f"os.setgroups([]); os.setgid({user}); os.setuid({user}); "
+            code = ("import json, os, sys; from lathed import client; " + drop +
+                    "print(json.dumps(client.call(sys.argv[1], json.loads(sys.argv[2]), sys.argv[3])))")
+            proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-c", code, cmd, json.dumps(args), str(d.control.path),
+                cwd=Path(__file__).parents[1], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            out, err = await proc.communicate()
+            return proc.returncode, out.decode(), err.decode(), proc.pid
+        code, out, err, _ = d.run(lathectl("status", {}, user=65534))
+        assert code == 0 and '"daemon"' in out, err
+        code, out, err, _ = d.run(lathectl("suppress", {"action": "off", "by": "root"}, user=65534))
+        assert code != 0 and "suppress off: nobody (uid 65534) may only read" in err, err
+        # root is an operator; the event names root's uid and pid, beside the name the client typed
+        code, out, err, pid = d.run(lathectl("suppress", {"action": "manual", "by": "someone"}))
+        assert code == 0, err
+        ev = d.handle(b'{"cmd": "events", "args": {"kind": "suppression_mode"}}\n')["result"]
+        assert [(e["payload"]["to"], e["payload"]["by"], e["payload"]["caller"]) for e in ev] == [
+            ("manual", "someone", {"uid": os.getuid(), "user": "root", "pid": pid})]
+    finally:
+        d.close()
+        shutil.rmtree(tmp, ignore_errors=True)
