@@ -90,6 +90,9 @@ class ControlServer:
         self.request_timeout = request_timeout  # a request line must arrive, and its reply be read, within this
         self.clients = 0
         self.refused = 0
+        self.evicted = 0
+        # connections waiting for (the rest of) a request line -> since when (loop time)
+        self._waiting: dict[asyncio.StreamWriter, float] = {}
 
     def register(self, name: str, handler: Handler) -> None:
         if name in self.handlers:
@@ -124,12 +127,19 @@ class ControlServer:
 
     async def _client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         if self.clients >= self.max_clients:
-            # refused at once with a reason, so a crowd of idle clients cannot hold fds and buffers
-            self.refused += 1
-            writer.write(_encode({"ok": False, "error": f"too many control connections (the daemon serves "
-                                                        f"{self.max_clients} at once); try again"}))
-            writer.close()
-            return
+            # a full house: the connection that has waited longest for a request line makes room
+            # (a crowd of slow or idle clients must not lock out one that has a request), else
+            # the newcomer is refused at once with a reason
+            victim = min(self._waiting, key=self._waiting.__getitem__, default=None)
+            if victim is None:
+                self.refused += 1
+                writer.write(_encode({"ok": False, "error": f"too many control connections (the daemon serves "
+                                                            f"{self.max_clients} at once); try again"}))
+                writer.close()
+                return
+            del self._waiting[victim]
+            self.evicted += 1
+            victim.transport.abort()
         self.clients += 1
         try:
             # who is on the other end, once per connection, from the kernel; this task's
@@ -139,12 +149,14 @@ class ControlServer:
                 try:
                     # idle until a request starts; then the whole line within request_timeout
                     # (a client trickling a byte a second is cut, not served forever)
+                    self._waiting[writer] = time.monotonic()
                     async with asyncio.timeout(self.idle_timeout):
                         first = await reader.read(1)
                     if not first:
                         break
                     async with asyncio.timeout(self.request_timeout):
                         line = first if first == b"\n" else first + await reader.readline()
+                    self._waiting.pop(writer, None)
                 except (asyncio.LimitOverrunError, ValueError):
                     await self._reply(writer, {"ok": False, "error": f"request line longer than {MAX_LINE} bytes; "
                                                                      "closing the connection"})
@@ -155,6 +167,7 @@ class ControlServer:
         except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
             pass
         finally:
+            self._waiting.pop(writer, None)
             self.clients -= 1
             writer.close()
 

@@ -263,7 +263,7 @@ class Daemon:
                            "simulator": None if self.sim_process is None else
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
                            "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
-                                       "refused": self.control.refused}},
+                                       "refused": self.control.refused, "evicted": self.control.evicted}},
                 **self.supervisor.status()}
 
     async def _cmd_plugins(self, args: dict) -> Any:

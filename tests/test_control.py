@@ -164,22 +164,49 @@ def recv_all(srv: Server, s: socket.socket, what: str) -> bytes:
     return bytes(buf)
 
 
-def test_connections_over_the_cap_are_refused_at_once(server):
+def test_a_full_house_makes_room_by_closing_the_connection_waiting_longest(server):
+    # issue 18 bench-hostile: 200 slow clients held every slot and valid requests were refused
     srv = server(max_clients=2)
-    held = [connect(srv), connect(srv)]
+    held = [connect(srv)]
+    srv.spin(lambda: srv.srv.clients == 1, what="the first client served")
+    held.append(connect(srv))
     srv.spin(lambda: srv.srv.clients == 2, what="two clients served")
+    held[1].sendall(b'{"cmd": ')          # half a request: waiting too, but since later
+    new = connect(srv)
+    new.sendall(b'{"cmd": "ping"}\n')
+    new.shutdown(socket.SHUT_WR)
+    assert json.loads(recv_all(srv, new, "pong")) == {"ok": True, "result": "pong"}
+    assert recv_all(srv, held[0], "the longest-waiting client closed") == b""
+    assert (srv.srv.evicted, srv.srv.refused) == (1, 0)
+    held[1].sendall(b'"ping"}\n')          # the other one is still served
+    held[1].shutdown(socket.SHUT_WR)
+    assert json.loads(recv_all(srv, held[1], "pong")) == {"ok": True, "result": "pong"}
+    for c in (*held, new):
+        c.close()
+
+
+def test_connections_over_the_cap_are_refused_when_every_slot_is_busy(server):
+    srv = server(max_clients=2)
+    release = asyncio.Event()
+
+    async def block(args):
+        await release.wait()
+        return "done"
+    srv.srv.register("block", block)
+    busy = [connect(srv), connect(srv)]
+    for c in busy:
+        c.sendall(b'{"cmd": "block"}\n')
+    srv.spin(lambda: srv.srv.clients == 2 and not srv.srv._waiting, what="two requests in hand")
     extra = connect(srv)
     reply = json.loads(recv_all(srv, extra, "the third client refused and closed"))
     assert reply == {"ok": False, "error": "too many control connections (the daemon serves 2 at once); try again"}
-    assert srv.srv.refused == 1
-    held[0].close()
-    srv.spin(lambda: srv.srv.clients == 1, what="a slot freed")
-    again = connect(srv)
-    again.sendall(b'{"cmd": "ping"}\n')
-    again.shutdown(socket.SHUT_WR)      # half-closed: the request is still answered
-    assert json.loads(recv_all(srv, again, "pong")) == {"ok": True, "result": "pong"}
-    for c in (*held, extra, again):
+    assert (srv.srv.refused, srv.srv.evicted) == (1, 0)
+    release.set()
+    for c in busy:
+        c.shutdown(socket.SHUT_WR)
+        assert json.loads(recv_all(srv, c, "done")) == {"ok": True, "result": "done"}
         c.close()
+    extra.close()
 
 
 def test_a_client_trickling_a_request_is_cut(server):
@@ -284,7 +311,7 @@ def test_daemon_table_sets_the_control_bounds(tmp_path):
     try:
         assert (d.control.max_clients, d.control.idle_timeout, d.control.request_timeout) == (3, 120.0, 0.5)
         st = d.handle(b'{"cmd": "status"}\n')["result"]["daemon"]["control"]
-        assert st == {"clients": 0, "max_clients": 3, "refused": 0}
+        assert st == {"clients": 0, "max_clients": 3, "refused": 0, "evicted": 0}
     finally:
         d.close()
 
