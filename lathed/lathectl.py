@@ -173,7 +173,18 @@ def build_parser() -> argparse.ArgumentParser:
             m.register(sub)
         if hasattr(m, "register_analyze"):
             m.register_analyze(asub)
+    _socket_anywhere(p)
     return p
+
+
+def _socket_anywhere(p: argparse.ArgumentParser) -> None:
+    """``--socket`` after the subcommand too (``lathectl status --socket X``), as users type it."""
+    for action in p._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in set(action.choices.values()):
+                if "--socket" not in child._option_string_actions:
+                    child.add_argument("--socket", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+                _socket_anywhere(child)
 
 
 def main(argv: list[str] | None = None) -> int:

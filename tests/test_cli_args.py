@@ -18,3 +18,12 @@ def test_bad_arguments_are_one_line_and_exit_2(argv, needle, capsys):
         main(argv)
     err = capsys.readouterr().err
     assert e.value.code == 2 and err.count("\n") == 1 and needle in err, err
+
+
+@pytest.mark.parametrize("argv", [["--socket", "{s}", "status"], ["status", "--socket", "{s}"],
+                                  ["suppress", "status", "--socket", "{s}"]])
+def test_socket_before_or_after_the_command(argv, tmp_path, capsys):
+    # issue 17 item 8: `--socket` wherever the user types it
+    sock = str(tmp_path / "other.sock")
+    assert main([a.format(s=sock) for a in argv]) == 69
+    assert f"no daemon listening on {sock}" in capsys.readouterr().err
