@@ -633,8 +633,9 @@ def run(a) -> dict:
             ser.close()
         res["records"] = in_db(tmp / "state" / "lathed.db", fz, sampler)
         res["log_tail"] = [ln[:300] for ln in (tmp / "lathed.log").read_text(errors="replace").splitlines()[-5:]]
-        res["log_errors"] = sum('"level": "error"' in ln or "[error" in ln
-                                for ln in (tmp / "lathed.log").read_text(errors="replace").splitlines())
+        errors = [ln[:300] for ln in (tmp / "lathed.log").read_text(errors="replace").splitlines()
+                  if '"level": "error"' in ln or "[error" in ln]
+        res["log_errors"], res["log_error_lines"] = len(errors), errors[:5]
     # -- figures ---------------------------------------------------------------------
     ok_during = [(t, s) for t, s, e in sampler.status if s is not None and t_load <= t <= t_end]
     fail_during = [e for t, s, e in sampler.status if s is None and t_load <= t <= t_end]
@@ -763,6 +764,8 @@ def report(r: dict) -> None:
     print(f"| heavy requests | {'; '.join(r['fuzz_heavy']) or '-'} | |")
     print(f"| slow clients | {json.dumps(r['slow_clients'])} | |")
     print(f"| error lines in the daemon's log | {r['log_errors']} | |")
+    for ln in r.get("log_error_lines", []):
+        print(f"\n    {ln}")
     if r["bench_errors"]:
         print(f"| bench errors | {'; '.join(r['bench_errors'])} | |")
     print()
