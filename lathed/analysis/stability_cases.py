@@ -1,0 +1,77 @@
+"""Cuts from a lathe whose true dynamics differ from the model it was given:
+the test and benchmark data of the stability refit.
+
+Labels come from the true model's lobes (lathed.analysis.stability_refit
+.limit_depth), not from running lathed.analysis.regen.simulate_cut on every
+cut: a cut there takes about a second to simulate, a refit needs hundreds.
+The true lobes are what the regenerative simulator converges to (tests/test_regen
+checks the simulator against them), and the noise model stands for what a
+single real cut adds:
+
+* the limit a cut meets is the true limit times exp(N(0, ``boundary_sigma``))
+  (tool wear, hardness and runout from cut to cut), so cuts within a few
+  per cent of the limit go either way;
+* the measured chatter frequency is the true one times (1 + N(0, ``freq_sigma``))
+  (the frequency resolution of the detector's spectrum);
+* cuts are made in random order over speed and depth (log-uniform), so the
+  earlier (training) and later (held-out) cuts cover the same ground.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from lathed.analysis.cuts import Cuts
+from lathed.analysis.modal import Mode
+from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+from lathed.analysis.stability_refit import StabilityModel
+
+GIVEN = StabilityModel(DEFAULT_MODES, DEFAULT_KF)
+
+
+def _dominant(m: StabilityModel) -> int:
+    """The mode with the largest oriented compliance (u/k zeta)."""
+    return int(np.argmax([md.u / (md.k_n_per_m * md.zeta) for md in m.modes]))
+
+
+def true_dynamics(effect: str, given: StabilityModel = GIVEN) -> StabilityModel:
+    """The lathe's true dynamics for one undeclared effect (``none``: as given)."""
+    i = _dominant(given)
+    modes = list(given.modes)
+    if effect == "none":
+        return given
+    if effect == "natural_frequency":      # another tool holder: the dominant mode 12 % higher
+        modes[i] = replace(modes[i], fn_hz=modes[i].fn_hz * 1.12)
+        return replace(given, modes=tuple(modes))
+    if effect == "second_mode":            # a mode the tap test missed, between the two
+        b_min = 2 * modes[i].k_n_per_m * modes[i].zeta / (modes[i].u * given.kf)
+        z = 0.03
+        k = 0.8 * b_min * given.kf / (2 * z * (1 + z))
+        return replace(given, modes=tuple(modes) + (Mode(950.0, z, k, 0.0),))
+    if effect == "process_damping":        # added damping ratio 0.04 at 500 r/min
+        return replace(given, process_damping=20.0)
+    if effect == "cutting_coefficient":    # a harder material: Kf 45 % higher
+        return replace(given, kf=given.kf * 1.45)
+    raise ValueError(f"unknown undeclared effect {effect!r}")
+
+
+UNDECLARED = ("natural_frequency", "second_mode", "process_damping", "cutting_coefficient")
+
+
+def generate_cuts(true: StabilityModel, n: int, *, given: StabilityModel = GIVEN, seed: int = 0,
+                  rpm_range: tuple[float, float] = (300.0, 6000.0),
+                  depth_factor: tuple[float, float] = (0.5, 2.5),
+                  boundary_sigma: float = 0.05, freq_sigma: float = 0.005,
+                  material: str = "C45") -> Cuts:
+    """``n`` cuts labelled by ``true``; depths span ``depth_factor`` times the
+    given model's critical depth (what a user would try around it)."""
+    rng = np.random.default_rng(seed)
+    b_min = float(given.limit(np.geomspace(*rpm_range, 2000))[0].min())
+    rpm = np.exp(rng.uniform(*np.log(rpm_range), n))
+    depth = b_min * np.exp(rng.uniform(*np.log(depth_factor), n))
+    b_true, f_true = true.limit(rpm)
+    chatter = depth >= b_true * np.exp(boundary_sigma * rng.standard_normal(n))
+    f = np.where(chatter & np.isfinite(f_true), f_true * (1 + freq_sigma * rng.standard_normal(n)), np.nan)
+    return Cuts.from_arrays(np.round(rpm, 1), np.round(depth * 1e3, 4), chatter, np.round(f, 1),
+                            machine="sim-lathe", tool="CNMG120408", material=material)
