@@ -114,8 +114,8 @@ def _frf(modes: Sequence[Mode], f: np.ndarray, dzeta: np.ndarray | None) -> np.n
     return g
 
 
-def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = None,
-                chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     if not np.all(rpm > 0):
         raise ValueError("spindle speeds must be > 0 r/min")
     f_all = _grid(model.modes)
@@ -136,6 +136,7 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
         return out_b, out_f
     f = f_all[keep]
     pair = np.diff(keep) == 1          # neighbours on the grid: a lobe runs between them
+    chunk = max(1, 2_000_000 // len(f))   # speeds x frequencies per pass: a few MB
     for s in range(0, len(rpm), chunk):
         n = rpm[s:s + chunk]
         if model.process_damping > 0:
@@ -148,20 +149,27 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
             b = np.broadcast_to(b0[keep][None, :], (len(n), len(f)))
         eps = 3 * np.pi + 2 * np.arctan2(g.imag, g.real)
         kk = f[None, :] * (60.0 / n[:, None]) - eps / (2 * np.pi)
-        k0, k1 = kk[:, :-1], kk[:, 1:]
-        fl0, fl1 = np.floor(k0), np.floor(k1)
-        m = np.maximum(fl0, fl1)          # the whole number of waves crossed
-        cross = (fl0 != fl1) & pair[None, :] & (m >= 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            t = np.clip((m - k0) / (k1 - k0), 0.0, 1.0)
-            bc = b[:, :-1] + t * (b[:, 1:] - b[:, :-1])
-        bc = np.where(cross & np.isfinite(bc), bc, np.inf)
-        j = np.argmin(bc, axis=1)
-        rows = np.arange(len(n))
-        bb = bc[rows, j]
-        out_b[s:s + chunk] = bb
-        fc = f[j] + t[rows, j] * (f[j + 1] - f[j])
-        out_f[s:s + chunk] = np.where(np.isfinite(bb), fc, np.nan)
+        fl = np.floor(kk)
+        # a lobe passes between grid neighbours j, j+1 where the whole number of waves changes;
+        # only those few entries per speed are interpolated
+        r, j = np.nonzero((fl[:, :-1] != fl[:, 1:]) & pair[None, :] & (np.maximum(fl[:, :-1], fl[:, 1:]) >= 0))
+        if not len(r):
+            continue
+        k0, k1 = kk[r, j], kk[r, j + 1]
+        br = r if b.shape[0] > 1 else np.zeros_like(r)
+        ba, bz = b[br, j], b[br, j + 1]
+        with np.errstate(invalid="ignore"):
+            t = np.clip((np.maximum(fl[r, j], fl[r, j + 1]) - k0) / (k1 - k0), 0.0, 1.0)
+            bc = ba + t * (bz - ba)
+        bc[~np.isfinite(bc)] = np.inf
+        fc = f[j] + t * (f[j + 1] - f[j])
+        # lowest crossing per speed: sort by (speed, depth) and take each speed's first
+        o = np.lexsort((bc, r))
+        first = o[np.r_[True, r[o][1:] != r[o][:-1]]]
+        rows = s + r[first]
+        ok = np.isfinite(bc[first])
+        out_b[rows[ok]] = bc[first][ok]
+        out_f[rows[ok]] = fc[first][ok]
     return out_b, out_f
 
 
@@ -347,7 +355,7 @@ class _Fit:
 
 
 def _search(cost: Callable[[StabilityModel], float], make: Callable[[float], Effect | None],
-            base: StabilityModel, grid: np.ndarray, refine: int = 8) -> tuple[float, Effect | None]:
+            base: StabilityModel, grid: np.ndarray, refine: int = 6) -> tuple[float, Effect | None]:
     """1-D grid search of one parameter, then a finer grid between the
     neighbours of the best point (the cost is piecewise constant in places,
     so no derivative is used)."""
@@ -371,15 +379,15 @@ def _fit_candidates(base: StabilityModel, fit: _Fit, have: set[str]) -> list[tup
     out: list[tuple[float, Effect]] = []
     for i, _ in enumerate(base.modes):
         if f"natural_frequency{i}" not in have:
-            c, e = _search(fit, lambda s, i=i: Effect("natural_frequency", (s,), i), base, np.geomspace(0.8, 1.25, 41))
+            c, e = _search(fit, lambda s, i=i: Effect("natural_frequency", (s,), i), base, np.geomspace(0.8, 1.25, 23))
             if e:
                 out.append((c, e))
         if f"damping{i}" not in have:
-            c, e = _search(fit, lambda s, i=i: Effect("damping", (s,), i), base, np.geomspace(0.33, 3.0, 31))
+            c, e = _search(fit, lambda s, i=i: Effect("damping", (s,), i), base, np.geomspace(0.33, 3.0, 17))
             if e:
                 out.append((c, e))
     if "cutting_coefficient" not in have:
-        c, e = _search(fit, lambda s: Effect("cutting_coefficient", (s,)), base, np.geomspace(0.33, 3.0, 41))
+        c, e = _search(fit, lambda s: Effect("cutting_coefficient", (s,)), base, np.geomspace(0.33, 3.0, 23))
         if e:
             out.append((c, e))
     if "process_damping" not in have:
@@ -387,7 +395,7 @@ def _fit_candidates(base: StabilityModel, fit: _Fit, have: set[str]) -> list[tup
         zmin = min(m.zeta for m in base.modes)
         n0 = float(np.percentile(fit.cuts.rpm, 10))
         c, e = _search(fit, lambda a: Effect("process_damping", (a,)), base,
-                       zmin * n0 * np.geomspace(0.01, 5.0, 25))
+                       zmin * n0 * np.geomspace(0.01, 5.0, 15))
         if e:
             out.append((c, e))
     if "second_mode" not in have:
@@ -419,18 +427,18 @@ def _fit_second_mode(base: StabilityModel, fit: _Fit) -> tuple[float, Effect] | 
     def mk(fn, z, k):
         return Effect("second_mode", (fn, z, k, theta)) if 0 < z < 1 and k > 0 and fn > 0 else None
     fn = f0 / 1.02
-    c, e = _search(fit, lambda k: mk(fn, zeta, k), base, k_of(b_ref, zeta) * np.geomspace(0.1, 3.0, 15))
+    c, e = _search(fit, lambda k: mk(fn, zeta, k), base, k_of(b_ref, zeta) * np.geomspace(0.1, 3.0, 11))
     if e is None:
         return None
     k = e.values[2]
-    for _ in range(2):         # coordinate descent: frequency, damping, stiffness
-        c, e1 = _search(fit, lambda s: mk(fn * s, zeta, k), base, np.geomspace(0.9, 1.06, 13))
-        fn = e1.values[0] if e1 else fn
-        c, e1 = _search(fit, lambda z: mk(fn, z, k * z / zeta), base, np.geomspace(0.01, 0.12, 9))
-        if e1:
-            k, zeta = e1.values[2], e1.values[1]
-        c, e1 = _search(fit, lambda s: mk(fn, zeta, k * s), base, np.geomspace(0.6, 1.6, 11))
-        k = e1.values[2] if e1 else k
+    # one pass of coordinate descent: frequency, damping (at the same depth), stiffness
+    c, e1 = _search(fit, lambda s: mk(fn * s, zeta, k), base, np.geomspace(0.9, 1.06, 9))
+    fn = e1.values[0] if e1 else fn
+    c, e1 = _search(fit, lambda z: mk(fn, z, k * z / zeta), base, np.geomspace(0.01, 0.12, 7))
+    if e1:
+        k, zeta = e1.values[2], e1.values[1]
+    c, e1 = _search(fit, lambda s: mk(fn, zeta, k * s), base, np.geomspace(0.6, 1.6, 7))
+    k = e1.values[2] if e1 else k
     e = mk(fn, zeta, k)
     return fit(e.apply(base)), e
 
