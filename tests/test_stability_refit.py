@@ -51,7 +51,7 @@ def test_residual_confusion_margins_and_frequencies():
 
 @pytest.mark.parametrize("effect", UNDECLARED)
 def test_refit_names_the_undeclared_effect_and_accuracy_rises(effect):
-    cuts = generate_cuts(true_dynamics(effect), 500, seed=3)
+    cuts = generate_cuts(true_dynamics(effect), 400, seed=3)
     r = refit(GIVEN, cuts)
     assert [e.effect.name for e in r.effects][:1] == [effect], r.conclusion
     assert r.after.accuracy > r.before.accuracy
@@ -59,7 +59,7 @@ def test_refit_names_the_undeclared_effect_and_accuracy_rises(effect):
 
 
 def test_matching_dynamics_add_nothing():
-    r = refit(GIVEN, generate_cuts(true_dynamics("none"), 500, seed=4))
+    r = refit(GIVEN, generate_cuts(true_dynamics("none"), 400, seed=4))
     assert r.effects == [] and r.model == GIVEN
     assert "no effect added" in r.conclusion
 
