@@ -72,3 +72,17 @@ def test_no_library_effect_is_said_plainly():
     r = refit(GIVEN, cuts)
     assert r.effects == []
     assert r.conclusion.startswith("no effect in the library explains the residual")
+
+
+@pytest.mark.parametrize("effect", ["natural_frequency", "second_mode"])
+def test_lobe_labels_agree_with_the_regenerative_simulator(effect):
+    # the generator labels by the true lobes; the simulator, cutting with the
+    # true dynamics, must agree away from the limit and chatter at the frequency given
+    from lathed.analysis.stability_cases import simulate_labels
+    true = true_dynamics(effect)
+    rpm = np.array([900.0, 2600.0, 4500.0])
+    b, f = true.limit(rpm)
+    cuts = Cuts.from_arrays(np.r_[rpm, rpm], np.r_[0.8 * b, 1.12 * b] * 1e3, [False] * 3 + [True] * 3)
+    sim = simulate_labels(true, cuts)
+    assert list(sim.chatter) == list(cuts.chatter)
+    assert np.allclose(sim.chatter_frequency_hz[3:], f, rtol=0.03)

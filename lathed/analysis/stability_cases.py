@@ -75,3 +75,36 @@ def generate_cuts(true: StabilityModel, n: int, *, given: StabilityModel = GIVEN
     f = np.where(chatter & np.isfinite(f_true), f_true * (1 + freq_sigma * rng.standard_normal(n)), np.nan)
     return Cuts.from_arrays(np.round(rpm, 1), np.round(depth * 1e3, 4), chatter, np.round(f, 1),
                             machine="sim-lathe", tool="CNMG120408", material=material)
+
+
+def simulate_labels(true: StabilityModel, cuts: Cuts, *, revolutions: float = 15.0, min_s: float = 0.3,
+                    rate_hz: float = 20_000.0, seed: int = 0) -> Cuts:
+    """The same cuts labelled by running each through the regenerative
+    simulator (lathed.analysis.regen.simulate_cut) with the true dynamics:
+    chatter when the surface waviness it leaves grows visible within
+    ``revolutions`` (at least ``min_s``), the chatter frequency the spectral
+    peak of the tool vibration over the cut's second half.  Counted in
+    revolutions, not seconds: chatter grows per pass, so a fixed short time
+    would call slow cuts stable and fake process damping.  About 0.1 s a cut
+    over 300-6000 r/min; the simulator has no process damping, so that effect
+    cannot be labelled this way."""
+    from lathed.analysis.regen import Segment, simulate_cut
+    if true.process_damping:
+        raise ValueError("the regenerative simulator has no process damping: label those cuts from the lobes")
+    chatter = np.zeros(len(cuts), bool)
+    freq = np.full(len(cuts), np.nan)
+    for i in range(len(cuts)):
+        duration_s = max(min_s, revolutions * 60.0 / float(cuts.rpm[i]))
+        rec = simulate_cut([Segment(duration_s, float(cuts.rpm[i]), float(cuts.depth_mm[i]))],
+                           modes=true.modes, kf_n_per_m2=true.kf, rate_hz=rate_hz,
+                           feed_mm_rev=float(cuts.feed_mm_rev[i]), seed=seed + i)
+        if rec.label != "chatter":
+            continue
+        chatter[i] = True
+        y = rec.y_m[len(rec.y_m) // 2:]
+        spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(len(y))))
+        f = np.fft.rfftfreq(len(y), 1.0 / rate_hz)
+        band = f >= 0.3 * min(m.fn_hz for m in true.modes)
+        freq[i] = round(float(f[band][np.argmax(spec[band])]), 1)
+    return Cuts(cuts.machine, cuts.tool, cuts.material, cuts.rpm, cuts.depth_mm, cuts.feed_mm_rev, chatter, freq,
+                cuts.line, cuts.source, cuts.ignored_columns)
