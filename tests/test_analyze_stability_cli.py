@@ -87,3 +87,9 @@ def test_module_import_stays_light():
             "print(sorted(m for m in ('numpy', 'matplotlib', 'scipy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_mode_at_right_angle_is_invalid_data(pd_csv, capsys):
+    code, out, err = _run([str(pd_csv), "--mode", "620,0.035,3e7,90", "--kf", "2e9"], capsys)
+    assert code == 65 and out == "" and err.count("\n") == 1
+    assert err.startswith("lathectl: ") and "90 deg" in err

@@ -76,6 +76,8 @@ class StabilityModel:
             raise ValueError(f"cutting coefficient Kf must be > 0 N/m^2, got {self.kf}")
         if self.process_damping < 0:
             raise ValueError(f"process damping must be >= 0, got {self.process_damping}")
+        if max(m.u for m in self.modes) < 1e-12:     # as StabilityLobes: cos(90 deg)**2 is not exactly 0
+            raise ValueError("every mode is at 90 deg to the chip direction, so no regenerative chatter")
 
     def limit(self, rpm, b_cap_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Limiting depth (m) and chatter frequency (Hz) at each speed; inf/nan
