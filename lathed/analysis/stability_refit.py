@@ -150,22 +150,31 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
             g = g0[keep][None, :]
             b = np.broadcast_to(b0[keep][None, :], (len(n), len(f)))
         eps = 3 * np.pi + 2 * np.arctan2(g.imag, g.real)
-        kk = np.multiply.outer(60.0 / n, f)
-        kk -= eps / (2 * np.pi)
+        e = eps / (2 * np.pi)
+        # the whole number of waves between passes, f*T - eps/(2 pi); in float32 for the
+        # scan over all frequencies (it is at most a few thousand, its step between grid
+        # neighbours about 0.1), recomputed in float64 where a lobe is found
+        kk = np.multiply.outer((60.0 / n).astype(np.float32), f.astype(np.float32))
+        kk -= e.astype(np.float32)
         fl = np.floor(kk)
-        # a lobe passes between grid neighbours j, j+1 where the whole number of waves changes
+        # a lobe passes between grid neighbours j, j+1 where that number changes
         # (kk > -1 since eps <= 2 pi, so the larger floor is a lobe number >= 0);
         # only those few entries per speed are interpolated
         r, j = np.nonzero(fl[:, :-1] != fl[:, 1:])
         on = pair[j]
         r, j = r[on], j[on]
+        er = r if e.shape[0] > 1 else np.zeros_like(r)
+        k0 = f[j] * 60.0 / n[r] - e[er, j]
+        k1 = f[j + 1] * 60.0 / n[r] - e[er, j + 1]
+        m = np.maximum(np.floor(k0), np.floor(k1))
+        on = np.floor(k0) != np.floor(k1)
+        r, j, k0, k1, m = r[on], j[on], k0[on], k1[on], m[on]
         if not len(r):
             continue
-        k0, k1 = kk[r, j], kk[r, j + 1]
         br = r if b.shape[0] > 1 else np.zeros_like(r)
         ba, bz = b[br, j], b[br, j + 1]
         with np.errstate(invalid="ignore"):
-            t = np.clip((np.maximum(fl[r, j], fl[r, j + 1]) - k0) / (k1 - k0), 0.0, 1.0)
+            t = np.clip((m - k0) / (k1 - k0), 0.0, 1.0)
             bc = ba + t * (bz - ba)
         bc[~np.isfinite(bc)] = np.inf
         fc = f[j] + t * (f[j + 1] - f[j])
@@ -336,7 +345,8 @@ class _Fit:
     def __init__(self, cuts: Cuts):
         self.cuts = cuts
         self.d = cuts.depth_mm * 1e-3
-        self.cap = 2.0 * float(self.d.max())     # deeper limits change no verdict
+        # deeper limits change no verdict, and a chatter cut called right has its limit below it
+        self.cap = 1.05 * float(self.d.max())
         self.fm = cuts.chatter_frequency_hz
         self.has_f = cuts.chatter & np.isfinite(self.fm)
         self.evals = 0
