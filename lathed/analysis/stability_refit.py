@@ -349,10 +349,8 @@ class _Fit:
         self.cap = 1.05 * float(self.d.max())
         self.fm = cuts.chatter_frequency_hz
         self.has_f = cuts.chatter & np.isfinite(self.fm)
-        self.evals = 0
 
     def __call__(self, model: StabilityModel) -> float:
-        self.evals += 1
         try:
             b, fp = model.limit(self.cuts.rpm, self.cap)
         except ValueError:
