@@ -33,11 +33,14 @@ bench-thermal: $(STAMP)
 	$(BIN)/python bench/bench_thermal.py
 bench-store: $(STAMP)
 	$(BIN)/python bench/bench_store.py
+bench-stability: $(STAMP)
+	$(BIN)/python bench/bench_stability.py
 # issue 18: 10 minutes of hostile load (DURATION=60 for a quick look)
 DURATION ?= 600
 bench-hostile: $(STAMP)
 	$(BIN)/python bench/bench_hostile.py --duration $(DURATION)
-bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-hostile
+bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
+	bench-hostile
 
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-hostile
+	bench-stability bench-hostile
