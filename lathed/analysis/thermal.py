@@ -1117,6 +1117,57 @@ def _comparison(rows: ThermalData, cv: bool, base: Stage, ls: Stage, final: Stag
     return out
 
 
+def split_run(data: ThermalData, fraction: float) -> tuple[ThermalData, ThermalData]:
+    """The first ``fraction`` of a run for the fit, the rest held out: split
+    by time, as ``refit`` does; the held-out part keeps the run's cold-start
+    reference and clock."""
+    if not 0 < fraction < 1:
+        raise ValueError(f"the split must be in (0, 1), got {fraction}")
+    cut = int(round(len(data) * fraction))
+    if cut < 1 or cut >= len(data):
+        raise ValueError(f"a split at {fraction} of {len(data)} rows leaves one side empty")
+    return data.slice(0, cut), data.slice(cut, len(data))
+
+
+# A heated sensor starting further above the training run's cold start than
+# this share of its rise in that run: the test run did not start cold.
+WARM_START_SHARE = 0.25
+WARM_START_MIN_C = 0.25     # 4 DS18B20 steps: below it a start is cold whatever the run's rise
+
+
+def reference_test(train: ThermalData, test: ThermalData) -> tuple[ThermalData, str | None]:
+    """Make a test run's rises comparable with the fit's. Rises are taken from
+    a run's first rows, which is right for a run from a cold start. A test
+    run on the training run's clock (its first time after the training's
+    last) continues that run: its rises and drift hours are re-referenced to
+    the training run's cold start. Any other test run that starts warm is
+    refused: from its own first rows every rise would be short by the
+    warm-up, an error of the whole growth. Returns the test run and a line
+    saying what was done (None when it starts cold)."""
+    if test.time_s[0] > train.time_s[-1]:
+        t2 = ThermalData(test.time_s, test.temps_c, test.displacement_um, test.rpm,
+                         {k: train.reference_c[k] for k in test.temps_c if k in train.reference_c}
+                         | {k: v for k, v in test.reference_c.items() if k not in train.reference_c},
+                         train.t0_s)
+        return t2, (f"the test run continues the training run's clock (starts at {test.time_s[0]:g} s, "
+                    f"the training run ends at {train.time_s[-1]:g} s): its rises are taken from the "
+                    f"training run's cold start, not from its own first rows")
+    warm = []
+    for s in test.sensors:
+        if s not in train.temps_c or "room" in s or "ambient" in s:
+            continue
+        above = test.reference_c[s] - train.reference_c[s]
+        span = float(np.ptp(train.rise(s)))
+        if above > max(WARM_START_SHARE * span, WARM_START_MIN_C):
+            warm.append(f"{s} starts at {test.reference_c[s]:.2f} °C, {above:.2f} °C above the training run's "
+                        f"cold start (it rose {span:.2f} °C in that run)")
+    if warm:
+        raise ValueError(f"the test run does not start cold: {'; '.join(warm)}; rises from its first rows "
+                         f"would miss the warm-up. Give a run from a cold start, one continuing the training "
+                         f"run's time_s, or use --split on one run")
+    return test, None
+
+
 # -- refit for the daemon -------------------------------------------------
 
 @dataclass
@@ -1127,6 +1178,7 @@ class RefitResult:
     after_rmse_um: float           # new model on the same tail
     better: bool
     analysis: Analysis
+    least_squares_rmse_um: float | None = None   # plain least squares, fitted on the same rows, on the tail
 
 
 def refit(data: ThermalData, current: ThermalModel | None = None, *, holdout_fraction: float = 0.2,
@@ -1146,5 +1198,13 @@ def refit(data: ThermalData, current: ThermalModel | None = None, *, holdout_fra
     y = data.displacement_um[tail]
     before = rmse(y - current.predict(data)[tail])
     after = rmse(y - a.model.predict(data)[tail])
+    cand, ls = a.model, None
+    if a.least_squares is not None:
+        # never ship worse than plain least squares on the same held-out rows
+        ls = rmse(y - a.least_squares.model.predict(data)[tail])
+        if ls < after:
+            a.notes.append(f"on the held-out tail plain least squares ({ls:.2f} µm) beat the selected model "
+                           f"({after:.2f} µm): least squares is the candidate")
+            cand, after = a.least_squares.model, ls
     better = after < (1 - min_gain) * before
-    return RefitResult(a.model if better else current, a.model, before, after, better, a)
+    return RefitResult(cand if better else current, cand, before, after, better, a, ls)
