@@ -587,14 +587,21 @@ class Analysis:
                 "notes": self.notes}
 
 
+# Oscillations faster than this are a sensor's own, not heat the spindle's
+# growth follows: four times the shortest lag the residual loop tries.
+_FILTER_MAX_PERIOD_S = 4 * 300.0
+
+
 def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[float]:
     """Filters to try on a sensor (lag time constants, s; 0 = as read). Only
     a sensor that oscillates on its own (a spectral line in its rise) gets
     any: lags of a fraction of its period damp the oscillation and delay the
     slow heat little. A plain sensor is not filtered: a lag there is a
     physical effect, for the residual loop to find and name."""
-    period, _ = _line(data.time_s, data.rise(sensor))
-    if period is None:
+    # Any line that stands out, however small beside the warm-up; only a
+    # fast one: a slow swing (the room's) is heat the growth follows.
+    period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
+    if period is None or period > _FILTER_MAX_PERIOD_S:
         return [0.0]
     return [0.0, *(period * f for f in (0.25, 0.5, 1.0))]
 
@@ -738,7 +745,7 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
         for i, s in enumerate(keep):
             grid[s] = _filters(data, s)
             if len(grid[s]) > 1:
-                start[i] = min((LinearTerm(s, round(sm, 1)) for sm in grid[s]), key=lambda t: rmse(
+                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid[s]), key=lambda t: rmse(
                     _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
     chosen: list[LinearTerm] = [t for t in (start or ()) if t.sensor in keep]
     e_cur = (_heldout(data, [*chosen, *fixed], n_blocks, gap) if chosen or fixed
@@ -751,7 +758,7 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
             if s not in grid:
                 grid[s] = _filters(data, s)
             for sm in grid[s]:
-                t = LinearTerm(s, round(sm, 1))
+                t = LinearTerm(s, float(round(sm, 1)))
                 e = _heldout(data, [*chosen, t, *fixed], n_blocks, gap)
                 if best is None or rmse(e) < best[0]:
                     best = (rmse(e), t, e)
@@ -815,7 +822,7 @@ def least_squares_stage(train: ThermalData, test: ThermalData | None = None, n_b
                   [f"plain least squares on {len(sensors)} sensor(s)"], raw=True, source="least_squares")
 
 
-def _line(t_s: np.ndarray, x: np.ndarray) -> tuple[float | None, float]:
+def _line(t_s: np.ndarray, x: np.ndarray, min_share: float = 0.2) -> tuple[float | None, float]:
     """The period of a spectral line in ``x`` (sampled at ``t_s``) and the
     share of the variance it carries; None when there is none. A line stands
     above the bins either side of it; a slow trend's spectrum only falls
@@ -833,11 +840,18 @@ def _line(t_s: np.ndarray, x: np.ndarray) -> tuple[float | None, float]:
     f = np.fft.rfftfreq(n, dt)
     if len(p) < 12 or p[1:].sum() <= 0:
         return None, 0.0
-    k = 4 + int(np.argmax(p[4:]))           # four cycles in the run at least
+    def stands_out(k: int) -> bool:
+        sides = np.r_[p[max(k - 5, 1):k - 2], p[k + 3:k + 6]]
+        return bool(len(sides) and p[k] > 10 * sides.max() and p[k] > 20 * np.median(p[1:]))
+
+    if min_share > 0:
+        k = 4 + int(np.argmax(p[4:]))           # four cycles in the run at least
+    else:   # any line, however small beside the rest: the strongest that stands out
+        peaks = [k for k in range(4, len(p) - 1) if p[k] >= p[k - 1] and p[k] >= p[k + 1] and stands_out(k)]
+        k = max(peaks, key=lambda j: p[j]) if peaks else 4
     band = p[k - 1:k + 2].sum()
     share = float(band / p[1:].sum())
-    sides = np.r_[p[max(k - 5, 1):k - 2], p[k + 3:k + 6]]
-    if share > 0.2 and len(sides) and p[k] > 10 * sides.max() and p[k] > 20 * np.median(p[1:]):
+    if share > min_share and stands_out(k):
         # the peak between bins: a parabola through the log power
         a, b, c = np.log(p[k - 1:k + 2] + 1e-300)
         off = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
