@@ -219,8 +219,8 @@ class ThermalRuns:
 from lathed.analysis.thermal_terms import (  # noqa: F401  (re-exported: plugins import them from here)
     AmbientLagTerm, Candidate, DriftCandidate, DriftTerm, HysteresisCandidate, HysteresisTerm, LagCandidate,
     LagTerm, LinearTerm, NonlinearCandidate, NonlinearTerm, PeriodicTerm, RateCandidate, RateTerm,
-    SpeedCandidate, SpeedLagTerm, SpeedStepTerm, SpeedTempTerm, SpeedTerm, Term, builtin_candidates,
-    lag_filter, play_operator)
+    SpeedCandidate, SpeedLagTerm, SpeedStepCandidate, SpeedStepTerm, SpeedTempTerm, SpeedTerm, Term,
+    builtin_candidates, lag_filter, play_operator)
 
 # -- least squares --------------------------------------------------------
 
@@ -532,6 +532,7 @@ class ResidualReport:
     lag1: float
     period_s: float | None = None
     sensor: str | None = None       # an input sensor oscillating at that period
+    steps_h: list[float] = field(default_factory=list)   # sudden steps in the residual (h into the run)
 
 
 @dataclass
@@ -881,8 +882,9 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray, data: ThermalData | None 
             if ps is not None and abs(1 / ps - 1 / period) * span <= 1.5:   # within 1.5 bins
                 sensor = s
                 break
+    steps = _steps(t_s, e, noise)
     ratio = total / noise if noise > 0 else (1.0 if total < 1e-12 else math.inf)
-    structured = ratio > 1.3 or period is not None
+    structured = ratio > 1.3 or period is not None or bool(steps)
     if not structured:
         note = (f"residual looks like measurement noise: rms {total:.2f} µm vs {noise:.2f} µm "
                 f"sample-to-sample, lag-1 autocorrelation {lag1:.2f}")
@@ -893,7 +895,41 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray, data: ThermalData | None 
             note += f"; a periodicity of {period / 60:.1f} min carries {100 * share:.0f}% of its variance"
             if sensor is not None:
                 note += f", the period at which {sensor} oscillates"
-    return ResidualReport(structured, note, noise, lag1, period, sensor)
+        if steps:
+            h = [round((t_s[k] - t_s[0]) / 3600.0, 2) for k, _ in steps]
+            size = float(np.median([abs(d) for _, d in steps]))
+            note += (f"; {len(steps)} sudden step(s) of ~{size:.1f} µm with no temperature change, at "
+                     f"{', '.join(f'{v:g}' for v in h[:6])}{' ...' if len(h) > 6 else ''} h")
+            if data is not None and data.rpm is None:
+                note += " (speed or program changes? with a spindle_rpm column they are fitted as speed steps)"
+    rep = ResidualReport(structured, note, noise, lag1, period, sensor)
+    rep.steps_h = [float((t_s[k] - t_s[0]) / 3600.0) for k, _ in steps]
+    return rep
+
+
+def _steps(t_s: np.ndarray, e: np.ndarray, noise: float) -> list[tuple[int, float]]:
+    """Sudden steps in a residual: where the mean of the next few rows differs
+    from that of the previous few by much more than the noise, and more than
+    a smooth curve moves over so few rows."""
+    n = len(e)
+    w = max(5, n // 200)
+    if n < 4 * w or noise <= 0:
+        return []
+    cs = np.concatenate([[0.0], np.cumsum(e)])
+    k = np.arange(w, n - w + 1)
+    d = (cs[k + w] - cs[k]) / w - (cs[k] - cs[k - w]) / w
+    # a smooth curve moves about as much from one window to the next as over
+    # the two windows before: a step stands out from both neighbours
+    big = np.abs(d) > max(6.0 * noise * math.sqrt(2.0 / w), 3.0 * noise)
+    out: list[tuple[int, float]] = []
+    for i in np.flatnonzero(big):
+        lo, hi = max(i - w, 0), min(i + w + 1, len(d))
+        if abs(d[i]) < np.abs(d[lo:hi]).max():
+            continue
+        side = np.r_[np.abs(d[max(i - 3 * w, 0):max(i - 2 * w, 0)]), np.abs(d[i + 2 * w:i + 3 * w])]
+        if len(side) and abs(d[i]) > 3 * side.max():
+            out.append((int(k[i]), float(d[i])))
+    return out
 
 
 # Kinds of effect (effect and sensor) whose best proposal is re-tuned jointly with those in.
@@ -1043,12 +1079,11 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
         e_cur = e
         return True
 
-    while len(effects) < max_effects:
-        found = step([t for c in cands for t in c.propose(view)])
-        if found is None or not admit(found):
-            break
+    def settle() -> None:
+        """After an effect entered: sensors whose share the missing effect hid
+        come in, and effects the newcomer made redundant go."""
+        nonlocal sensor_terms, kept, e_cur
         newcomer = effects[-1]
-        # Sensors whose share the missing effect hid, or that it made redundant.
         sensors2, snotes, kept2 = select_sensors(train, n_blocks, gap, max_sensors, start=sensor_terms,
                                                  fixed=effects, prune=False)
         if [repr(t) for t in sensors2] != [repr(t) for t in sensor_terms]:
@@ -1056,7 +1091,6 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
             e_cur = _heldout(train, [*sensor_terms, *effects], n_blocks, gap)
             notes[:] = [n for n in notes if not n.startswith("sensor selection kept")] + \
                 [n for n in snotes if n.startswith("sensor selection kept")]
-        # Drop those the newcomer made redundant.
         for t in list(effects[:-1]):
             rest = [o for o in effects if o is not t]
             e = _heldout(train, [*sensor_terms, *rest], n_blocks, gap)
@@ -1066,11 +1100,25 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
                 dropped.add((t.effect, t.sensor))
                 notes.append(f"{describe(t)} dropped: once {describe(newcomer)} entered it added under "
                              f"{100 * min_gain / 2:g} % on held-out time")
-    # Structure no library term explains: a spectral line becomes a periodic term.
-    for _ in range(2):
-        if len(effects) >= max_effects + 1:
+
+    while len(effects) < max_effects:
+        found = step([t for c in cands for t in c.propose(view)])
+        if found is None or not admit(found):
             break
-        res = residual_structure(train.time_s, e_cur)
+        settle()
+    # Structure no library term explains, turned into a term where it has a
+    # form one can fit: steps at the logged speed changes, a spectral line.
+    for _ in range(3):
+        if len(effects) >= max_effects + 2:
+            break
+        res = residual_structure(train.time_s, e_cur, train)
+        if not res.structured:
+            break
+        if not any(t.effect == "speed_step" for t in effects):
+            found = step(SpeedStepCandidate().structure(view))
+            if found is not None and admit(found):
+                settle()
+                continue
         if res.period_s is None:
             break
         f0, df = 1.0 / res.period_s, 1.0 / float(np.ptp(train.time_s))
@@ -1080,6 +1128,10 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
             notes.append(f"a periodicity of {res.period_s / 60:.1f} min is left in the residual, but a "
                          f"periodic term at it does not lower the held-out error enough to keep")
             break
+        settle()
+    res = residual_structure(train.time_s, e_cur, train)
+    if res.structured:
+        notes.append("not modelled: " + res.note)
     # Last, let go of sensors that add nothing with the effects in.
     sensor_terms, snotes, kept = select_sensors(train, n_blocks, gap, max_sensors, start=sensor_terms,
                                                 fixed=effects, prune=True)

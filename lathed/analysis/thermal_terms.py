@@ -602,11 +602,17 @@ class AmbientLagCandidate:
 
 class SpeedStepCandidate:
     """Offsets per speed level, when the speeds run are a few discrete levels
-    (a program's speeds), each held long enough to be told apart."""
+    (a program's speeds). Not proposed beside the smooth effects (with a
+    column per level it would fit a speed squared as well, and be chosen for
+    the noise): the loop builds it from the speed log once the library is
+    exhausted and the residual still has structure (see ``structure``)."""
     name = "speed_step"
     max_levels = 12
 
     def propose(self, data):
+        return []
+
+    def structure(self, data) -> list[SpeedStepTerm]:
         if data.rpm is None or np.ptp(data.rpm) == 0:
             return []
         levels = np.unique(np.round(data.rpm, 0))
