@@ -4,7 +4,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lathed.analysis.thermal import (DriftTerm, HysteresisTerm, LagTerm, LinearTerm, NonlinearTerm, RateTerm,
+from lathed.analysis.thermal import (AmbientLagTerm, DriftTerm, HysteresisTerm, LagTerm, LinearTerm, NonlinearTerm,
+                                     PeriodicTerm, RateTerm, SpeedLagTerm, SpeedStepTerm, SpeedTempTerm,
                                      SpeedTerm, ThermalData, ThermalModel, baseline_terms, eq14_model,
                                      fit_coefficients, heldout_errors, lag_filter, load_model, play_operator,
                                      save_model)
@@ -86,8 +87,14 @@ def test_play_operator():
 
 def _model_with_every_term():
     terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), LagTerm("t_a_c", 900.0), RateTerm("t_b_c", 120.0),
-             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3)]
-    coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5])
+             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3),
+             # the second pass's: a filtered sensor, lag of speed, speed x T, lag of T - ambient,
+             # a second time constant on one sensor, a periodic term, speed steps
+             LinearTerm("t_b_c", 90.0), SpeedLagTerm(600.0, "n2"), SpeedTempTerm("t_a_c"),
+             AmbientLagTerm("t_a_c", "t_b_c", 1200.0), LagTerm("t_a_c", 4000.0), PeriodicTerm(1200.0),
+             SpeedStepTerm((0.0, 1500.0, 3000.0, 4000.0))]
+    coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5,
+                     0.7, -0.3, 0.2, 1.1, -0.6, 0.8, -0.4, 0.9, -1.2, 2.5])
     return ThermalModel(terms, coef, 7.0)
 
 
@@ -102,6 +109,15 @@ def test_streaming_predictor_equals_batch_prediction_on_uneven_time():
     live = [pred.update({"a": temps["t_a_c"][k], "t_b_c": temps["t_b_c"][k]}, rpm=rpm[k], t_s=t[k])
             for k in range(len(t))]
     assert live == pytest.approx(batch, abs=1e-8)
+
+
+def test_a_lag_of_t_minus_ambient_needs_the_room_reading_too():
+    m = ThermalModel([AmbientLagTerm("t_a_c", "t_room_c", 600.0)], np.array([2.0]), 0.0)
+    assert m.sensors == ["t_a_c", "t_room_c"]      # the live analyzer waits for both
+    p = m.predictor(reference_c={"a": 20.0, "room": 20.0}, t0_s=0.0)
+    with pytest.raises(ValueError, match="t_room_c"):
+        p.update({"a": 25.0}, t_s=0.0)
+    assert p.update({"a": 25.0, "room": 21.0}, t_s=0.0) == pytest.approx(2.0 * 4.0)
 
 
 def test_drift_is_held_at_the_span_it_was_fitted_on():

@@ -371,7 +371,8 @@ class ThermalModel:
 
     @property
     def sensors(self) -> list[str]:
-        return sorted({t.sensor for t in self.terms if t.sensor})
+        # a term may read more than its own sensor (a lag of T - ambient reads the room too)
+        return sorted({s for t in self.terms for s in getattr(t, "sensors", (t.sensor,)) if s})
 
     def predict(self, data: ThermalData) -> np.ndarray:
         missing = [s for s in self.sensors if s not in data.temps_c]
@@ -615,7 +616,7 @@ class _HeldoutCache:
     ``heldout_errors`` (the ridge on standardised columns is a ridge of
     ``_RIDGE * rows * var`` on the raw ones)."""
 
-    def __init__(self, data: ThermalData, n_blocks: int, gap: int):
+    def __init__(self, data: ThermalData | ThermalRuns, n_blocks: int, gap: int):
         self.data = data
         y = data.displacement_um
         n = len(y)
@@ -623,16 +624,26 @@ class _HeldoutCache:
         self.segs = [(max(lo - gap, 0), min(hi + gap, n)) for lo, hi in self.blocks]
         self.cols: dict[str, np.ndarray] = {"1": np.ones(n), "y": y}
         self.sums: dict[tuple[str, str], np.ndarray] = {}
+        self.by_id: dict[tuple[int, bool], tuple[Term, list[str]]] = {}
 
     def _keys(self, term: Term, fit: bool) -> list[str]:
+        hit = self.by_id.get((id(term), fit))
+        if hit is not None and hit[0] is term:
+            return hit[1]
+        keys = self._make_keys(term, fit)
+        self.by_id[(id(term), fit)] = (term, keys)     # the term held: its id is not reused
+        return keys
+
+    def _make_keys(self, term: Term, fit: bool) -> list[str]:
         k = repr(term)
         if fit and isinstance(term, LinearTerm) and not term.smooth_s:
             k, F = "fit:" + k, self.data.fit_rise(term.sensor)[:, None]
         else:
             F = None
-        keys = [f"{k}#{i}" for i in range(_cols(self.data, term).shape[1])]
+        X = _design(self.data, [term])        # per run for several runs: memory starts afresh in each
+        keys = [f"{k}#{i}" for i in range(X.shape[1])]
         if keys[0] not in self.cols:
-            F = _cols(self.data, term) if F is None else F
+            F = X if F is None else F
             for i, key in enumerate(keys):
                 self.cols[key] = np.ascontiguousarray(F[:, i])
         return keys
@@ -671,13 +682,11 @@ class _HeldoutCache:
 
 
 def _heldout(data: ThermalData | ThermalRuns, terms: Sequence[Term], n_blocks: int, gap: int) -> np.ndarray:
-    if isinstance(data, ThermalData):
-        cache = data.__dict__.setdefault("_heldout", {})
-        hc = cache.get((n_blocks, gap))
-        if hc is None:
-            hc = cache[(n_blocks, gap)] = _HeldoutCache(data, n_blocks, gap)
-        return hc.errors(terms)
-    return heldout_errors(_fit_design(data, terms), data.displacement_um, n_blocks, gap, _design(data, terms))
+    cache = data.__dict__.setdefault("_heldout", {})
+    hc = cache.get((n_blocks, gap))
+    if hc is None:
+        hc = cache[(n_blocks, gap)] = _HeldoutCache(data, n_blocks, gap)
+    return hc.errors(terms)
 
 
 def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[str], list[str]]:
@@ -998,7 +1007,7 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
 
     def usable(term) -> bool:
         try:
-            F = _cols(train, term) if isinstance(train, ThermalData) else _design(train, [term])
+            F = _design(train, [term])
             if test is not None:
                 _cols(test, term)
         except (ValueError, KeyError):

@@ -367,6 +367,10 @@ class AmbientLagTerm:
         return {"tau_s": round(self.tau_s, 1), "ambient": self.ambient}
 
     @property
+    def sensors(self) -> tuple[str, str]:
+        return (self.sensor, self.ambient)
+
+    @property
     def names(self) -> tuple[str, ...]:
         return (f"lag({self.sensor} - {self.ambient}, tau={self.tau_s:.0f} s)",)
 
