@@ -1227,15 +1227,20 @@ def reference_test(train: ThermalData, test: ThermalData) -> tuple[ThermalData, 
         return t2, (f"the test run continues the training run's clock (starts at {test.time_s[0]:g} s, "
                     f"the training run ends at {train.time_s[-1]:g} s): its rises are taken from the "
                     f"training run's cold start, not from its own first rows")
+    # Against the room when there is a room sensor: another day starts from another room temperature.
+    amb = next((s for s in train.sensors if ("room" in s or "ambient" in s) and s in test.temps_c), None)
     warm = []
     for s in test.sensors:
-        if s not in train.temps_c or "room" in s or "ambient" in s:
+        if s not in train.temps_c or s == amb or "room" in s or "ambient" in s:
             continue
         above = test.reference_c[s] - train.reference_c[s]
+        if amb is not None:
+            above -= test.reference_c[amb] - train.reference_c[amb]
         span = float(np.ptp(train.rise(s)))
         if above > max(WARM_START_SHARE * span, WARM_START_MIN_C):
-            warm.append(f"{s} starts at {test.reference_c[s]:.2f} °C, {above:.2f} °C above the training run's "
-                        f"cold start (it rose {span:.2f} °C in that run)")
+            warm.append(f"{s} starts at {test.reference_c[s]:.2f} °C, {above:.2f} °C "
+                        f"{'further above the room than at' if amb else 'above'} the training run's cold start "
+                        f"(it rose {span:.2f} °C in that run)")
     if warm:
         raise ValueError(f"the test run does not start cold: {'; '.join(warm)}; rises from its first rows "
                          f"would miss the warm-up. Give a run from a cold start, one continuing the training "

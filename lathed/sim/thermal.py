@@ -261,13 +261,15 @@ class Run:
         return len(self.columns["time_s"])
 
     def write_csv(self, path: str | Path) -> None:
+        temps = [c for c in self.columns if c.startswith("t_")]   # the four, and any added (many_sensors)
+        header = ["time_s", "spindle_rpm", *temps, "displacement_um"]
         with open(path, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(CSV_COLUMNS)
-            cols = [self.columns[c] for c in CSV_COLUMNS]
+            w.writerow(header)
+            cols = [self.columns[c] for c in header]
             for row in zip(*cols):
-                w.writerow([f"{row[0]:.1f}", f"{row[1]:.0f}", *(f"{v:.4f}" for v in row[2:6]),
-                            f"{row[6]:.3f}"])
+                w.writerow([f"{row[0]:.1f}", f"{row[1]:.0f}", *(f"{v:.4f}" for v in row[2:-1]),
+                            f"{row[-1]:.3f}"])
 
 
 def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str] = (), seed: int = 0,
