@@ -1,13 +1,20 @@
 """Thermal error model of the spindle and the loop that finds what it lacks.
 
 The paper (eq. 14) fits the nose growth as a static linear function of four
-temperature rises. This module fits that regression by least squares, then
-runs a residual loop: each *candidate effect* (sensor lag, temperature rate,
-speed, nonlinearity, hysteresis, drift, or one a plugin supplies) proposes
-extra terms; the one that most lowers the error on held-out contiguous time
-blocks is added when the fall is both large enough to matter and
-statistically significant; repeat. What is left is checked for structure
-(autocorrelation, a periodicity) that no candidate explained.
+temperature rises. This module selects the sensors (any number; stepwise on
+held-out time, capped; a sensor that oscillates on its own is filtered the
+same way at fit and at prediction), fits that regression by least squares,
+then runs a residual loop: each *candidate effect* (sensor lag, temperature
+rate, speed, nonlinearity, hysteresis, drift, lag of speed, speed x
+temperature, lag of T - ambient, or one a plugin supplies) proposes extra
+terms; the set with one more that most lowers the error on held-out
+contiguous time blocks, every parameter re-chosen jointly, is taken when the
+fall is both large enough to matter and statistically significant; terms
+made redundant leave; repeat. Structure left in the residual becomes a term
+where it has a form one can fit (steps at speed levels, a periodic term at a
+spectral line); what cannot be modelled is said. Plain least squares on all
+sensors is fitted beside it, reported on the same rows, and is the model
+when the selection does worse on held-out time.
 
 The terms and candidate effects live in :mod:`lathed.analysis.thermal_terms`
 (re-exported here). Pure numpy/scipy, no asyncio: the daemon's analyzer,

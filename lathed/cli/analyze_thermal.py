@@ -15,10 +15,13 @@ from lathed.analysis.thermal_csv import EX_DATAERR, LoadReport, ThermalCsvError,
 
 def register_analyze(sub) -> None:
     p = sub.add_parser("thermal", help="thermal growth model: effects the regression lacks, error before/after",
-                       description="Fit spindle growth (displacement_um) to temperature rises "
-                                   "(t_<place>_c) by least squares, then add the candidate effects "
-                                   "(lag, rate, speed, nonlinear, hysteresis, drift) that lower the "
-                                   "error on held-out time blocks.")
+                       description="Select the temperature sensors (t_<place>_c) and fit spindle growth "
+                                   "(displacement_um) to their rises by least squares, then add the "
+                                   "candidate effects (lag, rate, speed, nonlinear, hysteresis, drift, "
+                                   "lag of speed, speed x temperature, lag of T - ambient; speed steps "
+                                   "and periodic terms from the residual) that lower the error on "
+                                   "held-out time. The report compares, on the same rows, the paper's "
+                                   "eq. 14, plain least squares, the current and the new model.")
     p.add_argument("train", metavar="TRAIN.csv", help="run to fit on: time_s, [spindle_rpm], "
                                                       "t_<place>_c..., displacement_um")
     held = p.add_mutually_exclusive_group()
