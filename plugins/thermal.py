@@ -296,6 +296,8 @@ class ThermalAnalyzer(Analyzer):
                "least_squares_rmse_um": None if ls is None else round(ls, 3),
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
+               # what each kept sensor carries: a user with many sensors sees which matter
+               "sensors": [k.to_json() for k in res.analysis.sensors],
                "residual": res.analysis.residual.note}
         if res.better:
             self.models_dir.mkdir(parents=True, exist_ok=True)

@@ -147,8 +147,10 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     assert thermal(d, "status")["model"] == "thermal-v1.toml"
     rec = events(d, "thermal_refit")
     assert len(rec) == 1 and rec[0]["payload"]["after_rmse_um"] == out["after_rmse_um"]
-    # the least-squares baseline on the same tail is always carried
+    # the least-squares baseline on the same tail is always carried, and what each sensor carries
     assert out["least_squares_rmse_um"] > 0
+    assert out["sensors"] and all({"sensor", "smooth_s", "heldout_gain_um", "span_um"} <= set(k)
+                                  for k in out["sensors"])
     # the human output says it in three lines: before, least squares, after
     text = d.ctl("thermal", "refit").stdout.splitlines()
     assert len(text) == 3
