@@ -482,8 +482,7 @@ class LagCandidate:
 
     def refine(self, term: LagTerm) -> list[LagTerm]:
         """A finer grid between the coarse neighbours of the best time constant."""
-        step = self.taus_s[1] / self.taus_s[0]
-        return [LagTerm(term.sensor, float(t)) for t in np.geomspace(term.tau_s / step, term.tau_s * step, 9)]
+        return _refine_tau(term.tau_s, lambda t: LagTerm(term.sensor, t))
 
     def make_term(self, sensor, params):
         return LagTerm(sensor, float(params["tau_s"]))
@@ -495,6 +494,11 @@ class RateCandidate:
 
     def propose(self, data):
         return [RateTerm(s, w) for s in _heated(data) for w in self.smooth_s]
+
+    def refine(self, term: RateTerm) -> list[RateTerm]:
+        """Between the grid's neighbours, up to the shortest lag (above it, a lag)."""
+        return [RateTerm(term.sensor, float(w)) for w in np.geomspace(term.smooth_s / 2, term.smooth_s * 2, 9)
+                if w < _TAUS_S[0]]
 
     def make_term(self, sensor, params):
         return RateTerm(sensor, float(params["smooth_s"]))
@@ -553,8 +557,11 @@ class DriftCandidate:
 
 
 def _refine_tau(tau_s: float, make) -> list:
+    """A finer grid between the coarse neighbours of a time constant, never
+    below the shortest lag: a shorter one is a rate (see RateTerm), and
+    refined down step by step a lag would take the rate's place."""
     step = _TAUS_S[1] / _TAUS_S[0]
-    return [make(float(t)) for t in np.geomspace(tau_s / step, tau_s * step, 9)]
+    return [make(float(t)) for t in np.geomspace(tau_s / step, tau_s * step, 9) if t >= _TAUS_S[0]]
 
 
 def _ambient(data: ThermalData) -> list[str]:
