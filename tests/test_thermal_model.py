@@ -205,3 +205,20 @@ def test_sparse_rows_are_not_smoothed():
     assert smooth_rows(t, x) is x
     dense = np.arange(3000) * 6.0
     assert not np.array_equal(smooth_rows(dense, np.sin(dense / 900.0)), np.sin(dense / 900.0))
+
+
+def test_the_model_is_never_worse_than_plain_least_squares_on_held_out_time():
+    from lathed.analysis.thermal import analyze
+    t, temps, rng = _synthetic(n=600)
+    d0 = ThermalData(t, temps)
+    y = 2 * d0.rise("t_a_c") - 1.5 * d0.rise("t_b_c") + 0.05 * rng.standard_normal(len(t))
+    d = ThermalData(t, temps, y)
+    # capped at one sensor, with nothing to add, the selection must do worse than all three
+    a = analyze(d, candidates=[], max_sensors=1)
+    assert a.least_squares.heldout_rmse_um < a.baseline.heldout_rmse_um
+    assert a.final.model.source == "least_squares" and a.final is a.least_squares
+    assert any("worse than plain least squares" in n for n in a.notes)
+    assert [c.rmse_um for c in a.comparison][1] == a.least_squares.test_rmse_um
+    # uncapped, the selected model is kept and no worse
+    b = analyze(d, candidates=[])
+    assert b.final.model.source == "fit" and b.final.heldout_rmse_um <= b.least_squares.heldout_rmse_um
