@@ -1153,7 +1153,12 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
                                                 fixed=effects, prune=True)
     notes[:] = [n for n in notes if not n.startswith("sensor selection kept")] + \
         [n for n in snotes if n.startswith("sensor selection kept")]
-    # Stages in the order the effects entered, for the report.
+    # The effects in the order of what they carry (held-out error without each):
+    # chosen jointly, the order they entered in says little.
+    if len(effects) > 1:
+        without = {repr(t): rmse(_heldout(train, [*sensor_terms, *(o for o in effects if o is not t)],
+                                          n_blocks, gap)) for t in effects}
+        effects.sort(key=lambda t: -without[repr(t)])
     found_list: list[EffectFound] = []
     stage = base
     for k, t in enumerate(effects):
