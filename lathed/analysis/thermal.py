@@ -1082,6 +1082,12 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
                 found = tune([*terms[:i], term, *terms[i + 1:]], [i])
                 if found[0] < r:
                     r, terms, e = found
+        # ... or the newcomer does its part alone: it enters as the other leaves.
+        for i in range(len(terms) - 2, -1, -1):
+            trial = terms[:i] + terms[i + 1:]
+            r2, e2 = score(trial)
+            if r2 < r:
+                r, terms, e = r2, trial, e2
         return r, terms, e
 
     def admit(found) -> bool:
