@@ -222,3 +222,22 @@ def test_the_model_is_never_worse_than_plain_least_squares_on_held_out_time():
     # uncapped, the selected model is kept and no worse
     b = analyze(d, candidates=[])
     assert b.final.model.source == "fit" and b.final.heldout_rmse_um <= b.least_squares.heldout_rmse_um
+
+
+def test_kept_held_out_scores_follow_a_changed_displacement_or_speed():
+    # The selection loops keep each run's cross-products; a run whose
+    # displacement or speed is replaced afterwards must not be scored on the old.
+    from lathed.analysis.thermal import _design, _fit_design, _heldout
+    t, temps, rng = _synthetic(n=600)
+    d0 = ThermalData(t, temps)
+    y1 = 2 * d0.rise("t_a_c") + 0.05 * rng.standard_normal(len(t))
+    d = ThermalData(t, temps, y1, rpm=np.repeat([1000.0, 3000.0], 300))
+    terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), SpeedTerm("n2")]
+
+    def direct():
+        return heldout_errors(_fit_design(d, terms), d.displacement_um, 5, 10, _design(d, terms))
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
+    d.displacement_um = -3 * d0.rise("t_b_c") + 0.05 * rng.standard_normal(len(t))
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
+    d.rpm = np.repeat([4000.0, 0.0], 300)
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)

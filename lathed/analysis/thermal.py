@@ -240,9 +240,10 @@ def _cols(data: ThermalData, term: Term) -> np.ndarray:
     terms again and again as others come and go."""
     cache = data.__dict__.setdefault("_cols", {})
     key = repr(term)
-    if key not in cache:
-        cache[key] = np.asarray(term.features(data), dtype=float).reshape(len(data), -1)
-    return cache[key]
+    hit = cache.get(key)
+    if hit is None or hit[0] is not data.rpm:      # rpm may be set or replaced after the run was built
+        hit = cache[key] = (data.rpm, np.asarray(term.features(data), dtype=float).reshape(len(data), -1))
+    return hit[1]
 
 
 def _design(data: ThermalData | ThermalRuns, terms: Sequence[Term]) -> np.ndarray:
@@ -632,6 +633,7 @@ class _HeldoutCache:
         self.cols: dict[str, np.ndarray] = {"1": np.ones(n), "y": y}
         self.sums: dict[tuple[str, str], np.ndarray] = {}
         self.by_id: dict[tuple[int, bool], tuple[Term, list[str]]] = {}
+        self.rpm = data.rpm
 
     def _keys(self, term: Term, fit: bool) -> list[str]:
         hit = self.by_id.get((id(term), fit))
@@ -691,7 +693,7 @@ class _HeldoutCache:
 def _heldout(data: ThermalData | ThermalRuns, terms: Sequence[Term], n_blocks: int, gap: int) -> np.ndarray:
     cache = data.__dict__.setdefault("_heldout", {})
     hc = cache.get((n_blocks, gap))
-    if hc is None:
+    if hc is None or hc.cols["y"] is not data.displacement_um or hc.rpm is not data.rpm:
         hc = cache[(n_blocks, gap)] = _HeldoutCache(data, n_blocks, gap)
     return hc.errors(terms)
 
