@@ -201,3 +201,19 @@ def test_sim_thermal_run_writes_a_pair_the_analysis_reads(tmp_path):
     assert js["final"]["test_rmse_um"] < 0.4 * js["baseline"]["test_rmse_um"]
     bad = ctl("sim", "thermal-run", tmp_path / "no" / "such" / "dir.csv")
     assert bad.returncode == 73 and bad.stderr.count("\n") == 1 and "cannot write" in bad.stderr
+
+
+def test_sim_thermal_run_writes_the_second_pass_runs(tmp_path):
+    """Many sensors and an off-library cycle, as `sim thermal-run` writes them for the README."""
+    from lathed.cli import sim
+    p = argparse.ArgumentParser(prog="lathectl")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    sim.register(sub)
+    out = tmp_path / "many.csv"
+    args = p.parse_args(["sim", "thermal-run", str(out), "--sensors", "16", "--row-s", "60", "--hours", "2",
+                         "--periodic-min", "20", "--speed-step-um", "3", "--seed", "5"])
+    assert args.func(args) == 0
+    head = out.read_text().splitlines()[0].split(",")
+    temps = [c for c in head if c.startswith("t_") and c.endswith("_c")]
+    assert len(temps) == 16 and head[0] == "time_s" and head[-1] == "displacement_um"
+    assert len(out.read_text().splitlines()) == 1 + 120
