@@ -301,9 +301,13 @@ class ThermalAnalyzer(Analyzer):
                         extra_candidates=self._candidates())
         except ValueError as e:     # data the residual loop cannot use: say so, keep the model
             raise RequestError(f"refit failed on {len(data)} probe measurements: {e}") from None
+        ls = res.least_squares_rmse_um
         out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
+               "least_squares_rmse_um": None if ls is None else round(ls, 3),
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
+               # what each kept sensor carries: a user with many sensors sees which matter
+               "sensors": [k.to_json() for k in res.analysis.sensors],
                "residual": res.analysis.residual.note}
         if res.better:
             self.models_dir.mkdir(parents=True, exist_ok=True)

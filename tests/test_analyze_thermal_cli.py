@@ -49,13 +49,68 @@ def test_json_contract_with_test_file(runs, capsys):
     assert isinstance(doc["residual"]["structured"], bool) and doc["residual"]["note"]
 
 
-def test_human_output_is_two_lines(runs, capsys):
+def test_human_output(runs, capsys):
     code, out, err = _run([runs / "train.csv"], capsys)
     assert code == 0, err
     lines = out.strip().splitlines()
-    assert len(lines) == 2
     assert lines[0].startswith("before:") and "held-out" in lines[0]
     assert lines[1].startswith("found: speed") and "after:" in lines[1]
+    # every report carries the paper's equation, least squares, the current and the new model
+    assert lines[2].startswith("compared on the same rows (held-out time blocks")
+    assert [ln.split(":")[0].strip().split(" ")[0] for ln in lines[3:7]] == ["paper", "least", "current", "new"]
+    assert lines[7].startswith("sensors: t_front_bearing_c")
+
+
+def test_split_judges_every_model_on_the_held_out_tail(runs, capsys):
+    code, out, err = _run([runs / "train.csv", "--split", "0.8", "--json"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    n = len((runs / "train.csv").read_text().splitlines()) - 1
+    cmp = doc["comparison"]
+    assert cmp["rows"] == f"the last 20 % of train.csv ({n - round(0.8 * n)} rows)"
+    by = {m["model"].split(" ")[0]: m["rmse_um"] for m in cmp["models"]}
+    assert set(by) == {"paper", "least", "current:", "new:"} and all(v is not None for v in by.values())
+    # the new model is what the loop found, and no worse than plain least squares on those rows
+    assert by["new:"] == doc["final"]["test_rmse_um"] <= by["least"]
+    assert doc["least_squares"]["test_rmse_um"] == by["least"]
+
+
+def test_split_out_of_range_is_one_line(runs, capsys):
+    code, _, err = _run([runs / "train.csv", "--split", "1.5"], capsys)
+    assert code == 65 and err.count("\n") == 1 and "--split 1.5" in err and "(0, 1)" in err
+
+
+def _rows(path):
+    lines = path.read_text().splitlines()
+    return lines[0], lines[1:]
+
+
+def test_a_test_file_that_starts_warm_is_refused(runs, tmp_path, capsys):
+    head, rows = _rows(runs / "test.csv")
+    # the second half of a run, its clock restarted at 0: it starts warm
+    half = rows[len(rows) // 2:]
+    t0 = float(half[0].split(",")[0])
+    shifted = [",".join([f"{float(r.split(',')[0]) - t0 + 6:.1f}", *r.split(",")[1:]]) for r in half]
+    p = tmp_path / "warm.csv"
+    p.write_text("\n".join([head, *shifted]) + "\n")
+    code, out, err = _run([runs / "train.csv", "--test", p], capsys)
+    assert code == 65 and out == ""
+    assert err.startswith("lathectl: the test run does not start cold: t_front_bearing_c starts at")
+    assert err.rstrip().endswith(f"({p})") and err.count("\n") == 1
+
+
+def test_a_test_file_continuing_the_run_is_re_referenced(runs, tmp_path, capsys):
+    head, rows = _rows(runs / "train.csv")
+    cut = int(0.8 * len(rows))
+    (tmp_path / "first.csv").write_text("\n".join([head, *rows[:cut]]) + "\n")
+    (tmp_path / "rest.csv").write_text("\n".join([head, *rows[cut:]]) + "\n")
+    code, out, err = _run([tmp_path / "first.csv", "--test", tmp_path / "rest.csv", "--json"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    assert "continues the training run's clock" in doc["test_reference"] and "continues" in err
+    # the same rows judged as --split 0.8 judges them: the rises from the one cold start
+    code, out2, _ = _run([runs / "train.csv", "--split", str(cut / len(rows)), "--json"], capsys)
+    assert json.loads(out2)["final"]["test_rmse_um"] == pytest.approx(doc["final"]["test_rmse_um"], rel=1e-6)
 
 
 def test_plot_is_written(runs, tmp_path, capsys):
@@ -146,3 +201,19 @@ def test_sim_thermal_run_writes_a_pair_the_analysis_reads(tmp_path):
     assert js["final"]["test_rmse_um"] < 0.4 * js["baseline"]["test_rmse_um"]
     bad = ctl("sim", "thermal-run", tmp_path / "no" / "such" / "dir.csv")
     assert bad.returncode == 73 and bad.stderr.count("\n") == 1 and "cannot write" in bad.stderr
+
+
+def test_sim_thermal_run_writes_the_second_pass_runs(tmp_path):
+    """Many sensors and an off-library cycle, as `sim thermal-run` writes them for the README."""
+    from lathed.cli import sim
+    p = argparse.ArgumentParser(prog="lathectl")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    sim.register(sub)
+    out = tmp_path / "many.csv"
+    args = p.parse_args(["sim", "thermal-run", str(out), "--sensors", "16", "--row-s", "60", "--hours", "2",
+                         "--periodic-min", "20", "--speed-step-um", "3", "--seed", "5"])
+    assert args.func(args) == 0
+    head = out.read_text().splitlines()[0].split(",")
+    temps = [c for c in head if c.startswith("t_") and c.endswith("_c")]
+    assert len(temps) == 16 and head[0] == "time_s" and head[-1] == "displacement_um"
+    assert len(out.read_text().splitlines()) == 1 + 120

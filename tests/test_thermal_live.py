@@ -147,11 +147,16 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     assert thermal(d, "status")["model"] == "thermal-v1.toml"
     rec = events(d, "thermal_refit")
     assert len(rec) == 1 and rec[0]["payload"]["after_rmse_um"] == out["after_rmse_um"]
-    # the human output says it in two lines: before, after
+    # the least-squares baseline on the same tail is always carried, and what each sensor carries
+    assert out["least_squares_rmse_um"] > 0
+    assert out["sensors"] and all({"sensor", "smooth_s", "heldout_gain_um", "span_um"} <= set(k)
+                                  for k in out["sensors"])
+    # the human output says it in three lines: before, least squares, after
     text = d.ctl("thermal", "refit").stdout.splitlines()
-    assert len(text) == 2
+    assert len(text) == 3
     assert text[0].startswith("before: thermal-v1.toml, held-out error ") and text[0].endswith(" µm")
-    assert text[1].startswith("after:  thermal-v") and "probe measurements" in text[1]
+    assert text[1].startswith("least squares on the same sensors: held-out error ")
+    assert text[2].startswith("after:  thermal-v") and "probe measurements" in text[2]
     # the compensation now uses the kept model
     wait_until(lambda: any(e["payload"]["model"] == "thermal-v1.toml" for e in events(d, "compensation")),
                timeout=20, what="a compensation with the refitted model")

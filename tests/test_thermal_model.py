@@ -4,7 +4,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lathed.analysis.thermal import (DriftTerm, HysteresisTerm, LagTerm, LinearTerm, NonlinearTerm, RateTerm,
+from lathed.analysis.thermal import (AmbientLagTerm, DriftTerm, HysteresisTerm, LagTerm, LinearTerm, NonlinearTerm,
+                                     PeriodicTerm, RateTerm, SpeedLagTerm, SpeedStepTerm, SpeedTempTerm,
                                      SpeedTerm, ThermalData, ThermalModel, baseline_terms, eq14_model,
                                      fit_coefficients, heldout_errors, lag_filter, load_model, play_operator,
                                      save_model)
@@ -86,8 +87,14 @@ def test_play_operator():
 
 def _model_with_every_term():
     terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), LagTerm("t_a_c", 900.0), RateTerm("t_b_c", 120.0),
-             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3)]
-    coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5])
+             SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3),
+             # the second pass's: a filtered sensor, lag of speed, speed x T, lag of T - ambient,
+             # a second time constant on one sensor, a periodic term, speed steps
+             LinearTerm("t_b_c", 90.0), SpeedLagTerm(600.0, "n2"), SpeedTempTerm("t_a_c"),
+             AmbientLagTerm("t_a_c", "t_b_c", 1200.0), LagTerm("t_a_c", 4000.0), PeriodicTerm(1200.0),
+             SpeedStepTerm((0.0, 1500.0, 3000.0, 4000.0))]
+    coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5,
+                     0.7, -0.3, 0.2, 1.1, -0.6, 0.8, -0.4, 0.9, -1.2, 2.5])
     return ThermalModel(terms, coef, 7.0)
 
 
@@ -102,6 +109,15 @@ def test_streaming_predictor_equals_batch_prediction_on_uneven_time():
     live = [pred.update({"a": temps["t_a_c"][k], "t_b_c": temps["t_b_c"][k]}, rpm=rpm[k], t_s=t[k])
             for k in range(len(t))]
     assert live == pytest.approx(batch, abs=1e-8)
+
+
+def test_a_lag_of_t_minus_ambient_needs_the_room_reading_too():
+    m = ThermalModel([AmbientLagTerm("t_a_c", "t_room_c", 600.0)], np.array([2.0]), 0.0)
+    assert m.sensors == ["t_a_c", "t_room_c"]      # the live analyzer waits for both
+    p = m.predictor(reference_c={"a": 20.0, "room": 20.0}, t0_s=0.0)
+    with pytest.raises(ValueError, match="t_room_c"):
+        p.update({"a": 25.0}, t_s=0.0)
+    assert p.update({"a": 25.0, "room": 21.0}, t_s=0.0) == pytest.approx(2.0 * 4.0)
 
 
 def test_drift_is_held_at_the_span_it_was_fitted_on():
@@ -189,3 +205,39 @@ def test_sparse_rows_are_not_smoothed():
     assert smooth_rows(t, x) is x
     dense = np.arange(3000) * 6.0
     assert not np.array_equal(smooth_rows(dense, np.sin(dense / 900.0)), np.sin(dense / 900.0))
+
+
+def test_the_model_is_never_worse_than_plain_least_squares_on_held_out_time():
+    from lathed.analysis.thermal import analyze
+    t, temps, rng = _synthetic(n=600)
+    d0 = ThermalData(t, temps)
+    y = 2 * d0.rise("t_a_c") - 1.5 * d0.rise("t_b_c") + 0.05 * rng.standard_normal(len(t))
+    d = ThermalData(t, temps, y)
+    # capped at one sensor, with nothing to add, the selection must do worse than all three
+    a = analyze(d, candidates=[], max_sensors=1)
+    assert a.least_squares.heldout_rmse_um < a.baseline.heldout_rmse_um
+    assert a.final.model.source == "least_squares" and a.final is a.least_squares
+    assert any("worse than plain least squares" in n for n in a.notes)
+    assert [c.rmse_um for c in a.comparison][1] == a.least_squares.test_rmse_um
+    # uncapped, the selected model is kept and no worse
+    b = analyze(d, candidates=[])
+    assert b.final.model.source == "fit" and b.final.heldout_rmse_um <= b.least_squares.heldout_rmse_um
+
+
+def test_kept_held_out_scores_follow_a_changed_displacement_or_speed():
+    # The selection loops keep each run's cross-products; a run whose
+    # displacement or speed is replaced afterwards must not be scored on the old.
+    from lathed.analysis.thermal import _design, _fit_design, _heldout
+    t, temps, rng = _synthetic(n=600)
+    d0 = ThermalData(t, temps)
+    y1 = 2 * d0.rise("t_a_c") + 0.05 * rng.standard_normal(len(t))
+    d = ThermalData(t, temps, y1, rpm=np.repeat([1000.0, 3000.0], 300))
+    terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), SpeedTerm("n2")]
+
+    def direct():
+        return heldout_errors(_fit_design(d, terms), d.displacement_um, 5, 10, _design(d, terms))
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
+    d.displacement_um = -3 * d0.rise("t_b_c") + 0.05 * rng.standard_normal(len(t))
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
+    d.rpm = np.repeat([4000.0, 0.0], 300)
+    assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)

@@ -1,13 +1,20 @@
 """Thermal error model of the spindle and the loop that finds what it lacks.
 
 The paper (eq. 14) fits the nose growth as a static linear function of four
-temperature rises. This module fits that regression by least squares, then
-runs a residual loop: each *candidate effect* (sensor lag, temperature rate,
-speed, nonlinearity, hysteresis, drift, or one a plugin supplies) proposes
-extra terms; the one that most lowers the error on held-out contiguous time
-blocks is added when the fall is both large enough to matter and
-statistically significant; repeat. What is left is checked for structure
-(autocorrelation, a periodicity) that no candidate explained.
+temperature rises. This module selects the sensors (any number; stepwise on
+held-out time, capped; a sensor that oscillates on its own is filtered the
+same way at fit and at prediction), fits that regression by least squares,
+then runs a residual loop: each *candidate effect* (sensor lag, temperature
+rate, speed, nonlinearity, hysteresis, drift, lag of speed, speed x
+temperature, lag of T - ambient, or one a plugin supplies) proposes extra
+terms; the set with one more that most lowers the error on held-out
+contiguous time blocks, every parameter re-chosen jointly, is taken when the
+fall is both large enough to matter and statistically significant; terms
+made redundant leave; repeat. Structure left in the residual becomes a term
+where it has a form one can fit (steps at speed levels, a periodic term at a
+spectral line); what cannot be modelled is said. Plain least squares on all
+sensors is fitted beside it, reported on the same rows, and is the model
+when the selection does worse on held-out time.
 
 The terms and candidate effects live in :mod:`lathed.analysis.thermal_terms`
 (re-exported here). Pure numpy/scipy, no asyncio: the daemon's analyzer,
@@ -20,7 +27,7 @@ time s, speed r/min.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -139,6 +146,23 @@ class ThermalData:
             cache[column] = smooth_rows(self.time_s, self.rise(column))
         return cache[column]
 
+    def fit_rise(self, column: str) -> np.ndarray:
+        """The rise a linear term is fitted on (see ``_fit_design``): smoothed
+        where what smoothing takes out is noise, else as read."""
+        cache = self.__dict__.setdefault("_smooth", {})
+        if ("fit", column) not in cache:
+            sm, x = self.smooth_rise(column), self.rise(column)
+            cache[("fit", column)] = sm if _noise_only(x - sm) else x
+        return cache[("fit", column)]
+
+    def select(self, columns: Sequence[str]) -> ThermalData:
+        """The same rows with only ``columns`` of the temperatures."""
+        out = ThermalData(self.time_s, {k: self.temps_c[k] for k in columns}, self.displacement_um, self.rpm,
+                          {k: self.reference_c[k] for k in columns}, self.t0_s)
+        out.__dict__["_smooth"] = self.__dict__.setdefault("_smooth", {})
+        out.__dict__["_cols"] = self.__dict__.setdefault("_cols", {})
+        return out
+
     def slice(self, lo: int, hi: int) -> ThermalData:
         """Rows lo:hi, keeping this run's reference and start time."""
         return ThermalData(self.time_s[lo:hi], {k: v[lo:hi] for k, v in self.temps_c.items()},
@@ -183,6 +207,12 @@ class ThermalRuns:
     def smooth_rise(self, column: str) -> np.ndarray:
         return np.concatenate([r.smooth_rise(column) for r in self.runs])
 
+    def fit_rise(self, column: str) -> np.ndarray:
+        return np.concatenate([r.fit_rise(column) for r in self.runs])
+
+    def select(self, columns: Sequence[str]) -> ThermalRuns:
+        return ThermalRuns([r.select(columns) for r in self.runs])
+
     def slice(self, lo: int, hi: int) -> ThermalRuns:
         out, start = [], 0
         for r in self.runs:
@@ -194,9 +224,10 @@ class ThermalRuns:
 
 
 from lathed.analysis.thermal_terms import (  # noqa: F401  (re-exported: plugins import them from here)
-    Candidate, DriftCandidate, DriftTerm, HysteresisCandidate, HysteresisTerm, LagCandidate, LagTerm,
-    LinearTerm, NonlinearCandidate, NonlinearTerm, RateCandidate, RateTerm, SpeedCandidate, SpeedTerm,
-    Term, builtin_candidates, lag_filter, play_operator)
+    AmbientLagTerm, Candidate, DriftCandidate, DriftTerm, HysteresisCandidate, HysteresisTerm, LagCandidate,
+    LagTerm, LinearTerm, NonlinearCandidate, NonlinearTerm, PeriodicTerm, RateCandidate, RateTerm,
+    SpeedCandidate, SpeedLagTerm, SpeedStepCandidate, SpeedStepTerm, SpeedTempTerm, SpeedTerm, Term,
+    builtin_candidates, lag_filter, play_operator)
 
 # -- least squares --------------------------------------------------------
 
@@ -204,16 +235,41 @@ _RIDGE = 1e-6          # relative to n on standardised columns: only bites on ex
 COLLINEAR_R = 0.999
 
 
+def _cols(data: ThermalData, term: Term) -> np.ndarray:
+    """A term's columns on one run, kept: the loops below ask for the same
+    terms again and again as others come and go."""
+    cache = data.__dict__.setdefault("_cols", {})
+    key = repr(term)
+    hit = cache.get(key)
+    if hit is None or hit[0] is not data.rpm:      # rpm may be set or replaced after the run was built
+        hit = cache[key] = (data.rpm, np.asarray(term.features(data), dtype=float).reshape(len(data), -1))
+    return hit[1]
+
+
 def _design(data: ThermalData | ThermalRuns, terms: Sequence[Term]) -> np.ndarray:
     if isinstance(data, ThermalRuns):      # terms with memory start afresh in each run
         return np.vstack([_design(r, terms) for r in data.runs])
-    cols = [np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
+    cols = [_cols(data, t) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
+
+
+def _noise_only(x: np.ndarray) -> bool:
+    """Is ``x`` (what smoothing takes out of a sensor) reading noise? Noise
+    spreads over the whole spectrum; a sensor's own oscillation (coolant past
+    it, a fan cycling) puts a line in it that holds a large share."""
+    if len(x) < 64:
+        return True
+    p = np.abs(np.fft.rfft(x - x.mean()))[1:] ** 2
+    if p.sum() <= 0:
+        return True
+    band = np.convolve(p, np.ones(3), "same")
+    return float(band.max() / p.sum()) < 0.1
 
 
 def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     """The design the coefficients are fitted on: as ``_design``, but the
-    sensors' own (linear) columns with their reading noise smoothed out.
+    unfiltered sensors' own (linear) columns with their reading noise
+    smoothed out, where what is smoothed out is noise.
 
     The heated sensors move nearly in lock-step (rear bearing and motor warm
     with the same speed, r > 0.99), so what tells their weights apart is a
@@ -221,11 +277,14 @@ def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     readings the weights are biased along that direction (errors in
     variables), which costs nothing on the training run and a slow ramp of
     error on a run with another speed schedule. Predictions still use the
-    raw readings."""
+    raw readings: right for noise, wrong for a sensor that oscillates on its
+    own, whose oscillation the fit would never see and the prediction would
+    carry straight into the growth. Such a sensor is fitted as it is
+    predicted (raw, or through its ``smooth_s`` filter)."""
     if isinstance(data, ThermalRuns):
         return np.vstack([_fit_design(r, terms) for r in data.runs])
-    cols = [data.smooth_rise(t.sensor)[:, None] if isinstance(t, LinearTerm)
-            else np.asarray(t.features(data), dtype=float).reshape(len(data), -1) for t in terms]
+    cols = [data.fit_rise(t.sensor)[:, None] if isinstance(t, LinearTerm) and not t.smooth_s
+            else _cols(data, t) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
 
 
@@ -320,7 +379,8 @@ class ThermalModel:
 
     @property
     def sensors(self) -> list[str]:
-        return sorted({t.sensor for t in self.terms if t.sensor})
+        # a term may read more than its own sensor (a lag of T - ambient reads the room too)
+        return sorted({s for t in self.terms for s in getattr(t, "sensors", (t.sensor,)) if s})
 
     def predict(self, data: ThermalData) -> np.ndarray:
         missing = [s for s in self.sensors if s not in data.temps_c]
@@ -354,7 +414,7 @@ class ThermalModel:
         for i, td in enumerate(d.get("terms", [])):
             eff = td.get("effect")
             if eff == "linear":
-                term: Term = LinearTerm(td["sensor"])
+                term: Term = LinearTerm(td["sensor"], float(td.get("params", {}).get("smooth_s", 0.0)))
             elif eff in makers:
                 term = makers[eff].make_term(td.get("sensor"), td.get("params", {}))
             else:
@@ -436,8 +496,8 @@ class ThermalPredictor:
         rises = {s: temps[s] - self.reference_c[s] for s in self.model.sensors}
         vals: list[float] = []
         for term, f in zip(self.model.terms, self._streams):
-            if f is None:      # drift: hours on the predictor's clock
-                vals.append(float(term.hours((t - self._t0) / 3600.0)))
+            if f is None:      # drift, periodic: on the run's clock, from the cold start
+                vals.extend(term.run_clock(t - self._t0))
             else:
                 vals.extend(float(v) for v in f(t, rises, rpm))
         self.prediction_um = float(np.dot(self.model.coef, vals) + self.model.intercept_um)
@@ -481,6 +541,33 @@ class ResidualReport:
     noise_um: float
     lag1: float
     period_s: float | None = None
+    sensor: str | None = None       # an input sensor oscillating at that period
+    steps_h: list[float] = field(default_factory=list)   # sudden steps in the residual (h into the run)
+
+
+@dataclass
+class Comparison:
+    """One model's error on the rows every model of the report is judged on."""
+    label: str
+    rmse_um: float | None
+    note: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"model": self.label, "rmse_um": None if self.rmse_um is None else round(self.rmse_um, 4),
+                **({"note": self.note} if self.note else {})}
+
+
+@dataclass
+class SensorKept:
+    """A sensor the selection kept, and what it carries."""
+    sensor: str
+    smooth_s: float
+    heldout_gain_um: float   # held-out error without it less with it
+    span_um: float           # its weight times the span of its rise: growth it accounts for
+
+    def to_json(self) -> dict[str, Any]:
+        return {"sensor": self.sensor, "smooth_s": self.smooth_s,
+                "heldout_gain_um": round(self.heldout_gain_um, 4), "span_um": round(self.span_um, 3)}
 
 
 @dataclass
@@ -490,6 +577,10 @@ class Analysis:
     final: Stage
     residual: ResidualReport
     notes: list[str]
+    least_squares: Stage | None = None
+    comparison: list[Comparison] = field(default_factory=list)
+    sensors: list[SensorKept] = field(default_factory=list)
+    judged_on: str = ""
 
     @property
     def model(self) -> ThermalModel:
@@ -498,15 +589,121 @@ class Analysis:
     def to_json(self) -> dict[str, Any]:
         return {"baseline": self.baseline.to_json(), "effects": [e.to_json() for e in self.effects],
                 "final": self.final.to_json(),
-                "residual": {"structured": self.residual.structured, "note": self.residual.note},
+                "least_squares": None if self.least_squares is None else self.least_squares.to_json(),
+                "comparison": {"rows": self.judged_on, "models": [c.to_json() for c in self.comparison]},
+                "sensors": [k.to_json() for k in self.sensors],
+                "residual": {"structured": self.residual.structured, "note": self.residual.note,
+                             **({"period_s": round(self.residual.period_s, 1)} if self.residual.period_s else {}),
+                             **({"matches_sensor": self.residual.sensor} if self.residual.sensor else {})},
                 "notes": self.notes}
 
 
-def baseline_terms(data: ThermalData, n_blocks: int = 5, gap: int = 10) -> tuple[list[Term], list[str]]:
-    """One linear term per temperature column, less those that cannot be
-    fitted: a sensor that never changed, or one that moves in lock-step with
-    another and adds nothing on held-out blocks (two sensors reading the same
-    heat; keeping both would split or, with noise, oppose their weights)."""
+# Oscillations faster than this are a sensor's own, not heat the spindle's
+# growth follows: four times the shortest lag the residual loop tries.
+_FILTER_MAX_PERIOD_S = 4 * 300.0
+
+
+def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[float]:
+    """Filters to try on a sensor (lag time constants, s; 0 = as read). Only
+    a sensor that oscillates on its own (a spectral line in its rise) gets
+    any: lags of a fraction of its period damp the oscillation and delay the
+    slow heat little. A plain sensor is not filtered: a lag there is a
+    physical effect, for the residual loop to find and name."""
+    # Any line that stands out, however small beside the warm-up; only a
+    # fast one: a slow swing (the room's) is heat the growth follows.
+    period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
+    if period is None or period > _FILTER_MAX_PERIOD_S:
+        return [0.0]
+    return [0.0, *(period * f for f in (0.25, 0.5, 1.0))]
+
+
+class _HeldoutCache:
+    """``heldout_errors`` for the selection loops, which score thousands of
+    designs that differ in a column or two: the cross-products of every pair
+    of columns over the whole run and over each held-out stretch are kept,
+    so a design's held-out errors cost a few small solves. Same algebra as
+    ``heldout_errors`` (the ridge on standardised columns is a ridge of
+    ``_RIDGE * rows * var`` on the raw ones)."""
+
+    def __init__(self, data: ThermalData | ThermalRuns, n_blocks: int, gap: int):
+        self.data = data
+        y = data.displacement_um
+        n = len(y)
+        self.blocks = blocks(n, n_blocks)
+        self.segs = [(max(lo - gap, 0), min(hi + gap, n)) for lo, hi in self.blocks]
+        self.cols: dict[str, np.ndarray] = {"1": np.ones(n), "y": y}
+        self.sums: dict[tuple[str, str], np.ndarray] = {}
+        self.by_id: dict[tuple[int, bool], tuple[Term, list[str]]] = {}
+        self.rpm = data.rpm
+
+    def _keys(self, term: Term, fit: bool) -> list[str]:
+        hit = self.by_id.get((id(term), fit))
+        if hit is not None and hit[0] is term:
+            return hit[1]
+        keys = self._make_keys(term, fit)
+        self.by_id[(id(term), fit)] = (term, keys)     # the term held: its id is not reused
+        return keys
+
+    def _make_keys(self, term: Term, fit: bool) -> list[str]:
+        k = repr(term)
+        if fit and isinstance(term, LinearTerm) and not term.smooth_s:
+            k, F = "fit:" + k, self.data.fit_rise(term.sensor)[:, None]
+        else:
+            F = None
+        X = _design(self.data, [term])        # per run for several runs: memory starts afresh in each
+        keys = [f"{k}#{i}" for i in range(X.shape[1])]
+        if keys[0] not in self.cols:
+            F = X if F is None else F
+            for i, key in enumerate(keys):
+                self.cols[key] = np.ascontiguousarray(F[:, i])
+        return keys
+
+    def _pair(self, a: str, b: str) -> np.ndarray:
+        key = (a, b) if a <= b else (b, a)
+        out = self.sums.get(key)
+        if out is None:
+            cs = np.concatenate([[0.0], np.cumsum(self.cols[a] * self.cols[b])])
+            out = self.sums[key] = np.array([cs[-1], *(cs[c] - cs[s] for s, c in self.segs)])
+        return out
+
+    def errors(self, terms: Sequence[Term]) -> np.ndarray:
+        fk = [k for t in terms for k in self._keys(t, True)] + ["1"]
+        pk = [k for t in terms for k in self._keys(t, False)]
+        m = len(fk)
+        S = np.empty((m, m, len(self.segs) + 1))
+        for i in range(m):
+            for j in range(i, m):
+                S[i, j] = S[j, i] = self._pair(fk[i], fk[j])
+        Sy = np.array([self._pair(k, "y") for k in fk])
+        y = self.cols["y"]
+        n = len(y)
+        var = S[np.arange(m), np.arange(m), 0] / n - (S[:, m - 1, 0] / n) ** 2
+        var = np.where(var > 0, var, 1.0)
+        var[-1] = 0.0
+        err = np.empty(n)
+        for b, ((lo, hi), (a, c)) in enumerate(zip(self.blocks, self.segs)):
+            G = S[:, :, 0] - S[:, :, b + 1]
+            coef = np.linalg.solve(G + np.diag(_RIDGE * max(n - (c - a), 1) * var), Sy[:, 0] - Sy[:, b + 1])
+            pred = np.full(hi - lo, coef[-1])
+            for j, k in enumerate(pk):
+                pred += coef[j] * self.cols[k][lo:hi]
+            err[lo:hi] = y[lo:hi] - pred
+        return err
+
+
+def _heldout(data: ThermalData | ThermalRuns, terms: Sequence[Term], n_blocks: int, gap: int) -> np.ndarray:
+    cache = data.__dict__.setdefault("_heldout", {})
+    hc = cache.get((n_blocks, gap))
+    if hc is None or hc.cols["y"] is not data.displacement_um or hc.rpm is not data.rpm:
+        hc = cache[(n_blocks, gap)] = _HeldoutCache(data, n_blocks, gap)
+    return hc.errors(terms)
+
+
+def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[str], list[str]]:
+    """The temperature columns that can be fitted: not a sensor that never
+    changed, nor one that moves in lock-step with another and adds nothing on
+    held-out blocks (two sensors reading the same heat; keeping both would
+    split or, with noise, oppose their weights)."""
     notes: list[str] = []
     keep: list[str] = []
     for s in data.sensors:
@@ -536,26 +733,157 @@ def baseline_terms(data: ThermalData, n_blocks: int = 5, gap: int = 10) -> tuple
         else:
             notes.append(f"{s} moves with {twin} (r={r:.5f}) but still adds on held-out blocks "
                          f"({without_s:.2f} -> {with_s:.2f} µm): both kept")
-    return [LinearTerm(s) for s in keep], notes
+    return keep, notes
+
+
+def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int = 10, max_sensors: int = 8,
+                   min_gain: float = 0.005, min_z: float = 1.0, *, start: Sequence[LinearTerm] | None = None,
+                   fixed: Sequence[Term] = (), prune: bool = True
+                   ) -> tuple[list[LinearTerm], list[str], list[SensorKept]]:
+    """Forward stepwise choice of sensors (each with the filter of
+    ``_filters`` that suits it) on held-out time blocks: the one that most
+    lowers the held-out error enters while it lowers it by ``min_gain``
+    (relative) with a Diebold-Mariano z of ``min_z``, at most
+    ``max_sensors``; then any made redundant by later ones leaves. Sixteen
+    sensors on one spindle mostly read the same few heats: all of them in
+    one regression fit their noise and oscillations, not the growth.
+
+    With no more usable sensors than ``max_sensors`` and no ``start``, all
+    enter (each with its best filter): on a few sensors a missing effect
+    hides a sensor's share, and the loop decides once effects are in.
+    ``start`` are sensors already chosen, ``fixed`` effect terms fitted
+    beside them: the residual loop calls this again as effects enter, and
+    last with ``prune`` to let go of those that add nothing."""
+    keep, notes = _usable_sensors(data, n_blocks, gap)
+    y = data.displacement_um
+    if y is None:
+        return [LinearTerm(s) for s in keep], notes, []
+    fixed = list(fixed)
+    grid: dict[str, list[float]] = {}
+    if start is None and len(keep) <= max_sensors:
+        start = [LinearTerm(s) for s in keep]
+        for i, s in enumerate(keep):
+            grid[s] = _filters(data, s)
+            if len(grid[s]) > 1:
+                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid[s]), key=lambda t: rmse(
+                    _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
+    chosen: list[LinearTerm] = [t for t in (start or ()) if t.sensor in keep]
+    e_cur = (_heldout(data, [*chosen, *fixed], n_blocks, gap) if chosen or fixed
+             else heldout_errors(np.empty((len(y), 0)), y, n_blocks, gap))
+    while len(chosen) < max_sensors:
+        best = None
+        for s in keep:
+            if any(t.sensor == s for t in chosen):
+                continue
+            if s not in grid:
+                grid[s] = _filters(data, s)
+            for sm in grid[s]:
+                t = LinearTerm(s, float(round(sm, 1)))
+                e = _heldout(data, [*chosen, t, *fixed], n_blocks, gap)
+                if best is None or rmse(e) < best[0]:
+                    best = (rmse(e), t, e)
+        if best is None:
+            break
+        r, t, e = best
+        if (chosen and (1 - r / rmse(e_cur) < min_gain or improvement_z(e_cur, e) < min_z)):
+            break     # the first always enters: the growth is fitted to something
+        chosen.append(t)
+        e_cur = e
+    for t in list(chosen if prune else ()):     # made redundant by those that came after
+        rest = [o for o in chosen if o is not t]
+        if not rest:
+            break
+        e = _heldout(data, [*rest, *fixed], n_blocks, gap)
+        if 1 - rmse(e_cur) / rmse(e) < min_gain / 2:
+            chosen, e_cur = rest, e
+    left = [s for s in keep if all(t.sensor != s for t in chosen)]
+    if left:
+        notes.append(f"sensor selection kept {len(chosen)} of {len(keep)}: "
+                     f"{', '.join(left)} added nothing on held-out time")
+    coef, _ = fit_coefficients(_fit_design(data, [*chosen, *fixed]), y)
+    kept = []
+    for i, t in enumerate(chosen):
+        rest = [o for o in chosen if o is not t]
+        without = rmse(_heldout(data, [*rest, *fixed], n_blocks, gap)) if rest or fixed else rmse(y - y.mean())
+        kept.append(SensorKept(t.sensor, t.smooth_s, without - rmse(e_cur),
+                               float(abs(coef[i]) * np.ptp(_design(data, [t])))))
+    return chosen, notes, kept
+
+
+def baseline_terms(data: ThermalData, n_blocks: int = 5, gap: int = 10) -> tuple[list[Term], list[str]]:
+    """The linear terms the residual loop starts from: the selected sensors."""
+    terms, notes, _ = select_sensors(data, n_blocks, gap)
+    return list(terms), notes
 
 
 def _stage(train: ThermalData, terms: list[Term], test: ThermalData | None,
-           n_blocks: int, gap: int, notes: list[str]) -> tuple[Stage, np.ndarray]:
+           n_blocks: int, gap: int, notes: list[str], raw: bool = False,
+           source: str = "fit") -> tuple[Stage, np.ndarray]:
     X = _design(train, terms)
-    Xf = _fit_design(train, terms)
+    Xf = X if raw else _fit_design(train, terms)
     y = train.displacement_um
     coef, icpt = fit_coefficients(Xf, y)
-    model = ThermalModel(list(terms), coef, icpt, list(notes))
+    model = ThermalModel(list(terms), coef, icpt, list(notes), source=source)
     e_cv = heldout_errors(Xf, y, n_blocks, gap, X)
     fit_rmse = rmse(y - (X @ coef + icpt))
     test_rmse = rmse(test.displacement_um - model.predict(test)) if test is not None else rmse(e_cv)
     return Stage(model, fit_rmse, rmse(e_cv), test_rmse), e_cv
 
 
-def residual_structure(t_s: np.ndarray, e: np.ndarray) -> ResidualReport:
+def least_squares_stage(train: ThermalData, test: ThermalData | None = None, n_blocks: int = 5,
+                        gap: int = 10) -> tuple[Stage, np.ndarray]:
+    """The plain baseline every report carries: least squares on every
+    sensor that changed, as read, no selection, no effect."""
+    sensors = [s for s in train.sensors if np.ptp(train.rise(s)) > 0
+               and (test is None or s in test.temps_c)]
+    if not sensors:
+        raise ValueError("no temperature column changed during the run: nothing to fit the growth to")
+    return _stage(train, [LinearTerm(s) for s in sensors], test, n_blocks, gap,
+                  [f"plain least squares on {len(sensors)} sensor(s)"], raw=True, source="least_squares")
+
+
+def _line(t_s: np.ndarray, x: np.ndarray, min_share: float = 0.2) -> tuple[float | None, float]:
+    """The period of a spectral line in ``x`` (sampled at ``t_s``) and the
+    share of the variance it carries; None when there is none. A line stands
+    above the bins either side of it; a slow trend's spectrum only falls
+    from the slowest bin, so it is never taken for a period (it used to be
+    called one of a third of the run)."""
+    x = np.asarray(x, float)
+    n = len(x)
+    if n < 32:
+        return None, 0.0
+    dt = float(np.median(np.diff(t_s)))
+    tt = np.arange(n) * dt
+    # A quadratic off: a warm-up's curve is trend, not a cycle.
+    det = x - np.polyval(np.polyfit(tt / tt[-1], x, 2), tt / tt[-1])
+    p = np.abs(np.fft.rfft(det * np.hanning(n))) ** 2
+    f = np.fft.rfftfreq(n, dt)
+    if len(p) < 12 or p[1:].sum() <= 0:
+        return None, 0.0
+    def stands_out(k: int) -> bool:
+        sides = np.r_[p[max(k - 5, 1):k - 2], p[k + 3:k + 6]]
+        return bool(len(sides) and p[k] > 10 * sides.max() and p[k] > 20 * np.median(p[1:]))
+
+    if min_share > 0:
+        k = 4 + int(np.argmax(p[4:]))           # four cycles in the run at least
+    else:   # any line, however small beside the rest: the strongest that stands out
+        peaks = [k for k in range(4, len(p) - 1) if p[k] >= p[k - 1] and p[k] >= p[k + 1] and stands_out(k)]
+        k = max(peaks, key=lambda j: p[j]) if peaks else 4
+    band = p[k - 1:k + 2].sum()
+    share = float(band / p[1:].sum())
+    if share > min_share and stands_out(k):
+        # the peak between bins: a parabola through the log power
+        a, b, c = np.log(p[k - 1:k + 2] + 1e-300)
+        off = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
+        return 1.0 / ((k + float(np.clip(off, -0.5, 0.5))) * (f[1] - f[0])), share
+    return None, share
+
+
+def residual_structure(t_s: np.ndarray, e: np.ndarray, data: ThermalData | None = None) -> ResidualReport:
     """Is there more in the residual than noise? Compares its rms with the
     sample-to-sample scatter (which smooth structure does not inflate) and
-    looks for a spectral line."""
+    looks for a spectral line; with ``data``, says which input sensor
+    oscillates at the same period, if one does."""
     e = np.asarray(e, float) - np.mean(e)
     n = len(e)
     if n < 16:
@@ -564,22 +892,18 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray) -> ResidualReport:
     noise = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2))
     total = rmse(e)
     lag1 = float((e[1:] @ e[:-1]) / (e @ e)) if total > 0 else 0.0
-    # Periodogram on an even grid (the median step); linear trend removed.
-    dt = float(np.median(np.diff(t_s)))
-    tt = np.arange(n) * dt
-    det = e - np.polyval(np.polyfit(tt, e, 1), tt)
-    p = np.abs(np.fft.rfft(det)) ** 2
-    f = np.fft.rfftfreq(n, dt)
-    period = None
-    share = 0.0
-    if len(p) > 8:
-        k = 3 + int(np.argmax(p[3:]))        # skip the slowest bins: trend, not a period
-        band = p[max(k - 1, 1):k + 2].sum()
-        share = float(band / p[1:].sum())
-        if share > 0.2 and p[k] > 20 * np.median(p[1:]):
-            period = 1.0 / f[k]
+    period, share = _line(t_s, e)
+    sensor = None
+    if period is not None and data is not None:
+        span = float(t_s[-1] - t_s[0]) or 1.0
+        for s in data.sensors:
+            ps, _ = _line(data.time_s, data.rise(s))
+            if ps is not None and abs(1 / ps - 1 / period) * span <= 1.5:   # within 1.5 bins
+                sensor = s
+                break
+    steps = _steps(t_s, e, noise)
     ratio = total / noise if noise > 0 else (1.0 if total < 1e-12 else math.inf)
-    structured = ratio > 1.3 or period is not None
+    structured = ratio > 1.3 or period is not None or bool(steps)
     if not structured:
         note = (f"residual looks like measurement noise: rms {total:.2f} µm vs {noise:.2f} µm "
                 f"sample-to-sample, lag-1 autocorrelation {lag1:.2f}")
@@ -588,73 +912,361 @@ def residual_structure(t_s: np.ndarray, e: np.ndarray) -> ResidualReport:
                 f"{ratio:.1f}x the sample-to-sample noise ({noise:.2f} µm), lag-1 autocorrelation {lag1:.2f}")
         if period is not None:
             note += f"; a periodicity of {period / 60:.1f} min carries {100 * share:.0f}% of its variance"
-    return ResidualReport(structured, note, noise, lag1, period)
+            if sensor is not None:
+                note += f", the period at which {sensor} oscillates"
+        if steps:
+            h = [round((t_s[k] - t_s[0]) / 3600.0, 2) for k, _ in steps]
+            size = float(np.median([abs(d) for _, d in steps]))
+            note += (f"; {len(steps)} sudden step(s) of ~{size:.1f} µm with no temperature change, at "
+                     f"{', '.join(f'{v:g}' for v in h[:6])}{' ...' if len(h) > 6 else ''} h")
+            if data is not None and data.rpm is None:
+                note += " (speed or program changes? with a spindle_rpm column they are fitted as speed steps)"
+    rep = ResidualReport(structured, note, noise, lag1, period, sensor)
+    rep.steps_h = [float((t_s[k] - t_s[0]) / 3600.0) for k, _ in steps]
+    return rep
+
+
+def _steps(t_s: np.ndarray, e: np.ndarray, noise: float) -> list[tuple[int, float]]:
+    """Sudden steps in a residual: where the mean of the next few rows differs
+    from that of the previous few by much more than the noise, and more than
+    a smooth curve moves over so few rows."""
+    n = len(e)
+    w = max(5, n // 200)
+    if n < 4 * w or noise <= 0:
+        return []
+    cs = np.concatenate([[0.0], np.cumsum(e)])
+    k = np.arange(w, n - w + 1)
+    d = (cs[k + w] - cs[k]) / w - (cs[k] - cs[k - w]) / w
+    # a smooth curve moves about as much from one window to the next as over
+    # the two windows before: a step stands out from both neighbours
+    big = np.abs(d) > max(6.0 * noise * math.sqrt(2.0 / w), 3.0 * noise)
+    out: list[tuple[int, float]] = []
+    for i in np.flatnonzero(big):
+        lo, hi = max(i - w, 0), min(i + w + 1, len(d))
+        if abs(d[i]) < np.abs(d[lo:hi]).max():
+            continue
+        side = np.r_[np.abs(d[max(i - 3 * w, 0):max(i - 2 * w, 0)]), np.abs(d[i + 2 * w:i + 3 * w])]
+        if len(side) and abs(d[i]) > 3 * side.max():
+            out.append((int(k[i]), float(d[i])))
+    return out
+
+
+# Kinds of effect (effect and sensor) whose best proposal is re-tuned jointly with those in.
+_JOINT_KINDS = 6
+
+
+def _duplicate(term: Term, others: Sequence[Term]) -> bool:
+    """Would ``term`` repeat one of ``others``? The same effect on the same
+    sensor does, unless both are lags a factor 2 or more apart (two time
+    constants on one sensor: a housing and the shaft behind it)."""
+    for o in others:
+        if o.effect != term.effect or o.sensor != term.sensor:
+            continue
+        a, b = getattr(o, "tau_s", None), getattr(term, "tau_s", None)
+        if a and b and max(a, b) / min(a, b) >= 2.0 and o.params.get("form") == term.params.get("form"):
+            continue
+        return True
+    return False
+
+
+def describe(term: Term) -> str:
+    where = f" of {term.sensor}" if term.sensor else ""
+    p = ", ".join(f"{k} {v}" for k, v in term.params.items())
+    return f"{term.effect}{where}" + (f" ({p})" if p else "")
+
+
+def _judged(model: ThermalModel, rows: ThermalData) -> float | None:
+    try:
+        return rmse(rows.displacement_um - model.predict(rows))
+    except ValueError:
+        return None
 
 
 def analyze(train: ThermalData, test: ThermalData | None = None, *,
             candidates: Sequence[Candidate] | None = None, extra_candidates: Sequence[Candidate] = (),
             max_effects: int = 4, n_blocks: int = 5, gap_rows: int = 10,
-            min_gain: float = 0.05, min_z: float = 2.0) -> Analysis:
-    """Fit the linear baseline on ``train``, then add candidate effects while
-    one lowers the held-out error by at least ``min_gain`` (relative) with a
-    Diebold-Mariano z of at least ``min_z``. Effects are chosen on held-out
-    blocks of ``train`` only; ``test`` (another run) is only reported on."""
+            min_gain: float = 0.05, min_z: float = 2.0, max_sensors: int = 8,
+            current: ThermalModel | None = None) -> Analysis:
+    """Select the sensors, fit the linear baseline on ``train``, then add
+    candidate effects while one lowers the held-out error by at least
+    ``min_gain`` (relative) with a Diebold-Mariano z of at least ``min_z``.
+    Each time one enters, the parameters of those already in are re-chosen
+    with it, and any it made redundant leaves: a lag and a speed effect
+    together are found as the pair, not as one term that half-explains both.
+    A spectral line left in the residual becomes a periodic term, if it
+    passes the same test. Effects are chosen on held-out blocks of ``train``
+    only; ``test`` (another run) is only reported on, beside the paper's
+    eq. 14, plain least squares on the same sensors, and ``current``."""
     if train.displacement_um is None:
         raise ValueError("training data has no displacement_um to fit")
     if len(train) < 10 * n_blocks:
         raise ValueError(f"{len(train)} rows are too few for {n_blocks} held-out blocks "
                          f"(need at least {10 * n_blocks})")
     cands = list(builtin_candidates() if candidates is None else candidates) + list(extra_candidates)
+    makers = {c.name: c for c in cands}
     gap = min(gap_rows, len(train) // (4 * n_blocks))
-    terms, notes = baseline_terms(train, n_blocks, gap)
-    base, e_cur = _stage(train, terms, test, n_blocks, gap, notes)
-    stage = base
-    found: list[EffectFound] = []
+    sensor_terms, notes, kept = select_sensors(train, n_blocks, gap, max_sensors, prune=False)
+    base, e_cur = _stage(train, list(sensor_terms), test, n_blocks, gap, notes)
+    # Candidates see every usable sensor, kept or not: a sensor whose linear
+    # share adds nothing may still carry an effect (a lag of the front bearing).
+    view = train.select(_usable_sensors(train, n_blocks, gap)[0])
     y = train.displacement_um
-    while len(found) < max_effects:
-        X = _design(train, stage.model.terms)
-        Xf = _fit_design(train, stage.model.terms)
-        have = {(t.effect, t.sensor) for t in stage.model.terms}
-        best = None
+    effects: list[Term] = []
+    dropped: set[tuple[str, Any]] = set()
+    gains: dict[str, tuple[float, float]] = {}
 
-        def consider(term, cand):
-            nonlocal best
-            if (term.effect, term.sensor) in have:
-                return
-            if test is not None and (term.sensor and term.sensor not in test.temps_c
-                                     or isinstance(term, SpeedTerm) and test.rpm is None):
-                return       # could not be evaluated on the test run
+    def usable(term) -> bool:
+        try:
             F = _design(train, [term])
-            if not np.all(np.isfinite(F)) or np.all(np.ptp(F, axis=0) == 0):
-                return
-            e = heldout_errors(np.hstack([Xf, F]), y, n_blocks, gap, np.hstack([X, F]))
-            r = rmse(e)
-            if best is None or r < best[0]:
-                best = (r, term, e, cand)
+            if test is not None:
+                _cols(test, term)
+        except (ValueError, KeyError):
+            return False       # could not be evaluated (on the test run: a sensor or the speed missing)
+        return bool(np.all(np.isfinite(F)) and np.any(np.ptp(F, axis=0) > 0))
 
-        for cand in cands:
-            for term in cand.propose(train):
-                consider(term, cand)
-        if best is None:
-            break
-        # A parameter on a coarse grid leaves a misfit that a second, spurious
-        # term would soak up: refine it where the candidate knows how.
-        refine = getattr(best[3], "refine", None)
-        if refine is not None:
-            for term in refine(best[1]):
-                consider(term, best[3])
-        r, term, e, _ = best
-        gain = 1.0 - r / rmse(e_cur)
-        z = improvement_z(e_cur, e)
+    def score(terms: Sequence[Term]) -> tuple[float, np.ndarray]:
+        e = _heldout(train, [*sensor_terms, *terms], n_blocks, gap)
+        return rmse(e), e
+
+    def alternatives(t: Term) -> list[Term]:
+        """The same effect on the same sensor at its other parameters."""
+        cand = makers.get(t.effect)
+        if cand is None:
+            return []
+        out = [a for a in cand.propose(view) if a.effect == t.effect and a.sensor == t.sensor]
+        refine = getattr(cand, "refine", None)
+        return out + (list(refine(t)) if refine is not None else [])
+
+    def tune(terms: list[Term], order: Sequence[int]) -> tuple[float, list[Term], np.ndarray]:
+        """Re-choose each listed term's parameter with all the others fitted beside it."""
+        r, e = score(terms)
+        for i in order:
+            for alt in alternatives(terms[i]):
+                others = terms[:i] + terms[i + 1:]
+                if repr(alt) == repr(terms[i]) or _duplicate(alt, others) or not usable(alt):
+                    continue
+                trial = [*terms[:i], alt, *terms[i + 1:]]
+                r2, e2 = score(trial)
+                if r2 < r:
+                    r, e, terms = r2, e2, trial
+        return r, terms, e
+
+    def step(proposals) -> tuple[float, list[Term], np.ndarray] | None:
+        """The best set of effects with one more: each proposal scored beside
+        those in; then for the best few kinds, every parameter re-chosen
+        jointly (a lag that half-explained a speed effect takes its own time
+        constant again once the speed term is beside it)."""
+        per_kind: dict[str, tuple[float, Term]] = {}
+        for term in proposals:
+            if _duplicate(term, effects) or (term.effect, term.sensor) in dropped or not usable(term):
+                continue
+            r, _ = score([*effects, term])
+            kind = f"{term.effect}/{term.sensor}"
+            if kind not in per_kind or r < per_kind[kind][0]:
+                per_kind[kind] = (r, term)
+        if not per_kind:
+            return None
+        best = None
+        top = [t for _, t in sorted(per_kind.values(), key=lambda v: v[0])[:_JOINT_KINDS]]
+        for term in top:
+            n_in = len(effects)
+            # the newcomer's parameter refined first, then everyone's with it
+            found = tune([*effects, term], [n_in, *range(n_in), n_in] if effects else [n_in])
+            if best is None or found[0] < best[0]:
+                best = found
+        # An effect taken in alone may have stood in for a pair: with the
+        # newcomer beside it, another kind may now do its part better.
+        r, terms, e = best
+        for i in range(len(terms) - 1):
+            for term in top:
+                others = terms[:i] + terms[i + 1:]
+                if _duplicate(term, others):
+                    continue
+                found = tune([*terms[:i], term, *terms[i + 1:]], [i])
+                if found[0] < r:
+                    r, terms, e = found
+        # ... or the newcomer does its part alone: it enters as the other leaves.
+        for i in range(len(terms) - 2, -1, -1):
+            trial = terms[:i] + terms[i + 1:]
+            r2, e2 = score(trial)
+            if r2 < r:
+                r, terms, e = r2, trial, e2
+        return r, terms, e
+
+    def admit(found) -> bool:
+        nonlocal e_cur
+        r, terms, e = found
+        gain, z = 1.0 - r / rmse(e_cur), improvement_z(e_cur, e)
         if gain < min_gain or z < min_z:
+            return False
+        effects[:] = terms
+        gains[repr(terms[-1])] = (gain, z)
+        e_cur = e
+        return True
+
+    def settle() -> None:
+        """After an effect entered: sensors whose share the missing effect hid
+        come in, and effects the newcomer made redundant go."""
+        nonlocal sensor_terms, kept, e_cur
+        newcomer = effects[-1]
+        sensors2, snotes, kept2 = select_sensors(train, n_blocks, gap, max_sensors, start=sensor_terms,
+                                                 fixed=effects, prune=False)
+        if [repr(t) for t in sensors2] != [repr(t) for t in sensor_terms]:
+            sensor_terms, kept = sensors2, kept2
+            e_cur = _heldout(train, [*sensor_terms, *effects], n_blocks, gap)
+            notes[:] = [n for n in notes if not n.startswith("sensor selection kept")] + \
+                [n for n in snotes if n.startswith("sensor selection kept")]
+        for t in list(effects[:-1]):
+            rest = [o for o in effects if o is not t]
+            e = _heldout(train, [*sensor_terms, *rest], n_blocks, gap)
+            if 1.0 - rmse(e_cur) / rmse(e) < min_gain / 2:
+                effects[:] = rest
+                e_cur = e
+                dropped.add((t.effect, t.sensor))
+                notes.append(f"{describe(t)} dropped: once {describe(newcomer)} entered it added under "
+                             f"{100 * min_gain / 2:g} % on held-out time")
+
+    while len(effects) < max_effects:
+        found = step([t for c in cands for t in c.propose(view)])
+        if found is None or not admit(found):
             break
-        stage, e_cur = _stage(train, [*stage.model.terms, term], test, n_blocks, gap, notes)
-        found.append(EffectFound(term, stage, gain, z))
+        settle()
+    # Structure no library term explains, turned into a term where it has a
+    # form one can fit: steps at the logged speed changes, a spectral line.
+    for _ in range(3):
+        if len(effects) >= max_effects + 2:
+            break
+        res = residual_structure(train.time_s, e_cur, train)
+        if not res.structured:
+            break
+        if not any(t.effect == "speed_step" for t in effects):
+            found = step(SpeedStepCandidate().structure(view))
+            if found is not None and admit(found):
+                settle()
+                continue
+        if res.period_s is None:
+            break
+        f0, df = 1.0 / res.period_s, 1.0 / float(np.ptp(train.time_s))
+        periods = [PeriodicTerm(1.0 / f) for f in f0 + df * np.linspace(-0.5, 0.5, 11) if f > 0]
+        found = step(periods)
+        if found is None or not admit(found):
+            notes.append(f"a periodicity of {res.period_s / 60:.1f} min is left in the residual, but a "
+                         f"periodic term at it does not lower the held-out error enough to keep")
+            break
+        settle()
+    res = residual_structure(train.time_s, e_cur, train)
+    if res.structured:
+        notes.append("not modelled: " + res.note)
+    # Last, let go of sensors that add nothing with the effects in.
+    sensor_terms, snotes, kept = select_sensors(train, n_blocks, gap, max_sensors, start=sensor_terms,
+                                                fixed=effects, prune=True)
+    notes[:] = [n for n in notes if not n.startswith("sensor selection kept")] + \
+        [n for n in snotes if n.startswith("sensor selection kept")]
+    # The effects in the order of what they carry (held-out error without each):
+    # chosen jointly, the order they entered in says little.
+    if len(effects) > 1:
+        without = {repr(t): rmse(_heldout(train, [*sensor_terms, *(o for o in effects if o is not t)],
+                                          n_blocks, gap)) for t in effects}
+        effects.sort(key=lambda t: -without[repr(t)])
+    found_list: list[EffectFound] = []
+    stage = base
+    for k, t in enumerate(effects):
+        stage, _ = _stage(train, [*sensor_terms, *effects[:k + 1]], test, n_blocks, gap, notes)
+        g, z = gains.get(repr(t), (0.0, 0.0))
+        found_list.append(EffectFound(t, stage, g, z))
+    ls, _ = least_squares_stage(train, test, n_blocks, gap)
+    if stage.heldout_rmse_um > ls.heldout_rmse_um:
+        notes.append(f"the selected model predicts held-out time worse than plain least squares on every "
+                     f"sensor ({stage.heldout_rmse_um:.2f} vs {ls.heldout_rmse_um:.2f} µm): least squares "
+                     f"is the model")
+        stage, found_list = ls, []
     if test is not None:
-        res = residual_structure(test.time_s, test.displacement_um - stage.model.predict(test))
+        res = residual_structure(test.time_s, test.displacement_um - stage.model.predict(test), test)
+        rows, judged_on = test, f"the test run ({len(test)} rows)"
     else:
-        res = residual_structure(train.time_s, e_cur)
-    return Analysis(base, found, stage, res, notes)
+        res = residual_structure(train.time_s, _heldout(train, stage.model.terms, n_blocks, gap)
+                                 if stage is not ls else y - ls.model.predict(train), train)
+        rows, judged_on = None, f"held-out time blocks of the training run ({len(train)} rows, {n_blocks} blocks)"
+    comparison = _comparison(rows if rows is not None else train, rows is None, base, ls, stage, current)
+    return Analysis(base, found_list, stage, res, notes, ls, comparison, kept, judged_on)
+
+
+def _comparison(rows: ThermalData, cv: bool, base: Stage, ls: Stage, final: Stage,
+                current: ThermalModel | None) -> list[Comparison]:
+    """Every model on the same rows. Fitted models carry their held-out
+    errors (``cv``: blocks of the training run) or their test error; fixed
+    models (the paper's, the current one) are predicted on all rows."""
+    eq14 = replace(eq14_model(), intercept_um=0.0)
+    missing = [s for s in eq14.sensors if s not in rows.temps_c]
+    out = [Comparison("paper eq. 14 (intercept dropped: growth from the cold start)",
+                      None if missing else _judged(eq14, rows),
+                      f"needs {', '.join(missing)}" if missing else "")]
+    out.append(Comparison(f"least squares on {len(ls.model.sensors)} sensor(s)", ls.test_rmse_um))
+    if current is not None:
+        miss = [s for s in current.sensors if s not in rows.temps_c]
+        out.append(Comparison("current model", None if miss else _judged(current, rows),
+                              f"needs {', '.join(miss)}" if miss else ""))
+    else:
+        out.append(Comparison(f"current: linear regression on {len(base.model.sensors)} selected sensor(s)",
+                              base.test_rmse_um))
+    out.append(Comparison(f"new: {len(final.model.names)} term(s)", final.test_rmse_um))
+    return out
+
+
+def split_run(data: ThermalData, fraction: float) -> tuple[ThermalData, ThermalData]:
+    """The first ``fraction`` of a run for the fit, the rest held out: split
+    by time, as ``refit`` does; the held-out part keeps the run's cold-start
+    reference and clock."""
+    if not 0 < fraction < 1:
+        raise ValueError(f"the split must be in (0, 1), got {fraction}")
+    cut = int(round(len(data) * fraction))
+    if cut < 1 or cut >= len(data):
+        raise ValueError(f"a split at {fraction} of {len(data)} rows leaves one side empty")
+    return data.slice(0, cut), data.slice(cut, len(data))
+
+
+# A heated sensor starting further above the training run's cold start than
+# this share of its rise in that run: the test run did not start cold.
+WARM_START_SHARE = 0.25
+WARM_START_MIN_C = 0.25     # 4 DS18B20 steps: below it a start is cold whatever the run's rise
+
+
+def reference_test(train: ThermalData, test: ThermalData) -> tuple[ThermalData, str | None]:
+    """Make a test run's rises comparable with the fit's. Rises are taken from
+    a run's first rows, which is right for a run from a cold start. A test
+    run on the training run's clock (its first time after the training's
+    last) continues that run: its rises and drift hours are re-referenced to
+    the training run's cold start. Any other test run that starts warm is
+    refused: from its own first rows every rise would be short by the
+    warm-up, an error of the whole growth. Returns the test run and a line
+    saying what was done (None when it starts cold)."""
+    if test.time_s[0] > train.time_s[-1]:
+        t2 = ThermalData(test.time_s, test.temps_c, test.displacement_um, test.rpm,
+                         {k: train.reference_c[k] for k in test.temps_c if k in train.reference_c}
+                         | {k: v for k, v in test.reference_c.items() if k not in train.reference_c},
+                         train.t0_s)
+        return t2, (f"the test run continues the training run's clock (starts at {test.time_s[0]:g} s, "
+                    f"the training run ends at {train.time_s[-1]:g} s): its rises are taken from the "
+                    f"training run's cold start, not from its own first rows")
+    # Against the room when there is a room sensor: another day starts from another room temperature.
+    amb = next((s for s in train.sensors if ("room" in s or "ambient" in s) and s in test.temps_c), None)
+    warm = []
+    for s in test.sensors:
+        if s not in train.temps_c or s == amb or "room" in s or "ambient" in s:
+            continue
+        above = test.reference_c[s] - train.reference_c[s]
+        if amb is not None:
+            above -= test.reference_c[amb] - train.reference_c[amb]
+        span = float(np.ptp(train.rise(s)))
+        if above > max(WARM_START_SHARE * span, WARM_START_MIN_C):
+            warm.append(f"{s} starts at {test.reference_c[s]:.2f} °C, {above:.2f} °C "
+                        f"{'further above the room than at' if amb else 'above'} the training run's cold start "
+                        f"(it rose {span:.2f} °C in that run)")
+    if warm:
+        raise ValueError(f"the test run does not start cold: {'; '.join(warm)}; rises from its first rows "
+                         f"would miss the warm-up. Give a run from a cold start, one continuing the training "
+                         f"run's time_s, or use --split on one run")
+    return test, None
 
 
 # -- refit for the daemon -------------------------------------------------
@@ -667,6 +1279,7 @@ class RefitResult:
     after_rmse_um: float           # new model on the same tail
     better: bool
     analysis: Analysis
+    least_squares_rmse_um: float | None = None   # plain least squares, fitted on the same rows, on the tail
 
 
 def refit(data: ThermalData, current: ThermalModel | None = None, *, holdout_fraction: float = 0.2,
@@ -686,5 +1299,13 @@ def refit(data: ThermalData, current: ThermalModel | None = None, *, holdout_fra
     y = data.displacement_um[tail]
     before = rmse(y - current.predict(data)[tail])
     after = rmse(y - a.model.predict(data)[tail])
+    cand, ls = a.model, None
+    if a.least_squares is not None:
+        # never ship worse than plain least squares on the same held-out rows
+        ls = rmse(y - a.least_squares.model.predict(data)[tail])
+        if ls < after:
+            a.notes.append(f"on the held-out tail plain least squares ({ls:.2f} µm) beat the selected model "
+                           f"({after:.2f} µm): least squares is the candidate")
+            cand, after = a.least_squares.model, ls
     better = after < (1 - min_gain) * before
-    return RefitResult(a.model if better else current, a.model, before, after, better, a)
+    return RefitResult(cand if better else current, cand, before, after, better, a, ls)

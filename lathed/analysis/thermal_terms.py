@@ -97,19 +97,31 @@ class Term(Protocol):
 
 @dataclass(frozen=True)
 class LinearTerm:
+    """A sensor's rise; with ``smooth_s`` > 0 seen through a first-order lag of
+    that time constant, the same at fit and at prediction: a sensor that
+    oscillates on its own (coolant past it, a fan cycling) would otherwise
+    carry its oscillation straight into the predicted growth."""
     sensor: str
+    smooth_s: float = 0.0
     effect: str = "linear"
-    params: dict = field(default_factory=dict)
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {"smooth_s": round(self.smooth_s, 1)} if self.smooth_s else {}
 
     @property
     def names(self) -> tuple[str, ...]:
-        return (self.sensor,)
+        return (self.sensor if not self.smooth_s else f"{self.sensor} (smooth {self.smooth_s:.0f} s)",)
 
     def features(self, data: ThermalData) -> np.ndarray:
-        return data.rise(self.sensor)[:, None]
+        x = data.rise(self.sensor)
+        return (lag_filter(data.time_s, x, self.smooth_s) if self.smooth_s else x)[:, None]
 
     def stream(self):
-        return lambda t, rises, rpm: (rises[self.sensor],)
+        if not self.smooth_s:
+            return lambda t, rises, rpm: (rises[self.sensor],)
+        st = _LagState(self.smooth_s)
+        return lambda t, rises, rpm: (st.update(t, rises[self.sensor]),)
 
 
 @dataclass(frozen=True)
@@ -271,8 +283,170 @@ class DriftTerm:
     def features(self, data: ThermalData) -> np.ndarray:
         return self.hours((data.time_s - data.t0_s) / 3600.0)[:, None]
 
+    def run_clock(self, t_run_s: float) -> tuple[float]:
+        return (float(self.hours(t_run_s / 3600.0)),)
+
     def stream(self):
         return None   # the predictor feeds its own clock (see ThermalPredictor)
+
+
+@dataclass(frozen=True)
+class SpeedLagTerm:
+    """Spindle speed (krpm, or its square) through a first-order lag: heat
+    that speed puts into a part no sensor is on (the spindle nose, the
+    shaft's inner race) reaches the growth with that part's own delay."""
+    tau_s: float
+    form: str = "n"            # "n" or "n2"
+    effect: str = "speed_lag"
+    sensor: None = None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return {"tau_s": round(self.tau_s, 1), "form": self.form}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (f"lag(speed_krpm{'^2' if self.form == 'n2' else ''}, tau={self.tau_s:.0f} s)",)
+
+    def _u(self, rpm):
+        n = np.asarray(rpm, dtype=float) / 1000.0
+        return n * n if self.form == "n2" else n
+
+    def features(self, data: ThermalData) -> np.ndarray:
+        if data.rpm is None:
+            raise ValueError("speed lag term needs a spindle_rpm column")
+        return lag_filter(data.time_s, self._u(data.rpm), self.tau_s)[:, None]
+
+    def stream(self):
+        st = _LagState(self.tau_s)
+
+        def f(t, rises, rpm):
+            if rpm is None:
+                raise ValueError("the thermal model has a speed lag term: pass the spindle speed")
+            return (st.update(t, float(self._u(rpm))),)
+        return f
+
+
+@dataclass(frozen=True)
+class SpeedTempTerm:
+    """Speed (krpm) times a sensor's rise: a bearing's preload, and so its
+    growth per °C, changes with speed."""
+    sensor: str
+    effect: str = "speed_x_temp"
+    params: dict = field(default_factory=dict)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (f"speed_krpm*{self.sensor}",)
+
+    def features(self, data: ThermalData) -> np.ndarray:
+        if data.rpm is None:
+            raise ValueError("speed x temperature term needs a spindle_rpm column")
+        return (data.rpm / 1000.0 * data.rise(self.sensor))[:, None]
+
+    def stream(self):
+        def f(t, rises, rpm):
+            if rpm is None:
+                raise ValueError("the thermal model has a speed x temperature term: pass the spindle speed")
+            return (rpm / 1000.0 * rises[self.sensor],)
+        return f
+
+
+@dataclass(frozen=True)
+class AmbientLagTerm:
+    """A body that follows a sensor's rise above the room's through a
+    first-order lag: a part cooled by the room lags the difference, not the
+    sensor alone."""
+    sensor: str
+    ambient: str
+    tau_s: float
+    effect: str = "lag_ambient"
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return {"tau_s": round(self.tau_s, 1), "ambient": self.ambient}
+
+    @property
+    def sensors(self) -> tuple[str, str]:
+        return (self.sensor, self.ambient)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (f"lag({self.sensor} - {self.ambient}, tau={self.tau_s:.0f} s)",)
+
+    def features(self, data: ThermalData) -> np.ndarray:
+        return lag_filter(data.time_s, data.rise(self.sensor) - data.rise(self.ambient), self.tau_s)[:, None]
+
+    def stream(self):
+        st = _LagState(self.tau_s)
+        return lambda t, rises, rpm: (st.update(t, rises[self.sensor] - rises[self.ambient]),)
+
+
+@dataclass(frozen=True)
+class PeriodicTerm:
+    """A sine and cosine at ``period_s`` on the run's clock (time since its
+    start): a cycle in the growth no sensor explains (a coolant pump, a
+    door). Its phase is fitted as the sin/cos pair's weights."""
+    period_s: float
+    effect: str = "periodic"
+    sensor: None = None
+
+    @property
+    def params(self) -> dict[str, float]:
+        return {"period_s": round(self.period_s, 1)}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (f"sin({self.period_s:.0f} s)", f"cos({self.period_s:.0f} s)")
+
+    def at(self, t_run_s):
+        w = 2 * math.pi * np.asarray(t_run_s, dtype=float) / self.period_s
+        return np.column_stack([np.sin(w), np.cos(w)])
+
+    def features(self, data: ThermalData) -> np.ndarray:
+        return self.at(data.time_s - data.t0_s)
+
+    def run_clock(self, t_run_s: float) -> tuple[float, float]:
+        return tuple(float(v) for v in self.at([t_run_s])[0])
+
+    def stream(self):
+        return None   # on the run's clock: the predictor feeds it (see ThermalPredictor)
+
+
+@dataclass(frozen=True)
+class SpeedStepTerm:
+    """One offset per speed level seen in the fit (the lowest is the zero):
+    growth that steps when the speed changes and holds while it holds, by an
+    amount no smooth function of speed gives (a preload switch, a resonance).
+    A speed not among ``levels`` takes the nearest level's offset."""
+    levels: tuple[float, ...]
+    effect: str = "speed_step"
+    sensor: None = None
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return {"levels_rpm": [float(v) for v in self.levels]}
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(f"step(speed={v:g} r/min)" for v in self.levels[1:])
+
+    def at(self, rpm) -> np.ndarray:
+        lv = np.asarray(self.levels, dtype=float)
+        k = np.argmin(np.abs(np.asarray(rpm, dtype=float)[:, None] - lv[None, :]), axis=1)
+        return (k[:, None] == np.arange(1, len(lv))[None, :]).astype(float)
+
+    def features(self, data: ThermalData) -> np.ndarray:
+        if data.rpm is None:
+            raise ValueError("speed step term needs a spindle_rpm column")
+        return self.at(data.rpm)
+
+    def stream(self):
+        def f(t, rises, rpm):
+            if rpm is None:
+                raise ValueError("the thermal model has a speed step term: pass the spindle speed")
+            return tuple(float(v) for v in self.at([rpm])[0])
+        return f
 
 
 # -- candidates -----------------------------------------------------------
@@ -290,6 +464,9 @@ class Candidate(Protocol):
     def make_term(self, sensor: str | None, params: Mapping[str, Any]) -> Term: ...
 
 
+_TAUS_S = tuple(float(v) for v in np.geomspace(300.0, 4 * 3600.0, 16))
+
+
 def _heated(data: ThermalData) -> list[str]:
     """Sensors on parts the spindle heats (not the room)."""
     return [s for s in data.sensors if "room" not in s]
@@ -298,15 +475,14 @@ def _heated(data: ThermalData) -> list[str]:
 class LagCandidate:
     name = "lag"
     # Starts above the rate term's smoothing: a short lag is a rate (see RateTerm).
-    taus_s = tuple(float(v) for v in np.geomspace(300.0, 4 * 3600.0, 16))
+    taus_s = _TAUS_S
 
     def propose(self, data):
         return [LagTerm(s, tau) for s in data.sensors for tau in self.taus_s]
 
     def refine(self, term: LagTerm) -> list[LagTerm]:
         """A finer grid between the coarse neighbours of the best time constant."""
-        step = self.taus_s[1] / self.taus_s[0]
-        return [LagTerm(term.sensor, float(t)) for t in np.geomspace(term.tau_s / step, term.tau_s * step, 9)]
+        return _refine_tau(term.tau_s, lambda t: LagTerm(term.sensor, t))
 
     def make_term(self, sensor, params):
         return LagTerm(sensor, float(params["tau_s"]))
@@ -318,6 +494,11 @@ class RateCandidate:
 
     def propose(self, data):
         return [RateTerm(s, w) for s in _heated(data) for w in self.smooth_s]
+
+    def refine(self, term: RateTerm) -> list[RateTerm]:
+        """Between the grid's neighbours, up to the shortest lag (above it, a lag)."""
+        return [RateTerm(term.sensor, float(w)) for w in np.geomspace(term.smooth_s / 2, term.smooth_s * 2, 9)
+                if w < _TAUS_S[0]]
 
     def make_term(self, sensor, params):
         return RateTerm(sensor, float(params["smooth_s"]))
@@ -375,6 +556,98 @@ class DriftCandidate:
         return DriftTerm(float(params["max_h"]) if "max_h" in params else None)
 
 
+def _refine_tau(tau_s: float, make) -> list:
+    """A finer grid between the coarse neighbours of a time constant, never
+    below the shortest lag: a shorter one is a rate (see RateTerm), and
+    refined down step by step a lag would take the rate's place."""
+    step = _TAUS_S[1] / _TAUS_S[0]
+    return [make(float(t)) for t in np.geomspace(tau_s / step, tau_s * step, 9) if t >= _TAUS_S[0]]
+
+
+def _ambient(data: ThermalData) -> list[str]:
+    return [s for s in data.sensors if "room" in s or "ambient" in s]
+
+
+class SpeedLagCandidate:
+    name = "speed_lag"
+    taus_s = _TAUS_S
+
+    def propose(self, data):
+        if data.rpm is None or np.ptp(data.rpm) == 0:
+            return []
+        return [SpeedLagTerm(tau, f) for f in ("n", "n2") for tau in self.taus_s]
+
+    def refine(self, term: SpeedLagTerm) -> list[SpeedLagTerm]:
+        return _refine_tau(term.tau_s, lambda t: SpeedLagTerm(t, term.form))
+
+    def make_term(self, sensor, params):
+        return SpeedLagTerm(float(params["tau_s"]), str(params.get("form", "n")))
+
+
+class SpeedTempCandidate:
+    name = "speed_x_temp"
+
+    def propose(self, data):
+        if data.rpm is None or np.ptp(data.rpm) == 0:
+            return []
+        return [SpeedTempTerm(s) for s in _heated(data)]
+
+    def make_term(self, sensor, params):
+        return SpeedTempTerm(sensor)
+
+
+class AmbientLagCandidate:
+    name = "lag_ambient"
+    taus_s = _TAUS_S
+
+    def propose(self, data):
+        return [AmbientLagTerm(s, a, tau) for a in _ambient(data) for s in _heated(data)
+                if s != a for tau in self.taus_s]
+
+    def refine(self, term: AmbientLagTerm) -> list[AmbientLagTerm]:
+        return _refine_tau(term.tau_s, lambda t: AmbientLagTerm(term.sensor, term.ambient, t))
+
+    def make_term(self, sensor, params):
+        return AmbientLagTerm(sensor, str(params["ambient"]), float(params["tau_s"]))
+
+
+class SpeedStepCandidate:
+    """Offsets per speed level, when the speeds run are a few discrete levels
+    (a program's speeds). Not proposed beside the smooth effects (with a
+    column per level it would fit a speed squared as well, and be chosen for
+    the noise): the loop builds it from the speed log once the library is
+    exhausted and the residual still has structure (see ``structure``)."""
+    name = "speed_step"
+    max_levels = 12
+
+    def propose(self, data):
+        return []
+
+    def structure(self, data) -> list[SpeedStepTerm]:
+        if data.rpm is None or np.ptp(data.rpm) == 0:
+            return []
+        levels = np.unique(np.round(data.rpm, 0))
+        if not 2 <= len(levels) <= self.max_levels:
+            return []
+        return [SpeedStepTerm(tuple(float(v) for v in levels))]
+
+    def make_term(self, sensor, params):
+        return SpeedStepTerm(tuple(float(v) for v in params["levels_rpm"]))
+
+
+class PeriodicCandidate:
+    """Not proposed blindly (any period fits something): the loop builds its
+    term from a period found in the residual (see ``residual_structure``)."""
+    name = "periodic"
+
+    def propose(self, data):
+        return []
+
+    def make_term(self, sensor, params):
+        return PeriodicTerm(float(params["period_s"]))
+
+
 def builtin_candidates() -> list[Candidate]:
     return [LagCandidate(), RateCandidate(), SpeedCandidate(), NonlinearCandidate(),
-            HysteresisCandidate(), DriftCandidate()]
+            HysteresisCandidate(), DriftCandidate(), SpeedLagCandidate(), SpeedTempCandidate(),
+            AmbientLagCandidate(), SpeedStepCandidate(), PeriodicCandidate()]

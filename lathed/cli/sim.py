@@ -48,16 +48,27 @@ def thermal_run(args: argparse.Namespace) -> int:
     import sys
 
     from lathed.cli import EX_CANTCREAT
-    from lathed.sim.thermal import generate_run, random_schedule
+    from lathed.sim.thermal import add_periodic, add_speed_steps, generate_run, many_sensors, random_schedule
     run = generate_run(random_schedule(args.seed, total_s=args.hours * 3600), args.effect or (), seed=args.seed,
-                       noise_um=args.noise_um)
+                       noise_um=args.noise_um, dt_s=args.row_s)
+    extra = []
+    if args.sensors > 4:
+        run = many_sensors(run, args.seed, n_sensors=args.sensors)
+        extra.append(f"{args.sensors} sensors of which 4 carry the growth")
+    if args.periodic_min:
+        run = add_periodic(run, period_s=args.periodic_min * 60.0)
+        extra.append(f"a {args.periodic_min:g}-min cycle no sensor sees")
+    if args.speed_step_um:
+        run = add_speed_steps(run, step_um=args.speed_step_um)
+        extra.append(f"steps of {args.speed_step_um:g} µm at speed changes")
     try:
         run.write_csv(args.out)
     except OSError as e:
         print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
         return EX_CANTCREAT
     print(f"{args.out}: {len(run)} rows, {args.hours:g} h from a cold start, speed schedule and day of seed "
-          f"{args.seed}, effects: {', '.join(sorted(run.effects)) or 'none'}, probe noise {args.noise_um:g} µm")
+          f"{args.seed}, effects: {', '.join(sorted(run.effects)) or 'none'}, probe noise {args.noise_um:g} µm"
+          + "".join(f", {e}" for e in extra))
     return 0
 
 
@@ -95,4 +106,12 @@ def register(sub) -> None:
     t.add_argument("--hours", type=positive, default=8.0, help="length of the run (default 8: one shift)")
     t.add_argument("--seed", type=int, default=1, help="speed schedule, sensor noise and time of day")
     t.add_argument("--noise-um", type=float, default=0.5, help="probe repeatability, µm (default 0.5)")
+    t.add_argument("--row-s", type=positive, default=6.0, help="seconds between rows (default 6)")
+    t.add_argument("--sensors", type=int, default=4, choices=range(4, 65), metavar="N",
+                   help="temperature sensors, 4..64: beyond the four that carry the growth, sensors that "
+                        "do not (some oscillating on their own); the motor's then oscillates too")
+    t.add_argument("--periodic-min", type=positive, help="add a cycle of this period (min) to the growth "
+                                                         "that no sensor sees")
+    t.add_argument("--speed-step-um", type=float, help="add a step of this size to the growth while the "
+                                                       "speed is at 2750 r/min or more")
     p.set_defaults(func=run)

@@ -14,6 +14,8 @@ def run(args: argparse.Namespace) -> int:
         effects = ", ".join(f"{e['effect']}({e['sensor']})" if e["sensor"] else e["effect"]
                             for e in r["effects"]) or "none"
         print(f"before: {r['model_before']}, held-out error {r['before_rmse_um']:.2f} µm")
+        if r.get("least_squares_rmse_um") is not None:
+            print(f"least squares on the same sensors: held-out error {r['least_squares_rmse_um']:.2f} µm")
         print(f"after:  {r['model_after']}, held-out error {r['after_rmse_um']:.2f} µm "
               f"({'kept' if r['better'] else 'not better: old model kept'}); effects found: {effects}; "
               f"{r['rows']} probe measurements")

@@ -261,13 +261,15 @@ class Run:
         return len(self.columns["time_s"])
 
     def write_csv(self, path: str | Path) -> None:
+        temps = [c for c in self.columns if c.startswith("t_")]   # the four, and any added (many_sensors)
+        header = ["time_s", "spindle_rpm", *temps, "displacement_um"]
         with open(path, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(CSV_COLUMNS)
-            cols = [self.columns[c] for c in CSV_COLUMNS]
+            w.writerow(header)
+            cols = [self.columns[c] for c in header]
             for row in zip(*cols):
-                w.writerow([f"{row[0]:.1f}", f"{row[1]:.0f}", *(f"{v:.4f}" for v in row[2:6]),
-                            f"{row[6]:.3f}"])
+                w.writerow([f"{row[0]:.1f}", f"{row[1]:.0f}", *(f"{v:.4f}" for v in row[2:-1]),
+                            f"{row[-1]:.3f}"])
 
 
 def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str] = (), seed: int = 0,
@@ -293,3 +295,68 @@ def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str]
         cols["displacement_um"][k] = sim.displacement_um
     cols["displacement_um"] += rng.normal(0.0, noise_um, n)
     return Run(columns=cols, effects=frozenset(effects), noise_um=noise_um)
+
+
+# -- harder runs: many sensors, effects outside the library -----------------
+
+def add_periodic(run: Run, period_s: float = 1200.0, amp_um: float = 3.0, phase: float = 0.7) -> Run:
+    """A cycle in the growth no sensor sees (a coolant pump, a door), on the
+    run's clock: an effect outside the candidate library."""
+    t = run.columns["time_s"]
+    run.columns["displacement_um"] = run.columns["displacement_um"] + amp_um * np.sin(
+        2 * math.pi * t / period_s + phase)
+    return run
+
+
+def add_speed_steps(run: Run, threshold_rpm: float = 2750.0, step_um: float = 4.0) -> Run:
+    """Growth that steps when the speed crosses ``threshold_rpm`` and holds
+    while it holds (a preload switch): steps at the logged speed changes,
+    with no temperature change, by no smooth function of speed."""
+    run.columns["displacement_um"] = run.columns["displacement_um"] + step_um * (
+        run.columns["spindle_rpm"] >= threshold_rpm)
+    return run
+
+
+TRUE_SENSORS = tuple(f"t_{k}_c" for k in SENSOR_KEYS)
+
+
+def many_sensors(run: Run, seed: int, n_sensors: int = 16, osc_period_s: float = 270.0,
+                 osc_amp_c: float = 0.4) -> Run:
+    """The run's four sensors plus ``n_sensors - 4`` that carry no growth of
+    their own, as on a spindle fitted with many: some read the heated parts
+    late and scaled (a housing further out), some follow the room, some
+    wander; several oscillate on their own at a few minutes' period. The
+    motor's sensor oscillates too (coolant past it): in its reading only,
+    not in the growth. The growth stays the four sensors' bodies'."""
+    rng = np.random.default_rng(seed + 4242)
+    c = run.columns
+    t = c["time_s"]
+    p = ThermalParams()
+    n = len(t)
+
+    def reading(x: np.ndarray) -> np.ndarray:
+        return np.round((x + rng.normal(0.0, p.sensor_noise_c, n)) / p.quantum_c) * p.quantum_c
+
+    c["t_motor_c"] = reading(c["t_motor_c"] + osc_amp_c * np.sin(2 * math.pi * t / osc_period_s))
+    heated = [c[k] for k in TRUE_SENSORS[:3]]
+    room = c["t_room_c"]
+    dt = float(np.median(np.diff(t)))
+    for i in range(n_sensors - len(TRUE_SENSORS)):
+        kind = i % 3
+        if kind == 0:      # a heated part further out: one sensor's rise, late and scaled
+            src = heated[i % 3]
+            a = 1.0 - math.exp(-dt / rng.uniform(300.0, 3000.0))
+            x = np.empty(n)
+            acc = float(src[0])
+            for k, v in enumerate(src.tolist()):
+                acc += a * (v - acc)
+                x[k] = acc
+            x = src[0] + rng.uniform(0.3, 1.2) * (x - src[0])
+        elif kind == 1:    # near the room
+            x = room + rng.normal(0.0, 0.05) + 0.3 * np.sin(2 * math.pi * t / rng.uniform(3600, 7200))
+        else:              # wanders (a sensor on a cabinet)
+            x = room[0] + np.cumsum(rng.normal(0.0, 0.01, n))
+        if i % 2 == 0:     # its own oscillation
+            x = x + rng.uniform(0.1, 0.5) * np.sin(2 * math.pi * t / rng.uniform(180.0, 600.0) + rng.uniform(0, 6))
+        c[f"t_extra{i + 1:02d}_c"] = reading(x)
+    return run
