@@ -40,6 +40,13 @@ from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
+from lathed.display import thin
+
+EYE_POINTS = 600   # chaos-eye points sent to a screen
+
+
+def _listed(a) -> list[float]:
+    return [float(f"{v:.4g}") for v in a.tolist()]
 
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
@@ -224,6 +231,19 @@ class ChatterAnalyzer(Analyzer):
                                             else round(time.time() - self.alarm_started, 3)})
         if w is None and self.detector is not None:
             self.detector.reset()
+
+    def live_view(self) -> dict | None:
+        """The chaos eye for the operator view: the (phi1, phi2) points of the recent
+        windows, and those at the start of the cut (the baseline), thinned for plotting."""
+        det = self.detector
+        if det is None or not hasattr(det, "eye_points"):
+            return None
+        p1, p2 = det.eye_points()
+        base = det.eye_baseline
+        out = {"eye_phi1": _listed(thin(p1, EYE_POINTS)), "eye_phi2": _listed(thin(p2, EYE_POINTS))}
+        if base is not None:
+            out.update(base_phi1=_listed(thin(base[0], EYE_POINTS)), base_phi2=_listed(thin(base[1], EYE_POINTS)))
+        return out
 
     def status(self) -> dict:
         w = self.last

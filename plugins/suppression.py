@@ -65,6 +65,9 @@ from lathed.command import Command
 from lathed.config import Section
 from lathed.control import RequestError
 
+LOBE_POINTS = 600      # points of the lobe chart sent to a screen
+LOBE_CAP_MM = 20.0
+
 MODES = ("auto", "manual", "off")
 STRATEGIES = ("lobes", "frequency", "rated", "variation")
 SSV_STEP_S = 0.05     # speed commands while modulating
@@ -345,6 +348,17 @@ class SuppressionAnalyzer(Analyzer):
             self.pending = None
             return await self._act(d, by=by, trigger=trigger)
         return self.status()
+
+    def live_view(self) -> dict | None:
+        """The stability lobes for the operator view: limiting depth (mm) over the
+        spindle's range, and where the cut is now (speed, depth)."""
+        if self.grid is None:
+            return None
+        n, b, _ = self.grid
+        step = max(1, len(n) // LOBE_POINTS)
+        blim = np.minimum(b[::step] * 1000, LOBE_CAP_MM)   # inf (no lobe below the cap) drawn at the cap
+        return {"rpm": [round(float(x), 1) for x in n[::step]], "blim_mm": [float(f"{x:.4g}") for x in blim],
+                "now_rpm": self.rpm, "now_depth_mm": round(self.depth_mm, 3)}
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)

@@ -91,5 +91,7 @@ class InProcessDaemon:
         self.loop.run_until_complete(asyncio.wait_for(self.task, 30))
         self.loop.close()
         # a stop guard left armed would os._exit the test process 15 s later
-        timers = [t for t in threading.enumerate() if isinstance(t, threading.Timer) and t.is_alive()]
+        # (a cancelled one may still be on its way out: only one not cancelled counts)
+        timers = [t for t in threading.enumerate() if isinstance(t, threading.Timer) and t.is_alive()
+                  and not t.finished.is_set()]
         assert not timers, f"threads left behind by a clean stop: {timers}"
