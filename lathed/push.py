@@ -3,9 +3,9 @@
 A client asks once, on its own connection, for what it wants:
 
   samples    ["SOURCE/QUANTITY", ...] with shell wildcards ("lathe/*", "*/t_*")
-  vibration  [SENSOR, ...]   envelope and spectrum of a waveform (lathed.display),
+  vibration  [SENSOR, ...]   (wildcards too, "*": every sensor) envelope and spectrum of a waveform (lathed.display),
                              never its raw samples
-  views      [ANALYZER, ...] an analyzer's plot data (chaos eye, stability lobes)
+  views      [ANALYZER, ...] (or "*") an analyzer's plot data (chaos eye, stability lobes)
   states     true            the status of machines, sensors and analyzers
   events     true            new recorded events (kinds / sources narrow them),
                              the last ``events_limit`` of them in the snapshot
@@ -89,14 +89,9 @@ class PushHub:
             if not any(fnmatch.fnmatchcase(n, src) for n in self.names):
                 raise a.error(f"samples[{i}]", f"no machine, sensor or analyzer matches {src!r}; "
                                                f"known: {', '.join(sorted(self.names))}")
-        for i, name in enumerate(vibration):
-            if self.names.get(name) != "sensor":
-                raise a.error(f"vibration[{i}]", f"no sensor named {name!r}; sensors: "
-                                                 f"{', '.join(sorted(n for n, c in self.names.items() if c == 'sensor'))}")
-        for i, name in enumerate(views):
-            if name not in self.view_fns:
-                raise a.error(f"views[{i}]", f"{name!r} has no view; analyzers with one: "
-                                             f"{', '.join(sorted(self.view_fns)) or 'none'}")
+        sensors = sorted(n for n, c in self.names.items() if c == "sensor")
+        vibration = _expand(a, "vibration", vibration, sensors, "no sensor named {!r}; sensors: ")
+        views = _expand(a, "views", views, sorted(self.view_fns), "{!r} has no view; analyzers with one: ")
         if (kinds or sources) and not events:
             raise a.error("kinds" if kinds else "sources", "narrows events: give events = true too")
         if not (samples or vibration or views or states or events):
@@ -210,6 +205,17 @@ class PushHub:
                 for sub in list(self.subscribers):
                     if sub.events:
                         sub.add_events(rows)
+
+
+def _expand(a: Args, key: str, patterns: list[str], names: list[str], missing: str) -> list[str]:
+    """Names matching each pattern (shell wildcards: "*" is every one); a pattern matching none is an error."""
+    out: list[str] = []
+    for i, pat in enumerate(patterns):
+        hit = [n for n in names if fnmatch.fnmatchcase(n, pat)]
+        if not hit:
+            raise a.error(f"{key}[{i}]", missing.format(pat) + (", ".join(names) or "none"))
+        out += [n for n in hit if n not in out]
+    return out
 
 
 def _safe_view(fn: Callable[[], dict | None]) -> dict | None:

@@ -1,0 +1,202 @@
+"""lathed-web in a real headless Chromium (Debian's chromium, driven by Playwright),
+against a daemon on the simulator running the shipped configuration (lathe, mill,
+grinder, robot arm, chatter, suppression, thermal, records). One daemon, one
+lathed-web and one browser for the module: the suite's time budget is tight."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from lathed.web import accounts
+from lathed.config import ConfigError
+from lathed.web.app import Settings
+from tests.conftest import BIN, ROOT, Daemon, free_port, wait_until
+
+CHROMIUM = "/usr/bin/chromium"
+SHOTS = Path(os.environ.get("LATHED_WEB_SHOTS", ROOT / "docs" / "screenshots"))
+
+
+def shipped_config(tmp: Path) -> tuple[Path, Path]:
+    """etc/lathed.toml on free ports, with its state and sockets in ``tmp``."""
+    text = (ROOT / "etc" / "lathed.toml").read_text()
+    for port in ("15020", "15021", "15022"):
+        text = text.replace(port, str(free_port()))
+    text = text.replace('name = "sim-cell-1"', f'name = "web-test"\nstate_dir = "{tmp / "state"}"\n'
+                                                f'runtime_dir = "{tmp / "run"}"')
+    text = text.replace('dbc = "robot_arm.dbc"', f'dbc = "{ROOT / "etc" / "robot_arm.dbc"}"')
+    text = text.replace('plugin_dirs = ["plugins.d"]', f'plugin_dirs = ["{ROOT / "etc" / "plugins.d"}"]')
+    cfg = tmp / "lathed.toml"
+    cfg.write_text(text)
+    return cfg, tmp / "run" / "lathed.sock"
+
+
+def web_config(tmp: Path, port: int, sock: Path) -> Path:
+    cfg = tmp / "lathed-web.toml"
+    cfg.write_text(f"""
+[web]
+port = {port}
+socket = "{sock}"
+
+[users.olga]
+role = "operator"
+password = "{accounts.hash_password('olga-pw')}"
+
+[users.victor]
+role = "viewer"
+password = "{accounts.hash_password('victor-pw')}"
+""")
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    if not os.path.exists(CHROMIUM):
+        pytest.fail(f"{CHROMIUM} missing: run tests/ensure_chromium.sh (make test does)")
+    tmp = tmp_path_factory.mktemp("web")
+    cfg, sock = shipped_config(tmp)
+    d = Daemon(cfg, sock)
+    port = free_port()
+    log = open(tmp / "web.log", "wb")
+    web = subprocess.Popen([str(BIN / "lathed-web"), "--config", str(web_config(tmp, port, sock))],
+                           stdout=log, stderr=subprocess.STDOUT)
+    try:
+        d.wait_ready()
+        url = f"http://127.0.0.1:{port}/"
+        wait_until(lambda: _get(url, "olga", "olga-pw")[0] == 200, timeout=20, what="lathed-web serving")
+        yield d, url, web
+    finally:
+        web.terminate()
+        web.wait(10)
+        log.close()
+        d.stop()
+
+
+def _get(url: str, user: str | None = None, pw: str | None = None) -> tuple[int, str]:
+    import base64
+    req = urllib.request.Request(url)
+    if user:
+        req.add_header("Authorization", "Basic " + base64.b64encode(f"{user}:{pw}".encode()).decode())
+    try:
+        with urllib.request.urlopen(req, timeout=5) as r:
+            return r.status, r.read(200_000).decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        yield b
+        b.close()
+
+
+def _page(browser, url, user, pw):
+    ctx = browser.new_context(http_credentials={"username": user, "password": pw},
+                              viewport={"width": 1600, "height": 1300})
+    page = ctx.new_page()
+    errors: list[str] = []
+    page.on("console", lambda m: m.type == "error" and errors.append(m.text))
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    return ctx, page, errors
+
+
+def test_every_panel_shows_live_data(stack, browser):
+    d, url, _ = stack
+    ctx, page, errors = _page(browser, url, "olga", "olga-pw")
+    try:
+        page.wait_for_selector("#link.ok", timeout=15_000)
+        # machines: every machine of the line, live
+        for name in ("lathe", "mill", "grinder", "robot"):
+            page.wait_for_selector(f"#machines tbody tr:has-text('{name}')", timeout=20_000)
+        page.wait_for_function("document.querySelector('#machines').innerText.includes('r/min')", timeout=20_000)
+        # parameters: the lobe chart with the cut marked; the recommendation's answer (none recorded here)
+        page.wait_for_function("document.querySelector('#lobes-now').textContent.includes('r/min')", timeout=20_000)
+        assert "no experiment records" in page.inner_text("#recommend")
+        # robot arm: six joints with angles, the tool position
+        page.wait_for_function("document.querySelectorAll('#joints .joint').length === 6", timeout=20_000)
+        assert re.search(r"X -?\d", page.inner_text("#robot-tool"))
+        # vibration: signal and spectrum drawn from the decimated view, index vs threshold, the eye
+        page.wait_for_selector("#signal .uplot", timeout=20_000)
+        page.wait_for_selector("#spectrum .uplot", timeout=20_000)
+        page.wait_for_selector("#index .uplot", timeout=30_000)
+        page.wait_for_function("document.querySelector('#chatter-index').textContent.includes('/')",
+                               timeout=60_000)
+        # temperatures: the four sensors over time, the growth and compensation chart
+        page.wait_for_function("document.querySelectorAll('#temps .u-legend .u-series').length >= 5",
+                               timeout=20_000)
+        page.wait_for_selector("#growth .uplot", timeout=20_000)
+        # records: the event log, live
+        page.wait_for_selector("#events tbody tr:has-text('daemon_started')", timeout=20_000)
+        # live: a value that changes on the page
+        first = page.inner_text("#machines tbody")
+        page.wait_for_function(f"document.querySelector('#machines tbody').innerText !== {json.dumps(first)}",
+                               timeout=10_000)
+        # an operator's switch goes through the daemon and is recorded with the user
+        page.click(".switch button[data-mode='manual']")
+        page.wait_for_selector(".switch button.on[data-mode='manual']", timeout=10_000)
+        page.wait_for_selector("#events tbody tr:has-text('suppression_mode'):has-text('olga')", timeout=10_000)
+        SHOTS.mkdir(parents=True, exist_ok=True)
+        page.wait_for_function("document.querySelector('#chatter-state').textContent !== ''", timeout=10_000)
+        page.screenshot(path=str(SHOTS / "operator-view.png"), full_page=True)
+        for panel in ("machines", "parameters", "robot", "vibration", "thermal", "records"):
+            page.locator(f"#panel-{panel}").screenshot(path=str(SHOTS / f"panel-{panel}.png"))
+        assert errors == []
+    finally:
+        ctx.close()
+
+
+def test_a_viewer_sees_but_cannot_act(stack, browser):
+    d, url, _ = stack
+    ctx, page, errors = _page(browser, url, "victor", "victor-pw")
+    try:
+        page.wait_for_selector("#link.ok", timeout=15_000)
+        assert page.is_disabled(".switch button[data-mode='off']")
+        before = d.item("analyzers", "suppress")["mode"]
+        # the request the page would send, with the viewer's own valid CSRF token: refused
+        status, body = page.evaluate("""async () => {
+            const r = await fetch('/api/suppress', {method: 'POST', headers: {'Content-Type': 'application/json',
+                'X-CSRF-Token': JSON.parse(document.getElementById('meta').textContent).csrf},
+                body: JSON.stringify({action: 'off'})});
+            return [r.status, await r.json()];
+        }""")
+        assert status == 403 and body["error"] == "victor is a viewer: actions need the operator role"
+        assert d.item("analyzers", "suppress")["mode"] == before
+        # the browser logs the refused request, and nothing else went wrong on the page
+        assert errors == ["Failed to load resource: the server responded with a status of 403 (Forbidden)"]
+    finally:
+        ctx.close()
+
+
+def test_an_action_without_the_csrf_token_or_from_another_site_is_refused(stack):
+    d, url, _ = stack
+    import base64
+    auth = "Basic " + base64.b64encode(b"olga:olga-pw").decode()
+    for headers, wanted in (({}, "missing or wrong CSRF token"),
+                            ({"X-CSRF-Token": "0" * 64}, "missing or wrong CSRF token")):
+        req = urllib.request.Request(url + "api/suppress", data=b'{"action": "off"}', method="POST",
+                                     headers={"Authorization": auth, "Content-Type": "application/json", **headers})
+        with pytest.raises(urllib.error.HTTPError) as e:
+            urllib.request.urlopen(req, timeout=5)
+        assert e.value.code == 403 and wanted in e.value.read().decode()
+    assert _get(url)[0] == 401                       # no account, no page
+    assert _get(url, "olga", "wrong")[0] == 401
+
+
+def test_listening_beyond_this_pc_needs_accounts(tmp_path):
+    with pytest.raises(ConfigError, match=r"listen = '0.0.0.0' opens the view to the network: that needs accounts"):
+        Settings(None, "0.0.0.0", None, str(tmp_path / "s"))
+    bad = tmp_path / "w.toml"
+    bad.write_text('[users.x]\nrole = "operator"\npassword = "hunter2"\n')
+    with pytest.raises(ConfigError, match=r"\[users.x\] password: not an scrypt hash"):
+        Settings(str(bad), None, None, None)
+    assert accounts.verify("pw", accounts.hash_password("pw")) and not accounts.verify("px", accounts.hash_password("pw"))
