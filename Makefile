@@ -12,11 +12,15 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# The daemon, and beside it the operator view (lathed-web prints its URL); Ctrl-C stops both.
 run: $(STAMP)
+	@$(BIN)/lathed-web --config etc/lathed-web.toml & web=$$!; \
+	trap 'kill $$web 2>/dev/null' EXIT INT TERM; \
 	$(BIN)/lathed --config etc/lathed.toml
 
 test: $(STAMP)
 	bash tests/ensure_postgres.sh
+	bash tests/ensure_chromium.sh
 	$(BIN)/python -m pytest
 
 # Benchmarks: each prints a Markdown table (the README's performance section).
