@@ -5,7 +5,7 @@ const $ = (sel) => document.querySelector(sel);
 const S = { hist: {}, units: {}, latest: {}, status: null, events: [], vib: {}, views: {}, connected: false,
             error: null, lastFrame: 0, parts: [] };
 const HISTORY = 600;
-let dirty = true;
+let dirty = true, drawQueued = false;
 
 // -- data --------------------------------------------------------------------------------
 function addSample(key, t, v, unit) {
@@ -46,6 +46,7 @@ function connect() {
     else if (m.type === "frame") onFrame(m);
     else if (m.type === "link") setLink(m.connected, m.error);
     dirty = true;
+    if (!drawQueued) { drawQueued = true; requestAnimationFrame(() => { drawQueued = false; draw(); }); }
   };
   es.onerror = () => setLink(false, "lathed-web is not reachable");
 }
