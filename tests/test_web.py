@@ -149,8 +149,7 @@ def test_every_panel_shows_live_data(stack, browser):
         page.wait_for_selector("#events tbody tr:has-text('suppression_mode'):has-text('olga')", timeout=10_000)
         SHOTS.mkdir(parents=True, exist_ok=True)
         page.wait_for_function("document.querySelector('#chatter-state').textContent !== ''", timeout=10_000)
-        page.screenshot(path=str(SHOTS / "operator-view.png"), full_page=True)
-        for panel in ("machines", "parameters", "robot", "vibration", "thermal", "records"):
+        for panel in ("machines", "parameters", "robot", "vibration", "thermal"):
             page.locator(f"#panel-{panel}").screenshot(path=str(SHOTS / f"panel-{panel}.png"))
         assert errors == []
     finally:
@@ -232,6 +231,17 @@ def test_a_chatter_alarm_shows_within_a_second_and_manual_mode_proposes(stack, b
         acted = wait_until(lambda: [e for e in _events(d, "suppression_action") if e["payload"]["by"] == "olga"],
                            timeout=10, what="the operator's suppression action")
         assert acted[-1]["payload"]["sent"] is True
+        # the chattered part is recorded abnormal; the operator enters its inspection, logged with her name
+        row = page.wait_for_selector("#parts tbody tr.abnormal", timeout=40_000)
+        part = row.inner_text().split()[0]
+        page.fill("#inspect input[name=part]", part)
+        page.fill("#inspect input[name=ra_um]", "3.2")
+        page.fill("#inspect input[name=diameter_error_um]", "-4")
+        page.click("#inspect button")
+        page.wait_for_selector(f"#events tbody tr:has-text('part_inspected'):has-text('olga')", timeout=10_000)
+        page.wait_for_selector("#parts tbody tr.abnormal:has-text('Ra 3.20')", timeout=10_000)
+        page.screenshot(path=str(SHOTS / "operator-view.png"), full_page=True)
+        page.locator("#panel-records").screenshot(path=str(SHOTS / "panel-records.png"))
         assert errors == []
         # the bound, from the alarm's record to its row on the page
         assert latency < 1.0, f"the chatter alarm took {latency:.2f} s to reach the page"

@@ -110,7 +110,7 @@ function drawMachines() {
   const rows = (S.status && S.status.machines || []).map((m) => {
     const v = (q) => S.latest[m.name + "/" + q];
     const axes = ["x_mm", "y_mm", "z_mm", "b_deg"].filter((q) => v(q) !== undefined)
-      .map((q) => q[0].toUpperCase() + " " + fmt(v(q), 1)).join(" ");
+      .map((q) => `<span class="ax">${q[0].toUpperCase()} ${fmt(v(q), 1)}</span>`).join(" ");
     const stale = m.state !== "connected" || (m.age_s !== null && m.age_s > 3);
     const prog = v("program_number") !== undefined ? "O" + fmt(v("program_number"), 0) : (v("program") !== undefined ? "P" + fmt(v("program"), 0) : "-");
     const pstate = v("program_state") !== undefined ? ["idle", "running", "hold", "alarm"][v("program_state")] || v("program_state") : "";
@@ -200,9 +200,9 @@ function drawEye(view) {
   const r = all[Math.floor(all.length * 0.98)] || 1, s = Math.min(w, h) / 2 / (r * 1.1), cx = w / 2, cy = h / 2;
   g.beginPath(); g.moveTo(0, cy); g.lineTo(w, cy); g.moveTo(cx, 0); g.lineTo(cx, h); g.stroke();
   const dots = (xs, ys, color) => { g.fillStyle = color; xs.forEach((x, i) => g.fillRect(cx + x * s - 1, cy - ys[i] * s - 1, 2, 2)); };
-  if (view.base_phi1) dots(view.base_phi1, view.base_phi2, "rgba(139,149,163,.55)");
   dots(view.eye_phi1, view.eye_phi2, "#58a6ff");
-  g.fillStyle = "#8b95a3"; g.fillText("grey: start of cut, blue: now", 6, 12);
+  if (view.base_phi1) dots(view.base_phi1, view.base_phi2, "rgba(240,136,62,.8)");   // on top: it is the small one
+  g.fillStyle = "#8b95a3"; g.fillText("orange: start of cut (baseline)", 6, h - 20); g.fillText("blue: now", 6, h - 6);
 }
 
 function drawThermal() {
@@ -223,7 +223,7 @@ function shownEvents() {
 }
 function drawRecords() {
   const ev = shownEvents().slice(-150).reverse();
-  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td>${esc(detail(e.payload))}</td></tr>`).join("");
+  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
   const only = $("#abnormal-only").checked;
   $("#parts tbody").innerHTML = S.parts.filter((p) => !only || p.abnormal).slice().reverse().map((p) =>
     `<tr class="${p.abnormal ? "abnormal" : ""}"><td>${p.id} <small>#${fmt(p.part_no, 0)}</small></td><td>${p.end_t ? hhmmss(p.end_t) : "-"}</td>
