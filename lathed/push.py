@@ -110,7 +110,7 @@ class PushHub:
             if vibration:
                 first["vibration"] = {n: self.vibration_view(n) for n in vibration}
             if views:
-                first["views"] = {n: self.view(n)[1] for n in views}
+                first["views"] = {n: self.view(n) for n in views}
             if events:
                 # registered before this query: whatever is committed after it reaches the subscriber
                 rows, last = await asyncio.to_thread(self._recent, limit, sub)
@@ -180,9 +180,9 @@ class PushHub:
         ring = entry[0]
         return self._cached(f"vib:{name}:{ring.blocks}", VIEW_MIN_S, ring.view)
 
-    def view(self, name: str) -> tuple[float, dict | None]:
-        """(when computed, the analyzer's view): shared by subscribers within VIEW_MIN_S."""
-        return self._cached(f"view:{name}", VIEW_MIN_S, lambda: (time.monotonic(), _safe_view(self.view_fns[name])))
+    def view(self, name: str) -> dict | None:
+        """The analyzer's view, shared by subscribers within VIEW_MIN_S."""
+        return self._cached(f"view:{name}", VIEW_MIN_S, lambda: _safe_view(self.view_fns[name]))
 
     def states(self) -> dict:
         return self._cached("status", STATES_EVERY_S / 2, self.status)
@@ -239,7 +239,7 @@ class Subscription(Stream):
         self._events: list[dict] = []
         self._sent: dict[tuple[str, str], float] = {}
         self._sent_vib: dict[str, float] = {}
-        self._sent_view: dict[str, float] = {}
+        self._sent_view: dict[str, dict | None] = {}
         self._states_at = time.monotonic()
         self._frame_at = time.monotonic()
 
@@ -272,10 +272,10 @@ class Subscription(Stream):
                 f.setdefault("vibration", {})[name] = v
                 self._sent_vib[name] = v["t_end"]
         for name in self.views:
-            at, v = self.hub.view(name)
-            if at != self._sent_view.get(name):
+            v = self.hub.view(name)
+            if v != self._sent_view.get(name):   # a lobe chart that did not move is not sent again
                 f.setdefault("views", {})[name] = v
-                self._sent_view[name] = at
+                self._sent_view[name] = v
         if self.states and now - self._states_at >= STATES_EVERY_S:
             f["status"] = self.hub.states()
             self._states_at = now

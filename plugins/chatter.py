@@ -90,6 +90,7 @@ class ChatterAnalyzer(Analyzer):
         self.last = None
         self.alarms = 0
         self.windows = 0
+        self._eye_view = None   # (detector, windows) -> the last view, reused until a new window
         self.blocks = 0
         self.unusable_blocks = 0
         self._bad_rates: set[float] = set()
@@ -238,11 +239,14 @@ class ChatterAnalyzer(Analyzer):
         det = self.detector
         if det is None or not hasattr(det, "eye_points"):
             return None
+        if self._eye_view is not None and self._eye_view[0] == (id(det), self.windows):
+            return self._eye_view[1]     # no new window since: the same points
         p1, p2 = det.eye_points()
         base = det.eye_baseline
         out = {"eye_phi1": _listed(thin(p1, EYE_POINTS)), "eye_phi2": _listed(thin(p2, EYE_POINTS))}
         if base is not None:
             out.update(base_phi1=_listed(thin(base[0], EYE_POINTS)), base_phi2=_listed(thin(base[1], EYE_POINTS)))
+        self._eye_view = ((id(det), self.windows), out)
         return out
 
     def status(self) -> dict:

@@ -111,6 +111,7 @@ class SuppressionAnalyzer(Analyzer):
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.lobes = StabilityLobes(modes, kf) if modes else None
         self.grid = None    # the lobes over the spindle's range, computed once at start
+        self._lobe_view = None
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
         self.depth_from: str | None = None      # "register" | "spindle load"
@@ -354,11 +355,14 @@ class SuppressionAnalyzer(Analyzer):
         spindle's range, and where the cut is now (speed, depth)."""
         if self.grid is None:
             return None
-        n, b, _ = self.grid
-        step = max(1, len(n) // LOBE_POINTS)
-        blim = np.minimum(b[::step] * 1000, LOBE_CAP_MM)   # inf (no lobe below the cap) drawn at the cap
-        return {"rpm": [round(float(x), 1) for x in n[::step]], "blim_mm": [float(f"{x:.4g}") for x in blim],
-                "now_rpm": self.rpm, "now_depth_mm": round(self.depth_mm, 3)}
+        if self._lobe_view is None or self._lobe_view[0] is not self.grid:   # the curve is computed once
+            n, b, _ = self.grid
+            step = max(1, len(n) // LOBE_POINTS)
+            blim = np.minimum(b[::step] * 1000, LOBE_CAP_MM)   # inf (no lobe below the cap) drawn at the cap
+            self._lobe_view = (self.grid, [round(float(x), 1) for x in n[::step]],
+                               [float(f"{x:.4g}") for x in blim])
+        return {"rpm": self._lobe_view[1], "blim_mm": self._lobe_view[2], "now_rpm": self.rpm,
+                "now_depth_mm": round(self.depth_mm, 3)}
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)

@@ -5,7 +5,7 @@ const $ = (sel) => document.querySelector(sel);
 const S = { hist: {}, units: {}, latest: {}, status: null, events: [], vib: {}, views: {}, connected: false,
             error: null, lastFrame: 0, parts: [] };
 const HISTORY = 600;
-let dirty = true, drawQueued = false;
+let dirty = true, drawQueued = false, recordsDirty = true;
 
 // -- data --------------------------------------------------------------------------------
 function addSample(key, t, v, unit) {
@@ -20,6 +20,7 @@ function onInit(m) {
   S.hist = {}; S.latest = {}; S.units = m.units || {};
   for (const [k, [ts, vs]] of Object.entries(m.history || {})) ts.forEach((t, i) => addSample(k, t, vs[i]));
   S.status = m.status; S.events = m.events || []; S.vib = m.vibration || {}; S.views = m.views || {};
+  recordsDirty = true;
   setLink(m.connected, m.error);
 }
 function onFrame(m) {
@@ -27,7 +28,7 @@ function onFrame(m) {
   if (m.status) S.status = m.status;
   Object.assign(S.vib, m.vibration || {});
   Object.assign(S.views, m.views || {});
-  if (m.events && m.events.length) { S.events = S.events.concat(m.events).slice(-500); refreshParts(); }
+  if (m.events && m.events.length) { S.events = S.events.concat(m.events).slice(-500); recordsDirty = true; refreshParts(); }
   S.lastFrame = Date.now();
   if (!S.connected) setLink(true, null);
 }
@@ -222,6 +223,8 @@ function shownEvents() {
   return S.events.filter((e) => !f || (e.kind + " " + e.source + " " + JSON.stringify(e.payload)).toLowerCase().includes(f));
 }
 function drawRecords() {
+  if (!recordsDirty) return;   // rebuilt only when an event, a part or the filter changes
+  recordsDirty = false;
   const ev = shownEvents().slice(-150).reverse();
   $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
   const only = $("#abnormal-only").checked;
@@ -241,7 +244,7 @@ async function refreshParts() {
   try {
     const r = await fetch("/api/parts?abnormal=" + ($("#abnormal-only").checked ? 1 : 0));
     const j = await r.json();
-    if (r.ok && !j.error) { S.parts = j.result; dirty = true; } else note("#records-note", "parts: " + j.error, true);
+    if (r.ok && !j.error) { S.parts = j.result; dirty = recordsDirty = true; } else note("#records-note", "parts: " + j.error, true);
   } finally { partsBusy = false; }
 }
 async function refreshRecommend() {
@@ -286,7 +289,7 @@ function download(name, text) {
 }
 $("#export-events").addEventListener("click", () => download("events.csv", csv(shownEvents(), ["id", "t", "source", "kind", "payload"])));
 $("#export-parts").addEventListener("click", () => download("parts.csv", csv(S.parts, Object.keys(S.parts[0] || { id: 0 }))));
-$("#filter").addEventListener("input", () => { dirty = true; });
+$("#filter").addEventListener("input", () => { dirty = recordsDirty = true; });
 $("#abnormal-only").addEventListener("change", refreshParts);
 
 // -- the loop ---------------------------------------------------------------------------------------
