@@ -28,12 +28,13 @@ class Ring:
     def add(self, data: np.ndarray, rate_hz: float, t0: float) -> None:
         if rate_hz != self.rate_hz:   # a new rate: the old samples are another signal
             self.filled, self.rate_hz = 0, rate_hz
-        data = np.asarray(data, dtype=float)[-len(self.buf):]
+        data = np.asarray(data, dtype=float)
+        self.t_end = t0 + len(data) / rate_hz
+        data = data[-len(self.buf):]
         n = len(data)
         self.buf = np.roll(self.buf, -n)
         self.buf[-n:] = data
         self.filled = min(len(self.buf), self.filled + n)
-        self.t_end = t0 + n / rate_hz
         self.blocks += 1
 
     def view(self) -> dict | None:
@@ -44,9 +45,16 @@ class Ring:
                 **spectrum(x, self.rate_hz)}
 
 
-def _round(a: np.ndarray) -> list[float]:
-    # 4 significant digits: a plot needs no more, and the JSON is a third the size
-    return [float(f"{v:.4g}") for v in a.tolist()]
+def rounded(a: np.ndarray, digits: int = 4) -> list[float | None]:
+    """``a`` as a list to ``digits`` significant digits of its largest value (a plot shows no
+    finer; the JSON is a third the size), vectorised; a non-finite value becomes None (null)."""
+    a = np.asarray(a, dtype=float)
+    finite = np.isfinite(a)
+    m = float(np.max(np.abs(a[finite]))) if finite.any() else 0.0
+    out = np.round(a, digits - 1 - int(np.floor(np.log10(m)))) if m > 0 else a
+    if finite.all():
+        return out.tolist()
+    return [v if ok else None for v, ok in zip(out.tolist(), finite.tolist())]
 
 
 def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
@@ -55,7 +63,7 @@ def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
     edges = np.linspace(0, len(x), cols + 1).astype(int)
     lo = np.minimum.reduceat(x, edges[:-1])
     hi = np.maximum.reduceat(x, edges[:-1])
-    return {"env_t": _round(edges[:-1] / rate_hz), "env_min": _round(lo), "env_max": _round(hi)}
+    return {"env_t": rounded(edges[:-1] / rate_hz), "env_min": rounded(lo), "env_max": rounded(hi)}
 
 
 def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bins: int = SPECTRUM_BINS) -> dict:
@@ -72,7 +80,7 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
     if m == 0:
         return {"spec_f": [], "spec_a": []}
     peaks = mag[:m].reshape(-1, group).max(axis=1)
-    return {"spec_f": _round(f[:m].reshape(-1, group)[:, 0]), "spec_a": _round(peaks)}
+    return {"spec_f": rounded(f[:m].reshape(-1, group)[:, 0]), "spec_a": rounded(peaks)}
 
 
 def thin(a: np.ndarray, points: int) -> np.ndarray:

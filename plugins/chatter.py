@@ -40,13 +40,9 @@ from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
-from lathed.display import thin
+from lathed.display import rounded, thin
 
 EYE_POINTS = 600   # chaos-eye points sent to a screen
-
-
-def _listed(a) -> list[float]:
-    return [float(f"{v:.4g}") for v in a.tolist()]
 
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
@@ -243,9 +239,9 @@ class ChatterAnalyzer(Analyzer):
             return self._eye_view[1]     # no new window since: the same points
         p1, p2 = det.eye_points()
         base = det.eye_baseline
-        out = {"eye_phi1": _listed(thin(p1, EYE_POINTS)), "eye_phi2": _listed(thin(p2, EYE_POINTS))}
+        out = {"eye_phi1": rounded(thin(p1, EYE_POINTS)), "eye_phi2": rounded(thin(p2, EYE_POINTS))}
         if base is not None:
-            out.update(base_phi1=_listed(thin(base[0], EYE_POINTS)), base_phi2=_listed(thin(base[1], EYE_POINTS)))
+            out.update(base_phi1=rounded(thin(base[0], EYE_POINTS)), base_phi2=rounded(thin(base[1], EYE_POINTS)))
         self._eye_view = ((id(det), self.windows), out)
         return out
 

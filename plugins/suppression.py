@@ -64,6 +64,7 @@ from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
 from lathed.control import RequestError
+from lathed.display import rounded
 
 LOBE_POINTS = 600      # points of the lobe chart sent to a screen
 LOBE_CAP_MM = 20.0
@@ -359,8 +360,7 @@ class SuppressionAnalyzer(Analyzer):
             n, b, _ = self.grid
             step = max(1, len(n) // LOBE_POINTS)
             blim = np.minimum(b[::step] * 1000, LOBE_CAP_MM)   # inf (no lobe below the cap) drawn at the cap
-            self._lobe_view = (self.grid, [round(float(x), 1) for x in n[::step]],
-                               [float(f"{x:.4g}") for x in blim])
+            self._lobe_view = (self.grid, rounded(n[::step], 5), rounded(blim))
         return {"rpm": self._lobe_view[1], "blim_mm": self._lobe_view[2], "now_rpm": self.rpm,
                 "now_depth_mm": round(self.depth_mm, 3)}
 
