@@ -41,7 +41,11 @@ bench-store: $(STAMP)
 DURATION ?= 600
 bench-hostile: $(STAMP)
 	$(BIN)/python bench/bench_hostile.py --duration $(DURATION)
-bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-hostile
+# issue 14: the operator view's cost, 5 Chromium pages (tests/ensure_chromium.sh installs chromium)
+bench-web: $(STAMP)
+	bash tests/ensure_chromium.sh
+	$(BIN)/python bench/bench_web.py
+bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-hostile bench-web
 
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-hostile
+	bench-hostile bench-web
