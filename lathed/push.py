@@ -62,6 +62,7 @@ class PushHub:
         self.last_drop: str | None = None
         self._rings: dict[str, tuple[Ring, asyncio.Task, set]] = {}
         self._cache: dict[str, tuple[float, Any]] = {}
+        self._vib: dict[str, tuple[float, int, dict | None]] = {}   # sensor -> (when, blocks, view)
         self._poller: asyncio.Task | None = None
         self._cursor = 0
 
@@ -139,6 +140,7 @@ class PushHub:
                 if not entry[2]:
                     entry[1].cancel()
                     del self._rings[name]
+                    self._vib.pop(name, None)
         if self._poller and not any(s.events for s in self.subscribers):
             self._poller.cancel()
             self._poller = None
@@ -178,7 +180,11 @@ class PushHub:
         if entry is None:
             return None
         ring = entry[0]
-        return self._cached(f"vib:{name}:{ring.blocks}", VIEW_MIN_S, ring.view)
+        now = time.monotonic()
+        hit = self._vib.get(name)
+        if hit is None or hit[1] != ring.blocks and now - hit[0] >= VIEW_MIN_S:
+            hit = self._vib[name] = (now, ring.blocks, ring.view())
+        return hit[2]
 
     def view(self, name: str) -> dict | None:
         """The analyzer's view, shared by subscribers within VIEW_MIN_S."""

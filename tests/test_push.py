@@ -154,3 +154,33 @@ def test_subscribers_beyond_the_configured_cap_are_refused(tmp_path):
                                                "control_max_subscribers); try again later"}
     finally:
         d.close()
+
+
+def test_the_hub_keeps_one_view_per_sensor_however_many_blocks_pass(monkeypatch):
+    """A cache keyed by the block count grew by an entry per block: the daemon's memory, forever."""
+    import asyncio
+
+    import numpy as np
+
+    from lathed.bus import Block, Bus
+    from lathed import push
+    from lathed.push import PushHub
+    monkeypatch.setattr(push, "VIEW_MIN_S", 0.0)   # every block makes a new view
+
+    async def scenario():
+        bus = Bus()
+        hub = PushHub(bus, None, {"accel": "sensor"}, dict, {}, max_subscribers=4)
+        sub = await hub.subscribe({"vibration": ["accel"]})
+        views = []
+        for i in range(300):
+            bus.publish(Block("accel", "acceleration", 51200.0, i * 0.01, i * 512, np.ones(512)))
+            await asyncio.sleep(0)
+            views.append(hub.vibration_view("accel"))
+        sizes = len(hub._cache) + len(getattr(hub, "_vib", {}))
+        sub.close()
+        return views, sizes, hub
+
+    views, sizes, hub = asyncio.run(scenario())
+    assert sizes <= 2
+    assert views[-1]["t_end"] == 299 * 0.01 + 512 / 51200.0   # the newest block's view, not a stale one
+    assert hub.subscribers == set() and hub._rings == {}
