@@ -146,9 +146,10 @@ class DaemonLink:
         while True:
             try:
                 await self._session()
+            except (FileNotFoundError, ConnectionRefusedError) as e:
+                self._down(f"no daemon on {self.sock} ({e.strerror or e})")
             except (OSError, asyncio.IncompleteReadError, ValueError) as e:
-                self._down(f"{type(e).__name__}: {e}" if not isinstance(e, OSError) else
-                           f"no daemon on {self.sock} ({e.strerror or e})")
+                self._down(f"lost the daemon on {self.sock}: {getattr(e, 'strerror', None) or e}")
             except _Refused as e:
                 self._down(str(e))
             await asyncio.sleep(RETRY_S)
@@ -185,7 +186,7 @@ class DaemonLink:
         async with asyncio.timeout(10.0):   # the daemon sends a frame every second at least
             line = await reader.readline()
         if not line:
-            raise ConnectionResetError(0, "the daemon closed the connection")
+            raise ConnectionResetError(0, "it closed the connection (stopped or restarting?)")
         return json.loads(line)
 
 

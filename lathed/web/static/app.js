@@ -298,7 +298,7 @@ function draw() {
   $("#clock").textContent = new Date().toLocaleTimeString([], { hour12: false });
   if (!dirty) return;
   dirty = false;
-  if (S.status) $("#daemon-name").textContent = `${S.status.daemon.name}: ${S.status.daemon.state}`;
+  if (S.status) $("#daemon-name").textContent = `${S.status.daemon.name}: ${S.connected ? S.status.daemon.state : "not reachable, values below are the last seen"}`;
   for (const f of [drawMachines, drawLobes, drawRobot, drawVibration, drawThermal, drawRecords]) {
     try { f(); } catch (e) { console.error(f.name, e); }
   }
