@@ -156,6 +156,9 @@ def test_every_panel_shows_live_data(stack, browser, shots):
         page.click(".switch button[data-mode='manual']")
         page.wait_for_selector(".switch button.on[data-mode='manual']", timeout=10_000)
         page.wait_for_selector("#events tbody tr:has-text('suppression_mode'):has-text('olga')", timeout=10_000)
+        page.click("#touchoff")
+        page.wait_for_function("document.querySelector('#thermal-note').textContent.includes('olga')", timeout=10_000)
+        assert _events(d, "thermal_touchoff")[-1]["payload"]["by"] == "olga"
         page.wait_for_function("document.querySelector('#chatter-state').textContent !== ''", timeout=10_000)
         for panel in ("machines", "parameters", "robot", "vibration", "thermal"):
             page.locator(f"#panel-{panel}").screenshot(path=str(shots / f"panel-{panel}.png"))

@@ -3,7 +3,7 @@
 One subscription to the daemon (lathed.push) feeds every browser through
 server-sent events; browsers never reach the daemon themselves, and a crowd
 of them costs the daemon nothing more than one subscriber. Actions (the
-suppression switch, suppress now, an inspection) are the daemon's own
+suppression switch, suppress now, the thermal touch-off, an inspection) are the daemon's own
 control commands, sent with the user's name, so the event log says who.
 
 Access: 127.0.0.1 by default, open to whoever is on this PC (as user
@@ -311,6 +311,10 @@ class App:
         what = request.match_info["what"]
         if what == "suppress":
             cmd, args = "suppress", {"action": body.get("action"), "by": user}
+        elif what == "thermal":
+            if body.get("action") != "touchoff":
+                return web.json_response({"error": "thermal: the only action here is touchoff"}, status=400)
+            cmd, args = "thermal", {"action": "touchoff", "by": user}
         elif what == "inspect":
             cmd, args = "inspect", {"part": body.get("part"), "ra_um": body.get("ra_um"),
                                     "diameter_error_um": body.get("diameter_error_um"), "by": user}

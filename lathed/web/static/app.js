@@ -273,6 +273,10 @@ $("#suppress-now").addEventListener("click", async () => {
   const [st, j] = await act("suppress", { action: "now" }, "#suppress-note");
   if (st === 200) note("#suppress-note", `suppressed: ${fmt(j.rpm_before, 0)} → ${fmt(j.rpm_after, 0)} r/min`);
 });
+$("#touchoff").addEventListener("click", async () => {
+  const [st] = await act("thermal", { action: "touchoff" }, "#thermal-note");
+  if (st === 200) note("#thermal-note", `touch-off recorded by ${META.user}: growth counts from now`);
+});
 $("#inspect").addEventListener("submit", async (e) => {
   e.preventDefault();
   const f = new FormData(e.target), num = (k) => f.get(k) === "" ? null : Number(f.get(k));
