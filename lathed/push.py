@@ -87,8 +87,8 @@ class PushHub:
             src, sep, q = pat.partition("/")
             if not sep or not src or not q:
                 raise a.error(f"samples[{i}]", f"{pat!r} is not SOURCE/QUANTITY (wildcards allowed: lathe/*)")
-            if not any(fnmatch.fnmatchcase(n, src) for n in self.names):
-                raise a.error(f"samples[{i}]", f"no machine, sensor or analyzer matches {src!r}; "
+            if not _wild(src) and src not in self.names:
+                raise a.error(f"samples[{i}]", f"no machine, sensor or analyzer named {src!r}; "
                                                f"known: {', '.join(sorted(self.names))}")
         sensors = sorted(n for n, c in self.names.items() if c == "sensor")
         vibration = _expand(a, "vibration", vibration, sensors, "no sensor named {!r}; sensors: ")
@@ -213,12 +213,17 @@ class PushHub:
                         sub.add_events(rows)
 
 
+def _wild(pattern: str) -> bool:
+    return any(c in pattern for c in "*?[")
+
+
 def _expand(a: Args, key: str, patterns: list[str], names: list[str], missing: str) -> list[str]:
-    """Names matching each pattern (shell wildcards: "*" is every one); a pattern matching none is an error."""
+    """Names matching each pattern (shell wildcards: "*" is every one, and may be none: a line
+    without a vibration sensor still gets its view); a name that is not there is an error."""
     out: list[str] = []
     for i, pat in enumerate(patterns):
         hit = [n for n in names if fnmatch.fnmatchcase(n, pat)]
-        if not hit:
+        if not hit and not _wild(pat):
             raise a.error(f"{key}[{i}]", missing.format(pat) + (", ".join(names) or "none"))
         out += [n for n in hit if n not in out]
     return out

@@ -21,7 +21,7 @@ def inproc(tmp_path_factory):
 
 @pytest.mark.parametrize("args, wanted", [
     ({"samples": ["lathe"]}, "subscribe: samples[0]: 'lathe' is not SOURCE/QUANTITY"),
-    ({"samples": ["spindle/*"]}, "subscribe: samples[0]: no machine, sensor or analyzer matches 'spindle'"),
+    ({"samples": ["spindle/*"]}, "subscribe: samples[0]: no machine, sensor or analyzer named 'spindle'"),
     ({"vibration": ["lathe"]}, "subscribe: vibration[0]: no sensor named 'lathe'"),
     ({"views": ["thermal"]}, "subscribe: views[0]: 'thermal' has no view"),
     ({"events": True, "rate_hz": 100}, "subscribe: rate_hz: 100 is out of range"),
@@ -34,6 +34,19 @@ def test_bad_subscriptions_are_refused_in_one_line(inproc, args, wanted):
     assert reply["ok"] is False
     assert reply["error"].startswith(wanted), reply["error"]
     assert "\n" not in reply["error"]
+    assert inproc.daemon.push.subscribers == set()
+
+
+def test_wildcards_that_match_nothing_are_not_an_error(inproc):
+    """A line without such a sensor or analyzer: a pattern like lathed-web's "*" must still
+    subscribe (an exact name that is not there is refused, above)."""
+    reply = inproc.handle(json.dumps({"cmd": "subscribe", "args": {
+        "samples": ["mill*/x_mm"], "vibration": ["accel*"], "views": ["chat*"], "states": True}}).encode())
+    assert reply["ok"] is True, reply
+    sub = reply["result"]
+    assert sub.vibration == [] and sub.views == [] and sub.first["samples"] == {}
+    assert inproc.daemon.push.subscribers == {sub}
+    sub.close()
     assert inproc.daemon.push.subscribers == set()
 
 
@@ -178,6 +191,7 @@ def test_the_hub_keeps_one_view_per_sensor_however_many_blocks_pass(monkeypatch)
             views.append(hub.vibration_view("accel"))
         sizes = len(hub._cache) + len(getattr(hub, "_vib", {}))
         sub.close()
+        await asyncio.sleep(0)   # the ring's reader ends before the loop does
         return views, sizes, hub
 
     views, sizes, hub = asyncio.run(scenario())
