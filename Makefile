@@ -12,11 +12,15 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
+# The daemon, and beside it the operator view (lathed-web prints its URL); Ctrl-C stops both.
 run: $(STAMP)
+	@$(BIN)/lathed-web --config etc/lathed-web.toml & web=$$!; \
+	trap 'kill $$web 2>/dev/null' EXIT INT TERM; \
 	$(BIN)/lathed --config etc/lathed.toml
 
 test: $(STAMP)
 	bash tests/ensure_postgres.sh
+	bash tests/ensure_chromium.sh
 	$(BIN)/python -m pytest
 
 # Benchmarks: each prints a Markdown table (the README's performance section).
@@ -39,8 +43,12 @@ bench-stability: $(STAMP)
 DURATION ?= 600
 bench-hostile: $(STAMP)
 	$(BIN)/python bench/bench_hostile.py --duration $(DURATION)
+# issue 14: the operator view's cost, 5 Chromium pages (tests/ensure_chromium.sh installs chromium)
+bench-web: $(STAMP)
+	bash tests/ensure_chromium.sh
+	$(BIN)/python bench/bench_web.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
-	bench-hostile
+	bench-hostile bench-web
 
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile
+	bench-stability bench-hostile bench-web

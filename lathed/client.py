@@ -37,6 +37,63 @@ def default_socket() -> Path:
     return default_runtime_dir() / SOCKET_NAME
 
 
+def _connect(path: Path, timeout: float) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout)
+    try:
+        s.connect(str(path))
+    except (FileNotFoundError, ConnectionRefusedError):
+        s.close()
+        raise DaemonUnavailable(f"lathed is not running (no daemon listening on {path})") from None
+    except PermissionError:
+        s.close()
+        raise DaemonUnavailable(f"permission denied on {path}: join the lathed group") from None
+    except BlockingIOError:   # EAGAIN: the listen backlog is full
+        s.close()
+        raise DaemonUnavailable(f"lathed on {path} is not accepting connections now (its backlog is full: "
+                                "too many clients, or it is out of file descriptors); try again") from None
+    except OSError:
+        s.close()
+        raise
+    return s
+
+
+def subscribe(args: dict[str, Any], sock_path: str | Path | None = None, timeout: float = 10.0):
+    """``subscribe`` (lathed.push): yields the snapshot, then each pushed frame. A daemon
+    that goes silent for ``timeout`` (it sends a frame every second) or closes ends it
+    with DaemonUnavailable; a refusal or a drop with RemoteError."""
+    path = Path(sock_path) if sock_path else default_socket()
+    s = _connect(path, timeout)
+    try:
+        s.sendall(json.dumps({"cmd": "subscribe", "args": args}).encode() + b"\n")
+        f = s.makefile("rb")
+        first = True
+        while True:
+            try:
+                line = f.readline()
+            except socket.timeout:
+                raise DaemonUnavailable(f"lathed sent nothing for {timeout:g} s on {path}") from None
+            except OSError as e:
+                raise DaemonUnavailable(f"lost the connection to lathed on {path}: {e.strerror or e}") from None
+            if not line:
+                raise DaemonUnavailable(f"lathed closed the connection on {path}")
+            try:
+                msg = json.loads(line)
+            except ValueError:
+                raise DaemonUnavailable(f"lathed on {path} sent a line that is not JSON: {line[:80]!r}") from None
+            if first:
+                if not msg.get("ok"):
+                    raise RemoteError(msg.get("error", "unknown error"))
+                yield msg["result"]
+                first = False
+            elif "push" in msg:
+                yield msg["push"]
+            else:
+                raise RemoteError(msg.get("error", "unknown error"))
+    finally:
+        s.close()
+
+
 def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | None = None,
          timeout: float = 10.0) -> Any:
     path = Path(sock_path) if sock_path else default_socket()

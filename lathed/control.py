@@ -46,6 +46,21 @@ class RequestError(Exception):
     """A request the daemon understood but cannot carry out; sent back as the error."""
 
 
+class Stream:
+    """A handler's result that keeps the connection (``subscribe``): ``first`` is
+    sent as the reply, then :meth:`run` writes lines until it returns. It returns
+    a reason when it gives the client up (a slow reader); the connection is then
+    aborted, so nothing it did not read stays buffered in the daemon."""
+
+    first: Any = None
+
+    async def run(self, writer: asyncio.StreamWriter, write_timeout: float) -> str | None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Called once the connection ends, however it ends."""
+
+
 class SocketInUse(Exception):
     """Another daemon answers on the control socket: it is not ours to replace."""
 
@@ -163,13 +178,41 @@ class ControlServer:
                     break
                 except TimeoutError:
                     break
-                await self._reply(writer, await self._handle(line))
+                reply = await self._handle(line)
+                if isinstance(reply.get("result"), Stream):
+                    await self._stream(reply["result"], reader, writer)
+                    break
+                await self._reply(writer, reply)
         except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
             pass
         finally:
             self._waiting.pop(writer, None)
             self.clients -= 1
             writer.close()
+
+    async def _stream(self, stream: Stream, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """A subscribed connection: the first reply, then pushed lines until the client
+        closes, sends anything (a subscribed connection takes no more requests), or is dropped."""
+        try:
+            await self._reply(writer, {"ok": True, "result": stream.first})
+            pushing = asyncio.create_task(stream.run(writer, self.request_timeout))
+            hangup = asyncio.create_task(reader.read(1))
+            try:
+                await asyncio.wait({pushing, hangup}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                for t in (pushing, hangup):
+                    t.cancel()
+                await asyncio.gather(pushing, hangup, return_exceptions=True)
+        finally:
+            stream.close()
+        reason = None if pushing.cancelled() or pushing.exception() else pushing.result()
+        if hangup.done() and not hangup.cancelled() and not hangup.exception() and hangup.result():
+            reason = "a subscribed connection takes no more requests; open another connection"
+        if reason is not None:
+            # one line saying why, if the client still reads; then abort: a client that does
+            # not read must not keep its unread frames in our buffers
+            writer.write(_encode({"ok": False, "error": f"subscription ended: {reason}"}))
+            writer.transport.abort()
 
     async def _reply(self, writer: asyncio.StreamWriter, obj: dict) -> None:
         rows = obj.get("result")

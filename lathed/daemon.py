@@ -26,6 +26,7 @@ from lathed.client import SOCKET_NAME, default_runtime_dir
 from lathed.args import Args
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
+from lathed.push import PushHub
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
@@ -62,6 +63,8 @@ class Settings:
         self.control_request_timeout = sec.getduration("control_request_timeout", 5.0, minval=0.1, maxval=600.0)
         # groups whose members may change things over the socket; others read (empty: all may)
         self.control_operator_groups = sec.getlist("control_operator_groups", [])
+        # `subscribe` connections (lathectl watch, lathed-web) at once, within control_max_clients
+        self.control_max_subscribers = sec.getint("control_max_subscribers", 16, minval=0, maxval=1024)
         sec.check_unused()
         st = cfg.store
         # 0: every record is kept. Otherwise records older than this are deleted,
@@ -130,6 +133,12 @@ class Daemon:
         self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
+        names = {**{n: r.category for n, r in self.supervisor.runners.items()},
+                 **{n: "analyzer" for n in self.supervisor.analyzer_runners}}
+        views = {n: r.obj.live_view for n, r in self.supervisor.analyzer_runners.items()
+                 if callable(getattr(r.obj, "live_view", None))}
+        self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers)
+        self.control.register("subscribe", self.push.subscribe)
         try:
             await self.control.start()
         except (SocketInUse, OSError) as e:
@@ -255,6 +264,9 @@ class Daemon:
 
     async def _cmd_status(self, args: dict) -> Any:
         Args("status", args).check_unused()
+        return self.status()
+
+    def status(self) -> dict:
         return {"daemon": {"state": self.status_state(), "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
                            "loop_lag_ms": self.loop_lag.summary(),
@@ -263,7 +275,8 @@ class Daemon:
                            "simulator": None if self.sim_process is None else
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
                            "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
-                                       "refused": self.control.refused, "evicted": self.control.evicted}},
+                                       "refused": self.control.refused, "evicted": self.control.evicted,
+                                       **self.push.stats()}},
                 **self.supervisor.status()}
 
     async def _cmd_plugins(self, args: dict) -> Any:

@@ -17,7 +17,7 @@ from typing import Any
 
 from lathed import __version__
 from lathed import cli as cli_pkg
-from lathed.client import DaemonUnavailable, RemoteError, call
+from lathed.client import DaemonUnavailable, RemoteError, call, subscribe
 
 EX_UNAVAILABLE = 69
 
@@ -118,17 +118,47 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_event(r: dict, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(r, default=str), flush=True)
+        return
+    t = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["t"]))
+    print(f"{r['id']:>7} {t} {r['source']:<12} {r['kind']:<22} {_fmt_value(r['payload'])}", flush=True)
+
+
 def cmd_events(args: argparse.Namespace) -> int:
+    if args.follow:
+        # the last --limit events, then each new one as the daemon records it (one JSON line each with --json)
+        for frame in (subscribe({"events": True, "events_limit": args.limit,
+                                             "kinds": [args.kind] if args.kind else None,
+                                             "sources": [args.source] if args.source else None,
+                                             "rate_hz": 10.0}, sock_path=args.socket)):
+            for r in frame.get("events", []):
+                _print_event(r, args.json)
+        return 0
     rows = remote(args, "events", {"limit": args.limit, "kind": args.kind, "source": args.source})
     if args.json:
         print_json(rows)
         return 0
-    import datetime as dt
     for r in rows:
-        t = dt.datetime.fromtimestamp(r["t"]).strftime("%Y-%m-%d %H:%M:%S")
-        print(f"{r['id']:>7} {t} {r['source']:<12} {r['kind']:<22} {_fmt_value(r['payload'])}")
+        _print_event(r, False)
     if not rows:
         print("(no events)")
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    """Live values as they change: one line per value (a JSON line per frame with --json)."""
+    patterns = args.pattern or ["*/*"]
+    units: dict[str, str] = {}
+    for frame in subscribe({"samples": patterns, "rate_hz": args.rate}, sock_path=args.socket):
+        if args.json:
+            print(json.dumps(frame), flush=True)
+            continue
+        for key, (t, v, unit) in sorted(frame.get("samples", {}).items()):
+            units[key] = unit
+            print(f"{time.strftime('%H:%M:%S', time.localtime(t))}.{int(t % 1 * 10)} {key:<32} "
+                  f"{_fmt_value(v)} {unit}".rstrip(), flush=True)
     return 0
 
 
@@ -157,8 +187,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--limit", type=int, default=30)
     s.add_argument("--kind")
     s.add_argument("--source")
+    s.add_argument("--follow", "-f", action="store_true", help="then print each new event as it is recorded")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_events)
+    s = sub.add_parser("watch", help="live values as they change (SOURCE/QUANTITY patterns, default all)")
+    s.add_argument("pattern", nargs="*", help='e.g. "lathe/spindle_rpm" "temps/*" "chatter/chatter_index"')
+    s.add_argument("--rate", type=float, default=2.0, help="updates per second (default 2)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_watch)
 
     an = sub.add_parser("analyze", help="offline analyses of recorded files")
     asub = an.add_subparsers(dest="what", metavar="WHAT", required=True)
@@ -201,6 +237,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except BrokenPipeError:
         return 0
+    except KeyboardInterrupt:   # the way out of --follow and watch
+        return 130
 
 
 if __name__ == "__main__":

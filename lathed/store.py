@@ -572,20 +572,24 @@ class Store:
         with self._rlock:
             return [dict(r) for r in self._rcon.execute(sql, params).fetchall()]
 
-    def events(self, limit: int = 50, kind: str | None = None, source: str | None = None,
-               since_id: int = 0) -> list[dict[str, Any]]:
+    def events(self, limit: int = 50, kind: str | list[str] | None = None,
+               source: str | list[str] | None = None, since_id: int = 0) -> list[dict[str, Any]]:
+        """The newest ``limit`` events after ``since_id``, oldest first; kind and source
+        are one name or a list of names (any of them)."""
         where, params = ["id > ?"], [since_id]
-        if kind:
-            where.append("kind = ?")
-            params.append(kind)
-        if source:
-            where.append("source = ?")
-            params.append(source)
+        for col, want in (("kind", kind), ("source", source)):
+            names = [want] if isinstance(want, str) else list(want or [])
+            if names:
+                where.append(f"{col} IN ({','.join('?' * len(names))})")
+                params.extend(names)
         rows = self.query(f"SELECT id, t, source, kind, payload FROM events WHERE {' AND '.join(where)} "
                           "ORDER BY id DESC LIMIT ?", (*params, limit))
         for r in rows:
             r["payload"] = json.loads(r["payload"])
         return rows[::-1]
+
+    def last_event_id(self) -> int:
+        return self.query("SELECT coalesce(max(id), 0) AS id FROM events")[0]["id"]
 
     def stats(self) -> dict[str, Any]:
         return {"path": str(self.path), "schema_version": self.schema_version, "written": self.written,

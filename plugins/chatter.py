@@ -40,6 +40,9 @@ from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
+from lathed.display import rounded, thin
+
+EYE_POINTS = 600   # chaos-eye points sent to a screen
 
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
@@ -83,6 +86,7 @@ class ChatterAnalyzer(Analyzer):
         self.last = None
         self.alarms = 0
         self.windows = 0
+        self._eye_view = None   # (detector, windows) -> the last view, reused until a new window
         self.blocks = 0
         self.unusable_blocks = 0
         self._bad_rates: set[float] = set()
@@ -224,6 +228,22 @@ class ChatterAnalyzer(Analyzer):
                                             else round(time.time() - self.alarm_started, 3)})
         if w is None and self.detector is not None:
             self.detector.reset()
+
+    def live_view(self) -> dict | None:
+        """The chaos eye for the operator view: the (phi1, phi2) points of the recent
+        windows, and those at the start of the cut (the baseline), thinned for plotting."""
+        det = self.detector
+        if det is None or not hasattr(det, "eye_points"):
+            return None
+        if self._eye_view is not None and self._eye_view[0] == (id(det), self.windows):
+            return self._eye_view[1]     # no new window since: the same points
+        p1, p2 = det.eye_points()
+        base = det.eye_baseline
+        out = {"eye_phi1": rounded(thin(p1, EYE_POINTS)), "eye_phi2": rounded(thin(p2, EYE_POINTS))}
+        if base is not None:
+            out.update(base_phi1=rounded(thin(base[0], EYE_POINTS)), base_phi2=rounded(thin(base[1], EYE_POINTS)))
+        self._eye_view = ((id(det), self.windows), out)
+        return out
 
     def status(self) -> dict:
         w = self.last

@@ -111,6 +111,9 @@ class Records(Analyzer):
         await self.ctx.store.add("inspections", {
             "t": time.time(), "part_uuid": part["uuid"], "ra_um": ra, "diameter_error_um": err,
             "measured": values, "inspector": by})
+        # in the event log too, with who measured it (lathectl, the operator view)
+        self.ctx.record("part_inspected", {"part": part["id"], "part_no": part["part_no"], "ra_um": ra,
+                                           "diameter_error_um": err, "values": values, "by": by})
         return await offload(records.find_part, self._query, str(part["id"]))
 
     async def _cmd_experiment_add(self, args: dict) -> Any:

@@ -65,6 +65,10 @@ from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
 from lathed.control import RequestError
+from lathed.display import rounded
+
+LOBE_POINTS = 600      # points of the lobe chart sent to a screen
+LOBE_CAP_MM = 20.0
 
 MODES = ("auto", "manual", "off")
 STRATEGIES = ("lobes", "frequency", "rated", "variation")
@@ -109,6 +113,7 @@ class SuppressionAnalyzer(Analyzer):
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.lobes = StabilityLobes(modes, kf) if modes else None
         self.grid = None    # the lobes over the spindle's range, computed once at start
+        self._lobe_view = None
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
         self.depth_from: str | None = None      # "register" | "spindle load"
@@ -348,6 +353,19 @@ class SuppressionAnalyzer(Analyzer):
             self.pending = None
             return await self._act(d, by=by, trigger=trigger)
         return self.status()
+
+    def live_view(self) -> dict | None:
+        """The stability lobes for the operator view: limiting depth (mm) over the
+        spindle's range, and where the cut is now (speed, depth)."""
+        if self.grid is None:
+            return None
+        if self._lobe_view is None or self._lobe_view[0] is not self.grid:   # the curve is computed once
+            n, b, _ = self.grid
+            step = max(1, len(n) // LOBE_POINTS)
+            blim = np.minimum(b[::step] * 1000, LOBE_CAP_MM)   # inf (no lobe below the cap) drawn at the cap
+            self._lobe_view = (self.grid, rounded(n[::step], 5), rounded(blim))
+        return {"rpm": self._lobe_view[1], "blim_mm": self._lobe_view[2], "now_rpm": self.rpm,
+                "now_depth_mm": round(self.depth_mm, 3)}
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)

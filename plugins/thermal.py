@@ -177,11 +177,11 @@ class ThermalAnalyzer(Analyzer):
                 self.touchoff = t
                 self._rebuild()
 
-    def _touch_off(self, reason: str, base_um: float) -> None:
+    def _touch_off(self, reason: str, base_um: float, by: str | None = None) -> None:
         now = time.time()
         prev = self.touchoff
         to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm,
-              "base_um": base_um, "reason": reason,
+              "base_um": base_um, "reason": reason, "by": by,
               # the model's cold reference: kept from the first start
               "cold_c": dict(prev["cold_c"]) if prev else dict(self.temps),
               "cold_t": prev["cold_t"] if prev else now,
@@ -324,6 +324,7 @@ class ThermalAnalyzer(Analyzer):
     async def _control(self, args: dict) -> dict:
         a = Args("thermal", args)
         action = a.getstr("action", "status", choices=("status", "refit", "touchoff"))
+        by = a.getstr("by", None)     # who touched off, for the record (the operator view sends its user)
         a.check_unused()
         if action == "status":
             return self.status()
@@ -334,7 +335,7 @@ class ThermalAnalyzer(Analyzer):
                 raise RequestError(f"no reading yet from {', '.join(missing)}: cannot take the touch-off temperatures")
             if self.applied is None:
                 raise RequestError(f"{self.machine} has not reported its offset_x_um yet: cannot take the touch-off")
-            self._touch_off("operator touched the tool off (lathectl thermal touchoff)", self.applied)
+            self._touch_off("operator touched the tool off", self.applied, by)
             return self.status()
         if self._refitting:
             raise RequestError("thermal: a refit is already running; wait for its result")

@@ -307,11 +307,12 @@ def test_client_reports_a_reply_that_is_not_json(tmp_path):
 
 def test_daemon_table_sets_the_control_bounds(tmp_path):
     d = InProcessDaemon(tmp_path, daemon='control_max_clients = 3\ncontrol_idle_timeout = "2min"\n'
-                                          'control_request_timeout = "500ms"')
+                                          'control_request_timeout = "500ms"\ncontrol_max_subscribers = 2')
     try:
         assert (d.control.max_clients, d.control.idle_timeout, d.control.request_timeout) == (3, 120.0, 0.5)
         st = d.handle(b'{"cmd": "status"}\n')["result"]["daemon"]["control"]
-        assert st == {"clients": 0, "max_clients": 3, "refused": 0, "evicted": 0}
+        assert st == {"clients": 0, "max_clients": 3, "refused": 0, "evicted": 0, "subscribers": 0, "max_subscribers": 2,
+                      "dropped": 0, "last_drop": None}
     finally:
         d.close()
 

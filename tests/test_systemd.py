@@ -38,3 +38,24 @@ def test_unit_exposure_is_at_most_2_5():
     m = re.search(r"Overall exposure level for lathed\.service: ([\d.]+)", r.stdout + r.stderr)
     assert m, r.stdout + r.stderr
     assert float(m[1]) <= 2.5, r.stdout
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_web_unit_verifies_clean(tmp_path):
+    for name in ("lathed.service", "lathed-web.service"):
+        unit = (ROOT / "systemd" / name).read_text()
+        for exe in ("lathed", "lathed-web"):
+            unit = unit.replace(f"/opt/lathed/.venv/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
+        (tmp_path / name).write_text(unit)
+    r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "lathed-web.service")], capture_output=True,
+                       text=True, cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+
+
+def test_web_unit_runs_after_the_daemon_as_its_own_user():
+    unit = (ROOT / "systemd" / "lathed-web.service").read_text()
+    for line in ("Requires=lathed.service", "After=lathed.service", "User=lathed-web", "SupplementaryGroups=lathed",
+                 "ProtectSystem=strict", "PrivateDevices=yes", "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6",
+                 "CapabilityBoundingSet=\n"):
+        assert line in unit
+    assert "StateDirectory" not in unit      # it keeps nothing: the records are the daemon's

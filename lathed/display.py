@@ -1,0 +1,89 @@
+"""What a screen needs of a fast signal, small enough to send many times a second.
+
+A 51.2 kS/s channel is never sent raw: a subscriber gets the envelope (min
+and max per column) of the last window and its amplitude spectrum, a few
+hundred points each. Pure numpy, no asyncio: the push hub calls it at most
+once per frame period for all subscribers together.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+WINDOW = 8192          # samples in the window shown (0.16 s at 51.2 kS/s: a few revolutions)
+COLUMNS = 400          # envelope columns: a panel's width in pixels, roughly
+SPECTRUM_MAX_HZ = 5000.0   # chatter and the lathe's modes lie well below this
+SPECTRUM_BINS = 400
+
+
+class Ring:
+    """The last ``size`` samples of a stream."""
+
+    def __init__(self, size: int = WINDOW):
+        self.buf = np.zeros(size)
+        self.filled = 0
+        self.rate_hz = 0.0
+        self.t_end = 0.0       # time just after the last sample
+        self.blocks = 0
+
+    def add(self, data: np.ndarray, rate_hz: float, t0: float) -> None:
+        if rate_hz != self.rate_hz:   # a new rate: the old samples are another signal
+            self.filled, self.rate_hz = 0, rate_hz
+        data = np.asarray(data, dtype=float)
+        self.t_end = t0 + len(data) / rate_hz
+        data = data[-len(self.buf):]
+        n = len(data)
+        self.buf = np.roll(self.buf, -n)
+        self.buf[-n:] = data
+        self.filled = min(len(self.buf), self.filled + n)
+        self.blocks += 1
+
+    def view(self) -> dict | None:
+        if self.filled < 64:
+            return None
+        x = self.buf[-self.filled:]
+        return {"t_end": self.t_end, "rate_hz": self.rate_hz, **envelope(x, self.rate_hz),
+                **spectrum(x, self.rate_hz)}
+
+
+def rounded(a: np.ndarray, digits: int = 4) -> list[float | None]:
+    """``a`` as a list to ``digits`` significant digits of its largest value (a plot shows no
+    finer; the JSON is a third the size), vectorised; a non-finite value becomes None (null)."""
+    a = np.asarray(a, dtype=float)
+    finite = np.isfinite(a)
+    m = float(np.max(np.abs(a[finite]))) if finite.any() else 0.0
+    out = np.round(a, digits - 1 - int(np.floor(np.log10(m)))) if m > 0 else a
+    if finite.all():
+        return out.tolist()
+    return [v if ok else None for v, ok in zip(out.tolist(), finite.tolist())]
+
+
+def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
+    """Min and max of x per column, with each column's time from the window's start (s)."""
+    cols = min(columns, len(x))
+    edges = np.linspace(0, len(x), cols + 1).astype(int)
+    lo = np.minimum.reduceat(x, edges[:-1])
+    hi = np.maximum.reduceat(x, edges[:-1])
+    return {"env_t": rounded(edges[:-1] / rate_hz), "env_min": rounded(lo), "env_max": rounded(hi)}
+
+
+def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bins: int = SPECTRUM_BINS) -> dict:
+    """Amplitude spectrum (Hann window, peak amplitude units of x) up to max_hz, as
+    ``bins`` points each holding the largest line it covers (a peak is never averaged away)."""
+    n = len(x)
+    w = np.hanning(n)
+    mag = np.abs(np.fft.rfft((x - x.mean()) * w)) * (2.0 / w.sum())
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
+    keep = f <= max_hz
+    mag, f = mag[keep], f[keep]
+    group = max(1, int(np.ceil(len(mag) / bins)))
+    m = len(mag) // group * group
+    if m == 0:
+        return {"spec_f": [], "spec_a": []}
+    peaks = mag[:m].reshape(-1, group).max(axis=1)
+    return {"spec_f": rounded(f[:m].reshape(-1, group)[:, 0]), "spec_a": rounded(peaks)}
+
+
+def thin(a: np.ndarray, points: int) -> np.ndarray:
+    """Every k-th point so at most ``points`` remain (for scatter plots)."""
+    step = max(1, int(np.ceil(len(a) / points)))
+    return a[::step]

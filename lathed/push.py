@@ -1,0 +1,343 @@
+"""The push side of the control socket: ``subscribe`` streams live values.
+
+A client asks once, on its own connection, for what it wants:
+
+  samples    ["SOURCE/QUANTITY", ...] with shell wildcards ("lathe/*", "*/t_*")
+  vibration  [SENSOR, ...]   (wildcards too, "*": every sensor) envelope and spectrum of a waveform (lathed.display),
+                             never its raw samples
+  views      [ANALYZER, ...] (or "*") an analyzer's plot data (chaos eye, stability lobes)
+  states     true            the status of machines, sensors and analyzers
+  events     true            new recorded events (kinds / sources narrow them),
+                             the last ``events_limit`` of them in the snapshot
+  rate_hz                    frames per second (the per-client rate limit)
+
+The reply is the snapshot (everything asked for, as of now); then one line
+``{"push": frame}`` per period with what changed (a frame at least every
+HEARTBEAT_S, so a client sees a dead daemon). Values are coalesced: a slow
+period sends the latest value, not a backlog. Events are never coalesced.
+
+A subscriber costs the daemon a bounded amount: at most QUEUE_FRAMES frames
+wait for it, and a write must drain within the control request timeout. A
+client that falls behind either bound is dropped (counted in status), never
+waited for: the daemon's loop only ever puts frames in a queue.
+"""
+from __future__ import annotations
+
+import asyncio
+import fnmatch
+import time
+from typing import Any, Callable
+
+import structlog
+
+from lathed.args import Args
+from lathed.bus import Block, Bus
+from lathed.control import RequestError, Stream, _encode
+from lathed.display import Ring
+
+log = structlog.get_logger("lathed.push")
+
+QUEUE_FRAMES = 32        # frames waiting for one subscriber before it is dropped
+HEARTBEAT_S = 1.0        # an empty frame after this long without one
+STATES_EVERY_S = 1.0     # machine/analyzer status at most this often
+EVENT_POLL_S = 0.2       # new events are read from the store this often (while someone wants them)
+EVENT_BATCH = 1000
+VIEW_MIN_S = 0.05        # a vibration or analyzer view is computed at most this often, for everyone
+MAX_RATE_HZ = 20.0
+
+
+class PushHub:
+    """Every subscriber of one daemon, and what they share: one ring per
+    vibration sensor watched, one events poller, cached status and views."""
+
+    def __init__(self, bus: Bus, store, names: dict[str, str], status: Callable[[], dict],
+                 views: dict[str, Callable[[], dict | None]], max_subscribers: int):
+        self.bus, self.store = bus, store
+        self.names = names                  # instance name -> "machine" | "sensor" | "analyzer"
+        self.status = status
+        self.view_fns = views               # analyzers that draw something of their own
+        self.max_subscribers = max_subscribers
+        self.subscribers: set[Subscription] = set()
+        self.dropped = 0
+        self.last_drop: str | None = None
+        self._rings: dict[str, tuple[Ring, asyncio.Task, set]] = {}
+        self._cache: dict[str, tuple[float, Any]] = {}
+        self._vib: dict[str, tuple[float, int, dict | None]] = {}   # sensor -> (when, blocks, view)
+        self._poller: asyncio.Task | None = None
+        self._cursor = 0
+
+    def stats(self) -> dict:
+        return {"subscribers": len(self.subscribers), "max_subscribers": self.max_subscribers,
+                "dropped": self.dropped, "last_drop": self.last_drop}
+
+    # -- the request -----------------------------------------------------------------
+    async def subscribe(self, args: dict) -> Stream:
+        a = Args("subscribe", args)
+        samples = a.getlist("samples", [])
+        vibration = a.getlist("vibration", [])
+        views = a.getlist("views", [])
+        states = a.getbool("states", False)
+        events = a.getbool("events", False)
+        kinds = a.getlist("kinds", [])
+        sources = a.getlist("sources", [])
+        limit = a.getint("events_limit", 50, minval=0, maxval=10_000)
+        rate = a.getfloat("rate_hz", 5.0, minval=0.1, maxval=MAX_RATE_HZ)
+        a.check_unused()
+        for i, pat in enumerate(samples):
+            src, sep, q = pat.partition("/")
+            if not sep or not src or not q:
+                raise a.error(f"samples[{i}]", f"{pat!r} is not SOURCE/QUANTITY (wildcards allowed: lathe/*)")
+            if not _wild(src) and src not in self.names:
+                raise a.error(f"samples[{i}]", f"no machine, sensor or analyzer named {src!r}; "
+                                               f"known: {', '.join(sorted(self.names))}")
+        sensors = sorted(n for n, c in self.names.items() if c == "sensor")
+        vibration = _expand(a, "vibration", vibration, sensors, "no sensor named {!r}; sensors: ")
+        views = _expand(a, "views", views, sorted(self.view_fns), "{!r} has no view; analyzers with one: ")
+        if (kinds or sources) and not events:
+            raise a.error("kinds" if kinds else "sources", "narrows events: give events = true too")
+        if not (samples or vibration or views or states or events):
+            raise a.error(None, "nothing asked for: give samples, vibration, views, states or events")
+        if len(self.subscribers) >= self.max_subscribers:
+            raise RequestError(f"subscribe: {self.max_subscribers} subscribers already (the daemon's "
+                               "[daemon] control_max_subscribers); try again later")
+        sub = Subscription(self, samples, vibration, views, states, events, set(kinds), set(sources), rate)
+        self.subscribers.add(sub)
+        try:
+            for name in vibration:
+                self._watch(name, sub)
+            first: dict[str, Any] = {"t": time.time(), "samples": sub.changed_samples()}
+            if states:
+                first["status"] = self.status()
+            if vibration:
+                first["vibration"] = {n: self.vibration_view(n) for n in vibration}
+            if views:
+                first["views"] = {n: self.view(n) for n in views}
+            if events:
+                # registered before this query: whatever is committed after it reaches the subscriber
+                rows, last = await asyncio.to_thread(self._recent, limit, sub)
+                sub.last_event_id = last
+                first["events"] = rows
+                self._start_poller(last)
+        except BaseException:
+            self.remove(sub)
+            raise
+        sub.first = first
+        return sub
+
+    def _recent(self, limit: int, sub: "Subscription") -> tuple[list[dict], int]:
+        last = self.store.last_event_id()
+        rows = self.store.events(limit, list(sub.kinds), list(sub.sources), 0) if limit else []
+        return [r for r in rows if r["id"] <= last], last
+
+    def remove(self, sub: "Subscription") -> None:
+        if sub not in self.subscribers:
+            return
+        self.subscribers.discard(sub)
+        for name in sub.vibration:
+            entry = self._rings.get(name)
+            if entry:
+                entry[2].discard(sub)
+                if not entry[2]:
+                    entry[1].cancel()
+                    del self._rings[name]
+                    self._vib.pop(name, None)
+        if self._poller and not any(s.events for s in self.subscribers):
+            self._poller.cancel()
+            self._poller = None
+
+    def drop(self, sub: "Subscription", reason: str) -> None:
+        self.dropped += 1
+        self.last_drop = f"{time.strftime('%H:%M:%S')}: {reason}"
+        log.warning("subscriber_dropped", reason=reason, dropped=self.dropped)
+
+    # -- shared sources --------------------------------------------------------------
+    def _watch(self, name: str, sub: "Subscription") -> None:
+        if name not in self._rings:
+            ring = Ring()
+            bsub = self.bus.subscribe(name, maxsize=64)
+            self._rings[name] = (ring, asyncio.create_task(self._fill(ring, bsub)), set())
+        self._rings[name][2].add(sub)
+
+    async def _fill(self, ring: Ring, bsub) -> None:
+        try:
+            while True:
+                msg = await bsub.get()
+                if isinstance(msg, Block):
+                    ring.add(msg.data, msg.rate_hz, msg.t0)
+        finally:
+            self.bus.unsubscribe(bsub)
+
+    def _cached(self, key: str, every: float, fn: Callable[[], Any]) -> Any:
+        now = time.monotonic()
+        hit = self._cache.get(key)
+        if hit is None or now - hit[0] >= every:
+            hit = (now, fn())
+            self._cache[key] = hit
+        return hit[1]
+
+    def vibration_view(self, name: str) -> dict | None:
+        entry = self._rings.get(name)
+        if entry is None:
+            return None
+        ring = entry[0]
+        now = time.monotonic()
+        hit = self._vib.get(name)
+        if hit is None or hit[1] != ring.blocks and now - hit[0] >= VIEW_MIN_S:
+            hit = self._vib[name] = (now, ring.blocks, ring.view())
+        return hit[2]
+
+    def view(self, name: str) -> dict | None:
+        """The analyzer's view, shared by subscribers within VIEW_MIN_S."""
+        return self._cached(f"view:{name}", VIEW_MIN_S, lambda: _safe_view(self.view_fns[name]))
+
+    def states(self) -> dict:
+        return self._cached("status", STATES_EVERY_S / 2, self.status)
+
+    def _start_poller(self, last: int) -> None:
+        if self._poller is None:
+            self._cursor = last
+            self._poller = asyncio.create_task(self._poll_events())
+
+    async def _poll_events(self) -> None:
+        while True:
+            await asyncio.sleep(EVENT_POLL_S)
+            try:
+                rows = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None, self._cursor)
+            except Exception as e:   # the store says why; subscribers get the events on the next poll
+                log.error("push_events_failed", error=str(e))
+                continue
+            if rows:
+                self._cursor = rows[-1]["id"]
+                for sub in list(self.subscribers):
+                    if sub.events:
+                        sub.add_events(rows)
+
+
+def _wild(pattern: str) -> bool:
+    return any(c in pattern for c in "*?[")
+
+
+def _expand(a: Args, key: str, patterns: list[str], names: list[str], missing: str) -> list[str]:
+    """Names matching each pattern (shell wildcards: "*" is every one, and may be none: a line
+    without a vibration sensor still gets its view); a name that is not there is an error."""
+    out: list[str] = []
+    for i, pat in enumerate(patterns):
+        hit = [n for n in names if fnmatch.fnmatchcase(n, pat)]
+        if not hit and not _wild(pat):
+            raise a.error(f"{key}[{i}]", missing.format(pat) + (", ".join(names) or "none"))
+        out += [n for n in hit if n not in out]
+    return out
+
+
+def _safe_view(fn: Callable[[], dict | None]) -> dict | None:
+    try:
+        return fn()
+    except Exception as e:   # a view bug must not end the subscription
+        log.exception("view_failed")
+        return {"error": f"{type(e).__name__}: {e}"}
+
+
+class Subscription(Stream):
+    def __init__(self, hub: PushHub, samples: list[str], vibration: list[str], views: list[str], states: bool,
+                 events: bool, kinds: set[str], sources: set[str], rate_hz: float):
+        self.hub = hub
+        self.patterns = [tuple(p.split("/", 1)) for p in samples]
+        self.vibration, self.views, self.states, self.events = vibration, views, states, events
+        self.kinds, self.sources = kinds, sources
+        self.period = 1.0 / rate_hz
+        self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_FRAMES)
+        self.last_event_id = 0
+        self._events: list[dict] = []
+        self._sent: dict[tuple[str, str], float] = {}
+        self._sent_vib: dict[str, float] = {}
+        self._sent_view: dict[str, dict | None] = {}
+        self._states_at = time.monotonic()
+        self._frame_at = time.monotonic()
+
+    def add_events(self, rows: list[dict]) -> None:
+        for r in rows:
+            if r["id"] > self.last_event_id and (not self.kinds or r["kind"] in self.kinds) \
+                    and (not self.sources or r["source"] in self.sources):
+                self._events.append(r)
+                self.last_event_id = r["id"]
+
+    def changed_samples(self) -> dict[str, list]:
+        out = {}
+        for key, s in list(self.hub.bus.latest.items()):
+            if self._sent.get(key) == s.t:
+                continue
+            if any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq) for ps, pq in self.patterns):
+                out[f"{key[0]}/{key[1]}"] = [s.t, s.value, s.unit]
+                self._sent[key] = s.t
+        return out
+
+    def frame(self) -> dict | None:
+        """What changed since the last frame; None if nothing did and no heartbeat is due."""
+        now = time.monotonic()
+        f: dict[str, Any] = {}
+        if self.patterns and (samples := self.changed_samples()):
+            f["samples"] = samples
+        for name in self.vibration:
+            v = self.hub.vibration_view(name)
+            if v is not None and v["t_end"] != self._sent_vib.get(name):
+                f.setdefault("vibration", {})[name] = v
+                self._sent_vib[name] = v["t_end"]
+        for name in self.views:
+            v = self.hub.view(name)
+            if v != self._sent_view.get(name):   # a lobe chart that did not move is not sent again
+                f.setdefault("views", {})[name] = v
+                self._sent_view[name] = v
+        if self.states and now - self._states_at >= STATES_EVERY_S:
+            f["status"] = self.hub.states()
+            self._states_at = now
+        if self._events:
+            f["events"], self._events = self._events, []
+        if not f and now - self._frame_at < HEARTBEAT_S:
+            return None
+        self._frame_at = now
+        f["t"] = time.time()
+        return f
+
+    async def _produce(self) -> str:
+        while True:
+            await asyncio.sleep(self.period)
+            f = self.frame()
+            if f is None:
+                continue
+            try:
+                self.queue.put_nowait(f)
+            except asyncio.QueueFull:
+                return f"the client fell {QUEUE_FRAMES} frames behind (not reading)"
+
+    async def _write(self, writer: asyncio.StreamWriter, write_timeout: float) -> str:
+        while True:
+            f = await self.queue.get()
+            writer.write(_encode({"push": f}))
+            try:
+                async with asyncio.timeout(write_timeout):
+                    await writer.drain()
+            except TimeoutError:
+                return f"the client read nothing for {write_timeout:g} s"
+
+    async def run(self, writer: asyncio.StreamWriter, write_timeout: float) -> str | None:
+        tasks = [asyncio.create_task(self._produce()), asyncio.create_task(self._write(writer, write_timeout))]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+            t = done.pop()
+            if t.exception() is not None:
+                if isinstance(t.exception(), ConnectionError):
+                    return None
+                log.error("subscription_failed", error=repr(t.exception()))
+                return f"internal error: {t.exception()!r}"
+            reason = t.result()
+            self.hub.drop(self, reason)
+            return reason
+        finally:
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            self.close()
+
+    def close(self) -> None:
+        self.hub.remove(self)
+        self.queue = asyncio.Queue()   # the frames it did not take are freed now

@@ -1,0 +1,42 @@
+"""Accounts of the operator view: users, roles, scrypt password hashes.
+
+A hash is ``scrypt$N$r$p$SALT_HEX$KEY_HEX`` (``lathed-web hash-password``
+makes one); only hashes are ever stored in the config.
+"""
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+
+ROLES = ("viewer", "operator")
+N, R, P = 1 << 14, 8, 1     # ~16 MiB and ~50 ms per check: cheap for a login, dear for a guesser
+
+
+def hash_password(password: str, salt: bytes | None = None) -> str:
+    salt = os.urandom(16) if salt is None else salt
+    key = hashlib.scrypt(password.encode(), salt=salt, n=N, r=R, p=P, dklen=32)
+    return f"scrypt${N}${R}${P}${salt.hex()}${key.hex()}"
+
+
+def check_hash_format(text: str) -> str | None:
+    """Why ``text`` is not a hash this module makes, or None."""
+    parts = text.split("$")
+    if len(parts) != 6 or parts[0] != "scrypt":
+        return "not an scrypt hash (scrypt$N$r$p$salt$key); make one with `lathed-web hash-password`"
+    try:
+        n, r, p = (int(x) for x in parts[1:4])
+        bytes.fromhex(parts[4]), bytes.fromhex(parts[5])
+    except ValueError:
+        return "a malformed scrypt hash (N, r, p must be integers, salt and key hex)"
+    if n < 2 or n & (n - 1) or n > 1 << 20 or not 1 <= r <= 64 or not 1 <= p <= 16:
+        return f"scrypt parameters out of range (N={n} must be a power of 2 up to 2**20, r 1..64, p 1..16)"
+    return None
+
+
+def verify(password: str, stored: str) -> bool:
+    _, n, r, p, salt, key = stored.split("$")
+    want = bytes.fromhex(key)
+    got = hashlib.scrypt(password.encode(), salt=bytes.fromhex(salt), n=int(n), r=int(r), p=int(p),
+                         dklen=len(want), maxmem=256 << 20)
+    return hmac.compare_digest(got, want)

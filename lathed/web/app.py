@@ -1,0 +1,392 @@
+"""lathed-web: the operator view in a browser.
+
+One subscription to the daemon (lathed.push) feeds every browser through
+server-sent events; browsers never reach the daemon themselves, and a crowd
+of them costs the daemon nothing more than one subscriber. Actions (the
+suppression switch, suppress now, the thermal touch-off, an inspection) are the daemon's own
+control commands, sent with the user's name, so the event log says who.
+
+Access: 127.0.0.1 by default, open to whoever is on this PC (as user
+"local", operator). With [users.NAME] accounts every request needs one
+(HTTP basic auth; roles viewer and operator), and listening on any other
+address requires accounts. An action needs the operator role (else 403) and
+the page's CSRF token in X-CSRF-Token, which a cross-site page cannot read.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import getpass
+import hashlib
+import hmac
+import ipaddress
+import json
+import os
+import secrets
+import sys
+import time
+import tomllib
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import structlog
+from aiohttp import web
+
+from lathed import __version__
+from lathed import log as logmod
+from lathed.client import default_socket
+from lathed.config import EX_CONFIG, ConfigError, Section
+from lathed.web import accounts
+
+log = structlog.get_logger("lathed.web")
+STATIC = Path(__file__).parent / "static"
+HISTORY = 300          # points per value kept for a new page's charts
+EVENTS_KEPT = 200
+BROWSER_QUEUE = 64     # messages waiting for one browser before it is dropped (it reconnects by itself)
+RETRY_S = 1.0
+LINE_LIMIT = 16 << 20  # one pushed line (a status of a large line of machines, with views)
+
+
+class Settings:
+    def __init__(self, path: str | None, listen: str | None, port: int | None, sock: str | None):
+        data: dict = {}
+        if path:
+            try:
+                data = tomllib.loads(Path(path).read_text())
+            except (OSError, tomllib.TOMLDecodeError) as e:
+                raise ConfigError(f"{path}: {e}") from None
+        file = path or "(defaults)"
+        unknown = sorted(set(data) - {"web", "users"})
+        if unknown:
+            raise ConfigError(f"{file}: unknown table(s) {', '.join(unknown)}; allowed: web, users")
+        sec = Section(file, "web", data.get("web", {}))
+        self.listen = listen or sec.getstr("listen", "127.0.0.1")
+        self.port = port if port is not None else sec.getint("port", 8780, minval=1, maxval=65535)
+        self.socket = Path(sock or sec.getstr("socket", "") or default_socket())
+        self.rate_hz = sec.getfloat("rate_hz", 5.0, minval=0.5, maxval=20.0)
+        sec.check_unused()
+        self.users: dict[str, tuple[str, str]] = {}
+        for name, table in (data.get("users") or {}).items():
+            u = Section(file, f"users.{name}", table if isinstance(table, dict) else {})
+            role = u.getstr("role", choices=accounts.ROLES)
+            pw = u.getstr("password")
+            u.check_unused()
+            if (why := accounts.check_hash_format(pw)) is not None:
+                raise ConfigError(f"{file}: [users.{name}] password: {why}")
+            self.users[name] = (role, pw)
+        if not self.users and not _loopback(self.listen):
+            raise ConfigError(f"{file}: [web] listen = {self.listen!r} opens the view to the network: that needs "
+                              "accounts ([users.NAME] with role and a password hash from `lathed-web "
+                              "hash-password`)")
+
+
+def _loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class DaemonLink:
+    """The one subscription; what it has seen, for a page that opens now."""
+
+    def __init__(self, sock: Path, rate_hz: float):
+        self.sock, self.rate_hz = sock, rate_hz
+        self.connected = False
+        self.error: str | None = "not connected yet"
+        self.status: dict | None = None
+        self.latest: dict[str, list] = {}
+        self.history: dict[str, deque] = {}
+        self.vibration: dict[str, Any] = {}
+        self.views: dict[str, Any] = {}
+        self.events: deque = deque(maxlen=EVENTS_KEPT)
+        self.browsers: set[asyncio.Queue] = set()
+        self.dropped_browsers = 0
+        self.frames = 0
+
+    def snapshot(self) -> dict:
+        return {"type": "init", "connected": self.connected, "error": self.error, "status": self.status,
+                "units": {k: v[2] for k, v in self.latest.items()},
+                "history": {k: [[p[0] for p in h], [p[1] for p in h]] for k, h in self.history.items()},
+                "vibration": self.vibration, "views": self.views, "events": list(self.events)}
+
+    def _merge(self, f: dict) -> None:
+        for k, (t, v, unit) in f.get("samples", {}).items():
+            self.latest[k] = [t, v, unit]
+            self.history.setdefault(k, deque(maxlen=HISTORY)).append((t, v))
+        self.vibration.update({k: v for k, v in f.get("vibration", {}).items() if v is not None})
+        self.views.update(f.get("views", {}))
+        if f.get("status"):
+            self.status = f["status"]
+        self.events.extend(f.get("events", []))
+
+    def broadcast(self, msg: dict) -> None:
+        data = json.dumps(msg)
+        for q in list(self.browsers):
+            try:
+                q.put_nowait(data)
+            except asyncio.QueueFull:   # a browser that does not keep up: cut, it reconnects and redraws
+                self.browsers.discard(q)
+                self.dropped_browsers += 1
+                while not q.empty():
+                    q.get_nowait()
+                q.put_nowait(None)
+
+    def _down(self, why: str) -> None:
+        if self.connected or self.error != why:
+            self.connected, self.error = False, why
+            log.warning("daemon_link_down", socket=str(self.sock), error=why)
+            self.broadcast({"type": "link", "connected": False, "error": why})
+
+    async def run(self) -> None:
+        while True:
+            try:
+                await self._session()
+            except (FileNotFoundError, ConnectionRefusedError) as e:
+                self._down(f"no daemon on {self.sock} ({e.strerror or e})")
+            except (OSError, asyncio.IncompleteReadError, ValueError) as e:
+                self._down(f"lost the daemon on {self.sock}: {getattr(e, 'strerror', None) or e}")
+            except _Refused as e:
+                self._down(str(e))
+            await asyncio.sleep(RETRY_S)
+
+    async def _session(self) -> None:
+        reader, writer = await asyncio.open_unix_connection(str(self.sock), limit=LINE_LIMIT)
+        try:
+            writer.write(json.dumps({"cmd": "subscribe", "args": {
+                "samples": ["*/*"], "vibration": ["*"], "views": ["*"], "states": True, "events": True,
+                "events_limit": EVENTS_KEPT, "rate_hz": self.rate_hz}}).encode() + b"\n")
+            await writer.drain()
+            first = await self._line(reader)
+            if not first.get("ok"):
+                raise _Refused(f"the daemon refused the subscription: {first.get('error')}")
+            snap = first["result"]
+            self.latest, self.history, self.vibration, self.views = {}, {}, {}, {}
+            self.events.clear()
+            self._merge(snap)
+            self.connected, self.error = True, None
+            log.info("daemon_link_up", socket=str(self.sock))
+            self.broadcast(self.snapshot())
+            while True:
+                msg = await self._line(reader)
+                if "push" not in msg:
+                    raise _Refused(msg.get("error", "the daemon ended the subscription"))
+                self.frames += 1
+                self._merge(msg["push"])
+                self.broadcast({"type": "frame", **msg["push"]})
+        finally:
+            writer.close()
+
+    @staticmethod
+    async def _line(reader: asyncio.StreamReader) -> dict:
+        async with asyncio.timeout(10.0):   # the daemon sends a frame every second at least
+            line = await reader.readline()
+        if not line:
+            raise ConnectionResetError(0, "it closed the connection (stopped or restarting?)")
+        return json.loads(line)
+
+
+class _Refused(Exception):
+    pass
+
+
+async def ask(sock: Path, cmd: str, args: dict) -> Any:
+    """One control request; RuntimeError with the daemon's one-line reason if refused."""
+    reader, writer = await asyncio.open_unix_connection(str(sock), limit=LINE_LIMIT)
+    try:
+        writer.write(json.dumps({"cmd": cmd, "args": args}).encode() + b"\n")
+        async with asyncio.timeout(15.0):
+            reply = json.loads(await reader.readline())
+    finally:
+        writer.close()
+    if not reply.get("ok"):
+        raise RuntimeError(reply.get("error", "refused"))
+    return reply["result"]
+
+
+# -- the web side ----------------------------------------------------------------
+class App:
+    def __init__(self, settings: Settings):
+        self.s = settings
+        self.link = DaemonLink(settings.socket, settings.rate_hz)
+        self.secret = secrets.token_bytes(32)
+        self._verified: dict[tuple[str, bytes], float] = {}
+
+    def csrf(self, user: str) -> str:
+        return hmac.new(self.secret, user.encode(), hashlib.sha256).hexdigest()
+
+    async def user(self, request: web.Request) -> tuple[str, str]:
+        """(user, role) of a request, or raises 401."""
+        if not self.s.users:
+            return "local", "operator"
+        auth = request.headers.get("Authorization", "")
+        if auth.startswith("Basic "):
+            try:
+                name, _, pw = base64.b64decode(auth[6:]).decode().partition(":")
+            except ValueError:
+                name, pw = "", ""
+            acct = self.s.users.get(name)
+            if acct is not None:
+                key = (name, hashlib.sha256(pw.encode() + self.secret).digest())
+                # scrypt takes ~50 ms on purpose: in a thread, so guessing never stalls the pages
+                if key in self._verified or await asyncio.to_thread(accounts.verify, pw, acct[1]):
+                    self._verified[key] = time.time()
+                    return name, acct[0]
+        raise web.HTTPUnauthorized(headers={"WWW-Authenticate": 'Basic realm="lathed", charset="UTF-8"'},
+                                   text="an account is needed (ask for one: [users] in lathed-web's config)")
+
+    @web.middleware
+    async def access(self, request: web.Request, handler):
+        request["user"], request["role"] = await self.user(request)
+        resp = await handler(request)
+        resp.headers.setdefault("X-Frame-Options", "DENY")
+        resp.headers.setdefault("X-Content-Type-Options", "nosniff")
+        return resp
+
+    async def index(self, request: web.Request) -> web.Response:
+        html = (STATIC / "index.html").read_text()
+        meta = json.dumps({"user": request["user"], "role": request["role"], "csrf": self.csrf(request["user"]),
+                           "version": __version__})
+        return web.Response(text=html.replace("{{META}}", meta.replace("<", "\\u003c")), content_type="text/html")
+
+    async def events(self, request: web.Request) -> web.StreamResponse:
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"})
+        await resp.prepare(request)
+        q: asyncio.Queue = asyncio.Queue(maxsize=BROWSER_QUEUE)
+        q.put_nowait(json.dumps(self.link.snapshot()))
+        self.link.browsers.add(q)
+        try:
+            while True:
+                try:
+                    async with asyncio.timeout(15.0):
+                        data = await q.get()
+                except TimeoutError:
+                    await resp.write(b": keep-alive\n\n")
+                    continue
+                if data is None:
+                    break
+                await resp.write(b"data: " + data.encode() + b"\n\n")
+        except (ConnectionError, asyncio.CancelledError):
+            pass
+        finally:
+            self.link.browsers.discard(q)
+        return resp
+
+    async def api_get(self, request: web.Request) -> web.Response:
+        what = request.match_info["what"]
+        q = request.query
+        try:
+            if what == "parts":
+                res = await ask(self.s.socket, "parts", {"limit": 200, "abnormal": q.get("abnormal") == "1"})
+            elif what == "recommend":
+                res = await ask(self.s.socket, "recommend", {})
+            else:
+                raise web.HTTPNotFound(text=f"no {what!r} here")
+        except RuntimeError as e:   # the daemon's answer, e.g. no experiments recorded: shown as such
+            return web.json_response({"error": str(e)})
+        except (OSError, ValueError, TimeoutError) as e:
+            return web.json_response({"error": f"the daemon is not reachable: {e}"}, status=502)
+        return web.json_response({"result": res})
+
+    async def action(self, request: web.Request) -> web.Response:
+        user, role = request["user"], request["role"]
+        if not hmac.compare_digest(request.headers.get("X-CSRF-Token", ""), self.csrf(user)):
+            return web.json_response({"error": "missing or wrong CSRF token: reload the page"}, status=403)
+        origin = request.headers.get("Origin")
+        if origin is not None and origin.split("://", 1)[-1] != request.host:
+            return web.json_response({"error": f"a request from another site ({origin}) is refused"}, status=403)
+        if role != "operator":
+            log.warning("action_refused", user=user, role=role, path=request.path)
+            return web.json_response({"error": f"{user} is a {role}: actions need the operator role"}, status=403)
+        try:
+            body = await request.json()
+            if not isinstance(body, dict):
+                raise ValueError("expected a JSON object")
+        except ValueError as e:
+            return web.json_response({"error": f"malformed action: {e}"}, status=400)
+        what = request.match_info["what"]
+        if what == "suppress":
+            cmd, args = "suppress", {"action": body.get("action"), "by": user}
+        elif what == "thermal":
+            if body.get("action") != "touchoff":
+                return web.json_response({"error": "thermal: the only action here is touchoff"}, status=400)
+            cmd, args = "thermal", {"action": "touchoff", "by": user}
+        elif what == "inspect":
+            cmd, args = "inspect", {"part": body.get("part"), "ra_um": body.get("ra_um"),
+                                    "diameter_error_um": body.get("diameter_error_um"), "by": user}
+        else:
+            return web.json_response({"error": f"no action {what!r}"}, status=404)
+        try:
+            res = await ask(self.s.socket, cmd, args)
+        except RuntimeError as e:   # the daemon's own one-line refusal
+            return web.json_response({"error": str(e)}, status=400)
+        except (OSError, ValueError, TimeoutError) as e:
+            return web.json_response({"error": f"the daemon is not reachable: {e}"}, status=502)
+        log.info("action", user=user, cmd=cmd, args=args)
+        return web.json_response(res)
+
+    def build(self) -> web.Application:
+        app = web.Application(middlewares=[self.access], client_max_size=64 << 10)
+        app.router.add_get("/", self.index)
+        app.router.add_get("/events", self.events)
+        app.router.add_get("/api/{what}", self.api_get)
+        app.router.add_post("/api/{what}", self.action)
+        app.router.add_static("/static/", STATIC)
+        app.on_startup.append(self._start)
+        app.on_cleanup.append(self._stop)
+        return app
+
+    async def _start(self, app: web.Application) -> None:
+        self._task = asyncio.create_task(self.link.run())
+
+    async def _stop(self, app: web.Application) -> None:
+        self._task.cancel()
+        for q in list(self.link.browsers):
+            if not q.full():
+                q.put_nowait(None)
+        await asyncio.gather(self._task, return_exceptions=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="lathed-web", description="The operator view of lathed, in a browser.")
+    p.add_argument("--config", "-c", default=os.environ.get("LATHED_WEB_CONFIG"),
+                   help="TOML with [web] and [users.NAME] (default: $LATHED_WEB_CONFIG; none: local only)")
+    p.add_argument("--listen", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help="port (default 8780)")
+    p.add_argument("--socket", help="the daemon's control socket (default: as lathectl finds it)")
+    p.add_argument("--version", action="version", version=f"lathed-web {__version__}")
+    p.add_argument("command", nargs="?", choices=["serve", "hash-password"], default="serve",
+                   help="hash-password: read a password, print its hash for [users.NAME] password")
+    args = p.parse_args(argv)
+    if args.command == "hash-password":
+        pw = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
+        if not pw:
+            print("lathed-web: empty password", file=sys.stderr)
+            return 1
+        print(accounts.hash_password(pw))
+        return 0
+    logmod.setup("info")
+    try:
+        settings = Settings(args.config, args.listen, args.port, args.socket)
+    except ConfigError as e:
+        print(f"lathed-web: {e}", file=sys.stderr)
+        return EX_CONFIG
+    app = App(settings)
+    host = f"[{settings.listen}]" if ":" in settings.listen else settings.listen
+    print(f"lathed-web: the operator view is at http://{host}:{settings.port}/ "
+          f"(daemon socket {settings.socket})", flush=True)
+    try:
+        web.run_app(app.build(), host=settings.listen, port=settings.port, print=None,
+                    access_log=None, handle_signals=True)
+    except OSError as e:
+        print(f"lathed-web: cannot listen on {settings.listen}:{settings.port}: {e.strerror or e}", file=sys.stderr)
+        return 71
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,42 @@
+"""What a screen gets of a 51.2 kS/s channel (lathed.display): small, and true to the signal."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from lathed.display import COLUMNS, SPECTRUM_BINS, Ring, envelope, rounded, spectrum
+
+RATE = 51200.0
+
+
+def test_envelope_keeps_every_extreme():
+    x = np.random.default_rng(1).normal(size=8192)
+    x[5000] = 9.0                      # one sample spike: a plot of every 20th sample would miss it
+    env = envelope(x, RATE)
+    assert len(env["env_max"]) == COLUMNS
+    assert max(env["env_max"]) == 9.0 and min(env["env_min"]) == rounded(np.array([x.min(), 9.0]))[0]
+
+
+def test_spectrum_finds_a_chatter_tone_at_its_frequency_and_amplitude():
+    t = np.arange(8192) / RATE
+    x = 0.01 * np.random.default_rng(2).normal(size=t.size) + 2.0 * np.sin(2 * np.pi * 620.0 * t)
+    sp = spectrum(x, RATE)
+    assert len(sp["spec_f"]) <= SPECTRUM_BINS and max(sp["spec_f"]) <= 5000
+    peak = int(np.argmax(sp["spec_a"]))
+    assert abs(sp["spec_f"][peak] - 620.0) < 15      # a bin is 12.5 Hz wide
+    assert 1.6 < sp["spec_a"][peak] < 2.1           # Hann scalloping at most -1.4 dB
+
+
+def test_ring_view_is_small_json_and_follows_a_rate_change():
+    r = Ring()
+    r.add(np.ones(10_000), RATE, 100.0)
+    v = r.view()
+    assert v["t_end"] == 100.0 + 10_000 / RATE and len(json.dumps(v)) < 20_000
+    r.add(np.ones(100), 1000.0, 200.0)       # another stream rate: the old samples are not mixed in
+    assert r.filled == 100
+
+
+def test_rounded_is_json_safe():
+    assert rounded(np.array([0.0123456, 1.23456, np.nan, np.inf])) == [0.012, 1.235, None, None]
+    assert json.dumps(rounded(np.zeros(2))) == "[0.0, 0.0]"

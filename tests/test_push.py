@@ -1,0 +1,200 @@
+"""The push API (lathed.push): `subscribe` on the control socket."""
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+
+import pytest
+
+from lathed.client import RemoteError, subscribe
+from tests.conftest import BIN, Daemon, sim_config, wait_until
+from tests.inproc_daemon import InProcessDaemon
+
+
+@pytest.fixture(scope="module")
+def inproc(tmp_path_factory):
+    d = InProcessDaemon(tmp_path_factory.mktemp("push"))
+    yield d
+    d.close()
+
+
+@pytest.mark.parametrize("args, wanted", [
+    ({"samples": ["lathe"]}, "subscribe: samples[0]: 'lathe' is not SOURCE/QUANTITY"),
+    ({"samples": ["spindle/*"]}, "subscribe: samples[0]: no machine, sensor or analyzer named 'spindle'"),
+    ({"vibration": ["lathe"]}, "subscribe: vibration[0]: no sensor named 'lathe'"),
+    ({"views": ["thermal"]}, "subscribe: views[0]: 'thermal' has no view"),
+    ({"events": True, "rate_hz": 100}, "subscribe: rate_hz: 100 is out of range"),
+    ({"kinds": ["chatter_alarm"]}, "subscribe: kinds: narrows events: give events = true too"),
+    ({}, "subscribe: nothing asked for"),
+    ({"states": True, "colour": "red"}, "subscribe: unknown argument 'colour'"),
+])
+def test_bad_subscriptions_are_refused_in_one_line(inproc, args, wanted):
+    reply = inproc.handle(json.dumps({"cmd": "subscribe", "args": args}).encode())
+    assert reply["ok"] is False
+    assert reply["error"].startswith(wanted), reply["error"]
+    assert "\n" not in reply["error"]
+    assert inproc.daemon.push.subscribers == set()
+
+
+def test_wildcards_that_match_nothing_are_not_an_error(inproc):
+    """A line without such a sensor or analyzer: a pattern like lathed-web's "*" must still
+    subscribe (an exact name that is not there is refused, above)."""
+    reply = inproc.handle(json.dumps({"cmd": "subscribe", "args": {
+        "samples": ["mill*/x_mm"], "vibration": ["accel*"], "views": ["chat*"], "states": True}}).encode())
+    assert reply["ok"] is True, reply
+    sub = reply["result"]
+    assert sub.vibration == [] and sub.views == [] and sub.first["samples"] == {}
+    assert inproc.daemon.push.subscribers == {sub}
+    sub.close()
+    assert inproc.daemon.push.subscribers == set()
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("push-live")
+    cfg, paths = sim_config(tmp, analyzers="""
+[analyzer.chatter]
+plugin = "chatter"
+input = "accel"
+machine = "lathe"
+
+[analyzer.suppress]
+plugin = "suppression"
+chatter = "chatter"
+machine = "lathe"
+mode = "auto"
+strategy = "frequency"
+""")
+    d = Daemon(cfg, paths["socket"])
+    try:
+        d.wait_ready()
+        wait_until(lambda: d.item("sensors", "accel")["state"] == "connected", what="accel connected")
+        yield d
+    finally:
+        d.stop()
+
+
+def test_a_subscriber_gets_the_snapshot_then_live_values(live):
+    frames = subscribe({"samples": ["lathe/spindle_rpm", "temps/*"], "vibration": ["accel"], "states": True,
+                        "events": True, "events_limit": 100, "rate_hz": 10}, sock_path=live.socket)
+    first = next(frames)
+    # the snapshot: the latest of everything asked for, at once
+    assert "lathe/spindle_rpm" in first["samples"]
+    assert any(k.startswith("temps/t_") for k in first["samples"])
+    assert all(k == "lathe/spindle_rpm" or k.startswith("temps/") for k in first["samples"])
+    assert {m["name"] for m in first["status"]["machines"]} == {"lathe"}
+    assert "daemon_started" in [e["kind"] for e in first["events"]]
+    t0 = first["samples"]["lathe/spindle_rpm"][0]
+    # then frames with newer values, a decimated vibration view and a new event
+    live.ctl("suppress", "manual")
+    seen: dict[str, object] = {}
+    for n, f in enumerate(frames):
+        assert n < 200, f"in 200 frames, saw only {sorted(seen)}"
+        if f.get("samples", {}).get("lathe/spindle_rpm", [0])[0] > t0:
+            seen["rpm"] = True
+        if f.get("vibration", {}).get("accel"):
+            v = f["vibration"]["accel"]
+            assert v["rate_hz"] == 51200 and len(v["env_min"]) <= 400 and len(v["spec_a"]) <= 400
+            seen["vib"] = True
+        if "status" in f:
+            seen["status"] = True
+        for e in f.get("events", []):
+            if e["kind"] == "suppression_mode":
+                seen["event"] = e
+        if len(seen) == 4:
+            break
+    frames.close()
+    assert seen["event"]["payload"]["to"] == "manual"
+    wait_until(lambda: live.status()["daemon"]["control"]["subscribers"] == 0, what="subscriber gone")
+
+
+def test_a_subscriber_that_never_reads_is_dropped_and_the_loop_does_not_wait(live):
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.connect(str(live.socket))
+    s.sendall(json.dumps({"cmd": "subscribe", "args": {"vibration": ["accel"], "samples": ["*/*"],
+                                                       "rate_hz": 20}}).encode() + b"\n")
+    # it never reads: the daemon gives it up within its bounds (32 frames queued, 5 s to drain)
+    try:
+        ctl = wait_until(lambda: (c := live.status()["daemon"]["control"])["dropped"] >= 1 and c, timeout=30,
+                         interval=0.5, what="the silent subscriber dropped")
+        assert ctl["subscribers"] == 0
+        assert "fell 32 frames behind" in ctl["last_drop"] or "read nothing" in ctl["last_drop"]
+        lag = live.status()["daemon"]["loop_lag_ms"]
+        # a loop that waited on the silent client would lag by the 5 s drain bound; this
+        # allows for the CPU contention of a shared test machine, not for waiting
+        assert lag["p99"] is not None and lag["p99"] < 250, lag
+    finally:
+        s.close()
+    # the daemon still serves subscribers after that
+    frames = subscribe({"samples": ["lathe/*"]}, sock_path=live.socket)
+    assert next(frames)["samples"]
+    frames.close()
+
+
+def test_lathectl_events_follow_and_watch(live):
+    follow = subprocess.Popen([str(BIN / "lathectl"), "--socket", str(live.socket), "events", "--follow",
+                               "--limit", "1", "--kind", "suppression_mode", "--json"],
+                              stdout=subprocess.PIPE, text=True)
+    watch = subprocess.Popen([str(BIN / "lathectl"), "--socket", str(live.socket), "watch", "lathe/spindle_rpm",
+                              "--rate", "5"], stdout=subprocess.PIPE, text=True)
+    try:
+        wait_until(lambda: live.status()["daemon"]["control"]["subscribers"] == 2, what="two subscribers")
+        live.ctl("suppress", "off")
+        line = json.loads(follow.stdout.readline())
+        if line["payload"]["to"] != "off":   # the one before, from the snapshot
+            line = json.loads(follow.stdout.readline())
+        assert line["kind"] == "suppression_mode" and line["payload"]["to"] == "off"
+        out = watch.stdout.readline()
+        assert "lathe/spindle_rpm" in out and "r/min" in out
+    finally:
+        for p in (follow, watch):
+            p.terminate()
+            p.wait(10)
+
+
+def test_a_refused_subscription_raises_remote_error(live):
+    with pytest.raises(RemoteError, match="no sensor named 'nope'"):
+        next(subscribe({"vibration": ["nope"]}, sock_path=live.socket))
+
+
+def test_subscribers_beyond_the_configured_cap_are_refused(tmp_path):
+    d = InProcessDaemon(tmp_path, daemon="control_max_subscribers = 0")
+    try:
+        reply = d.handle(b'{"cmd": "subscribe", "args": {"states": true}}\n')
+        assert reply == {"ok": False, "error": "subscribe: 0 subscribers already (the daemon's [daemon] "
+                                               "control_max_subscribers); try again later"}
+    finally:
+        d.close()
+
+
+def test_the_hub_keeps_one_view_per_sensor_however_many_blocks_pass(monkeypatch):
+    """A cache keyed by the block count grew by an entry per block: the daemon's memory, forever."""
+    import asyncio
+
+    import numpy as np
+
+    from lathed.bus import Block, Bus
+    from lathed import push
+    from lathed.push import PushHub
+    monkeypatch.setattr(push, "VIEW_MIN_S", 0.0)   # every block makes a new view
+
+    async def scenario():
+        bus = Bus()
+        hub = PushHub(bus, None, {"accel": "sensor"}, dict, {}, max_subscribers=4)
+        sub = await hub.subscribe({"vibration": ["accel"]})
+        views = []
+        for i in range(300):
+            bus.publish(Block("accel", "acceleration", 51200.0, i * 0.01, i * 512, np.ones(512)))
+            await asyncio.sleep(0)
+            views.append(hub.vibration_view("accel"))
+        sizes = len(hub._cache) + len(getattr(hub, "_vib", {}))
+        sub.close()
+        await asyncio.sleep(0)   # the ring's reader ends before the loop does
+        return views, sizes, hub
+
+    views, sizes, hub = asyncio.run(scenario())
+    assert sizes <= 2
+    assert views[-1]["t_end"] == 299 * 0.01 + 512 / 51200.0   # the newest block's view, not a stale one
+    assert hub.subscribers == set() and hub._rings == {}
