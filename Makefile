@@ -21,7 +21,7 @@ run: $(STAMP)
 test: $(STAMP)
 	bash tests/ensure_postgres.sh
 	bash tests/ensure_chromium.sh
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 # Benchmarks: each prints a Markdown table (the README's performance section).
 bench-daemon: $(STAMP)

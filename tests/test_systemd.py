@@ -54,7 +54,7 @@ def test_web_unit_verifies_clean(tmp_path):
 
 def test_web_unit_runs_after_the_daemon_as_its_own_user():
     unit = (ROOT / "systemd" / "lathed-web.service").read_text()
-    for line in ("Requires=lathed.service", "After=lathed.service", "User=lathed-web", "SupplementaryGroups=lathed",
+    for line in ("Wants=lathed.service", "After=lathed.service", "User=lathed-web", "SupplementaryGroups=lathed",
                  "ProtectSystem=strict", "PrivateDevices=yes", "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6",
                  "CapabilityBoundingSet=\n"):
         assert line in unit
