@@ -199,13 +199,22 @@ class PushHub:
             self._poller = asyncio.create_task(self._poll_events())
 
     async def _poll_events(self) -> None:
+        failing_since: float | None = None     # a failing store is said once, and when it recovers
+        failures = 0
         while True:
             await asyncio.sleep(EVENT_POLL_S)
             try:
                 rows = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None, self._cursor)
             except Exception as e:   # the store says why; subscribers get the events on the next poll
-                log.error("push_events_failed", error=str(e))
+                failures += 1
+                if failing_since is None:
+                    failing_since = time.monotonic()
+                    log.error("push_events_failed", error=str(e))
                 continue
+            if failing_since is not None:
+                log.info("push_events_recovered", failed_polls=failures,
+                         after_s=round(time.monotonic() - failing_since, 1))
+                failing_since, failures = None, 0
             if rows:
                 self._cursor = rows[-1]["id"]
                 for sub in list(self.subscribers):

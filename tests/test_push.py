@@ -198,3 +198,37 @@ def test_the_hub_keeps_one_view_per_sensor_however_many_blocks_pass(monkeypatch)
     assert sizes <= 2
     assert views[-1]["t_end"] == 299 * 0.01 + 512 / 51200.0   # the newest block's view, not a stale one
     assert hub.subscribers == set() and hub._rings == {}
+
+
+def test_a_failing_store_is_said_once_and_its_recovery_too(monkeypatch):
+    """The events poller runs 5 times a second: a failing store was logged at that rate."""
+    import asyncio
+
+    import structlog
+
+    from lathed import push
+    from lathed.bus import Bus
+    from lathed.push import PushHub
+    monkeypatch.setattr(push, "EVENT_POLL_S", 0.0)
+
+    class FlakyStore:
+        calls = 0
+
+        def events(self, *args):
+            self.calls += 1
+            if self.calls <= 5:
+                raise OSError("disk I/O error")
+            return []
+
+    async def scenario(store):
+        hub = PushHub(Bus(), store, {}, dict, {}, max_subscribers=4)
+        task = asyncio.create_task(hub._poll_events())
+        while store.calls < 8:
+            await asyncio.sleep(0)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+    with structlog.testing.capture_logs() as logs:
+        asyncio.run(scenario(FlakyStore()))
+    said = [(e["event"], e.get("failed_polls")) for e in logs if e["event"].startswith("push_events")]
+    assert said == [("push_events_failed", None), ("push_events_recovered", 5)]
