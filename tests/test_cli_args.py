@@ -27,3 +27,23 @@ def test_socket_before_or_after_the_command(argv, tmp_path, capsys):
     sock = str(tmp_path / "other.sock")
     assert main([a.format(s=sock) for a in argv]) == 69
     assert f"no daemon listening on {sock}" in capsys.readouterr().err
+
+
+def test_lathectl_starts_without_numpy_or_scipy():
+    # issue 17 item 8: every command imported scipy (0.4 s for --version); the numeric cores
+    # are imported when an analysis runs
+    import subprocess
+    import sys
+    code = ("import sys; from lathed.lathectl import build_parser; build_parser().parse_args(['status']); "
+            "print(sorted(m for m in ('numpy', 'scipy', 'matplotlib') if m in sys.modules))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
+
+
+def test_names_kept_beside_the_parser_match_the_registries():
+    from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS
+    from lathed.cli import analyze_chatter, sim
+    from lathed.sim.thermal import EFFECTS
+    assert analyze_chatter.BUILTIN_DETECTORS == tuple(sorted(DETECTORS))
+    assert analyze_chatter.DEFAULT_DETECTOR == DEFAULT_DETECTOR
+    assert sim.THERMAL_EFFECTS == EFFECTS

@@ -6,17 +6,14 @@ import json
 import math
 import sys
 
-import numpy as np
-
 from lathed.cli import EX_CANTCREAT, positive, spindle_rpm
-from lathed.analysis.lobes import StabilityLobes
-from lathed.analysis.modal import parse_mode
 
 # JSON stays readable: each lobe is thinned to at most this many points.
 MAX_POINTS_PER_LOBE = 400
 
 
 def _mode(text: str):
+    from lathed.analysis.modal import parse_mode   # numpy: only when the command is used
     try:
         return parse_mode(text)
     except ValueError as e:
@@ -55,13 +52,18 @@ def _mm(x: float) -> float | None:
     return round(float(x) * 1e3, 6) if math.isfinite(x) else None
 
 
-def _thin(a: np.ndarray) -> np.ndarray:
+def _thin(a):
+    import numpy as np
     if len(a) <= MAX_POINTS_PER_LOBE:
         return a
     return a[np.linspace(0, len(a) - 1, MAX_POINTS_PER_LOBE).round().astype(int)]
 
 
 def run(args) -> int:
+    import numpy as np
+
+    from lathed.analysis.lobes import StabilityLobes
+
     try:
         lobes = StabilityLobes(args.modes, args.kf)
     except ValueError as e:
@@ -103,10 +105,11 @@ def run(args) -> int:
     return 0
 
 
-def _plot(pieces, lobes: StabilityLobes, args, path: str) -> None:
+def _plot(pieces, lobes, args, path: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
     lo, hi = args.rpm_range
     fig, ax = plt.subplots(figsize=(8, 4.5))

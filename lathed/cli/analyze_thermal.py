@@ -7,10 +7,13 @@ import math
 import sys
 from pathlib import Path
 
-from lathed.cli import EX_CANTCREAT
-from lathed.analysis.thermal import (Analysis, ThermalData, analyze, describe, load_model, reference_test,
-                                     split_run)
-from lathed.analysis.thermal_csv import EX_DATAERR, LoadReport, ThermalCsvError, load_thermal_csv
+from typing import TYPE_CHECKING
+
+from lathed.cli import EX_CANTCREAT, EX_DATAERR
+
+if TYPE_CHECKING:
+    from lathed.analysis.thermal import Analysis, ThermalData
+    from lathed.analysis.thermal_csv import LoadReport
 
 
 def register_analyze(sub) -> None:
@@ -85,6 +88,10 @@ def _plot(path: str, a: Analysis, data: ThermalData, label: str) -> None:
 
 
 def run(args) -> int:
+    # numpy and scipy only when the command runs: lathectl's other commands start without them
+    from lathed.analysis.thermal import analyze, describe, load_model, reference_test, split_run
+    from lathed.analysis.thermal_csv import ThermalCsvError, load_thermal_csv
+
     try:
         train, rep = load_thermal_csv(args.train)
         test, trep = (load_thermal_csv(args.test) if args.test else (None, None))

@@ -12,6 +12,8 @@ from lathed.client import DaemonUnavailable, RemoteError, default_socket
 from lathed.lathectl import print_json
 
 
+# lathed.sim.thermal.EFFECTS, named here so lathectl starts without numpy and scipy (a test keeps them equal)
+THERMAL_EFFECTS = ("lag", "rate", "speed", "nonlinear", "hysteresis", "drift")
 DEPTH_MAX_MM = 50.0   # beyond any turning pass
 
 
@@ -97,11 +99,10 @@ def register(sub) -> None:
     o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
     o.add_argument("seconds", type=float)
     s.add_parser("status", help="the simulator's state")
-    from lathed.sim.thermal import EFFECTS
     t = s.add_parser("thermal-run", help="write a simulated thermal run (CSV) for `lathectl analyze thermal`; "
                                          "no daemon needed")
     t.add_argument("out", metavar="OUT.csv")
-    t.add_argument("--effect", action="append", choices=EFFECTS,
+    t.add_argument("--effect", action="append", choices=THERMAL_EFFECTS,
                    help="an effect the static regression lacks, put into the data (repeatable; default none)")
     t.add_argument("--hours", type=positive, default=8.0, help="length of the run (default 8: one shift)")
     t.add_argument("--seed", type=int, default=1, help="speed schedule, sensor noise and time of day")
