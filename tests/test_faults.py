@@ -163,7 +163,8 @@ class Line:
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             stalled = [n for n in self.drivers if n != peer and not self.fresh(n)]
-            assert not stalled, f"{stalled} stopped delivering while {peer} was down"
+            assert not stalled, (f"{stalled} stopped delivering while {peer} was down: "
+                                 f"{[(n, self.runners[n].describe(), getattr(self.drivers[n], 'rejected', None)) for n in stalled]}")
             await asyncio.sleep(0.1)
         await up()
         back = time.monotonic()
