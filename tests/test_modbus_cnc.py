@@ -3,6 +3,7 @@ TCP and RTU against real pymodbus servers, writes only where declared."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
 from collections import Counter
 
@@ -127,6 +128,58 @@ def test_tcp_fills_the_model_and_writes_only_declared_registers():
     asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
 
 
+def test_simulated_controller_answers_as_a_real_one():
+    """The simulator's server, seen from a plain Modbus client: it serves the
+    machine's values, refuses writes to read-only registers and values the
+    machine refuses (without storing them), passes accepted writes on, and
+    answers only the holding-register function codes."""
+    from pymodbus.client import AsyncModbusTcpClient
+    from pymodbus.constants import ExcCodes
+
+    from lathed.sim.modbus_peer import decode, encode
+
+    writes = []
+
+    def on_write(name, value):
+        if value > 5000:
+            raise ValueError(f"spindle speed {value} r/min beyond the drive's 0..5000")
+        writes.append((name, value))
+
+    port = free_port()
+    peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, on_write)
+    peer.block.update({"spindle_rpm": 1234.0, "program_number": 2100})
+
+    async def main():
+        await peer.start()
+        client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=2)
+        try:
+            assert await client.connect()
+
+            async def read(address, count):
+                rr = await client.read_holding_registers(address, count=count, device_id=1)
+                assert not rr.isError(), rr
+                return rr.registers
+
+            regs = await read(0, N_CELL_REGISTERS)
+            assert decode(regs[2:4], "float32") == 1234.0 and regs[15] == 2100
+            rr = await client.write_registers(2, encode(9.0, "float32"), device_id=1)
+            assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_ADDRESS
+            rr = await client.write_registers(0, encode(9999.0, "float32"), device_id=1)
+            assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_VALUE
+            assert writes == [] and decode(await read(0, 2), "float32") == 0.0
+            rr = await client.write_registers(0, encode(3000.0, "float32"), device_id=1)
+            assert not rr.isError(), rr
+            assert writes == [("spindle_rpm_cmd", 3000.0)] and decode(await read(0, 2), "float32") == 3000.0
+            rr = await client.read_holding_registers(N_CELL_REGISTERS - 2, count=4, device_id=1)
+            assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_ADDRESS
+            rr = await client.read_coils(0, count=8, device_id=1)
+            assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_FUNCTION
+        finally:
+            client.close()
+            await peer.stop()
+    asyncio.run(asyncio.wait_for(main(), 30))
+
+
 def test_rtu_over_a_null_modem(tmp_path):
     grinder = SimCycleMachine(MILL_PROGRAM)
     peer = ModbusPeer("127.0.0.1", 0, CELL_MAP, N_CELL_REGISTERS, grinder.write,
@@ -154,7 +207,7 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
     unit 1 nothing but bus time; a third machine asking other serial settings
     is refused with the reason."""
     from pymodbus import FramerType
-    from pymodbus.datastore import ModbusDeviceContext, ModbusServerContext
+    from pymodbus.exceptions import NoSuchIdException
     from pymodbus.server import ModbusSerialServer
 
     from lathed.sim.modbus_peer import _Registers
@@ -175,9 +228,19 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
         d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
         return d
 
+    powered = {1: True, 2: True}
+
+    def unit(u):
+        # a controller switched off does not answer: the server, told to
+        # ignore missing devices, stays silent for a unit that is not there
+        async def action(*request):
+            if not powered[u]:
+                raise NoSuchIdException(f"unit {u} is switched off")
+            return await blocks[u].action(*request)
+        return dataclasses.replace(blocks[u].device(u), action=action)
+
     async def main():
-        ctx = ModbusServerContext(devices={u: ModbusDeviceContext(hr=b) for u, b in blocks.items()}, single=False)
-        server = ModbusSerialServer(ctx, framer=FramerType.RTU, port=nm.open(), baudrate=115200,
+        server = ModbusSerialServer([unit(1), unit(2)], framer=FramerType.RTU, port=nm.open(), baudrate=115200,
                                     ignore_missing_devices=True)
         await server.serve_forever(background=True)
         a, b = machine("grinder1", 1), machine("grinder2", 2)
@@ -191,7 +254,7 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
             assert a.values["spindle_rpm"][0] == 1111.0 and b.values["spindle_rpm"][0] == 2222.0
             assert a.errors == Counter() and b.errors == Counter()
             # unit 2 goes silent (powered off): grinder2 retries, grinder1 keeps its data fresh
-            del ctx[2]
+            powered[2] = False
             await until(lambda: runners[1].state != "connected", 5, "grinder2 noticing")
             polls = a.polls
             t0 = time.monotonic()
@@ -201,7 +264,7 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
             assert a.polls - polls >= 10 and a.errors == Counter() and runners[0].state == "connected"
             assert b.errors["timeout"] >= 1
             # back on: grinder2 reconnects on the same open port
-            ctx[2] = ModbusDeviceContext(hr=blocks[2])
+            powered[2] = True
             await until(lambda: runners[1].state == "connected" and b.values["spindle_rpm"][0] == 2222.0, 10,
                         "grinder2 back")
             assert a.link is b.link

@@ -8,14 +8,15 @@ from typing import Callable
 
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
-from pymodbus.datastore import ModbusDeviceContext, ModbusSequentialDataBlock, ModbusServerContext
 from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
 
 from lathed.sim.serial_peer import NullModem
 
 log = logging.getLogger("lathed.sim.modbus")
 DT = AsyncModbusTcpClient.DATATYPE
+HOLDING = {3, 6, 16, 22, 23}     # function codes on holding registers
 TYPES = {"int16": DT.INT16, "uint16": DT.UINT16, "int32": DT.INT32, "uint32": DT.UINT32, "float32": DT.FLOAT32}
 
 
@@ -30,40 +31,58 @@ def decode(regs: list[int], typ: str) -> float:
     return float(AsyncModbusTcpClient.convert_from_registers(regs, TYPES[typ], word_order="big"))
 
 
-class _Registers(ModbusSequentialDataBlock):
-    """Holding registers that refuse writes to read-only addresses and pass
-    accepted writes to the machine."""
+class _Registers:
+    """A controller's holding registers, served through pymodbus's SimDevice:
+    the machine's values live here, each request first copies them into the
+    server's memory; writes to read-only addresses are refused and accepted
+    writes pass to the machine, which may refuse the value."""
 
     def __init__(self, regmap: dict, size: int, on_write: Callable[[str, float], None]):
-        super().__init__(1, [0] * size)      # pymodbus adds 1 to protocol addresses
         self.regmap = regmap
         self.on_write = on_write
+        self.regs = [0] * size
         self._owner = {}
         for name, (addr, typ, writable, _unit) in regmap.items():
             for a in range(addr, addr + len(encode(0, typ))):
                 self._owner[a] = (name, writable)
 
+    def device(self, unit: int = 0) -> SimDevice:
+        """The server-side device; unit 0 answers every unit address."""
+        return SimDevice(unit, simdata=SimData(0, values=[0] * len(self.regs), datatype=DataType.REGISTERS),
+                         action=self.action)
+
     def update(self, values: dict[str, float]) -> None:
         for name, v in values.items():
             addr, typ, _, _ = self.regmap[name]
-            super().setValues(addr + 1, encode(v, typ))
+            regs = encode(v, typ)
+            self.regs[addr:addr + len(regs)] = regs
 
-    def setValues(self, address, values):
-        values = values if isinstance(values, list) else [values]
-        proto = address - 1
-        touched = {self._owner.get(a, (None, False)) for a in range(proto, proto + len(values))}
-        if any(not writable for _, writable in touched):
+    def _value(self, regs: list[int], name: str) -> float:
+        addr, typ, _, _ = self.regmap[name]
+        return decode(regs[addr:addr + len(encode(0, typ))], typ)
+
+    async def action(self, function_code: int, start_address: int, address: int, count: int,
+                     registers: list[int], set_values: list[int] | None) -> ExcCodes | None:
+        if function_code not in HOLDING:
+            return ExcCodes.ILLEGAL_FUNCTION       # the controller has holding registers only
+        if address < 0 or address + count > len(self.regs):
             return ExcCodes.ILLEGAL_ADDRESS
-        result = super().setValues(address, values)
-        for name, _ in touched:
-            addr, typ, _, _ = self.regmap[name]
-            regs = self.getValues(addr + 1, len(encode(0, typ)))
-            try:
-                self.on_write(name, decode(regs, typ))
-            except (ValueError, KeyError) as e:
-                log.warning("write refused by the machine: %s", e)
-                return ExcCodes.ILLEGAL_VALUE
-        return result
+        if set_values is not None:
+            touched = {self._owner.get(a, (None, False)) for a in range(address, address + count)}
+            if any(not writable for _, writable in touched):
+                return ExcCodes.ILLEGAL_ADDRESS
+            new = list(self.regs)
+            new[address:address + count] = set_values
+            for name, _ in touched:
+                try:
+                    self.on_write(name, self._value(new, name))
+                except (ValueError, KeyError) as e:
+                    log.warning("write refused by the machine: %s", e)
+                    return ExcCodes.ILLEGAL_VALUE
+            self.regs = new
+        first = address - start_address
+        registers[first:first + count] = self.regs[address:address + count]
+        return None
 
 
 class ModbusPeer:
@@ -72,17 +91,16 @@ class ModbusPeer:
         self.host, self.port = host, port
         self.null_modem, self.baudrate = null_modem, baudrate
         self.block = _Registers(regmap, size, on_write)
-        self.context = ModbusServerContext(devices=ModbusDeviceContext(hr=self.block), single=True)
         self.server: ModbusTcpServer | ModbusSerialServer | None = None
         self.up = False
 
     async def start(self) -> None:
         if self.null_modem is not None:
             inner = self.null_modem.open()
-            self.server = ModbusSerialServer(self.context, framer=FramerType.RTU, port=inner,
+            self.server = ModbusSerialServer(self.block.device(), framer=FramerType.RTU, port=inner,
                                              baudrate=self.baudrate)
         else:
-            self.server = ModbusTcpServer(self.context, address=(self.host, self.port))
+            self.server = ModbusTcpServer(self.block.device(), address=(self.host, self.port))
         await self.server.serve_forever(background=True)
         self.up = True
 
