@@ -28,6 +28,22 @@ def default_runtime_dir() -> Path:
     return Path(sys.prefix) / "var" / "run" / "lathed"
 
 
+def default_state_dir() -> Path:
+    """Where the daemon keeps its store unless the config says otherwise: systemd's
+    StateDirectory, else a directory inside this environment."""
+    if os.environ.get("STATE_DIRECTORY"):
+        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
+    return Path(sys.prefix) / "var" / "lib" / "lathed"
+
+
+def default_db() -> Path:
+    """The store lathectl reads when the daemon is down: $LATHED_DB, the service's, or this environment's."""
+    if os.environ.get("LATHED_DB"):
+        return Path(os.environ["LATHED_DB"])
+    service = Path("/var/lib/lathed") / "lathed.db"
+    return service if service.exists() else default_state_dir() / "lathed.db"
+
+
 def default_socket() -> Path:
     if os.environ.get("LATHED_SOCKET"):
         return Path(os.environ["LATHED_SOCKET"])

@@ -22,7 +22,7 @@ from lathed import instance
 from lathed import log as logmod
 from lathed.bus import Bus
 from lathed.cli import EX_CANTCREAT
-from lathed.client import SOCKET_NAME, default_runtime_dir
+from lathed.client import SOCKET_NAME, default_runtime_dir, default_state_dir
 from lathed.args import Args
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
@@ -35,12 +35,6 @@ from lathed.supervisor import Plan, Supervisor, build
 log = structlog.get_logger("lathed")
 STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
 EX_SOFTWARE, EX_TEMPFAIL = 70, 75   # sysexits: a dead store writer; another daemon holds the lock
-
-
-def default_state_dir() -> Path:
-    if os.environ.get("STATE_DIRECTORY"):
-        return Path(os.environ["STATE_DIRECTORY"].split(":")[0])
-    return Path(sys.prefix) / "var" / "lib" / "lathed"
 
 
 class Settings:

@@ -13,11 +13,12 @@ import json
 import pkgutil
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from lathed import __version__
 from lathed import cli as cli_pkg
-from lathed.client import DaemonUnavailable, RemoteError, call, subscribe
+from lathed.client import DaemonUnavailable, RemoteError, call, default_db, subscribe
 
 EX_UNAVAILABLE = 69
 
@@ -136,7 +137,24 @@ def cmd_events(args: argparse.Namespace) -> int:
             for r in frame.get("events", []):
                 _print_event(r, args.json)
         return 0
-    rows = remote(args, "events", {"limit": args.limit, "kind": args.kind, "source": args.source})
+    try:
+        rows = remote(args, "events", {"limit": args.limit, "kind": args.kind, "source": args.source})
+    except DaemonUnavailable:
+        # the daemon is down: its records are still on disk, read without writing
+        db = Path(args.db) if args.db else default_db()
+        if not db.is_file():
+            raise
+        import sqlite3
+
+        from lathed.store import connect, read_events
+        try:
+            con = connect(db, readonly=True)
+            rows = read_events(con, args.limit, args.kind, args.source)
+            con.close()
+        except sqlite3.Error as e:
+            print(f"lathectl: lathed is not running, and {db} cannot be read: {e}", file=sys.stderr)
+            return EX_UNAVAILABLE
+        print(f"lathectl: lathed is not running; events read from {db}", file=sys.stderr)
     if args.json:
         print_json(rows)
         return 0
@@ -188,6 +206,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind")
     s.add_argument("--source")
     s.add_argument("--follow", "-f", action="store_true", help="then print each new event as it is recorded")
+    s.add_argument("--db", help="when the daemon is down, read this lathed.db (default: the service's "
+                                "/var/lib/lathed/lathed.db, or the one in this environment)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_events)
     s = sub.add_parser("watch", help="live values as they change (SOURCE/QUANTITY patterns, default all)")

@@ -209,6 +209,23 @@ def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
     return con
 
 
+def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] | None = None,
+                source: str | list[str] | None = None, since_id: int = 0) -> list[dict[str, Any]]:
+    """Store.events on any connection (lathectl reads a stopped daemon's database read-only)."""
+    where, params = ["id > ?"], [since_id]
+    for col, want in (("kind", kind), ("source", source)):
+        names = [want] if isinstance(want, str) else list(want or [])
+        if names:
+            where.append(f"{col} IN ({','.join('?' * len(names))})")
+            params.extend(names)
+    rows = [dict(r) for r in con.execute(f"SELECT id, t, source, kind, payload FROM events "
+                                         f"WHERE {' AND '.join(where)} ORDER BY id DESC LIMIT ?",
+                                         (*params, limit)).fetchall()]
+    for r in rows:
+        r["payload"] = json.loads(r["payload"])
+    return rows[::-1]
+
+
 def statements(sql: str) -> list[str]:
     """Split a script into statements; a trigger body's ';' does not end one."""
     out, buf = [], ""
@@ -576,17 +593,8 @@ class Store:
                source: str | list[str] | None = None, since_id: int = 0) -> list[dict[str, Any]]:
         """The newest ``limit`` events after ``since_id``, oldest first; kind and source
         are one name or a list of names (any of them)."""
-        where, params = ["id > ?"], [since_id]
-        for col, want in (("kind", kind), ("source", source)):
-            names = [want] if isinstance(want, str) else list(want or [])
-            if names:
-                where.append(f"{col} IN ({','.join('?' * len(names))})")
-                params.extend(names)
-        rows = self.query(f"SELECT id, t, source, kind, payload FROM events WHERE {' AND '.join(where)} "
-                          "ORDER BY id DESC LIMIT ?", (*params, limit))
-        for r in rows:
-            r["payload"] = json.loads(r["payload"])
-        return rows[::-1]
+        with self._rlock:
+            return read_events(self._rcon, limit, kind, source, since_id)
 
     def last_event_id(self) -> int:
         return self.query("SELECT coalesce(max(id), 0) AS id FROM events")[0]["id"]

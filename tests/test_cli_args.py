@@ -47,3 +47,29 @@ def test_names_kept_beside_the_parser_match_the_registries():
     assert analyze_chatter.BUILTIN_DETECTORS == tuple(sorted(DETECTORS))
     assert analyze_chatter.DEFAULT_DETECTOR == DEFAULT_DETECTOR
     assert sim.THERMAL_EFFECTS == EFFECTS
+
+
+def test_events_are_read_from_the_database_while_the_daemon_is_down(tmp_path, capsys):
+    # issue 17 item 8: records readable with the daemon stopped (read-only: nothing is written)
+    import asyncio
+    import json
+
+    from lathed.store import Store
+    db = tmp_path / "lathed.db"
+    store = Store(db)
+
+    async def record():
+        await store.record("chatter_alarm", "chatter", {"index": 3.2})
+        await store.record("compensation", "thermal", {"offset_um": 1.5})
+    asyncio.run(record())
+    store.close()
+    before = db.read_bytes()
+    sock = str(tmp_path / "none.sock")
+    assert main(["--socket", sock, "events", "--db", str(db), "--kind", "chatter_alarm", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert [(r["kind"], r["payload"]) for r in json.loads(out)] == [("chatter_alarm", {"index": 3.2})]
+    assert err == f"lathectl: lathed is not running; events read from {db}\n"
+    assert db.read_bytes() == before
+    # no database there: the daemon's absence is the one line, as before
+    assert main(["--socket", sock, "events", "--db", str(tmp_path / "no.db")]) == 69
+    assert "lathed is not running" in capsys.readouterr().err
