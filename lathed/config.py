@@ -82,6 +82,10 @@ class Section:
     def __contains__(self, key: str) -> bool:
         return key in self._data
 
+    def raw(self) -> dict[str, Any]:
+        """The table as read (a reload compares old and new)."""
+        return dict(self._data)
+
     def keys(self) -> list[str]:
         return list(self._data)
 

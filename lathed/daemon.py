@@ -118,12 +118,16 @@ class Daemon:
         self.last_prune: dict | None = None
         self._step = "starting"
         self.loop_lag = LagStats()
+        self._pruning: asyncio.Task | None = None
+        self._reloads: list[asyncio.Task] = []
+        self._reload_lock = asyncio.Lock()
 
     async def run(self) -> int:
         loop = asyncio.get_running_loop()
         loop.set_exception_handler(AcceptErrorLog())
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._stop.set)
+        loop.add_signal_handler(signal.SIGHUP, lambda: self._reloads.append(asyncio.create_task(self.reload())))
         self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
@@ -153,11 +157,12 @@ class Daemon:
         notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")
         watchdog = asyncio.create_task(self._watchdog())
         lag_watch = asyncio.create_task(watch(self.loop_lag))
-        pruning = asyncio.create_task(self._prune()) if self.settings.keep_days > 0 else None
+        self._pruning = asyncio.create_task(self._prune()) if self.settings.keep_days > 0 else None
         await self._stop.wait()
-        if pruning is not None:
-            pruning.cancel()
-            await asyncio.gather(pruning, return_exceptions=True)
+        for t in [self._pruning, *self._reloads]:
+            if t is not None:
+                t.cancel()
+                await asyncio.gather(t, return_exceptions=True)
         self.state = "stopping"
         notify("STOPPING=1")
         log.info("stopping")
@@ -187,11 +192,47 @@ class Daemon:
             guard.cancel()
         return self.exit_code
 
+    async def reload(self) -> dict:
+        """SIGHUP: re-read the config; apply what may change live, or refuse it all, naming why."""
+        from lathed import reload as reloadmod
+        async with self._reload_lock:
+            path = self.cfg.path
+            try:
+                cfg, settings, _, plan, _ = await asyncio.to_thread(prepare, path, True)
+            except configmod.ConfigError as e:
+                problems = str(e).splitlines()
+            else:
+                live = {n: set(getattr(an, "LIVE_KEYS", ())) for n, (_, an) in self.plan.analyzers.items()}
+                ch = reloadmod.diff(self.cfg, cfg, live)
+                problems = ch.refused
+            if problems:
+                log.error("config_reload_refused", config=str(path), problems=problems)
+                self.supervisor.record("config_reload_refused", "lathed", {"config": str(path), "problems": problems})
+                return {"applied": False, "problems": problems}
+            if "log_level" in ch.daemon:
+                self.settings.log_level = settings.log_level
+                logmod.setup(settings.log_level)
+            if ch.store:
+                self.settings.keep_days, self.settings.prune_every = settings.keep_days, settings.prune_every
+                if self.settings.keep_days > 0 and (self._pruning is None or self._pruning.done()):
+                    self._pruning = asyncio.create_task(self._prune())
+            for m in ch.limits:        # the guard's next check uses them
+                self.plan.limits[m] = self.supervisor.guard.limits[m] = plan.limits[m]
+            for a in ch.analyzers:
+                self.plan.analyzers[a][1].reconfigure(cfg.instance("analyzer", a).section)
+            self.cfg = cfg
+            changed = ch.summary()
+            log.info("config_reloaded", config=str(path), changed=changed)
+            self.supervisor.record("config_reloaded", "lathed", {"config": str(path), "changed": changed})
+            return {"applied": True, "changed": changed}
+
     async def _prune(self) -> None:
         """Retention: delete records older than keep_days that every sink has forwarded."""
         sinks = [name for name, (_, an) in self.plan.analyzers.items() if getattr(an, "forwards_records", False)]
         while True:
             await asyncio.sleep(self.settings.prune_every)
+            if self.settings.keep_days <= 0:      # retention switched off by a reload
+                return
             cutoff = time.time() - self.settings.keep_days * 86400.0
             try:
                 removed = await asyncio.to_thread(self.store.prune, cutoff, sinks)

@@ -49,7 +49,14 @@ EYE_POINTS = 600   # chaos-eye points sent to a screen
 ENTRY_REVS = 20.0
 
 
+# detector parameters a running cut takes at once on reload; the others (window
+# lengths, band) shape the windows and apply from the next cut
+LIVE_NOW = ("threshold", "on_windows", "off_windows", "off_ratio", "settle_revs")
+
+
 class ChatterAnalyzer(Analyzer):
+    LIVE_KEYS = {"params"}     # a configuration reload (SIGHUP) may change these
+
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
         self.input = section.getstr("input")
@@ -77,6 +84,7 @@ class ChatterAnalyzer(Analyzer):
             except ValueError as e:
                 raise ConfigError(f"{section.file}: [{section.table}.params]: {e}") from None
         self.detector = None
+        self._rebuild = False
         self.rate_hz: float | None = None
         self.cutting = False
         self.rpm: float | None = None
@@ -95,6 +103,21 @@ class ChatterAnalyzer(Analyzer):
 
     def inputs(self) -> list[str]:
         return [self.input, self.machine]
+
+    def reconfigure(self, section: Section) -> None:
+        """New detector parameters (checked by the reload): alarm levels at once, without
+        dropping the cut; window shapes from the next cut (the next detector is built with them)."""
+        psec = section.getsection("params", required=False)
+        self.params = {k: psec.get(k) for k in psec.keys()}
+        det = self.detector
+        if det is None:
+            return
+        fresh = self._new_detector(det.rate)
+        for k in LIVE_NOW:
+            if k in det.params and k in fresh.params:
+                det.params[k] = fresh.params[k]
+        det.threshold = det.params.get("threshold", det.threshold)
+        self._rebuild = True
 
     def _new_detector(self, rate: float):
         extra = self.ctx.plugins.chatter_detectors() if getattr(self.ctx, "plugins", None) else None
@@ -132,6 +155,8 @@ class ChatterAnalyzer(Analyzer):
         self.seen[name] = on
         cutting = any(self.seen.values())
         if cutting and not self.cutting:
+            if self._rebuild:             # reloaded parameters shape this cut's windows
+                self.detector, self._rebuild = None, False
             if self.detector is not None:
                 self.detector.reset()     # a new cut: learn its baseline afresh
             self.state = "learning"
