@@ -83,6 +83,9 @@ def test_stable_24bit_and_csv(files, capsys):
         obj = json.loads(out)
         assert code == 0 and obj["verdict"] == "stable"
         assert obj["first_alarm_s"] is None and obj["chatter_frequency_hz"] is None
+        # without a reference, "stable" is no change from the start, and says so (issue 12)
+        assert obj["baseline"] == "recording start"
+        assert any("chatters from its first sample looks the same" in n for n in obj["notes"])
 
 
 def test_24bit_reader_matches_values(files):

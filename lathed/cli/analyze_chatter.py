@@ -133,7 +133,15 @@ def run(args, extra_detectors: dict | None = None) -> int:
         "rate_hz": sig.rate_hz,
         "duration_s": round(sig.duration_s, 6),
         "notes": sig.notes,
+        "baseline": "reference" if ref is not None else "recording start",
     }
+    caveat = []
+    if not alarms and ref is None:
+        # what "stable" means without a reference: no growth from the start, which a
+        # recording that chatters from its first sample at a steady level also shows
+        caveat = ["stable here means no change from the recording's start: one that chatters from its "
+                  "first sample looks the same; give --reference (a stable cut) to tell"]
+        out["notes"] = out["notes"] + caveat
     if sig.clipped:
         msg = (f"{sig.clipped} clipped samples (first at {sig.first_clip_s:.6g} s): the sensor or "
                f"converter saturated, amplitudes there are wrong ({args.file})")
@@ -152,7 +160,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
             f = out["chatter_frequency_hz"]
             print(f"first alarm at {out['first_alarm_s']:.4f} s"
                   + (f", chatter frequency {f:.1f} Hz" if f else ""))
-        for n in sig.notes:
+        for n in sig.notes + caveat:
             print(f"note: {n}")
     return 0
 
