@@ -191,7 +191,8 @@ LEFT JOIN inspections i ON i.id = (SELECT max(id) FROM inspections WHERE part_uu
 """
 
 
-def _decode(rows: list[dict]) -> list[dict]:
+def decode(rows: list[dict]) -> list[dict]:
+    """Inspection measurements back from their JSON text."""
     for r in rows:
         if r.get("measured") is not None:
             r["measured"] = json.loads(r["measured"])
@@ -207,7 +208,12 @@ def parts(query: Query, abnormal: bool = False, pending: bool = False, limit: in
     if pending:
         where.append("q.id IS NOT NULL AND i.id IS NULL")
     sql = _PARTS + (f" WHERE {' AND '.join(where)}" if where else "") + " ORDER BY w.id DESC LIMIT ?"
-    return _decode(query(sql, (limit,)))[::-1]
+    return decode(query(sql, (limit,)))[::-1]
+
+
+def parts_where(query: Query, where: str) -> list[dict]:
+    """Parts matching a condition on ``w`` (made by the caller, never from a request's text), oldest first."""
+    return decode(query(_PARTS + f" WHERE {where} ORDER BY w.id"))
 
 
 def find_part(query: Query, ref: str) -> dict | None:
@@ -218,11 +224,7 @@ def find_part(query: Query, ref: str) -> dict | None:
         rows = query(_PARTS + " WHERE w.uuid LIKE ? LIMIT 2", (ref.replace("%", "") + "%",))
         if len(rows) > 1:
             return None
-    return _decode(rows)[0] if rows else None
-
-
-def inspections(query: Query, limit: int = 100_000) -> list[dict]:
-    return _decode(query("SELECT * FROM inspections ORDER BY id DESC LIMIT ?", (limit,)))[::-1]
+    return decode(rows)[0] if rows else None
 
 
 def experiments(query: Query, tool: str, material: str) -> list[dict]:

@@ -166,19 +166,27 @@ class Records(Analyzer):
     async def _cmd_export(self, args: dict) -> Any:
         a = Args("export", args)
         what = a.getstr("what", choices=EXPORTS)
-        # one reply holds every row (100k events: ~25 MB of JSON); more in one go would pin ~1 GB
+        # one reply holds a page (100k events: ~25 MB of JSON); lathectl export pages with
+        # after_id through everything, oldest first, so nothing is cut silently
         limit = a.getint("limit", 100_000, minval=1, maxval=100_000)
+        after = a.getint("after_id", None, minval=0, maxval=2 ** 62)
         a.check_unused()
         q = self._query
+        table = {"events": "events", "parts": "workpieces", "inspections": "inspections",
+                 "experiments": "experiments"}[what]
+        if after is None:        # the newest ``limit`` rows, oldest first (as before)
+            page = f"id IN (SELECT id FROM {table} ORDER BY id DESC LIMIT {limit})"
+        else:
+            page = f"id IN (SELECT id FROM {table} WHERE id > {after} ORDER BY id LIMIT {limit})"
         if what == "events":
             fn = lambda: q("SELECT id, uuid, machine_id, t, source, kind, payload FROM events "  # noqa: E731
-                           "ORDER BY id DESC LIMIT ?", (limit,))[::-1]
+                           f"WHERE {page} ORDER BY id")
         elif what == "parts":
-            fn = lambda: records.parts(q, limit=limit)  # noqa: E731
+            fn = lambda: records.parts_where(q, "w." + page)  # noqa: E731
         elif what == "inspections":
-            fn = lambda: records.inspections(q, limit)  # noqa: E731
+            fn = lambda: records.decode(q(f"SELECT * FROM inspections WHERE {page} ORDER BY id"))  # noqa: E731
         else:
-            fn = lambda: q("SELECT * FROM experiments ORDER BY id DESC LIMIT ?", (limit,))[::-1]  # noqa: E731
+            fn = lambda: q(f"SELECT * FROM experiments WHERE {page} ORDER BY id")  # noqa: E731
         return await offload(fn)
 
     def _tool(self, a: Args) -> str:

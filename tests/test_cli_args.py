@@ -73,3 +73,37 @@ def test_events_are_read_from_the_database_while_the_daemon_is_down(tmp_path, ca
     # no database there: the daemon's absence is the one line, as before
     assert main(["--socket", sock, "events", "--db", str(tmp_path / "no.db")]) == 69
     assert "lathed is not running" in capsys.readouterr().err
+
+
+def test_export_pages_through_every_row_oldest_first(tmp_path, monkeypatch, capsys):
+    # issue 17 item 8: export stopped silently at 100,000 rows (and kept the newest)
+    import csv
+    import json
+
+    from lathed.cli import records as records_cli
+    from tests.inproc_daemon import InProcessDaemon
+    d = InProcessDaemon(tmp_path)
+    try:
+        for i in range(23):
+            d.run(d.daemon.store.record("test_marker", "test", {"i": i}))
+        monkeypatch.setattr(records_cli, "EXPORT_PAGE", 7)
+        calls = []
+
+        def remote(args, cmd, a):
+            calls.append(a)
+            return d.handle(json.dumps({"cmd": cmd, "args": a}).encode() + b"\n")["result"]
+        monkeypatch.setattr(records_cli, "remote", remote)
+        out = tmp_path / "events.csv"
+        assert main(["export", "events", "--out", str(out)]) == 0
+        rows = list(csv.DictReader(out.open()))
+        ids = [int(r["id"]) for r in rows]
+        assert ids == sorted(set(ids)) and len(ids) == ids[-1]          # every event, once, in order
+        assert [json.loads(r["payload"])["i"] for r in rows if r["kind"] == "test_marker"] == list(range(23))
+        assert len(calls) == len(ids) // 7 + 1 and all(c["limit"] == 7 for c in calls)
+        assert f"{len(ids)} events written to {out}" in capsys.readouterr().err
+        # --limit: the newest N, oldest first; --json: one object per line
+        assert main(["export", "events", "--limit", "5", "--json"]) == 0
+        lines = [json.loads(ln) for ln in capsys.readouterr().out.splitlines()]
+        assert [r["id"] for r in lines] == ids[-5:]
+    finally:
+        d.close()

@@ -122,10 +122,11 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_recommend)
 
-    p = sub.add_parser("export", help="export records as CSV")
+    p = sub.add_parser("export", help="export records as CSV (all of them, oldest first)")
     p.add_argument("what", choices=("events", "parts", "inspections", "experiments"))
     p.add_argument("--out", metavar="FILE.csv", help="write here instead of standard output")
-    p.add_argument("--limit", type=int, default=100_000)
+    p.add_argument("--limit", type=_positive_int, help="only the newest N rows (default: every row)")
+    p.add_argument("--json", action="store_true", help="JSON lines, one object per row, instead of CSV")
     p.set_defaults(func=cmd_export)
 
 
@@ -219,22 +220,56 @@ def cmd_recommend(args: argparse.Namespace) -> int:
     return 0
 
 
+EXPORT_PAGE = 10_000   # rows per request: the daemon's reply and ours stay small, however many there are
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be at least 1")
+    return v
+
+
+def _pages(args: argparse.Namespace):
+    """Every row, oldest first, a page per request (or the newest --limit in one, at most 100000)."""
+    if args.limit:
+        yield remote(args, "export", {"what": args.what, "limit": min(args.limit, 100_000)})
+        return
+    after = 0
+    while True:
+        rows = remote(args, "export", {"what": args.what, "limit": EXPORT_PAGE, "after_id": after})
+        yield rows
+        if len(rows) < EXPORT_PAGE:
+            return
+        after = rows[-1]["id"]
+
+
 def cmd_export(args: argparse.Namespace) -> int:
-    rows = remote(args, "export", {"what": args.what, "limit": args.limit})
     try:
         out = open(args.out, "w", newline="", encoding="utf-8") if args.out else sys.stdout
     except OSError as e:
         print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
         return EX_CANTCREAT
+    n, w = 0, None
     try:
-        fields = list(rows[0]) if rows else []
-        w = csv.DictWriter(out, fieldnames=fields)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
+        for rows in _pages(args):
+            for r in rows:
+                if args.json:
+                    out.write(json.dumps(r) + "\n")
+                    continue
+                if w is None:
+                    w = csv.DictWriter(out, fieldnames=list(r))
+                    w.writeheader()
+                w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
+            n += len(rows)
     finally:
         if args.out:
             out.close()
     if args.out:
-        print(f"{len(rows)} {args.what} written to {args.out}", file=sys.stderr)
+        print(f"{n} {args.what} written to {args.out}", file=sys.stderr)
+    if args.limit and args.limit > 100_000:
+        print("lathectl: --limit is at most 100000 rows; the newest 100000 were written", file=sys.stderr)
     return 0
