@@ -285,6 +285,8 @@ def test_a_restarted_daemon_shows_disconnected_then_comes_back(stack, browser, s
         again.wait_ready(timeout=60)
         page.wait_for_selector("#link.ok", timeout=20_000)
         page.wait_for_function("document.querySelector('#machines').innerText.includes('r/min')", timeout=20_000)
-        assert [e for e in errors if "403" not in e] == []
+        # while the daemon was gone, a request the page made may have got 502 (Bad Gateway: the
+        # daemon behind lathed-web did not answer), which is what it should get
+        assert [e for e in errors if "403" not in e and "502" not in e] == []
     finally:
         ctx.close()
