@@ -16,10 +16,13 @@ SPECTRUM_BINS = 400
 
 
 class Ring:
-    """The last ``size`` samples of a stream."""
+    """The last ``size`` samples of a stream. A circular buffer: adding a block copies
+    only the block (it arrives tens of times a second); the window is put in order
+    only when a view is drawn (a few times a second, and only while someone watches)."""
 
     def __init__(self, size: int = WINDOW):
         self.buf = np.zeros(size)
+        self.end = 0           # where the next sample goes
         self.filled = 0
         self.rate_hz = 0.0
         self.t_end = 0.0       # time just after the last sample
@@ -28,19 +31,28 @@ class Ring:
     def add(self, data: np.ndarray, rate_hz: float, t0: float) -> None:
         if rate_hz != self.rate_hz:   # a new rate: the old samples are another signal
             self.filled, self.rate_hz = 0, rate_hz
-        data = np.asarray(data, dtype=float)
+        size = len(self.buf)
         self.t_end = t0 + len(data) / rate_hz
-        data = data[-len(self.buf):]
+        data = np.asarray(data, dtype=float)[-size:]
         n = len(data)
-        self.buf = np.roll(self.buf, -n)
-        self.buf[-n:] = data
-        self.filled = min(len(self.buf), self.filled + n)
+        first = min(n, size - self.end)
+        self.buf[self.end:self.end + first] = data[:first]
+        self.buf[:n - first] = data[first:]
+        self.end = (self.end + n) % size
+        self.filled = min(size, self.filled + n)
         self.blocks += 1
+
+    def window(self) -> np.ndarray:
+        """The samples held, oldest first."""
+        start = self.end - self.filled
+        if start >= 0:
+            return self.buf[start:self.end]
+        return np.concatenate((self.buf[start:], self.buf[:self.end]))
 
     def view(self) -> dict | None:
         if self.filled < 64:
             return None
-        x = self.buf[-self.filled:]
+        x = self.window()
         return {"t_end": self.t_end, "rate_hz": self.rate_hz, **envelope(x, self.rate_hz),
                 **spectrum(x, self.rate_hz)}
 
