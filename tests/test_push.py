@@ -232,3 +232,29 @@ def test_a_failing_store_is_said_once_and_its_recovery_too(monkeypatch):
         asyncio.run(scenario(FlakyStore()))
     said = [(e["event"], e.get("failed_polls")) for e in logs if e["event"].startswith("push_events")]
     assert said == [("push_events_failed", None), ("push_events_recovered", 5)]
+
+
+def test_a_frame_is_encoded_as_plain_json_whatever_its_views_share_with_the_last():
+    """Views are encoded once and their unchanged values reused: the line must still be exactly
+    what json makes of the frame, after a value changes, comes back, or a view goes to None."""
+    import numpy as np
+
+    from lathed.bus import Bus
+    from lathed.control import _encode
+    from lathed.display import Ring
+    from lathed.push import PushHub
+    hub = PushHub(Bus(), None, {}, dict, {}, max_subscribers=4)
+    ring = Ring()
+    rng = np.random.default_rng(5)
+    eye = {"eye_phi1": [0.5, 1.5], "base_phi1": [1.0, 2.0]}
+    frames = []
+    for i in range(6):
+        ring.add(rng.normal(size=3000), 51200.0, float(i))
+        if i == 3:
+            eye = {**eye, "base_phi1": [1.0, 2.5]}   # a new cut's baseline
+        views = {"chatter": dict(eye, eye_phi1=[0.5 * i]), "suppress": None if i % 2 else {"lobes": [1, 2]}}
+        frames.append({"samples": {"lathe/x_mm": [1.0 + i, 2.5, "mm"]}, "vibration": {"accel": ring.view()},
+                       "views": views, "events": [{"id": i, "payload": {"a": np.float64(0.25)}}], "t": 10.0 + i})
+    frames.append(frames[0])      # the very same objects again
+    for f in frames:
+        assert hub.encode_frame(f) == _encode({"push": f})
