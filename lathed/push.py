@@ -237,8 +237,12 @@ class PushHub:
     async def _poll_events(self) -> None:
         failing_since: float | None = None     # a failing store is said once, and when it recovers
         failures = 0
+        seen = None        # the store's count of committed events as of the last query
         while True:
             await asyncio.sleep(EVENT_POLL_S)
+            stored = self.store.events_stored
+            if stored == seen:   # nothing committed since: no query, no hop to a thread
+                continue
             try:
                 rows = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None, self._cursor)
             except Exception as e:   # the store says why; subscribers get the events on the next poll
@@ -251,6 +255,7 @@ class PushHub:
                 log.info("push_events_recovered", failed_polls=failures,
                          after_s=round(time.monotonic() - failing_since, 1))
                 failing_since, failures = None, 0
+            seen = stored
             if rows:
                 self._cursor = rows[-1]["id"]
                 for sub in list(self.subscribers):
