@@ -7,6 +7,8 @@ once per frame period for all subscribers together.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 WINDOW = 8192          # samples in the window shown (0.16 s at 51.2 kS/s: a few revolutions)
@@ -16,10 +18,13 @@ SPECTRUM_BINS = 400
 
 
 class Ring:
-    """The last ``size`` samples of a stream."""
+    """The last ``size`` samples of a stream. A circular buffer: adding a block copies
+    only the block (it arrives tens of times a second); the window is put in order
+    only when a view is drawn (a few times a second, and only while someone watches)."""
 
     def __init__(self, size: int = WINDOW):
         self.buf = np.zeros(size)
+        self.end = 0           # where the next sample goes
         self.filled = 0
         self.rate_hz = 0.0
         self.t_end = 0.0       # time just after the last sample
@@ -28,19 +33,28 @@ class Ring:
     def add(self, data: np.ndarray, rate_hz: float, t0: float) -> None:
         if rate_hz != self.rate_hz:   # a new rate: the old samples are another signal
             self.filled, self.rate_hz = 0, rate_hz
-        data = np.asarray(data, dtype=float)
+        size = len(self.buf)
         self.t_end = t0 + len(data) / rate_hz
-        data = data[-len(self.buf):]
+        data = np.asarray(data, dtype=float)[-size:]
         n = len(data)
-        self.buf = np.roll(self.buf, -n)
-        self.buf[-n:] = data
-        self.filled = min(len(self.buf), self.filled + n)
+        first = min(n, size - self.end)
+        self.buf[self.end:self.end + first] = data[:first]
+        self.buf[:n - first] = data[first:]
+        self.end = (self.end + n) % size
+        self.filled = min(size, self.filled + n)
         self.blocks += 1
+
+    def window(self) -> np.ndarray:
+        """The samples held, oldest first."""
+        start = self.end - self.filled
+        if start >= 0:
+            return self.buf[start:self.end]
+        return np.concatenate((self.buf[start:], self.buf[:self.end]))
 
     def view(self) -> dict | None:
         if self.filled < 64:
             return None
-        x = self.buf[-self.filled:]
+        x = self.window()
         return {"t_end": self.t_end, "rate_hz": self.rate_hz, **envelope(x, self.rate_hz),
                 **spectrum(x, self.rate_hz)}
 
@@ -70,8 +84,8 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
     """Amplitude spectrum (Hann window, peak amplitude units of x) up to max_hz, as
     ``bins`` points each holding the largest line it covers (a peak is never averaged away)."""
     n = len(x)
-    w = np.hanning(n)
-    mag = np.abs(np.fft.rfft((x - x.mean()) * w)) * (2.0 / w.sum())
+    w, gain = _hann(n)
+    mag = np.abs(np.fft.rfft((x - x.mean()) * w)) * gain
     f = np.fft.rfftfreq(n, 1.0 / rate_hz)
     keep = f <= max_hz
     mag, f = mag[keep], f[keep]
@@ -81,6 +95,16 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
         return {"spec_f": [], "spec_a": []}
     peaks = mag[:m].reshape(-1, group).max(axis=1)
     return {"spec_f": rounded(f[:m].reshape(-1, group)[:, 0]), "spec_a": rounded(peaks)}
+
+
+@lru_cache(maxsize=4)
+def _hann(n: int) -> tuple[np.ndarray, float]:
+    """The Hann window of n points and its amplitude gain: made once per window length
+    (the window is full, and its length the same, but for a sensor's first 0.16 s), not
+    per view; it cost as much as the FFT."""
+    w = np.hanning(n)
+    w.flags.writeable = False
+    return w, 2.0 / w.sum()
 
 
 def thin(a: np.ndarray, points: int) -> np.ndarray:

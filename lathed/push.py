@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import fnmatch
+import json
 import time
 from typing import Any, Callable
 
@@ -32,7 +33,7 @@ import structlog
 
 from lathed.args import Args
 from lathed.bus import Block, Bus
-from lathed.control import RequestError, Stream, _encode
+from lathed.control import RequestError, Stream, _default
 from lathed.display import Ring
 
 log = structlog.get_logger("lathed.push")
@@ -63,6 +64,8 @@ class PushHub:
         self._rings: dict[str, tuple[Ring, asyncio.Task, set]] = {}
         self._cache: dict[str, tuple[float, Any]] = {}
         self._vib: dict[str, tuple[float, int, dict | None]] = {}   # sensor -> (when, blocks, view)
+        self._json: dict[tuple[str, str], tuple[Any, str]] = {}      # (section, name) -> (view, its JSON)
+        self._parts: dict[tuple[str, str, str], tuple[Any, str]] = {}  # ... and each of its values
         self._poller: asyncio.Task | None = None
         self._cursor = 0
 
@@ -141,6 +144,7 @@ class PushHub:
                     entry[1].cancel()
                     del self._rings[name]
                     self._vib.pop(name, None)
+                    self._json.pop(("vibration", name), None)
         if self._poller and not any(s.events for s in self.subscribers):
             self._poller.cancel()
             self._poller = None
@@ -193,6 +197,38 @@ class PushHub:
     def states(self) -> dict:
         return self._cached("status", STATES_EVERY_S / 2, self.status)
 
+    def encode_frame(self, f: dict) -> bytes:
+        """``{"push": f}`` as one line. The views in it (thousands of numbers, the most of a
+        frame) are encoded once for all subscribers, and a value of a view equal to the one
+        encoded last time (a spectrum's frequencies, an envelope's times, a chaos eye's
+        baseline) is not encoded again."""
+        parts = []
+        for k, v in f.items():
+            if k in ("vibration", "views"):
+                v = "{" + ", ".join(f"{json.dumps(n)}: {self._view_json(k, n, x)}" for n, x in v.items()) + "}"
+            else:
+                v = json.dumps(v, default=_default)
+            parts.append(f"{json.dumps(k)}: {v}")
+        return ('{"push": {' + ", ".join(parts) + "}}\n").encode()
+
+    def _view_json(self, section: str, name: str, view: dict | None) -> str:
+        hit = self._json.get((section, name))
+        if hit is not None and hit[0] is view:
+            return hit[1]
+        if not isinstance(view, dict):
+            text = json.dumps(view, default=_default)
+        else:
+            items = []
+            for k, x in view.items():
+                key = (section, name, k)
+                part = self._parts.get(key)
+                if part is None or not isinstance(x, list) or part[0] != x:
+                    part = self._parts[key] = (x, json.dumps(x, default=_default))
+                items.append(f"{json.dumps(k)}: {part[1]}")
+            text = "{" + ", ".join(items) + "}"
+        self._json[(section, name)] = (view, text)
+        return text
+
     def _start_poller(self, last: int) -> None:
         if self._poller is None:
             self._cursor = last
@@ -201,8 +237,12 @@ class PushHub:
     async def _poll_events(self) -> None:
         failing_since: float | None = None     # a failing store is said once, and when it recovers
         failures = 0
+        seen = None        # the store's count of committed events as of the last query
         while True:
             await asyncio.sleep(EVENT_POLL_S)
+            stored = self.store.events_stored
+            if stored == seen:   # nothing committed since: no query, no hop to a thread
+                continue
             try:
                 rows = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None, self._cursor)
             except Exception as e:   # the store says why; subscribers get the events on the next poll
@@ -215,6 +255,7 @@ class PushHub:
                 log.info("push_events_recovered", failed_polls=failures,
                          after_s=round(time.monotonic() - failing_since, 1))
                 failing_since, failures = None, 0
+            seen = stored
             if rows:
                 self._cursor = rows[-1]["id"]
                 for sub in list(self.subscribers):
@@ -321,7 +362,7 @@ class Subscription(Stream):
     async def _write(self, writer: asyncio.StreamWriter, write_timeout: float) -> str:
         while True:
             f = await self.queue.get()
-            writer.write(_encode({"push": f}))
+            writer.write(self.hub.encode_frame(f))
             try:
                 async with asyncio.timeout(write_timeout):
                     await writer.drain()

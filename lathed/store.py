@@ -256,6 +256,9 @@ def migrate(con: sqlite3.Connection) -> int:
     return version
 
 
+EVENT_SQL = "INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)"
+
+
 class StoreError(Exception):
     """The store could not take a record; the message says why."""
 
@@ -275,6 +278,7 @@ class Store:
         self._orphans: list = []     # the batch in hand when the writer thread died
         self.written = 0
         self.failed = 0
+        self.events_stored = 0     # events committed: a reader waiting for new ones looks here before it queries
         self.last_error: str | None = None
         self.last_error_t: float | None = None
         # True while the last transaction failed as a whole (disk full, I/O
@@ -403,9 +407,10 @@ class Store:
             results = [(fut, None, e) for _, _, fut in batch]
         else:
             self._set_failing(storage)
-            for _, _, err in results:
+            for (sql, _, _), (_, _, err) in zip(batch, results):
                 if err is None:
                     self.written += 1
+                    self.events_stored += sql is EVENT_SQL
                 else:
                     self.failed += 1
                     self._note_error(_one_line(err))
@@ -446,8 +451,7 @@ class Store:
 
     def _event(self, kind: str, source: str, payload: dict[str, Any] | None, t: float | None) -> tuple[str, tuple]:
         body = dumps(payload or {})
-        return ("INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)",
-                (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
+        return (EVENT_SQL, (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
 
     def insert(self, table: str, row: dict[str, Any]) -> Future:
         """Insert a record row; uuid and machine_id are filled in unless given,

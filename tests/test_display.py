@@ -37,6 +37,18 @@ def test_ring_view_is_small_json_and_follows_a_rate_change():
     assert r.filled == 100
 
 
+def test_ring_keeps_the_last_window_in_order_across_wraps():
+    # blocks of every size, smaller and larger than the ring: the view is that of the last samples
+    rng = np.random.default_rng(3)
+    r, seen = Ring(size=1000), np.zeros(0)
+    for i, n in enumerate([1, 999, 7, 1500, 333, 333, 333, 64, 2000, 5]):
+        block = rng.normal(size=n)
+        r.add(block, RATE, float(i))
+        seen = np.concatenate((seen, block))[-1000:]
+        if len(seen) >= 64:
+            assert r.view() == {"t_end": i + n / RATE, "rate_hz": RATE, **envelope(seen, RATE), **spectrum(seen, RATE)}
+
+
 def test_rounded_is_json_safe():
     assert rounded(np.array([0.0123456, 1.23456, np.nan, np.inf])) == [0.012, 1.235, None, None]
     assert json.dumps(rounded(np.zeros(2))) == "[0.0, 0.0]"

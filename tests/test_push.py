@@ -213,6 +213,7 @@ def test_a_failing_store_is_said_once_and_its_recovery_too(monkeypatch):
 
     class FlakyStore:
         calls = 0
+        events_stored = property(lambda self: self.calls)    # new events all the time
 
         def events(self, *args):
             self.calls += 1
@@ -232,3 +233,72 @@ def test_a_failing_store_is_said_once_and_its_recovery_too(monkeypatch):
         asyncio.run(scenario(FlakyStore()))
     said = [(e["event"], e.get("failed_polls")) for e in logs if e["event"].startswith("push_events")]
     assert said == [("push_events_failed", None), ("push_events_recovered", 5)]
+
+
+def test_a_frame_is_encoded_as_plain_json_whatever_its_views_share_with_the_last():
+    """Views are encoded once and their unchanged values reused: the line must still be exactly
+    what json makes of the frame, after a value changes, comes back, or a view goes to None."""
+    import numpy as np
+
+    from lathed.bus import Bus
+    from lathed.control import _encode
+    from lathed.display import Ring
+    from lathed.push import PushHub
+    hub = PushHub(Bus(), None, {}, dict, {}, max_subscribers=4)
+    ring = Ring()
+    rng = np.random.default_rng(5)
+    eye = {"eye_phi1": [0.5, 1.5], "base_phi1": [1.0, 2.0]}
+    frames = []
+    for i in range(6):
+        ring.add(rng.normal(size=3000), 51200.0, float(i))
+        if i == 3:
+            eye = {**eye, "base_phi1": [1.0, 2.5]}   # a new cut's baseline
+        views = {"chatter": dict(eye, eye_phi1=[0.5 * i]), "suppress": None if i % 2 else {"lobes": [1, 2]}}
+        frames.append({"samples": {"lathe/x_mm": [1.0 + i, 2.5, "mm"]}, "vibration": {"accel": ring.view()},
+                       "views": views, "events": [{"id": i, "payload": {"a": np.float64(0.25)}}], "t": 10.0 + i})
+    frames.append(frames[0])      # the very same objects again
+    for f in frames:
+        assert hub.encode_frame(f) == _encode({"push": f})
+
+
+def test_the_events_poller_queries_the_store_only_after_an_event_is_committed(tmp_path, monkeypatch):
+    """It queried the store (a hop to a thread and an SQL query) 5 times a second, events or not."""
+    import asyncio
+
+    from lathed import push
+    from lathed.bus import Bus
+    from lathed.push import PushHub
+    from lathed.store import Store
+    monkeypatch.setattr(push, "EVENT_POLL_S", 0.0)
+    store = Store(tmp_path / "lathed.db")
+    queries = []
+    real_events = store.events
+    monkeypatch.setattr(store, "events", lambda *a: queries.append(a) or real_events(*a))
+
+    async def scenario():
+        hub = PushHub(Bus(), store, {}, dict, {}, max_subscribers=4)
+        sub = await hub.subscribe({"events": True, "events_limit": 0})
+        await wait_until_async(lambda: len(queries) == 1)    # the first poll reads what came meanwhile
+        for _ in range(200):
+            await asyncio.sleep(0)
+        idle = len(queries)
+        await store.record("inspection", "lathe", {"ok": True})
+        await wait_until_async(lambda: sub._events)
+        sub.close()
+        return idle, sub._events
+
+    try:
+        idle, got = asyncio.run(scenario())
+    finally:
+        store.close()
+    assert idle == 1
+    assert [(e["kind"], e["payload"]) for e in got] == [("inspection", {"ok": True})]
+
+
+async def wait_until_async(cond, timeout: float = 10.0) -> None:
+    import asyncio
+    import time
+    end = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        await asyncio.sleep(0.001)
