@@ -43,6 +43,7 @@ HEARTBEAT_S = 1.0        # an empty frame after this long without one
 STATES_EVERY_S = 1.0     # machine/analyzer status at most this often
 EVENT_POLL_S = 0.2       # new events are read from the store this often (while someone wants them)
 EVENT_BATCH = 1000
+EVENT_PAGES = 10         # pages read per poll at most (a burst is delivered over several polls)
 VIEW_MIN_S = 0.05        # a vibration or analyzer view is computed at most this often, for everyone
 MAX_RATE_HZ = 20.0
 
@@ -244,7 +245,16 @@ class PushHub:
             if stored == seen:   # nothing committed since: no query, no hop to a thread
                 continue
             try:
-                rows = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None, self._cursor)
+                # the first EVENT_BATCH after the cursor, page after page: a burst of more
+                # than a batch between two polls reaches subscribers whole, in order
+                rows, more = [], True
+                for _ in range(EVENT_PAGES):     # the rest at the next poll, from the new cursor
+                    page = await asyncio.to_thread(self.store.events, EVENT_BATCH, None, None,
+                                                   rows[-1]["id"] if rows else self._cursor, True)
+                    rows += page
+                    if len(page) < EVENT_BATCH:
+                        more = False
+                        break
             except Exception as e:   # the store says why; subscribers get the events on the next poll
                 failures += 1
                 if failing_since is None:
@@ -255,7 +265,7 @@ class PushHub:
                 log.info("push_events_recovered", failed_polls=failures,
                          after_s=round(time.monotonic() - failing_since, 1))
                 failing_since, failures = None, 0
-            seen = stored
+            seen = None if more else stored      # more waiting: look again at the next poll
             if rows:
                 self._cursor = rows[-1]["id"]
                 for sub in list(self.subscribers):

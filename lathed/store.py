@@ -210,8 +210,10 @@ def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
 
 
 def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] | None = None,
-                source: str | list[str] | None = None, since_id: int = 0) -> list[dict[str, Any]]:
-    """Store.events on any connection (lathectl reads a stopped daemon's database read-only)."""
+                source: str | list[str] | None = None, since_id: int = 0,
+                oldest: bool = False) -> list[dict[str, Any]]:
+    """Store.events on any connection (lathectl reads a stopped daemon's database read-only).
+    ``oldest``: the first ``limit`` after ``since_id`` (to page through), not the newest."""
     where, params = ["id > ?"], [since_id]
     for col, want in (("kind", kind), ("source", source)):
         names = [want] if isinstance(want, str) else list(want or [])
@@ -219,11 +221,11 @@ def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] 
             where.append(f"{col} IN ({','.join('?' * len(names))})")
             params.extend(names)
     rows = [dict(r) for r in con.execute(f"SELECT id, t, source, kind, payload FROM events "
-                                         f"WHERE {' AND '.join(where)} ORDER BY id DESC LIMIT ?",
-                                         (*params, limit)).fetchall()]
+                                         f"WHERE {' AND '.join(where)} ORDER BY id {'ASC' if oldest else 'DESC'} "
+                                         "LIMIT ?", (*params, limit)).fetchall()]
     for r in rows:
         r["payload"] = json.loads(r["payload"])
-    return rows[::-1]
+    return rows if oldest else rows[::-1]
 
 
 def statements(sql: str) -> list[str]:
@@ -594,11 +596,12 @@ class Store:
             return [dict(r) for r in self._rcon.execute(sql, params).fetchall()]
 
     def events(self, limit: int = 50, kind: str | list[str] | None = None,
-               source: str | list[str] | None = None, since_id: int = 0) -> list[dict[str, Any]]:
-        """The newest ``limit`` events after ``since_id``, oldest first; kind and source
-        are one name or a list of names (any of them)."""
+               source: str | list[str] | None = None, since_id: int = 0,
+               oldest: bool = False) -> list[dict[str, Any]]:
+        """The newest ``limit`` events after ``since_id`` (``oldest``: the first ``limit``),
+        oldest first; kind and source are one name or a list of names (any of them)."""
         with self._rlock:
-            return read_events(self._rcon, limit, kind, source, since_id)
+            return read_events(self._rcon, limit, kind, source, since_id, oldest)
 
     def last_event_id(self) -> int:
         return self.query("SELECT coalesce(max(id), 0) AS id FROM events")[0]["id"]

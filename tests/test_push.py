@@ -70,6 +70,9 @@ strategy = "frequency"
     try:
         d.wait_ready()
         wait_until(lambda: d.item("sensors", "accel")["state"] == "connected", what="accel connected")
+        # the snapshot test expects temperatures: the first line comes after the serial link opens
+        wait_until(lambda: d.item("sensors", "temps")["last_value"], what="temperatures")
+        wait_until(lambda: d.item("machines", "lathe")["spindle_rpm"] is not None, what="lathe spindle speed")
         yield d
     finally:
         d.stop()
@@ -302,3 +305,35 @@ async def wait_until_async(cond, timeout: float = 10.0) -> None:
     while not cond():
         assert time.monotonic() < end, "timed out"
         await asyncio.sleep(0.001)
+
+
+def test_a_burst_of_events_larger_than_a_batch_reaches_subscribers_whole_and_in_order(tmp_path, monkeypatch):
+    """The poller asked for the newest batch after its cursor: a burst of more lost the older ones."""
+    import asyncio
+
+    from lathed import push
+    from lathed.bus import Bus
+    from lathed.push import PushHub
+    from lathed.store import Store
+    monkeypatch.setattr(push, "EVENT_POLL_S", 0.0)
+    monkeypatch.setattr(push, "EVENT_BATCH", 5)
+    monkeypatch.setattr(push, "EVENT_PAGES", 2)     # 23 events: three polls
+    store = Store(tmp_path / "lathed.db")
+    got = []
+
+    async def scenario():
+        hub = PushHub(Bus(), store, {}, dict, {}, max_subscribers=4)
+        class Sub:
+            events = True
+            add_events = staticmethod(got.extend)
+        hub.subscribers.add(Sub())
+        for i in range(23):
+            await store.record("burst", "test", {"i": i})
+        task = asyncio.create_task(hub._poll_events())
+        while len(got) < 23:
+            await asyncio.sleep(0.01)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(asyncio.wait_for(scenario(), 20))
+    store.close()
+    assert [e["payload"]["i"] for e in got] == list(range(23))
