@@ -10,16 +10,5 @@ if [ -x /usr/bin/chromium ]; then
 fi
 
 echo "ensure_chromium: /usr/bin/chromium not found; installing the Debian chromium package" >&2
-SUDO=""
-if [ "$(id -u)" -ne 0 ]; then
-    if command -v sudo >/dev/null 2>&1; then
-        SUDO="sudo"
-    else
-        echo "ensure_chromium: not root and no sudo: install the 'chromium' package by hand" >&2
-        exit 1
-    fi
-fi
-export DEBIAN_FRONTEND=noninteractive
-$SUDO apt-get update -q
-$SUDO apt-get install -y -q --no-install-recommends chromium
+bash "$(dirname "$0")/apt_install.sh" ensure_chromium chromium
 [ -x /usr/bin/chromium ] || { echo "ensure_chromium: chromium installed but /usr/bin/chromium missing" >&2; exit 1; }

@@ -15,18 +15,9 @@ if have_server; then
 fi
 
 echo "ensure_postgres: no PostgreSQL server binaries found; installing the Debian postgresql package" >&2
+bash "$(dirname "$0")/apt_install.sh" ensure_postgres postgresql
 SUDO=""
-if [ "$(id -u)" -ne 0 ]; then
-    if command -v sudo >/dev/null 2>&1; then
-        SUDO="sudo"
-    else
-        echo "ensure_postgres: not root and no sudo: install the 'postgresql' package by hand" >&2
-        exit 1
-    fi
-fi
-export DEBIAN_FRONTEND=noninteractive
-$SUDO apt-get update -q
-$SUDO apt-get install -y -q --no-install-recommends postgresql
+[ "$(id -u)" -eq 0 ] || SUDO="sudo"
 # The package's own cluster is not needed (the tests run their own); keep it from holding port 5432.
 if command -v pg_lsclusters >/dev/null 2>&1; then
     pg_lsclusters --no-header 2>/dev/null | while read -r ver name _; do

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 # sysexits codes the offline commands use
 EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
@@ -28,3 +29,18 @@ def spindle_rpm(text: str) -> float:
     if v > SPINDLE_RPM_MAX:
         raise argparse.ArgumentTypeError(f"{text} r/min is beyond any spindle (at most {SPINDLE_RPM_MAX:g})")
     return v
+
+
+def mode(text: str):
+    """argparse type: a structural mode FN,ZETA,K[,THETA_DEG] (numpy only once a mode is parsed)."""
+    from lathed.analysis.modal import parse_mode
+    try:
+        return parse_mode(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def fail(msg: str, code: int) -> int:
+    """One line on stderr naming what is wrong; the exit code to return."""
+    print(f"lathectl: {msg}", file=sys.stderr)
+    return code

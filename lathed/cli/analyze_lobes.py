@@ -6,18 +6,10 @@ import json
 import math
 import sys
 
-from lathed.cli import EX_CANTCREAT, positive, spindle_rpm
+from lathed.cli import EX_CANTCREAT, mode, positive, spindle_rpm
 
 # JSON stays readable: each lobe is thinned to at most this many points.
 MAX_POINTS_PER_LOBE = 400
-
-
-def _mode(text: str):
-    from lathed.analysis.modal import parse_mode   # numpy: only when the command is used
-    try:
-        return parse_mode(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _range(text: str) -> tuple[float, float]:
@@ -34,7 +26,7 @@ def register_analyze(sub) -> None:
     p = sub.add_parser("lobes", help="stability lobes (limiting depth of cut vs spindle speed)",
                        description="Stability lobes for turning from a modal model and the "
                                    "cutting coefficient Kf.")
-    p.add_argument("--mode", dest="modes", action="append", type=_mode, required=True,
+    p.add_argument("--mode", dest="modes", action="append", type=mode, required=True,
                    metavar="FN,ZETA,K[,THETA_DEG]",
                    help="structural mode: natural frequency Hz, damping ratio, stiffness N/m, "
                         "angle from the surface normal (repeat for several modes)")

@@ -15,18 +15,10 @@ import argparse
 import json
 import sys
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR, positive
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail, mode, positive
 
 # misclassified cuts listed in the text report (the JSON has them all)
 MAX_LISTED = 10
-
-
-def _mode(text: str):
-    from lathed.analysis.modal import parse_mode   # numpy: not on `lathectl --version`'s path
-    try:
-        return parse_mode(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _fraction(text: str) -> float:
@@ -44,7 +36,7 @@ def register_analyze(sub) -> None:
                                    "second mode, process damping) that classify held-out cuts better.")
     p.add_argument("cuts", metavar="CUTS.csv", help="cut records: machine, tool, material, rpm, depth_mm, "
                                                      "feed_mm_rev, outcome, [chatter_frequency_hz]")
-    p.add_argument("--mode", dest="modes", action="append", type=_mode, required=True,
+    p.add_argument("--mode", dest="modes", action="append", type=mode, required=True,
                    metavar="FN,ZETA,K[,THETA_DEG]",
                    help="structural mode: natural frequency Hz, damping ratio, stiffness N/m, "
                         "angle from the surface normal (repeat for several modes)")
@@ -58,11 +50,6 @@ def register_analyze(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="OUT.png", help="old and new lobes with the cuts on them")
     p.set_defaults(func=run)
-
-
-def _fail(msg: str, code: int) -> int:
-    print(f"lathectl: {msg}", file=sys.stderr)
-    return code
 
 
 def _select(cuts, args):
@@ -97,22 +84,22 @@ def run(args) -> int:
         return e.exit_code
     cuts = _select(cuts, args)
     if len(cuts) == 0:
-        return _fail(f"no cut in {args.cuts} matches --machine/--tool/--material", EX_DATAERR)
+        return fail(f"no cut in {args.cuts} matches --machine/--tool/--material", EX_DATAERR)
     setups = cuts.setups()
     if len(setups) > 1:
         names = ", ".join("/".join(s) for s in setups[:4]) + (", ..." if len(setups) > 4 else "")
-        return _fail(f"{args.cuts} holds cuts of {len(setups)} set-ups (machine/tool/material: {names}): one "
+        return fail(f"{args.cuts} holds cuts of {len(setups)} set-ups (machine/tool/material: {names}): one "
                      f"modal model fits one set-up; choose with --machine, --tool, --material", EX_DATAERR)
     try:
         base = StabilityModel(tuple(args.modes), args.kf)
         r = refit(base, cuts, holdout_fraction=args.holdout)
     except ValueError as e:
-        return _fail(f"{e} ({args.cuts})", EX_DATAERR)
+        return fail(f"{e} ({args.cuts})", EX_DATAERR)
     if args.plot:
         try:
             _plot(args.plot, r, setups[0])
         except OSError as e:
-            return _fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
+            return fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
     if args.json:
         out = {"source": args.cuts, "setup": dict(zip(("machine", "tool", "material"), setups[0])), **r.to_json()}
         print(json.dumps(out, indent=1))

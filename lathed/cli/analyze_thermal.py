@@ -9,7 +9,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
 
 if TYPE_CHECKING:
     from lathed.analysis.thermal import Analysis, ThermalData
@@ -40,11 +40,6 @@ def register_analyze(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="OUT.png", help="growth with each model's prediction, and residuals")
     p.set_defaults(func=run)
-
-
-def _fail(msg: str, code: int) -> int:
-    print(f"lathectl: {msg}", file=sys.stderr)
-    return code
 
 
 def _warn_rejected(path: str, rep: LoadReport) -> None:
@@ -96,37 +91,37 @@ def run(args) -> int:
         train, rep = load_thermal_csv(args.train)
         test, trep = (load_thermal_csv(args.test) if args.test else (None, None))
     except ThermalCsvError as e:
-        return _fail(str(e), e.exit_code)
+        return fail(str(e), e.exit_code)
     current = None
     if args.model:
         try:
             current = load_model(args.model)
         except (OSError, ValueError, KeyError) as e:
-            return _fail(f"cannot load thermal model {args.model}: {e}", EX_DATAERR)
+            return fail(f"cannot load thermal model {args.model}: {e}", EX_DATAERR)
     if args.max_sensors < 1:
-        return _fail(f"--max-sensors must be at least 1, got {args.max_sensors}", EX_DATAERR)
+        return fail(f"--max-sensors must be at least 1, got {args.max_sensors}", EX_DATAERR)
     reference_note = None
     if args.split is not None:
         try:
             train, test = split_run(train, args.split)
         except ValueError as e:
-            return _fail(f"--split {args.split}: {e} ({args.train})", EX_DATAERR)
+            return fail(f"--split {args.split}: {e} ({args.train})", EX_DATAERR)
     elif test is not None:
         missing = [c for c in train.sensors if c not in test.temps_c]
         if missing:
-            return _fail(f"test file lacks temperature column {missing[0]} that the training file has "
+            return fail(f"test file lacks temperature column {missing[0]} that the training file has "
                          f"({args.test}, line 1)", EX_DATAERR)
         try:
             test, reference_note = reference_test(train, test)
         except ValueError as e:
-            return _fail(f"{e} ({args.test})", EX_DATAERR)
+            return fail(f"{e} ({args.test})", EX_DATAERR)
     try:
         a = analyze(train, test, current=current, max_sensors=args.max_sensors)
     except ValueError as e:
-        return _fail(f"{e} ({args.train})", EX_DATAERR)
+        return fail(f"{e} ({args.train})", EX_DATAERR)
     if not (math.isfinite(a.baseline.test_rmse_um) and math.isfinite(a.final.test_rmse_um)):
         # never report "error nan µm" and an effect found on numbers that overflowed
-        return _fail(f"the fit gave no finite error (values too large to fit together?) ({args.train})",
+        return fail(f"the fit gave no finite error (values too large to fit together?) ({args.train})",
                      EX_DATAERR)
     if args.split is not None:
         a.judged_on = f"the last {100 * (1 - args.split):.0f} % of {Path(args.train).name} ({len(test)} rows)"
@@ -142,7 +137,7 @@ def run(args) -> int:
         try:
             _plot(args.plot, a, test if test is not None else train, label)
         except OSError as e:
-            return _fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
+            return fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
     where = ("on the test run" if args.test else "on the held-out tail" if args.split is not None
              else "on held-out time blocks")
     if args.json:
