@@ -113,18 +113,13 @@ def subscribe(args: dict[str, Any], sock_path: str | Path | None = None, timeout
 def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | None = None,
          timeout: float = 10.0) -> Any:
     path = Path(sock_path) if sock_path else default_socket()
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.settimeout(timeout)
     try:
-        try:
-            s.connect(str(path))
-        except (FileNotFoundError, ConnectionRefusedError):
-            raise DaemonUnavailable(f"lathed is not running (no daemon listening on {path})") from None
-        except PermissionError:
-            raise DaemonUnavailable(f"permission denied on {path}: join the lathed group") from None
-        except BlockingIOError:   # EAGAIN: the listen backlog is full
-            raise DaemonUnavailable(f"lathed on {path} is not accepting connections now (its backlog is full: "
-                                    "too many clients, or it is out of file descriptors); try again") from None
+        s = _connect(path, timeout)
+    except socket.timeout:
+        raise DaemonUnavailable(f"lathed did not answer within {timeout:g} s on {path}") from None
+    except OSError as e:
+        raise DaemonUnavailable(f"lost the connection to lathed on {path}: {e.strerror or e}") from None
+    try:
         s.sendall(json.dumps({"cmd": cmd, "args": args or {}}).encode() + b"\n")
         buf = b""
         while not buf.endswith(b"\n"):
