@@ -183,6 +183,27 @@ MIGRATIONS: list[tuple[int, str]] = [
         PRIMARY KEY (sink, outbox_id)
     );
     """),
+    (4, """
+    -- one cut (entry to exit) as suppression saw it: the stability refit's evidence
+    CREATE VIEW cuts AS
+    SELECT id, uuid, machine_id, t, source,
+           json_extract(payload, '$.machine') AS machine,
+           json_extract(payload, '$.tool') AS tool,
+           json_extract(payload, '$.material') AS material,
+           json_extract(payload, '$.start_t') AS start_t,
+           json_extract(payload, '$.end_t') AS end_t,
+           json_extract(payload, '$.rpm_start') AS rpm_start,
+           json_extract(payload, '$.rpm_end') AS rpm_end,
+           json_extract(payload, '$.depth_mm') AS depth_mm,
+           json_extract(payload, '$.feed_mm_rev') AS feed_mm_rev,
+           json_extract(payload, '$.outcome') AS outcome,
+           json_extract(payload, '$.first_alarm_s') AS first_alarm_s,
+           json_extract(payload, '$.chatter_frequency_hz') AS chatter_frequency_hz,
+           json_array_length(payload, '$.actions') AS actions,
+           json_extract(payload, '$.cured') AS cured,
+           json_extract(payload, '$.model') AS model
+    FROM events WHERE kind = 'cut';
+    """),
 ]
 
 # The time a record row is aged by, for retention.

@@ -53,6 +53,12 @@ _VIEWS = {
         ("strategy", "text"), ("rpm_before", "double precision"), ("rpm_after", "double precision"),
         ("index", "double precision"), ("threshold", "double precision"),
         ("chatter_frequency_hz", "double precision"), ("sent", "boolean"), ("reason", "text")]),
+    "cuts": ("kind = 'cut'", [
+        ("machine", "text"), ("tool", "text"), ("material", "text"), ("start_t", "double precision"),
+        ("end_t", "double precision"), ("rpm_start", "double precision"), ("rpm_end", "double precision"),
+        ("depth_mm", "double precision"), ("feed_mm_rev", "double precision"), ("outcome", "text"),
+        ("first_alarm_s", "double precision"), ("chatter_frequency_hz", "double precision"),
+        ("cured", "boolean"), ("model", "text")]),
     "compensations": ("kind = 'compensation'", [
         ("predicted_um", "double precision"), ("offset_um", "double precision"), ("model", "text")]),
 }

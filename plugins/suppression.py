@@ -22,6 +22,9 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
+    tool = "T0101"               # the set-up the modal model is for: recorded with every cut
+    material = "C45"
+    depth_mm = 1.2               # the programmed depth of cut, when the machine reports none
 
 Every action is recorded as ``suppression_action`` with its critical values
 (index and threshold, chatter frequency, speed before and after, strategy,
@@ -43,28 +46,48 @@ unstable from entry grows its chatter from the first revolution, and a
 detector that learns its baseline on that cut sees it only once it has
 grown; the model sees it before. Off by default: it trusts the modal model
 (a tap test) to move speeds no alarm has asked for.
+
+Every cut (entry to exit) leaves a ``cut`` record (lathed.analysis.cut_log):
+the set-up, depth and feed, each speed it turned at with its verdict, the
+first alarm (time, revolution, chatter frequency), the actions and whether
+the cut ended cured.  ``lathectl cuts`` lists them, ``--csv`` exports them
+for ``lathectl analyze stability``.  The depth is the machine's
+depth_of_cut_mm register, else the programmed ``depth_mm``, else unknown
+(null): such cuts are recorded but the refit cannot use them (it says how
+many it left out).
+
+``lathectl stability refit`` refits the modal model on this machine's
+recorded cuts (lathed.analysis.stability_refit) and adopts the result only
+when it classifies the held-out cuts better: saved as a new version
+(lathed.analysis.stability_files), recorded as ``stability_model_adopted``,
+and from then on (also after a restart) the lobes of speed selection and of
+cut-entry avoidance are the adopted model's.  A refit that adds nothing is
+recorded as ``stability_refit_not_adopted`` with the reason.
 """
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from dataclasses import replace
 
 import numpy as np
 
 from lathed import hookimpl
-from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis import stability_files
+from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
                                              SpindleLimits, SuppressionPolicy, VariationSelection, lobe_grid)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
+from lathed.analysis.stability_refit import StabilityModel, refit
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
-from lathed.control import RequestError
+from lathed.control import RequestError, offload
 from lathed.display import rounded
 
 LOBE_POINTS = 600      # points of the lobe chart sent to a screen
@@ -111,7 +134,18 @@ class SuppressionAnalyzer(Analyzer):
             raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
         if self.avoid and self.strategy_name != "lobes":
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
-        self.lobes = StabilityLobes(modes, kf) if modes else None
+        self.tool = section.getstr("tool", "")
+        self.material = section.getstr("material", "")
+        self.program_depth_mm = section.getfloat("depth_mm", 0.0, minval=0.0, maxval=50.0) or None
+        # the tap test's model; the lobes in use are it or the adopted refit of it
+        self.configured = StabilityModel(modes, kf) if modes else None
+        self.lobes = self.configured
+        self.model_name = "configured"
+        self._models_loaded = False
+        self._refitting = False
+        self.last_refit: dict | None = None
+        self.cut = CutTracker(self.machine, self.tool, self.material)
+        self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
         self.policy: SuppressionPolicy | None = None
@@ -159,6 +193,10 @@ class SuppressionAnalyzer(Analyzer):
     # -- running -----------------------------------------------------------------
     async def run(self) -> None:
         self.ctx.register_control("suppress", self._control)
+        self.ctx.register_control("stability", self._stability)
+        if not self._models_loaded:
+            self._models_loaded = True
+            await asyncio.to_thread(self._load_adopted)
         if self.lobes is not None and self.grid is None:
             self.grid = await asyncio.to_thread(lobe_grid, self.lobes, self.limits)
         sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
@@ -168,6 +206,8 @@ class SuppressionAnalyzer(Analyzer):
                 if not isinstance(s, Sample):
                     continue
                 if s.source == self.machine:
+                    if s.quantity == "spindle_rpm":
+                        self.cut.speed(s.t, s.value)
                     await self._on_machine(s)
                 elif s.source == self.chatter:
                     await self._on_chatter(s)
@@ -180,10 +220,13 @@ class SuppressionAnalyzer(Analyzer):
             self.rpm = s.value
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
+            self.cut.feed_mm_rev = s.value
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
             self.depth_mm = s.value
-            await self._cut_seen("depth", s.value > 0)
+            if s.value > 0:
+                self.cut.depth_mm, self.cut.depth_from = s.value, "register"
+            await self._cut_seen("depth", s.value > 0, s.t)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             self._depth_from_load(s.value)
             if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
@@ -205,7 +248,7 @@ class SuppressionAnalyzer(Analyzer):
                 # this cut's policy (bans, budget) keeps going with the depth known now
                 self.policy.strategy = self._policy().strategy
 
-    async def _cut_seen(self, by: str, on: bool) -> None:
+    async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
         """The machine's depth register or the chatter analyzer's cut state
         (whichever this machine has; the first to see the chip starts the cut)."""
         was = bool(self.in_cut)
@@ -215,14 +258,159 @@ class SuppressionAnalyzer(Analyzer):
         if self.in_cut and not was:
             self.policy = self._policy()    # a new cut: bans and budget start afresh
             self.pending = None
+            self._cut_started(time.time() if t is None else t)
         if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
             await self._avoid()
         if was and not self.in_cut:
+            self._cut_ended(time.time() if t is None else t)
             if self.depth_from == "spindle load":
                 self.depth_mm = 0.0
             self._avoided.clear()
             self._stop_ssv()
+
+    # -- cut records -----------------------------------------------------------------
+    def _cut_started(self, t: float) -> None:
+        self.cut.start(t, self.rpm)
+        if self.depth_from == "register" and self.depth_mm > 0:
+            self.cut.depth_mm, self.cut.depth_from = self.depth_mm, "register"
+        elif self.program_depth_mm is not None:
+            self.cut.depth_mm, self.cut.depth_from = self.program_depth_mm, "program"
+        else:
+            self.cut.depth_mm = self.cut.depth_from = None
+
+    def _cut_ended(self, t: float) -> None:
+        if not self.cut.active:
+            return
+        rec = self.cut.end(t)
+        rec["model"] = self.model_name
+        self.cuts_recorded += 1
+        self.ctx.record("cut", rec)
+
+    # -- the stability model: adopted refits ---------------------------------------------
+    @property
+    def models_dir(self):
+        return self.ctx.store.path.parent / "stability-models"
+
+    def _setup_json(self) -> dict:
+        return {"base": self.configured.to_json(), "tool": self.tool or None, "material": self.material or None}
+
+    def _load_adopted(self) -> None:
+        """The newest adopted model of this machine, if it was refitted from the model and set-up
+        configured now; a damaged file is said (event) and the previous version tried."""
+        if self.configured is None or not self.models_dir.is_dir():
+            return
+        files = stability_files.versions(self.models_dir, self.machine)
+        for i, path in enumerate(reversed(files)):
+            older = files[-2 - i].name if i + 1 < len(files) else "configured"
+            try:
+                model, doc = stability_files.load(path)
+            except ValueError as e:
+                self.ctx.log.error("stability_model_unreadable", file=path.name, error=str(e), using=older)
+                self.ctx.record("stability_model_unreadable", {"machine": self.machine, "file": path.name,
+                                                               "error": str(e), "using": older})
+                continue
+            want = self._setup_json()
+            have = {k: doc.get(k) for k in want}
+            if have != want:
+                what = [k for k in want if have[k] != want[k]]
+                why = (f"{path.name} was refitted from another {' and '.join(what)} than the configuration "
+                       f"gives now (a new tap test or set-up supersedes it)")
+                self.ctx.log.warning("stability_model_superseded", file=path.name, why=why)
+                self.ctx.record("stability_model_superseded", {"machine": self.machine, "file": path.name,
+                                                               "why": why, "using": "configured"})
+                return
+            self.lobes, self.model_name = model, path.name
+            self.ctx.log.info("stability_model_loaded", file=path.name)
+            return
+
+    def _cut_records(self) -> list[dict]:
+        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'cut' AND source = ? ORDER BY id",
+                                    (self.name,))
+        return [p for r in rows if (p := json.loads(r["payload"])).get("machine") == self.machine]
+
+    def _refit(self, holdout: float) -> tuple[dict, object]:
+        """The refit of the model in use on this set-up's recorded cuts (a worker thread)."""
+        records = self._cut_records()
+        mine = [r for r in records if (r.get("tool"), r.get("material")) == (self.tool or None, self.material or None)]
+        cuts, skipped = cut_rows(mine)
+        if len(mine) < len(records):
+            skipped["cuts of another tool or material"] = len(records) - len(mine)
+        left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
+        if cuts is None:
+            raise RequestError(f"stability refit: {len(records)} cut(s) of {self.machine} recorded, none usable "
+                               f"(left out: {left_out})")
+        try:
+            r = refit(self.lobes, cuts, holdout_fraction=holdout)
+        except ValueError as e:
+            raise RequestError(f"stability refit on {len(cuts)} cut speeds of {self.machine}: {e} "
+                               f"(left out: {left_out})") from None
+        out = {"machine": self.machine, "setup": {"tool": self.tool or None, "material": self.material or None},
+               "model_before_name": self.model_name, "cut_records": len(records), "left_out": skipped,
+               **r.to_json(), "adopt": bool(r.effects)}
+        out["reason"] = r.conclusion if r.effects else "; ".join([r.conclusion, *r.rejected])
+        return out, r
+
+    def _adopt(self, out: dict, r, by: str | None) -> str:
+        doc = {**self._setup_json(), "machine": self.machine, "model": r.model.to_json(),
+               "refitted_from": self.model_name, "created": time.time(), "by": by,
+               "effects": out["effects"], "before": out["before"], "after": out["after"],
+               "cuts": out["cuts"], "heldout": out["heldout"]}
+        path = stability_files.save(self.models_dir, self.machine, doc)
+        return path.name
+
+    async def _stability(self, args: dict) -> dict:
+        a = Args("stability", args)
+        action = a.getstr("action", "status", choices=("status", "refit"))
+        dry = a.getbool("dry_run", False)
+        holdout = a.getfloat("holdout", 0.3, minval=0.05, maxval=0.9)
+        by = a.getstr("by", None)
+        a.check_unused()
+        if action == "status":
+            return self.stability_status()
+        if not dry:
+            require_operator("stability refit")
+        if self.configured is None:
+            raise RequestError(f"stability refit: {self.name} has no modal model (modes, kf) to refit")
+        if self._refitting:
+            raise RequestError("stability refit: a refit is already running; wait for its result")
+        self._refitting = True
+        try:
+            out, r = await offload(self._refit, holdout)
+            out["dry_run"] = dry
+            if dry:
+                return out
+            if not out["adopt"]:
+                self.ctx.record("stability_refit_not_adopted", {
+                    "machine": self.machine, "model": self.model_name, "reason": out["reason"],
+                    "before": out["before"], "after": out["after"], "cuts": out["cuts"], "by": by})
+                self.last_refit = out
+                return out
+            name = await asyncio.to_thread(self._adopt, out, r, by)
+            model = StabilityModel.from_json(r.model.to_json())     # as the file holds it
+            grid = await asyncio.to_thread(lobe_grid, model, self.limits)
+            before = self.model_name
+            # the next cut's policy takes the new lobes; the present cut finishes on the old
+            self.lobes, self.grid, self.model_name = model, grid, name
+            out["model_after_name"] = name
+            self.ctx.log.warning("stability_model_adopted", file=name, effects=[e["effect"] for e in out["effects"]])
+            self.ctx.record("stability_model_adopted", {
+                "machine": self.machine, "file": name, "model_before": before, "model": out["model_after"],
+                "effects": out["effects"], "before": out["before"], "after": out["after"],
+                "cuts": out["cuts"], "heldout": out["heldout"], "by": by})
+            self.last_refit = out
+            return out
+        finally:
+            self._refitting = False
+
+    def stability_status(self) -> dict:
+        return {"machine": self.machine, "model": self.model_name,
+                "lobes": None if self.lobes is None else self.lobes.to_json(),
+                "configured": None if self.configured is None else self.configured.to_json(),
+                "tool": self.tool or None, "material": self.material or None,
+                "cuts_recorded": self.cuts_recorded,
+                "last_refit": None if self.last_refit is None else
+                {k: self.last_refit.get(k) for k in ("adopt", "reason", "model_after_name", "dry_run")}}
 
     def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
         """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
@@ -259,11 +447,12 @@ class SuppressionAnalyzer(Analyzer):
             self.chat[key] = s.value
             return
         if s.quantity == "cutting":
-            await self._cut_seen("chatter", s.value > 0.5)
+            await self._cut_seen("chatter", s.value > 0.5, s.t)
             return
         if s.quantity != "chatter_alarm":
             return
         alarm = s.value > 0.5
+        self.cut.chatter(s.t, alarm, self.chat["frequency"] if alarm else None)
         if alarm and not self.chat["alarm"]:
             self.alarm_wall_t = s.t
         self.chat["alarm"], self.chat["t"] = alarm, s.t
@@ -294,6 +483,11 @@ class SuppressionAnalyzer(Analyzer):
                 self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
                 payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
         payload.update(sent=result["sent"], refused=result["reason"], by=source)
+        if self.cut.active:
+            # alarms count against the new speed once the policy's hold (ramp, settle) is over
+            hold = self.policy.hold_until() - time.monotonic() if self.policy is not None else 0.0
+            now = time.time()
+            self.cut.action(now, {**payload, "variation": payload.get("variation")}, now + max(0.0, hold))
         self.actions += 1
         self.last_action = payload
         self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,
@@ -369,13 +563,15 @@ class SuppressionAnalyzer(Analyzer):
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)
-        return {"mode": self.mode, "strategy": self.strategy_name, "chatter_alarm": self.chat["alarm"],
+        return {"mode": self.mode, "strategy": self.strategy_name, "machine": self.machine,
+                "model": self.model_name, "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": self.actions, "last_action": self.last_action,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
+                           + (f", model {self.model_name}" if self.lobes is not None else "")
                            + f", {self.actions} action(s)"}
 
 

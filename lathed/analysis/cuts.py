@@ -22,6 +22,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -186,14 +187,21 @@ def load_cuts_csv(path: str | Path) -> Cuts:
                 np.array(vals["chatter_frequency_hz"]), np.array(lines), str(path), ignored)
 
 
-def write_cuts_csv(cuts: Cuts, path: str | Path) -> None:
-    """Write cuts in the format load_cuts_csv reads."""
+def write_cuts_csv(cuts: Cuts, path: str | Path | TextIO) -> None:
+    """Write cuts in the format load_cuts_csv reads (to a path or an open text file)."""
+    if not isinstance(path, (str, Path)):
+        _write_rows(cuts, path)
+        return
     with open(path, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f)
-        w.writerow(REQUIRED + OPTIONAL)
-        for i in range(len(cuts)):
-            fz = cuts.chatter_frequency_hz[i]
-            w.writerow([cuts.machine[i], cuts.tool[i], cuts.material[i], f"{cuts.rpm[i]:.6g}",
-                        f"{cuts.depth_mm[i]:.6g}", f"{cuts.feed_mm_rev[i]:.6g}",
-                        "chatter" if cuts.chatter[i] else "stable",
-                        "" if not math.isfinite(fz) else f"{fz:.6g}"])
+        _write_rows(cuts, f)
+
+
+def _write_rows(cuts: Cuts, f: TextIO) -> None:
+    w = csv.writer(f)
+    w.writerow(REQUIRED + OPTIONAL)
+    for i in range(len(cuts)):
+        fz = cuts.chatter_frequency_hz[i]
+        w.writerow([cuts.machine[i], cuts.tool[i], cuts.material[i], f"{cuts.rpm[i]:.6g}",
+                    f"{cuts.depth_mm[i]:.6g}", f"{cuts.feed_mm_rev[i]:.6g}",
+                    "chatter" if cuts.chatter[i] else "stable",
+                    "" if not math.isfinite(fz) else f"{fz:.6g}"])

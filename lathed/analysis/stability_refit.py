@@ -84,6 +84,11 @@ class StabilityModel:
         where no lobe lies below min(B_CAP_FACTOR * b_lim,min, b_cap_m)."""
         return limit_depth(self, np.atleast_1d(np.asarray(rpm, float)), b_cap_m)
 
+    def b_lim_at(self, rpm) -> tuple[np.ndarray, np.ndarray]:
+        """As StabilityLobes.b_lim_at, so speed selection (lathed.analysis.speed_selection)
+        takes a refitted model, process damping and all, where it takes lobes."""
+        return self.limit(rpm)
+
     def predict_chatter(self, cuts: Cuts, b_cap_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(chatter predicted, limit m, chatter frequency Hz) for each cut."""
         b, f = self.limit(cuts.rpm, b_cap_m)
@@ -93,6 +98,13 @@ class StabilityModel:
         return {"modes": [{"fn_hz": round(m.fn_hz, 3), "zeta": round(m.zeta, 5), "k_n_per_m": float(f"{m.k_n_per_m:.5g}"),
                            "theta_deg": round(m.theta_deg, 3)} for m in self.modes],
                 "kf_n_per_m2": float(f"{self.kf:.5g}"), "process_damping_rpm": round(self.process_damping, 4)}
+
+    @classmethod
+    def from_json(cls, d: dict) -> StabilityModel:
+        """The inverse of to_json; ValueError/KeyError/TypeError on a malformed one."""
+        modes = tuple(Mode(float(m["fn_hz"]), float(m["zeta"]), float(m["k_n_per_m"]), float(m.get("theta_deg", 0.0)))
+                      for m in d["modes"])
+        return cls(modes, float(d["kf_n_per_m2"]), float(d.get("process_damping_rpm", 0.0)))
 
 
 def _grid(modes: Sequence[Mode]) -> np.ndarray:
