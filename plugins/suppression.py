@@ -206,8 +206,6 @@ class SuppressionAnalyzer(Analyzer):
                 if not isinstance(s, Sample):
                     continue
                 if s.source == self.machine:
-                    if s.quantity == "spindle_rpm":
-                        self.cut.speed(s.t, s.value)
                     await self._on_machine(s)
                 elif s.source == self.chatter:
                     await self._on_chatter(s)
@@ -218,6 +216,7 @@ class SuppressionAnalyzer(Analyzer):
     async def _on_machine(self, s: Sample) -> None:
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
+            self.cut.speed(s.t, s.value)
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
             self.cut.feed_mm_rev = s.value

@@ -1,0 +1,209 @@
+"""The daemon side of the stability loop (issue 16): the cut record the
+suppression analyzer leaves per cut, and the refit it adopts only when better,
+keeps across a restart and falls back from when its file is damaged."""
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+
+import numpy as np
+import pytest
+import structlog
+
+from lathed.analysis.cut_log import cut_rows
+from lathed.analysis.speed_selection import LobeSelection, lobe_grid
+from lathed.analysis.stability_cases import GIVEN, generate_cuts, true_dynamics
+from lathed.analysis.stability_refit import StabilityModel
+from lathed.analyzer import AnalyzerContext
+from lathed.bus import Bus, Sample
+from lathed.config import Section
+from lathed.store import Store
+from plugins.suppression import SuppressionAnalyzer
+
+MODES = [f"{m.fn_hz:g},{m.zeta:g},{m.k_n_per_m:g},{m.theta_deg:g}" for m in GIVEN.modes]
+
+
+class Harness:
+    """A suppression analyzer on a real store, its records and commands captured."""
+
+    def __init__(self, tmp, **extra):
+        self.store = Store(tmp / "state" / "lathed.db", machine_id="test")
+        self.sent: list = []
+        self.an = self.make(**extra)
+
+    def make(self, **extra):
+        data = {"chatter": "chatter", "machine": "lathe", "strategy": "lobes", "modes": MODES,
+                "kf": GIVEN.kf, "tool": "T0101", "material": "C45", "settle_revs": 0.0,
+                "accel_rpm_s": 1e6, "max_speed_ratio": 10.0, **extra}
+        an = SuppressionAnalyzer("suppress", Section("t.toml", "analyzer.suppress", data))
+
+        def record(kind, payload=None):
+            self.store.record_future(kind, "suppress", payload).result()
+
+        async def command(cmd):
+            self.sent.append(cmd)
+            return {"sent": True, "reason": None}
+        an.ctx = AnalyzerContext(Bus(), structlog.get_logger("test"), record, command,
+                                 lambda name, handler: None, self.store, lambda name: None, ".")
+        return an
+
+    def start(self, an=None):
+        """What run() does before it reads the bus: the adopted model, the lobes' grid."""
+        an = an or self.an
+        an._load_adopted()
+        an.grid = lobe_grid(an.lobes, an.limits)
+        return an
+
+    def events(self, kind):
+        return [json.loads(r["payload"]) for r in
+                self.store.query("SELECT payload FROM events WHERE kind = ? ORDER BY id", (kind,))]
+
+    def add_cuts(self, cuts):
+        """Cut records as the tracker writes them, one speed per cut."""
+        for i in range(len(cuts)):
+            ch = bool(cuts.chatter[i])
+            f = float(cuts.chatter_frequency_hz[i])
+            self.store.record_future("cut", "suppress", {
+                "machine": "lathe", "tool": "T0101", "material": "C45", "depth_mm": float(cuts.depth_mm[i]),
+                "depth_from": "register", "feed_mm_rev": 0.25, "outcome": "chatter" if ch else "stable",
+                "speeds": [{"rpm": float(cuts.rpm[i]), "outcome": "chatter" if ch else "stable", "steady": True,
+                            "chatter_frequency_hz": f if ch and np.isfinite(f) else None}]}).result()
+
+
+@pytest.fixture
+def h(tmp_path):
+    h = Harness(tmp_path)
+    yield h
+    h.store.close()
+
+
+def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
+    an = h.start()
+    t0 = time.time()
+
+    async def cut():
+        await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t0))
+        await an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t0))
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 2.2, "mm", t0 + 0.01))
+        t = t0 + 0.01
+        for _ in range(10):                      # 2500 r/min for 1 s: 41.7 revolutions
+            t += 0.1
+            await an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t))
+        await an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t))
+        await an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
+        assert len(h.sent) == 1                  # the lobes moved it
+        target = h.sent[0].value
+        t = max(t, time.time()) + 0.01
+        for _ in range(int(25 * 60 / target / 0.1) + 1):     # 25 revolutions at the new speed, no alarm: cured
+            t += 0.1
+            await an._on_machine(Sample("lathe", "spindle_rpm", target, "r/min", t))
+            await an._on_chatter(Sample("chatter", "chatter_alarm", 0.0, "", t))
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.01))
+        return target
+    target = asyncio.run(cut())
+    (rec,) = h.events("cut")
+    assert rec["machine"] == "lathe" and (rec["tool"], rec["material"]) == ("T0101", "C45")
+    assert rec["depth_mm"] == 2.2 and rec["depth_from"] == "register" and rec["feed_mm_rev"] == 0.3
+    assert rec["outcome"] == "chatter" and rec["cured"] is True and rec["alarms"] == 1
+    assert rec["chatter_frequency_hz"] == 655.0
+    assert rec["first_alarm_rev"] == pytest.approx(41.7, abs=0.5)
+    assert rec["rpm_start"] == 2500.0 and rec["rpm_end"] == pytest.approx(target, abs=0.1)
+    s0, s1 = rec["speeds"]
+    assert (s0["rpm"], s0["outcome"], s0["trigger"]) == (2500.0, "chatter", "entry")
+    assert s1["rpm"] == pytest.approx(target, abs=0.1) and s1["outcome"] == "stable" and s1["trigger"] == "alarm"
+    assert [a["rpm_after"] for a in rec["actions"]] == [target] and rec["actions"][0]["sent"] is True
+    assert rec["model"] == "configured"
+    # the store's view and the CSV rows the refit reads
+    (row,) = h.store.query("SELECT outcome, depth_mm, actions, cured FROM cuts")
+    assert row == {"outcome": "chatter", "depth_mm": 2.2, "actions": 1, "cured": 1}
+    cuts, skipped = cut_rows([rec])
+    assert list(cuts.rpm) == [2500.0, pytest.approx(target, abs=0.1)] and list(cuts.chatter) == [True, False]
+    assert skipped == {}
+
+
+def test_without_a_depth_the_cut_is_recorded_and_the_refit_says_it_left_it_out(h):
+    an = h.start()
+
+    async def cut():
+        t = time.time()
+        await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+        for _ in range(20):
+            t += 0.1
+            await an._on_machine(Sample("lathe", "spindle_rpm", 2000.0, "r/min", t))
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t))
+    asyncio.run(cut())
+    (rec,) = h.events("cut")
+    assert rec["depth_mm"] is None and rec["depth_from"] is None and rec["outcome"] == "stable"
+    cuts, skipped = cut_rows([rec])
+    assert cuts is None and list(skipped.values()) == [1] and "no depth" in next(iter(skipped))
+
+
+def refit(h, an=None, **args):
+    return asyncio.run((an or h.an)._stability({"action": "refit", **args}))
+
+
+def test_a_refit_that_adds_nothing_is_not_adopted_and_says_why(h):
+    an = h.start()
+    h.add_cuts(generate_cuts(true_dynamics("none"), 300, seed=3))
+    grid = an.grid
+    out = refit(h)
+    assert out["adopt"] is False and out["effects"] == [] and "no effect added" in out["reason"]
+    assert an.lobes is an.configured and an.grid is grid and an.model_name == "configured"
+    assert not an.models_dir.exists()
+    (ev,) = h.events("stability_refit_not_adopted")
+    assert ev["reason"] == out["reason"] and ev["model"] == "configured"
+    assert h.events("stability_model_adopted") == []
+
+
+def test_a_better_refit_is_adopted_kept_over_a_restart_and_picks_the_speeds(h, tmp_path):
+    an = h.start()
+    true = true_dynamics("natural_frequency")
+    h.add_cuts(generate_cuts(true, 300, seed=4))
+    dry = refit(h, dry_run=True)
+    assert dry["adopt"] is True and dry["dry_run"] is True
+    assert an.model_name == "configured" and not an.models_dir.exists() and h.events("stability_model_adopted") == []
+    out = refit(h)
+    assert out["adopt"] is True and [e["effect"] for e in out["effects"]][:1] == ["natural_frequency"]
+    assert out["after"]["accuracy"] > out["before"]["accuracy"]
+    assert an.model_name == "lathe-v1.json" and (an.models_dir / "lathe-v1.json").is_file()
+    (ev,) = h.events("stability_model_adopted")
+    assert ev["file"] == "lathe-v1.json" and ev["model_before"] == "configured"
+    assert ev["before"]["accuracy"] == out["before"]["accuracy"] and ev["after"]["accuracy"] == out["after"]["accuracy"]
+    fn = ev["model"]["modes"][0]["fn_hz"]
+    assert fn == pytest.approx(true.modes[0].fn_hz, rel=0.03)     # the shifted mode, found
+    adopted = StabilityModel.from_json(ev["model"])
+    # speed selection's proposal comes from the adopted lobes, not the configured ones
+    depth = 1.3 * float(GIVEN.limit(np.geomspace(300, 6000, 2000))[0].min())
+    an.depth_mm = depth * 1e3
+    cut = an._cut()
+    want = LobeSelection(adopted, cut, an.limits).select(4000.0, None)
+    old = LobeSelection(an.configured, cut, an.limits).select(4000.0, None)
+    pick = an._policy().strategy.select(4000.0, None)
+    assert pick.rpm_after == pytest.approx(want.rpm_after) and want.rpm_after != pytest.approx(old.rpm_after)
+    # a restart: the newest adopted model is loaded again
+    again = h.start(h.make())
+    assert again.model_name == "lathe-v1.json" and again.lobes.to_json() == adopted.to_json()
+
+
+def test_a_damaged_model_file_falls_back_to_the_configured_model_with_an_event(h):
+    an = h.start()
+    h.add_cuts(generate_cuts(true_dynamics("natural_frequency"), 300, seed=4))
+    assert refit(h)["adopt"] is True
+    path = an.models_dir / "lathe-v1.json"
+    path.write_text(path.read_text()[:100])       # a torn write, a disk fault
+    again = h.start(h.make())
+    assert again.model_name == "configured" and again.lobes is again.configured
+    (ev,) = h.events("stability_model_unreadable")
+    assert ev["file"] == "lathe-v1.json" and ev["using"] == "configured" and "not readable JSON" in ev["error"]
+
+
+def test_a_new_tap_test_in_the_configuration_supersedes_the_adopted_model(h):
+    h.start()
+    h.add_cuts(generate_cuts(true_dynamics("natural_frequency"), 300, seed=4))
+    assert refit(h)["adopt"] is True
+    again = h.start(h.make(kf=2.2e9))
+    assert again.model_name == "configured"
+    (ev,) = h.events("stability_model_superseded")
+    assert ev["file"] == "lathe-v1.json" and "base" in ev["why"]
