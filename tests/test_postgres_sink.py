@@ -62,6 +62,12 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
                                                         "depth_mm": 3.0, "tool": "T0101", "material": "C45"})
         await store.record("suppression_action", "suppress", {"strategy": "lobes", "rpm_before": 2500.0,
                                                               "rpm_after": 3250.0, "sent": True})
+        await store.record("cut", "suppress", {"machine": "lathe", "tool": "T0101", "material": "C45",
+                                               "rpm_start": 2500.0, "rpm_end": 3250.0, "depth_mm": 3.0,
+                                               "feed_mm_rev": 0.3, "outcome": "chatter", "first_alarm_s": 0.8,
+                                               "chatter_frequency_hz": 197.0, "cured": True,
+                                               "speeds": [{"rpm": 2500.0, "outcome": "chatter"},
+                                                          {"rpm": 3250.0, "outcome": "stable"}]})
 
     async def main():
         await s_chatter()
@@ -78,23 +84,25 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
                                         "settings": {"speed": 1500}, "ra_um": 2.0})
         sink = _sink(pg_dsn, store, batch=64)
         await _drain(sink, store)
-        assert sink.forwarded == store.query("SELECT count(*) AS n FROM outbox")[0]["n"] == 254
+        assert sink.forwarded == store.query("SELECT count(*) AS n FROM outbox")[0]["n"] == 255
         # a crash between the central commit and the local progress update: everything is sent again
         await asyncio.wrap_future(store.set_progress("central", 0))
         again = _sink(pg_dsn, store, batch=100)
         await _drain(again, store)
-        assert again.forwarded == 254
+        assert again.forwarded == 255
 
     asyncio.run(main())
     with psycopg.connect(pg_dsn) as con:
         counts = {t: con.execute(f"SELECT count(*) FROM {t}").fetchone()[0] for t in FORWARDED}
-        assert counts == {"events": 250, "workpieces": 1, "inspections": 1, "sampling_queue": 1,
+        assert counts == {"events": 251, "workpieces": 1, "inspections": 1, "sampling_queue": 1,
                           "experiments": 1}
         assert con.execute("SELECT count(DISTINCT payload->>'seq') FROM events WHERE machine_id = 'cell-a'"
                            ).fetchone()[0] == 248
         assert con.execute("SELECT chatter_index, chatter_frequency_hz, tool FROM chatter_events").fetchall() == \
             [(2.5, 197.0, "T0101")]
         assert con.execute("SELECT rpm_after, sent FROM suppression_actions").fetchall() == [(3250.0, True)]
+        assert con.execute("SELECT rpm_start, rpm_end, depth_mm, outcome, cured FROM cuts").fetchall() == \
+            [(2500.0, 3250.0, 3.0, "chatter", True)]
         ra, measured = con.execute("SELECT ra_um, measured FROM inspections").fetchone()
         assert ra == 4.2 and measured == {"roundness_um": 3.0}   # jsonb, not text
     store.close()
