@@ -34,7 +34,8 @@ from collections import deque
 from pathlib import Path
 
 from lathed.sim.can_peer import CanPeer
-from lathed.sim.lathe import SimLathe
+from lathed.analysis.modal import parse_mode
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
@@ -50,7 +51,7 @@ class Simulator:
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.lathe = SimLathe(rate_hz=args.rate, time_scale=args.time_scale, seed=args.seed,
-                              depth_override_mm=args.depth_mm)
+                              depth_override_mm=args.depth_mm, **args.lathe)
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.serial = SerialPeer(Path(args.serial_link))
@@ -303,9 +304,28 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="serve the grinder on Modbus RTU; path of the symlink to its tty (empty: no grinder)")
     p.add_argument("--robot-link", default="",
                    help="serve the robot arm on slcan; path of the symlink to its tty (empty: no robot)")
+    p.add_argument("--mode", action="append", default=[], metavar="FN,ZETA,K[,THETA_DEG]",
+                   help="the lathe's true structural modes (repeat; default: the default configuration's model)")
+    p.add_argument("--kf", type=float, default=LATHE_KF, help="the true cutting coefficient, N/m^2")
+    p.add_argument("--cut", action="append", default=[], metavar="RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]",
+                   help="the cut program, one part per --cut, repeated in turn (default: the paper's six parts)")
+    p.add_argument("--load-s", type=float, default=LOAD_S, help="seconds to load a part")
+    p.add_argument("--retract-s", type=float, default=RETRACT_S, help="seconds to retract and unload")
     args = p.parse_args(argv)
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         p.error("--time-scale must be > 0")
+    try:
+        lathe = {"modes": tuple(parse_mode(m) for m in args.mode) or LATHE_MODES, "kf": args.kf,
+                 "load_s": args.load_s, "retract_s": args.retract_s}
+        if args.cut:
+            lathe["program"] = tuple(parse_cut(c) for c in args.cut)
+    except ValueError as e:
+        p.error(str(e))
+    if not (math.isfinite(args.kf) and args.kf > 0):
+        p.error("--kf must be > 0 N/m^2")
+    if not (0 <= args.load_s <= 60 and 0 <= args.retract_s <= 60):
+        p.error("--load-s and --retract-s must be within 0..60 s")
+    args.lathe = lathe
     return args
 
 

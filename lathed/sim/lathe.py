@@ -53,6 +53,20 @@ DEFAULT_PROGRAM = (
     Cut(2000, 1.0), Cut(1500, 3.0), Cut(2500, 1.0),
 )
 
+
+def parse_cut(text: str) -> Cut:
+    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]``: one part of a cut program."""
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]] as numbers") from None
+    if not 2 <= len(vals) <= 4:
+        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]")
+    c = Cut(*vals)
+    if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= 10 and 0 < c.feed_mm_rev <= 2 and 0 < c.length_mm <= 1000):
+        raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..10 mm deep, 0..2 mm/rev, 0..1000 mm long")
+    return c
+
 class VisibleChatter:
     """regen.simulate_cut's "chatter is visible" rule, evaluated live block by block.
 
@@ -172,14 +186,19 @@ RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
 class SimLathe:
     def __init__(self, program: tuple[Cut, ...] = DEFAULT_PROGRAM, rate_hz: int = 51200,
                  time_scale: float = 1.0, accel_rpm_s: float = 3000.0, max_rpm: float = 6000.0,
-                 depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0):
+                 depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0,
+                 modes: tuple[Mode, ...] = LATHE_MODES, kf: float = LATHE_KF,
+                 load_s: float = LOAD_S, retract_s: float = RETRACT_S):
         self.program = program
         self.rate_hz = rate_hz
         self.time_scale = time_scale          # thermal clock speed-up
         self.accel_rpm_s = accel_rpm_s
         self.max_rpm = max_rpm
         self.depth_override_mm = depth_override_mm
-        self.cutter = RegenerativeTurning(LATHE_MODES, LATHE_KF, rate_hz=float(rate_hz), seed=seed)
+        # the true dynamics: by default the model the default configuration gives the daemon;
+        # other modes or Kf make an effect the daemon's model lacks (issue 16's tests)
+        self.cutter = RegenerativeTurning(modes, kf, rate_hz=float(rate_hz), seed=seed)
+        self.load_s, self.retract_s = load_s, retract_s
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
         self.t = 0.0
@@ -197,7 +216,7 @@ class SimLathe:
         self.probe_seq = 0
         self.program_number = 1000
         self.load_pct = 0.0
-        self.lobes = StabilityLobes(LATHE_MODES, LATHE_KF)
+        self.lobes = StabilityLobes(modes, kf)
         self.watch = VisibleChatter(rate_hz)
         self.n_samples = 0
         self.parts: deque[PartRecord] = deque(maxlen=64)
@@ -244,7 +263,7 @@ class SimLathe:
 
     def _advance_program(self, dt: float) -> None:
         self.phase_t += dt
-        if self.phase == "load" and self.phase_t >= LOAD_S and abs(self.rpm - self.rpm_cmd) < 1.0:
+        if self.phase == "load" and self.phase_t >= self.load_s and abs(self.rpm - self.rpm_cmd) < 1.0:
             self.phase, self.phase_t, self.y_mm = "cut", 0.0, 0.0
         elif self.phase == "cut":
             self.y_mm += self.part.feed_mm_rev * self.rpm / 60.0 * dt
@@ -253,7 +272,7 @@ class SimLathe:
                 # probe cycle: the spindle's thermal growth as a touch probe sees it
                 self.probe_displacement_um = self.thermal.displacement_um + self._rng.normal(0, 0.3)
                 self.probe_seq = (self.probe_seq + 1) % 65536
-        elif self.phase == "retract" and self.phase_t >= RETRACT_S:
+        elif self.phase == "retract" and self.phase_t >= self.retract_s:
             self.part_count += 1
             self.cycle_time_s = self.t - self.cycle_start
             self.cycle_start = self.t

@@ -34,6 +34,21 @@ class SimulatorSettings:
         self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
+        # the lathe's true dynamics and program, when they are to differ from the built-in ones
+        # (the daemon's own model stays what its analyzers are configured with)
+        self.modes = sec.getlist("modes", [])
+        self.kf = sec.getfloat("kf", 0.0, minval=0.0)
+        self.program = sec.getlist("program", [])
+        self.load_s = sec.getfloat("load_s", -1.0, minval=0.0, maxval=60.0)
+        self.retract_s = sec.getfloat("retract_s", -1.0, minval=0.0, maxval=60.0)
+        from lathed.analysis.modal import parse_mode
+        from lathed.sim.lathe import parse_cut
+        for key, parse in (("modes", parse_mode), ("program", parse_cut)):
+            for text in getattr(self, key):
+                try:
+                    parse(str(text))
+                except ValueError as e:
+                    raise sec.error(key, str(e)) from None
         sec.check_unused()
         for key in ("serial_link", "grinder_link", "robot_link"):
             link = getattr(self, key)
@@ -59,6 +74,16 @@ class SimulatorSettings:
             a += ["--robot-link", self.robot_link]
         if self.depth_mm >= 0:
             a += ["--depth-mm", str(self.depth_mm)]
+        for m in self.modes:
+            a += ["--mode", str(m)]
+        for c in self.program:
+            a += ["--cut", str(c)]
+        if self.kf > 0:
+            a += ["--kf", str(self.kf)]
+        if self.load_s >= 0:
+            a += ["--load-s", str(self.load_s)]
+        if self.retract_s >= 0:
+            a += ["--retract-s", str(self.retract_s)]
         return a
 
 
