@@ -26,10 +26,16 @@ import argparse
 import statistics
 import time
 
+from dataclasses import replace
+
 import numpy as np
 
+from lathed.analysis.cuts import Cuts
+from lathed.analysis.speed_selection import (Cut, LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
+                                             lobe_grid)
 from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
-from lathed.analysis.stability_refit import refit
+from lathed.analysis.stability_refit import StabilityModel, refit
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 
 
 def bench_recovery(seeds: int, n_cuts: int) -> int:
@@ -95,6 +101,92 @@ def bench_simulated(n_cuts: int) -> None:
     print()
 
 
+# -- the closed loop: suppression's speed choices before and after a refit ------------------
+
+LIMITS = SpindleLimits(max_rpm=6000.0, min_rpm=300.0, accel_rpm_per_s=3000.0)
+MAX_SPEED_RATIO = 1.3      # etc/lathed.toml [analyzer.suppress]
+RATED_RPM = 750.0
+
+
+def run_program(model, true, program, rng, grid, boundary_sigma: float = 0.05):
+    """Each cut of ``program`` (rpm, depth m) as the daemon's suppression runs it on a lathe
+    whose dynamics are ``true``: entered at its speed; while it chatters, the policy picks
+    the next speed from ``model``'s lobes (LobeSelection with the rated-speed fallback,
+    under the programmed speed x MAX_SPEED_RATIO, as plugins/suppression.py composes it).
+    A speed chatters when the depth is above the true limit there times
+    exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds
+    (rows of the refit's cuts, in order) and the count of moves to a speed that chattered
+    again, of moves, of cuts that chattered at entry, and of re-chatters at a speed the
+    model called stable (a promise broken, not a speed chosen for want of a stable one)."""
+    rows, rechatter, moves, entered, broken = [], 0, 0, 0, 0
+    for rpm0, depth in program:
+        cut = Cut(depth, 0.25e-3, 0.03, 1.5e9)
+        limits = replace(LIMITS, max_rpm=min(LIMITS.max_rpm, MAX_SPEED_RATIO * rpm0))
+        policy = SuppressionPolicy(LobeSelection(model, cut, limits, grid=grid), limits,
+                                   fallback=RatedSpeed(RATED_RPM, model, cut), settle_revs=20.0)
+        rpm, t, moved, promised = rpm0, 0.0, False, False
+        while True:
+            b, f = true.limit(rpm)
+            chatter = bool(depth >= b[0] * np.exp(boundary_sigma * rng.standard_normal()))
+            rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
+            if not chatter:
+                break
+            rechatter += moved
+            broken += moved and promised
+            entered += not moved
+            t += 1e6                   # past any hold: each verdict is after the settle
+            d = policy.observe(t, rpm, True, float(f[0]))
+            if d is None:
+                break
+            rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
+            moves += 1
+    r = np.array(rows, dtype=object)
+    cuts = Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
+                            r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
+    return cuts, rechatter, moves, entered, broken
+
+
+def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.6, 1.6)
+                      ) -> list[tuple[str, int, int]]:
+    print(f"## Closed loop: re-chatters before and after the refit, {seeds} programs of {n_cuts} cuts per effect\n")
+    print(f"The given model is the simulated lathe's (lathed.sim.lathe: 190 Hz workpiece mode, 620 Hz "
+          "tool-post mode; its lobes have pockets within the spindle's range, which the recovery table's model "
+          "has not), the true dynamics differ by one effect as above. A cut program (speeds log-uniform "
+          "1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the daemon's suppression runs it (lobes strategy, rated-speed fallback, at most "
+          f"{MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut) on a lathe with the undeclared "
+          "effect; the refit on the speeds of that run; the same program again with the adopted model. "
+          "Verdicts from the true lobes with the noise model above, not from the daemon on the "
+          "simulator (a cut there takes seconds of real time; tests/test_stability_live.py runs the daemon "
+          "loop itself). A re-chatter is a move by suppression to a speed that chatters again.\n")
+    print("| undeclared effect | refit added | chatter at entry before | after | moves before | after | "
+          "re-chatters before | after | after / before | of them at a speed called stable before | after |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    given = StabilityModel(LATHE_MODES, LATHE_KF)
+    b_min = float(given.limit(np.geomspace(300, 6000, 2000))[0].min())
+    grid0 = lobe_grid(given, LIMITS)
+    out = []
+    for eff in ("none", *UNDECLARED):
+        true = true_dynamics(eff, given)
+        tot = np.zeros(8, int)
+        added = []
+        for s in range(seeds):
+            rng = np.random.default_rng(3000 + s)
+            program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
+                               b_min * rng.uniform(*depths, n_cuts)))
+            cuts, rc0, mv0, en0, bk0 = run_program(given, true, program, rng, grid0)
+            r = refit(given, cuts)
+            added.append("+".join(e.effect.name for e in r.effects) or "-")
+            grid1 = grid0 if not r.effects else lobe_grid(r.model, LIMITS)
+            _, rc1, mv1, en1, bk1 = run_program(r.model, true, program, rng, grid1)
+            tot += (en0, en1, mv0, mv1, rc0, rc1, bk0, bk1)
+        names = ", ".join(f"{n} ({added.count(n)})" for n in dict.fromkeys(added))
+        ratio = f"{tot[5] / tot[4]:.2f}" if tot[4] else "-"
+        print(f"| {eff} | {names} | {tot[0]} | {tot[1]} | {tot[2]} | {tot[3]} | {tot[4]} | {tot[5]} | {ratio} | {tot[6]} | {tot[7]} |")
+        out.append((eff, int(tot[4]), int(tot[5])))
+    print()
+    return out
+
+
 def bench_time(repeats: int) -> None:
     print(f"## Time of one refit on 1,000 cuts (median of {repeats})\n")
     print("| undeclared effect | refit s | effects added |")
@@ -117,7 +209,16 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--sim-cuts", type=int, default=500, help="cuts per effect labelled by the simulator (0: skip)")
     ap.add_argument("--skip-time", action="store_true")
+    ap.add_argument("--loop-seeds", type=int, default=5, help="closed-loop programs per effect (0: skip)")
+    ap.add_argument("--loop-cuts", type=int, default=200, help="cuts per closed-loop program")
+    ap.add_argument("--only-loop", action="store_true", help="only the closed-loop table")
+    ap.add_argument("--loop-depths", type=float, nargs=2, default=(0.6, 1.6), metavar=("LO", "HI"),
+                    help="closed-loop depths as multiples of the given critical depth (default 0.6 1.6)")
     a = ap.parse_args()
+    if a.loop_seeds:
+        bench_closed_loop(a.loop_seeds, a.loop_cuts, tuple(a.loop_depths))
+    if a.only_loop:
+        return
     bench_recovery(a.seeds, a.cuts)
     if a.sim_cuts:
         bench_simulated(a.sim_cuts)
