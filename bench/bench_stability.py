@@ -152,7 +152,7 @@ def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.
     print(f"The given model is the simulated lathe's (lathed.sim.lathe: 190 Hz workpiece mode, 620 Hz "
           "tool-post mode; its lobes have pockets within the spindle's range, which the recovery table's model "
           "has not), the true dynamics differ by one effect as above. A cut program (speeds log-uniform "
-          "1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the daemon's suppression runs it (lobes strategy, rated-speed fallback, at most "
+          f"1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the daemon's suppression runs it (lobes strategy, rated-speed fallback, at most "
           f"{MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut) on a lathe with the undeclared "
           "effect; the refit on the speeds of that run; the same program again with the adopted model. "
           "Verdicts from the true lobes with the noise model above, not from the daemon on the "

@@ -486,7 +486,7 @@ class SuppressionAnalyzer(Analyzer):
             # alarms count against the new speed once the policy's hold (ramp, settle) is over
             hold = self.policy.hold_until() - time.monotonic() if self.policy is not None else 0.0
             now = time.time()
-            self.cut.action(now, {**payload, "variation": payload.get("variation")}, now + max(0.0, hold))
+            self.cut.action(now, payload, now + max(0.0, hold))
         self.actions += 1
         self.last_action = payload
         self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,

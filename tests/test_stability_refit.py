@@ -7,7 +7,7 @@ from lathed.analysis.cuts import Cuts
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
 from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, true_dynamics
-from lathed.analysis.stability_refit import StabilityModel, refit, residual
+from lathed.analysis.stability_refit import Effect, StabilityModel, _Fit, _joint, compose, refit, residual
 
 
 def test_limit_per_speed_matches_the_lobes():
@@ -86,3 +86,14 @@ def test_lobe_labels_agree_with_the_regenerative_simulator(effect):
     sim = simulate_labels(true, cuts)
     assert list(sim.chatter) == list(cuts.chatter)
     assert np.allclose(sim.chatter_frequency_hz[3:], f, rtol=0.03)
+
+
+def test_joint_refit_keeps_an_effect_on_an_added_mode_in_its_place():
+    # a second mode found first, then its frequency refined (mode 3 exists only after it),
+    # then a third effect: the joint pass refits each effect in its place, not on the bare model
+    cuts = generate_cuts(true_dynamics("second_mode"), 200, seed=5)
+    added = Effect("second_mode", (950.0, 0.03, 2.0e7, 0.0))
+    chosen = [added, Effect("natural_frequency", (1.02,), len(GIVEN.modes)), Effect("cutting_coefficient", (1.1,))]
+    out = _joint(GIVEN, chosen, _Fit(cuts))
+    assert [e.name for e in out] == [e.name for e in chosen] and out[1].mode == len(GIVEN.modes)
+    assert len(compose(GIVEN, out).modes) == len(GIVEN.modes) + 1

@@ -646,17 +646,18 @@ def _joint(base: StabilityModel, chosen: list[Effect], fit: _Fit) -> list[Effect
     found first absorbs part of a Kf change)."""
     out = list(chosen)
     for i, e in enumerate(out[:-1]):
-        others = out[:i] + out[i + 1:]
+        # in its place: an effect may change a mode that an earlier second_mode added
+        before, after = compose(base, out[:i]), out[i + 1:]
 
-        def cost(m, others=others):
-            return fit(compose(m, others))
+        def cost(m, after=after):
+            return fit(compose(m, after))
         x = e.values[0]
         grid = x * np.geomspace(0.8, 1.25, 11) if e.name != "process_damping" else x * np.geomspace(0.5, 2.0, 11)
         if e.name == "second_mode":
             mk = lambda v, e=e: Effect(e.name, (v,) + e.values[1:], e.mode)  # noqa: E731
         else:
             mk = lambda v, e=e: Effect(e.name, (v,), e.mode)  # noqa: E731
-        c_new, e_new = _search(cost, mk, base, grid)
-        if e_new is not None and c_new < cost(e.apply(base)):
+        c_new, e_new = _search(cost, mk, before, grid)
+        if e_new is not None and c_new < cost(e.apply(before)):
             out[i] = e_new
     return out
