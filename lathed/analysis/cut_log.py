@@ -161,7 +161,8 @@ class CutTracker:
 
     def end(self, t: float) -> dict:
         """The cut's record; the tracker is then idle until the next start."""
-        self.speed(t, self._last[1]) if self._last else None
+        if self._last is not None:
+            self.speed(t, self._last[1])      # the revolutions since the last speed sample
         st = self.start_t
         stretches = self.stretches
         chattered = self.alarms > 0
