@@ -95,3 +95,24 @@ def test_the_refit_names_the_shifted_mode_and_suppression_uses_it(shifted, tmp_p
     assert act["expected_b_lim_mm"] == pytest.approx(b_new, rel=0.02) and b_new != pytest.approx(b_old, rel=0.02)
     wait_until(lambda: any(c["model"] == "lathe-v1.json" for c in cuts(d)), timeout=30, interval=0.5,
                what="a cut recorded under the adopted model")
+
+
+def test_the_simulators_true_dynamics_and_program_are_checked_and_passed_on(tmp_path):
+    from lathed.config import ConfigError, Section
+    from lathed.sim.__main__ import parse_args
+    from lathed.sim.launch import SimulatorSettings
+    s = SimulatorSettings(Section("t.toml", "simulator", {"modes": [f"{TRUE_FN:g},0.03,7.5e7,0", MODES[1]],
+                                                           "kf": 2.9e9, "program": PROGRAM[:2], "load_s": 0.3}),
+                          tmp_path)
+    argv = s.argv()
+    assert argv[1:3] == ["-m", "lathed.sim"]
+    lathe = parse_args(argv[3:]).lathe
+    assert lathe["modes"][0].fn_hz == TRUE_FN and lathe["kf"] == 2.9e9 and lathe["load_s"] == 0.3
+    assert [(c.rpm, c.depth_mm, c.feed_mm_rev, c.length_mm) for c in lathe["program"]] == \
+        [(2250, 3.0, 0.3, 24.0), (2500, 3.0, 0.3, 24.0)]
+    assert parse_args([]).lathe["modes"] == LATHE_MODES        # by default the configured model is the truth
+    for key, value, problem in (("modes", ["190,2,7.5e7"], "damping ratio"),
+                                ("program", ["2250,30"], "outside"), ("program", ["fast,3"], "as numbers")):
+        with pytest.raises(ConfigError) as e:
+            SimulatorSettings(Section("t.toml", "simulator", {key: value}), tmp_path)
+        assert "[simulator]" in str(e.value) and key in str(e.value) and problem in str(e.value), str(e.value)
