@@ -96,6 +96,7 @@ LOBE_CAP_MM = 20.0
 MODES = ("auto", "manual", "off")
 STRATEGIES = ("lobes", "frequency", "rated", "variation")
 SSV_STEP_S = 0.05     # speed commands while modulating
+MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
 
 
 class SuppressionAnalyzer(Analyzer):
@@ -339,6 +340,10 @@ class SuppressionAnalyzer(Analyzer):
         if cuts is None:
             raise RequestError(f"stability refit: {len(records)} cut(s) of {self.machine} recorded, none usable "
                                f"(left out: {left_out})")
+        if len(cuts) > MAX_REFIT_SPEEDS:
+            # the refit's time grows faster than the cuts (3 s on 1,000, 20 s on 3,000); the newest tell most
+            skipped[f"older than the newest {MAX_REFIT_SPEEDS} cut speeds"] = len(cuts) - MAX_REFIT_SPEEDS
+            cuts = cuts.take(np.arange(len(cuts) - MAX_REFIT_SPEEDS, len(cuts)))
         try:
             r = refit(self.lobes, cuts, holdout_fraction=holdout)
         except ValueError as e:

@@ -207,3 +207,12 @@ def test_a_new_tap_test_in_the_configuration_supersedes_the_adopted_model(h):
     assert again.model_name == "configured"
     (ev,) = h.events("stability_model_superseded")
     assert ev["file"] == "lathe-v1.json" and "base" in ev["why"]
+
+
+def test_the_refit_takes_the_newest_cut_speeds_and_says_how_many_it_left(h, monkeypatch):
+    import plugins.suppression as sup
+    monkeypatch.setattr(sup, "MAX_REFIT_SPEEDS", 100)
+    h.start()
+    h.add_cuts(generate_cuts(true_dynamics("none"), 130, seed=3))
+    out = refit(h, dry_run=True)
+    assert out["cuts"] == 100 and out["left_out"] == {"older than the newest 100 cut speeds": 30}

@@ -13,9 +13,11 @@ import sys
 import time
 
 from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
+from lathed.client import call
 from lathed.lathectl import print_json, remote
 
 MAX_CUTS = 100_000     # the events command's limit
+REFIT_TIMEOUT_S = 180.0
 
 
 def _since(text: str) -> float:
@@ -98,7 +100,8 @@ def run_stability(args) -> int:
     req = {"action": args.action, "analyzer": _analyzer(args)}
     if args.action == "refit":
         req.update(dry_run=args.dry_run, holdout=args.holdout)
-    r = remote(args, "stability", req)
+    # a refit on thousands of cuts takes tens of seconds (lathectl's usual wait is 10 s)
+    r = call("stability", req, sock_path=args.socket, timeout=REFIT_TIMEOUT_S if args.action == "refit" else 10.0)
     if args.json:
         print_json(r)
         return 0
