@@ -1,6 +1,12 @@
 """Stability refit: effect recovery per undeclared effect, and refit time.
 
     .venv/bin/python bench/bench_stability.py [--seeds N] [--cuts C] [--repeats R]
+        [--loop-seeds S] [--loop-cuts P] [--loop-depths LO HI] [--only-loop]
+
+First the closed loop: a cut program run as the daemon's suppression runs it,
+on the simulated lathe's model with one undeclared effect, before and after
+the refit on that run's cut speeds; re-chatters (moves by suppression to a
+speed that chatters again) counted before and after.  Then:
 
 The given model is the simulator's lathe (regen.DEFAULT_MODES, DEFAULT_KF);
 the cuts come from true dynamics that differ from it by one undeclared effect
