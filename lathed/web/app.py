@@ -283,7 +283,7 @@ class App:
             if what == "parts":
                 res = await ask(self.s.socket, "parts", {"limit": 200, "abnormal": q.get("abnormal") == "1"})
             elif what == "recommend":
-                res = await ask(self.s.socket, "recommend", {})
+                res = await ask(self.s.socket, "recommend", {"all": True})
             else:
                 raise web.HTTPNotFound(text=f"no {what!r} here")
         except RuntimeError as e:   # the daemon's answer, e.g. no experiments recorded: shown as such
@@ -312,9 +312,9 @@ class App:
         if what == "suppress":
             cmd, args = "suppress", {"action": body.get("action"), "by": user}
         elif what == "thermal":
-            if body.get("action") != "touchoff":
-                return web.json_response({"error": "thermal: the only action here is touchoff"}, status=400)
-            cmd, args = "thermal", {"action": "touchoff", "by": user}
+            if body.get("action") not in ("touchoff", "refit"):
+                return web.json_response({"error": "thermal: the actions here are touchoff and refit"}, status=400)
+            cmd, args = "thermal", {"action": body["action"], "by": user}
         elif what == "inspect":
             cmd, args = "inspect", {"part": body.get("part"), "ra_um": body.get("ra_um"),
                                     "diameter_error_um": body.get("diameter_error_um"), "by": user}
