@@ -232,6 +232,29 @@ def test_listening_beyond_this_pc_needs_accounts(tmp_path):
     assert accounts.verify("pw", accounts.hash_password("pw")) and not accounts.verify("px", accounts.hash_password("pw"))
 
 
+def test_sigterm_stops_lathed_web_at_once_with_pages_open(tmp_path):
+    """An open page's event stream held the stop for aiohttp's shutdown timeout (60 s):
+    `systemctl stop lathed-web` hung, and so did every restart."""
+    port = free_port()
+    web = subprocess.Popen([str(BIN / "lathed-web"), "--port", str(port), "--socket", str(tmp_path / "none.sock")],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        def stream():
+            try:
+                return urllib.request.urlopen(f"http://127.0.0.1:{port}/events", timeout=10)
+            except OSError:
+                return None
+        pages = [wait_until(stream, 15, interval=0.1, what="lathed-web serving") for _ in range(2)]
+        for r in pages:
+            assert r.readline().startswith(b"data: ")      # the snapshot: the stream is open
+        web.terminate()
+        assert web.wait(timeout=10) == 0
+        assert b"Traceback" not in web.stderr.read()
+    finally:
+        web.kill()
+        web.wait()
+
+
 def _events(d, kind: str) -> list[dict]:
     return json.loads(d.ctl("events", "--kind", kind, "--limit", "20", "--json").stdout)
 

@@ -130,11 +130,15 @@ class DaemonLink:
             try:
                 q.put_nowait(data)
             except asyncio.QueueFull:   # a browser that does not keep up: cut, it reconnects and redraws
-                self.browsers.discard(q)
+                self.end_stream(q)
                 self.dropped_browsers += 1
-                while not q.empty():
-                    q.get_nowait()
-                q.put_nowait(None)
+
+    def end_stream(self, q: asyncio.Queue) -> None:
+        """Its page's event stream ends at once, whatever it had not sent."""
+        self.browsers.discard(q)
+        while not q.empty():
+            q.get_nowait()
+        q.put_nowait(None)
 
     def _down(self, why: str) -> None:
         if self.connected or self.error != why:
@@ -337,17 +341,18 @@ class App:
         app.router.add_post("/api/{what}", self.action)
         app.router.add_static("/static/", STATIC)
         app.on_startup.append(self._start)
-        app.on_cleanup.append(self._stop)
+        app.on_shutdown.append(self._stop)
         return app
 
     async def _start(self, app: web.Application) -> None:
         self._task = asyncio.create_task(self.link.run())
 
     async def _stop(self, app: web.Application) -> None:
+        # on shutdown, before aiohttp waits for open requests: an open page's event stream
+        # would otherwise hold the stop for aiohttp's shutdown timeout (a minute)
         self._task.cancel()
         for q in list(self.link.browsers):
-            if not q.full():
-                q.put_nowait(None)
+            self.link.end_stream(q)
         await asyncio.gather(self._task, return_exceptions=True)
 
 
