@@ -39,6 +39,7 @@ from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
 from lathed.web import accounts
+from lathed.viewdelta import merge_view
 
 log = structlog.get_logger("lathed.web")
 STATIC = Path(__file__).parent / "static"
@@ -118,8 +119,11 @@ class DaemonLink:
         for k, (t, v, unit) in f.get("samples", {}).items():
             self.latest[k] = [t, v, unit]
             self.history.setdefault(k, deque(maxlen=HISTORY)).append((t, v))
-        self.vibration.update({k: v for k, v in f.get("vibration", {}).items() if v is not None})
-        self.views.update(f.get("views", {}))
+        for k, v in f.get("vibration", {}).items():
+            if v is not None:
+                self.vibration[k] = merge_view(self.vibration.get(k), v)
+        for k, v in f.get("views", {}).items():
+            self.views[k] = merge_view(self.views.get(k), v)
         if f.get("status"):
             self.status = f["status"]
         self.events.extend(f.get("events", []))

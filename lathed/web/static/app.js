@@ -26,8 +26,16 @@ function onInit(m) {
 function onFrame(m) {
   for (const [k, [t, v, unit]] of Object.entries(m.samples || {})) addSample(k, t, v, unit);
   if (m.status) S.status = m.status;
-  Object.assign(S.vib, m.vibration || {});
-  Object.assign(S.views, m.views || {});
+  // a view in a frame carries only its changed keys (null: gone); null for a whole view replaces it
+  const merge = (to, from) => { for (const [k, v] of Object.entries(from || {})) {
+    if (v && typeof v === "object" && to[k] && typeof to[k] === "object") {
+      const o = Object.assign({}, to[k], v);
+      for (const [kk, vv] of Object.entries(v)) if (vv === null) delete o[kk];
+      to[k] = o;
+    } else to[k] = v;
+  } };
+  merge(S.vib, m.vibration);
+  merge(S.views, m.views);
   if (m.events && m.events.length) { S.events = S.events.concat(m.events).slice(-500); recordsDirty = true; refreshParts(); }
   S.lastFrame = Date.now();
   if (!S.connected) setLink(true, null);
