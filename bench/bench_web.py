@@ -2,22 +2,24 @@
 
 Runs the default config (etc/lathed.toml, simulator spawned, every part cut
 3 mm deep so that chatter happens and suppression acts) on free ports. One
-daemon, two phases of ``--duration`` seconds each after ``--warmup``:
+daemon, 5 headless Chromium pages (Debian's /usr/bin/chromium via Playwright)
+open on lathed-web throughout, and ``--cycles`` pairs of phases of
+``--seconds`` each, interleaved so that the shared machine's drift falls on
+both alike:
 
-  none     no subscriber
-  web0     lathed-web subscribed, no page open (the daemon's cost of the view alone)
-  web      lathed-web (one subscription to the daemon) with 5 headless
-           Chromium pages open on it (Debian's /usr/bin/chromium via Playwright)
+  none   lathed-web stopped: no subscriber (the pages wait to reconnect)
+  web    lathed-web running, subscribed to the daemon, the 5 pages live on it
 
 Per phase: the daemon's CPU (its process only, from /proc), its event-loop lag
-(status -> daemon.loop_lag_ms, the median p50 and the worst p99 of the 10 s
-windows), the chatter loop's alarm -> speed write latency (the
-``alarm_to_write_ms`` of the phase's suppression_action events); in the web
-phase the CPU and RSS of lathed-web, and the time from a sample's measurement
-(its ``t``, stamped by the driver as it publishes on the bus) to the page
-receiving its frame (Date.now() in the page as the frame arrives; same clock).
+(status -> daemon.loop_lag_ms, p50 and p99 of its 10 s windows), the chatter
+loop's alarm -> speed write latency (``alarm_to_write_ms`` of the phase's
+suppression_action events); in the web phases the CPU and RSS of lathed-web
+and the time from a sample's measurement (its ``t``, stamped by the driver as
+it publishes on the bus) to the page receiving its frame (Date.now() in the
+page as the frame arrives; same clock). The table gives medians over the
+cycles, and the median of each cycle's web / none ratio.
 
-    .venv/bin/python bench/bench_web.py [--duration 120] [--warmup 30] [--json FILE]
+    .venv/bin/python bench/bench_web.py [--cycles 6] [--seconds 20] [--warmup 20] [--json FILE]
 """
 from __future__ import annotations
 
@@ -87,7 +89,24 @@ def phase(proc: subprocess.Popen, sock: Path, seconds: float, web: subprocess.Po
     return out
 
 
-def run(duration: float, warmup: float) -> dict:
+def start_web(port: int, sock: Path) -> subprocess.Popen:
+    return subprocess.Popen([str(BIN / "lathed-web"), "--port", str(port), "--socket", str(sock)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def subscribers(sock: Path) -> int:
+    return call("status", sock_path=sock)["daemon"]["control"]["subscribers"]
+
+
+def until(cond, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            raise SystemExit(f"bench_web: {what} did not happen within {timeout:g} s")
+        time.sleep(0.1)
+
+
+def run(cycles: int, seconds: float, warmup: float) -> dict:
     from playwright.sync_api import sync_playwright
     with tempfile.TemporaryDirectory(prefix="bench-web-") as d:
         tmp = Path(d)
@@ -95,17 +114,11 @@ def run(duration: float, warmup: float) -> dict:
         cfg.write_text(cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1))
         sock = tmp / "run" / "lathed.sock"
         proc = start(cfg, tmp)
-        web = None
+        port = free_port()
+        web = start_web(port, sock)
+        res: dict[str, list] = {"none": [], "web": [], "latency_ms": []}
         try:
             time.sleep(warmup)
-            res = {"none": phase(proc, sock, duration, None)}
-            port = free_port()
-            web = subprocess.Popen([str(BIN / "lathed-web"), "--port", str(port), "--socket", str(sock)],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            # lathed-web subscribed, no page: the daemon's own cost of serving the view, apart from
-            # the CPU five Chromiums take from the same cores
-            time.sleep(3)
-            res["web0"] = phase(proc, sock, duration, web)
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
                 pages = []
@@ -118,20 +131,25 @@ def run(duration: float, warmup: float) -> dict:
                             break
                         except Exception:   # lathed-web still starting
                             time.sleep(0.2)
-                    page.wait_for_selector("#link.ok", timeout=30_000)
                     pages.append(page)
-                time.sleep(5)
-                for page in pages:
-                    page.evaluate("window.__lat = []")
-                res["web"] = phase(proc, sock, duration, web)
-                lat = [x * 1000 for page in pages for x in page.evaluate("window.__lat")]
-                res["web"].update(frame_latency_median_ms=pct(lat, 50), frame_latency_p99_ms=pct(lat, 99),
-                                  frame_latency_n=len(lat))
+                for c in range(cycles):
+                    web.terminate()
+                    web.wait(10)
+                    until(lambda: subscribers(sock) == 0, 10, "the daemon dropping lathed-web's subscription")
+                    res["none"].append(phase(proc, sock, seconds, None))
+                    web = start_web(port, sock)
+                    until(lambda: subscribers(sock) == 1, 20, "lathed-web subscribing")
+                    for page in pages:      # each page's EventSource comes back by itself
+                        page.wait_for_selector("#link.ok", timeout=30_000)
+                        page.evaluate("window.__lat = []")
+                    res["web"].append(phase(proc, sock, seconds, web))
+                    res["latency_ms"] += [x * 1000 for page in pages for x in page.evaluate("window.__lat")]
+                    print(f"cycle {c + 1}/{cycles}: daemon CPU {res['none'][-1]['daemon_cpu_pct']:.1f} % "
+                          f"without, {res['web'][-1]['daemon_cpu_pct']:.1f} % with", file=sys.stderr)
                 browser.close()
         finally:
-            if web:
-                web.terminate()
-                web.wait(10)
+            web.terminate()
+            web.wait(10)
             stop(proc, tmp)
     return res
 
@@ -142,38 +160,46 @@ def _f(v, digits=1, unit=""):
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--duration", type=float, default=120.0, help="seconds per phase")
-    ap.add_argument("--warmup", type=float, default=30.0)
+    ap.add_argument("--cycles", type=int, default=6, help="pairs of phases (none, web)")
+    ap.add_argument("--seconds", type=float, default=20.0, help="seconds per phase")
+    ap.add_argument("--warmup", type=float, default=20.0)
     ap.add_argument("--json", help="also write the results here")
     a = ap.parse_args()
-    r = run(a.duration, a.warmup)
+    r = run(a.cycles, a.seconds, a.warmup)
     if a.json:
         Path(a.json).write_text(json.dumps(r, indent=2))
-    n, w0, w = r["none"], r["web0"], r["web"]
+    n, w = r["none"], r["web"]
 
-    def ratio(key, w=w):
-        return "-" if not n.get(key) or w.get(key) is None else f"{w[key] / n[key]:.2f}"
-    print(f"Operator view cost: default config on the simulator, {DEPTH_MM:g} mm cuts, {a.duration:.0f} s per "
-          f"phase, {BROWSERS} Chromium pages on lathed-web in the second\n")
-    print("| measure | no clients | lathed-web, no page | lathed-web + 5 browsers | ratios to no clients "
+    def med(rows, key):
+        xs = [x[key] for x in rows if x.get(key) is not None]
+        return statistics.median(xs) if xs else None
+
+    def ratio(key):
+        rs = [b[key] / a_[key] for a_, b in zip(n, w) if a_.get(key) and b.get(key) is not None]
+        return f"{statistics.median(rs):.2f} ({min(rs):.2f}-{max(rs):.2f})" if rs else "-"
+
+    acts = sum(x["actions"] for x in n), sum(x["actions"] for x in w)
+    print(f"Operator view cost: default config on the simulator, {DEPTH_MM:g} mm cuts; {a.cycles} interleaved "
+          f"cycles of {a.seconds:.0f} s without and {a.seconds:.0f} s with lathed-web and {BROWSERS} Chromium "
+          f"pages on it; medians over the cycles\n")
+    print("| measure | no clients | lathed-web + 5 browsers | ratio with / without, median (range) "
           "(bar: <= 1.10) |")
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|")
 
     def row(label, key, digits, unit):
-        print(f"| {label} | {_f(n[key], digits, unit)} | {_f(w0[key], digits, unit)} | {_f(w[key], digits, unit)} | "
-              f"{ratio(key, w0)} / {ratio(key)} |")
+        print(f"| {label} | {_f(med(n, key), digits, unit)} | {_f(med(w, key), digits, unit)} | {ratio(key)} |")
     row("daemon CPU", "daemon_cpu_pct", 1, " %")
-    row("daemon loop lag p50 (median of 10 s windows)", "lag_p50_ms", 2, " ms")
-    row("daemon loop lag p99 (worst 10 s window)", "lag_p99_worst_ms", 1, " ms")
-    row(f"chatter alarm -> speed write, median ({n['actions']} / {w0['actions']} / {w['actions']} actions)",
-        "alarm_to_write_median_ms", 1, " ms")
+    row("daemon loop lag p50", "lag_p50_ms", 2, " ms")
+    row("daemon loop lag p99 (worst window of the phase)", "lag_p99_worst_ms", 1, " ms")
+    row(f"chatter alarm -> speed write, median ({acts[0]} / {acts[1]} actions)", "alarm_to_write_median_ms", 1, " ms")
     row("chatter alarm -> speed write, max", "alarm_to_write_max_ms", 1, " ms")
-    print(f"| lathed-web CPU | | {_f(w0['web_cpu_pct'], 1, ' %')} | {_f(w['web_cpu_pct'], 1, ' %')} | |")
-    print(f"| lathed-web RSS, max | | {_f(w0['web_rss_mb_max'], 1, ' MB')} | {_f(w['web_rss_mb_max'], 1, ' MB')} | |")
-    print(f"| sample on the bus -> frame in the page, median / p99 ({w['frame_latency_n']} samples) | | | "
-          f"{_f(w['frame_latency_median_ms'], 0, ' ms')} / {_f(w['frame_latency_p99_ms'], 0, ' ms')} | |")
-    print("\nThe machine's cores are shared with the browsers: in the last column the daemon also competes "
-          "with five Chromiums for CPU.")
+    print(f"| lathed-web CPU | | {_f(med(w, 'web_cpu_pct'), 1, ' %')} | |")
+    print(f"| lathed-web RSS, max | | {_f(max((x['web_rss_mb_max'] for x in w), default=None), 1, ' MB')} | |")
+    lat = r["latency_ms"]
+    print(f"| sample on the bus -> frame in the page, median / p99 ({len(lat)} samples) | | "
+          f"{_f(pct(lat, 50), 0, ' ms')} / {_f(pct(lat, 99), 0, ' ms')} | |")
+    print("\nThe browsers share the machine's 2 cores with the daemon in both phases (idle, waiting to "
+          "reconnect, while lathed-web is stopped).")
     return 0
 
 

@@ -15,6 +15,10 @@ The reply is the snapshot (everything asked for, as of now); then one line
 ``{"push": frame}`` per period with what changed (a frame at least every
 HEARTBEAT_S, so a client sees a dead daemon). Values are coalesced: a slow
 period sends the latest value, not a backlog. Events are never coalesced.
+A vibration or analyzer view in a frame carries only its keys that changed
+since the last frame (a spectrum's frequencies, an envelope's times, a lobe
+chart are sent again only when they move; a key gone from the view comes as
+null): merge it into the last one. A view that is null replaces it.
 
 A subscriber costs the daemon a bounded amount: at most QUEUE_FRAMES frames
 wait for it, and a write must drain within the control request timeout. A
@@ -35,6 +39,7 @@ from lathed.args import Args
 from lathed.bus import Block, Bus
 from lathed.control import RequestError, Stream, _default
 from lathed.display import Ring
+from lathed.viewdelta import changed_keys
 
 log = structlog.get_logger("lathed.push")
 
@@ -223,7 +228,7 @@ class PushHub:
             for k, x in view.items():
                 key = (section, name, k)
                 part = self._parts.get(key)
-                if part is None or not isinstance(x, list) or part[0] != x:
+                if part is None or not isinstance(x, list) or (part[0] is not x and part[0] != x):
                     part = self._parts[key] = (x, json.dumps(x, default=_default))
                 items.append(f"{json.dumps(k)}: {part[1]}")
             text = "{" + ", ".join(items) + "}"
@@ -309,7 +314,8 @@ class Subscription(Stream):
         self.last_event_id = 0
         self._events: list[dict] = []
         self._sent: dict[tuple[str, str], float] = {}
-        self._sent_vib: dict[str, float] = {}
+        self._match: dict[tuple[str, str], bool] = {}    # bus key -> asked for (the patterns do not change)
+        self._sent_vib: dict[str, dict | None] = {}
         self._sent_view: dict[str, dict | None] = {}
         self._states_at = time.monotonic()
         self._frame_at = time.monotonic()
@@ -326,7 +332,11 @@ class Subscription(Stream):
         for key, s in list(self.hub.bus.latest.items()):
             if self._sent.get(key) == s.t:
                 continue
-            if any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq) for ps, pq in self.patterns):
+            wanted = self._match.get(key)
+            if wanted is None:
+                wanted = self._match[key] = any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq)
+                                                for ps, pq in self.patterns)
+            if wanted:
                 out[f"{key[0]}/{key[1]}"] = [s.t, s.value, s.unit]
                 self._sent[key] = s.t
         return out
@@ -339,13 +349,15 @@ class Subscription(Stream):
             f["samples"] = samples
         for name in self.vibration:
             v = self.hub.vibration_view(name)
-            if v is not None and v["t_end"] != self._sent_vib.get(name):
-                f.setdefault("vibration", {})[name] = v
-                self._sent_vib[name] = v["t_end"]
+            last = self._sent_vib.get(name)
+            if v is not None and (last is None or v["t_end"] != last["t_end"]):
+                f.setdefault("vibration", {})[name] = changed_keys(last, v)[1]
+                self._sent_vib[name] = v
         for name in self.views:
             v = self.hub.view(name)
-            if v != self._sent_view.get(name):   # a lobe chart that did not move is not sent again
-                f.setdefault("views", {})[name] = v
+            changed, d = changed_keys(self._sent_view.get(name), v)
+            if changed or name not in self._sent_view:   # a lobe chart that did not move is not sent again
+                f.setdefault("views", {})[name] = d
                 self._sent_view[name] = v
         if self.states and now - self._states_at >= STATES_EVERY_S:
             f["status"] = self.hub.states()

@@ -227,6 +227,13 @@ def find_part(query: Query, ref: str) -> dict | None:
     return decode(rows)[0] if rows else None
 
 
+def experiment_pairs(query: Query) -> list[tuple[str, str]]:
+    """Every (tool holder, material) with experiment trials, most recently tried first."""
+    rows = query("SELECT tool, material, MAX(id) AS last FROM experiments GROUP BY tool, material "
+                 "ORDER BY last DESC")
+    return [(r["tool"], r["material"]) for r in rows]
+
+
 def experiments(query: Query, tool: str, material: str) -> list[dict]:
     rows = query("SELECT * FROM experiments WHERE tool = ? AND material = ? ORDER BY id", (tool, material))
     for r in rows:

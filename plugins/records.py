@@ -151,8 +151,22 @@ class Records(Analyzer):
 
     async def _cmd_recommend(self, args: dict) -> Any:
         a = Args("recommend", args)
+        every = a.getbool("all", False)
         tool, material = self._tool(a), self._material(a)
         a.check_unused()
+        if not every:
+            return await self._recommend(tool, material)
+        # the operator view's table: one recommendation per tool holder and material tried,
+        # each with its own error (a pair whose trials cannot be analysed does not hide the others)
+        out = []
+        for t, m in await offload(records.experiment_pairs, self._query):
+            try:
+                out.append(await self._recommend(t, m))
+            except RequestError as e:
+                out.append({"tool": t, "material": m, "error": str(e)})
+        return {"current": {"tool": tool, "material": material}, "pairs": out}
+
+    async def _recommend(self, tool: str, material: str) -> dict:
         trials = await offload(records.experiments, self._query, tool, material)
         if not trials:
             raise RequestError(f"no experiment records for tool {tool} and material {material}; "

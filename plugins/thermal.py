@@ -349,6 +349,7 @@ class ThermalAnalyzer(Analyzer):
             self.model, self.model_name = res.model, out["model_after"]
             if self.touchoff is not None:
                 self._rebuild()
+        out["by"] = by
         self.last_refit = out
         self.ctx.record("thermal_refit", out)
         return out

@@ -6,8 +6,11 @@ import socket
 import subprocess
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from lathed.client import RemoteError, subscribe
+from lathed.viewdelta import changed_keys, merge_view
 from tests.conftest import BIN, Daemon, sim_config, wait_until
 from tests.inproc_daemon import InProcessDaemon
 
@@ -92,13 +95,16 @@ def test_a_subscriber_gets_the_snapshot_then_live_values(live):
     # then frames with newer values, a decimated vibration view and a new event
     live.ctl("suppress", "manual")
     seen: dict[str, object] = {}
+    vib = first.get("vibration", {}).get("accel")
     for n, f in enumerate(frames):
         assert n < 200, f"in 200 frames, saw only {sorted(seen)}"
         if f.get("samples", {}).get("lathe/spindle_rpm", [0])[0] > t0:
             seen["rpm"] = True
         if f.get("vibration", {}).get("accel"):
-            v = f["vibration"]["accel"]
+            # a frame carries the keys that changed: the envelope, the spectrum's amplitudes
+            v = vib = merge_view(vib, f["vibration"]["accel"])
             assert v["rate_hz"] == 51200 and len(v["env_min"]) <= 400 and len(v["spec_a"]) <= 400
+            assert "env_min" in f["vibration"]["accel"] and "spec_a" in f["vibration"]["accel"]
             seen["vib"] = True
         if "status" in f:
             seen["status"] = True
@@ -337,3 +343,23 @@ def test_a_burst_of_events_larger_than_a_batch_reaches_subscribers_whole_and_in_
     asyncio.run(asyncio.wait_for(scenario(), 20))
     store.close()
     assert [e["payload"]["i"] for e in got] == list(range(23))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(st.none(), st.dictionaries(st.sampled_from("abcd"), st.one_of(
+    st.integers(0, 3), st.lists(st.integers(0, 2), max_size=3), st.none()), max_size=4)), min_size=1, max_size=8))
+def test_views_sent_as_changed_keys_merge_back_to_the_view(views):
+    """A subscriber that merges each frame's part of a view has the view, whatever the
+    sequence (keys appear, change, vanish, the view goes to None and back)."""
+    def present(v):       # a key whose value is None is the same as a key not there
+        return v if not isinstance(v, dict) else {k: x for k, x in v.items() if x is not None}
+    have, last, first = None, None, True
+    for v in views:
+        changed, d = changed_keys(last, v)
+        if changed or first:         # the first is always sent
+            have = merge_view(have, d)
+        last, first = v, False
+        assert present(have) == present(v)
+    # unchanged long values are not sent again
+    big = {"spec_f": list(range(400)), "spec_a": [1.0] * 400}
+    assert changed_keys(big, {"spec_f": list(range(400)), "spec_a": [2.0] * 400}) == (True, {"spec_a": [2.0] * 400})

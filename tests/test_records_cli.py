@@ -94,6 +94,27 @@ def test_recommend_reproduces_the_worked_example(daemon):
     assert bad.returncode == 1 and "use the factors" in bad.stderr
 
 
+def test_recommend_all_gives_one_recommendation_per_tool_holder_and_material(daemon):
+    d = daemon
+    for run, trial in enumerate(phadke_trials("ra_um"), 1):
+        levels = ",".join(f"{f}={lv}" for f, lv in trial["levels"].items())
+        ctl(d, "experiment", "add", "--tool", "T0202", "--material", "Al6061", "--run", str(run),
+            "--levels", levels, "--ra", repr(trial["ra_um"]))
+    # a removal rate of 0 has no larger-the-better S/N: that pair says why, the others are still given
+    ctl(d, "experiment", "add", "--tool", "T0303", "--material", "C45", "--levels", "speed=1",
+        "--removal-rate", "0")
+    rec = _json(d, "recommend", "--all")
+    pairs = {(r["tool"], r["material"]): r for r in rec["pairs"]}
+    assert ("T0202", "Al6061") in pairs and ("T0303", "C45") in pairs
+    assert rec["pairs"][0]["tool"] == "T0303"          # most recently tried first
+    assert pairs[("T0303", "C45")]["error"].startswith("recommend: T0303/C45:")
+    good = pairs[("T0202", "Al6061")]
+    assert {f: good["objectives"]["surface"]["best"][f] for f in FACTORS} == PHADKE_BEST
+    assert rec["current"] == {"tool": "T0101", "material": "C45"}
+    text = ctl(d, "recommend", "--all").stdout
+    assert "tool T0202, material Al6061" in text and "tool T0303, material C45: recommend:" in text
+
+
 def test_chattered_part_is_queued_inspected_and_joined(daemon, tmp_path):
     d = daemon
     # every third simulated part is cut 3 mm deep and chatters

@@ -117,8 +117,9 @@ def register(sub) -> None:
                                    "|diameter error|), best surface (smaller-the-better Ra) and best "
                                    "efficiency (larger-the-better removal rate), from the main effects "
                                    "of the S/N ratios of the recorded trials.")
-    p.add_argument("--tool", required=True)
-    p.add_argument("--material", required=True)
+    p.add_argument("--tool", help="tool holder (default: the records analyzer's)")
+    p.add_argument("--material", help="material (default: the records analyzer's)")
+    p.add_argument("--all", action="store_true", help="one recommendation per tool holder and material tried")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_recommend)
 
@@ -199,10 +200,25 @@ def cmd_experiment_list(args: argparse.Namespace) -> int:
 
 
 def cmd_recommend(args: argparse.Namespace) -> int:
-    rec = remote(args, "recommend", {"tool": args.tool, "material": args.material})
+    req = {k: v for k, v in (("tool", args.tool), ("material", args.material)) if v is not None}
+    rec = remote(args, "recommend", {**req, "all": True} if args.all else req)
     if args.json:
         print_json(rec)
         return 0
+    if not args.all:
+        _print_recommendation(rec)
+        return 0
+    for r in rec["pairs"]:
+        if "error" in r:
+            print(f"tool {r['tool']}, material {r['material']}: {r['error']}")
+        else:
+            _print_recommendation(r)
+    if not rec["pairs"]:
+        print("(no experiment records; add them with `lathectl experiment add`)")
+    return 0
+
+
+def _print_recommendation(rec: dict) -> None:
     print(f"tool {rec['tool']}, material {rec['material']}: {rec['trials']} trials, factors "
           f"{', '.join(rec['factors'])}")
     for obj, res in rec["objectives"].items():
@@ -217,7 +233,6 @@ def cmd_recommend(args: argparse.Namespace) -> int:
         note = "" if res["balanced"] else "  [unbalanced: some runs missing]"
         print(f"best {obj:<10} {'  '.join(parts)}   ({res['sn']} {res['response']}, "
               f"{res['runs']} runs; influence: {' > '.join(res['rank'])}){note}")
-    return 0
 
 
 EXPORT_PAGE = 10_000   # rows per request: the daemon's reply and ours stay small, however many there are

@@ -39,6 +39,7 @@ from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
 from lathed.web import accounts
+from lathed.viewdelta import merge_view
 
 log = structlog.get_logger("lathed.web")
 STATIC = Path(__file__).parent / "static"
@@ -118,8 +119,11 @@ class DaemonLink:
         for k, (t, v, unit) in f.get("samples", {}).items():
             self.latest[k] = [t, v, unit]
             self.history.setdefault(k, deque(maxlen=HISTORY)).append((t, v))
-        self.vibration.update({k: v for k, v in f.get("vibration", {}).items() if v is not None})
-        self.views.update(f.get("views", {}))
+        for k, v in f.get("vibration", {}).items():
+            if v is not None:
+                self.vibration[k] = merge_view(self.vibration.get(k), v)
+        for k, v in f.get("views", {}).items():
+            self.views[k] = merge_view(self.views.get(k), v)
         if f.get("status"):
             self.status = f["status"]
         self.events.extend(f.get("events", []))
@@ -130,11 +134,15 @@ class DaemonLink:
             try:
                 q.put_nowait(data)
             except asyncio.QueueFull:   # a browser that does not keep up: cut, it reconnects and redraws
-                self.browsers.discard(q)
+                self.end_stream(q)
                 self.dropped_browsers += 1
-                while not q.empty():
-                    q.get_nowait()
-                q.put_nowait(None)
+
+    def end_stream(self, q: asyncio.Queue) -> None:
+        """Its page's event stream ends at once, whatever it had not sent."""
+        self.browsers.discard(q)
+        while not q.empty():
+            q.get_nowait()
+        q.put_nowait(None)
 
     def _down(self, why: str) -> None:
         if self.connected or self.error != why:
@@ -283,7 +291,7 @@ class App:
             if what == "parts":
                 res = await ask(self.s.socket, "parts", {"limit": 200, "abnormal": q.get("abnormal") == "1"})
             elif what == "recommend":
-                res = await ask(self.s.socket, "recommend", {})
+                res = await ask(self.s.socket, "recommend", {"all": True})
             else:
                 raise web.HTTPNotFound(text=f"no {what!r} here")
         except RuntimeError as e:   # the daemon's answer, e.g. no experiments recorded: shown as such
@@ -312,9 +320,9 @@ class App:
         if what == "suppress":
             cmd, args = "suppress", {"action": body.get("action"), "by": user}
         elif what == "thermal":
-            if body.get("action") != "touchoff":
-                return web.json_response({"error": "thermal: the only action here is touchoff"}, status=400)
-            cmd, args = "thermal", {"action": "touchoff", "by": user}
+            if body.get("action") not in ("touchoff", "refit"):
+                return web.json_response({"error": "thermal: the actions here are touchoff and refit"}, status=400)
+            cmd, args = "thermal", {"action": body["action"], "by": user}
         elif what == "inspect":
             cmd, args = "inspect", {"part": body.get("part"), "ra_um": body.get("ra_um"),
                                     "diameter_error_um": body.get("diameter_error_um"), "by": user}
@@ -337,17 +345,18 @@ class App:
         app.router.add_post("/api/{what}", self.action)
         app.router.add_static("/static/", STATIC)
         app.on_startup.append(self._start)
-        app.on_cleanup.append(self._stop)
+        app.on_shutdown.append(self._stop)
         return app
 
     async def _start(self, app: web.Application) -> None:
         self._task = asyncio.create_task(self.link.run())
 
     async def _stop(self, app: web.Application) -> None:
+        # on shutdown, before aiohttp waits for open requests: an open page's event stream
+        # would otherwise hold the stop for aiohttp's shutdown timeout (a minute)
         self._task.cancel()
         for q in list(self.link.browsers):
-            if not q.full():
-                q.put_nowait(None)
+            self.link.end_stream(q)
         await asyncio.gather(self._task, return_exceptions=True)
 
 

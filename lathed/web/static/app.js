@@ -26,8 +26,16 @@ function onInit(m) {
 function onFrame(m) {
   for (const [k, [t, v, unit]] of Object.entries(m.samples || {})) addSample(k, t, v, unit);
   if (m.status) S.status = m.status;
-  Object.assign(S.vib, m.vibration || {});
-  Object.assign(S.views, m.views || {});
+  // a view in a frame carries only its changed keys (null: gone); null for a whole view replaces it
+  const merge = (to, from) => { for (const [k, v] of Object.entries(from || {})) {
+    if (v && typeof v === "object" && to[k] && typeof to[k] === "object") {
+      const o = Object.assign({}, to[k], v);
+      for (const [kk, vv] of Object.entries(v)) if (vv === null) delete o[kk];
+      to[k] = o;
+    } else to[k] = v;
+  } };
+  merge(S.vib, m.vibration);
+  merge(S.views, m.views);
   if (m.events && m.events.length) { S.events = S.events.concat(m.events).slice(-500); recordsDirty = true; refreshParts(); }
   S.lastFrame = Date.now();
   if (!S.connected) setLink(true, null);
@@ -215,7 +223,13 @@ function drawThermal() {
   chart("growth", [{ label: "predicted growth" }, { label: "compensation", stroke: "#3fb950" }]).setData(joined(keys));
   const rf = th.last_refit;
   note("#thermal-info", `model ${th.model}; growth ${fmt(th.predicted_growth_um, 1)} µm; offset written ${fmt(th.applied_offset_um, 1)} µm (target ${fmt(th.target_offset_um, 1)}), ${th.writes} writes` + (th.refused ? `; refused: ${th.refused}` : "")
-    + (rf ? `; last refit: error ${fmt(rf.before_rmse_um, 2)} → ${fmt(rf.after_rmse_um, 2)} µm${rf.added ? ", added " + rf.added : ""}` : "; no refit yet"));
+    + (rf ? "; last refit: " + refitText(rf) : "; no refit yet"));
+}
+// error before and after on held-out rows, the effects the model now has, and whether it was kept
+function refitText(rf) {
+  const fx = (rf.effects || []).map((e) => e.effect + (e.sensor ? " (" + e.sensor + ")" : "")).join(", ");
+  return `held-out error ${fmt(rf.before_rmse_um, 2)} → ${fmt(rf.after_rmse_um, 2)} µm, ` +
+    (rf.better ? `adopted ${rf.model_after}` : `kept ${rf.model_before}`) + (fx ? `; effects: ${fx}` : "") + (rf.by ? ` (by ${rf.by})` : "");
 }
 
 function shownEvents() {
@@ -249,12 +263,18 @@ async function refreshParts() {
 }
 async function refreshRecommend() {
   const r = await fetch("/api/recommend"), a = await r.json();
-  if (a.error) { note("#recommend", "Taguchi recommendation: " + a.error); return; }
-  const j = a.result;
-  const goals = Object.entries(j.objectives || {});
-  $("#recommend").innerHTML = `<b>${esc(j.tool)} / ${esc(j.material)}</b>, ${j.trials} trials<br>` + goals.map(([goal, v]) =>
-    `<b>best ${esc(goal)}</b>: ` + (v ? esc(Object.entries(v.best_settings).map(([f, xs]) => f + " " + xs.map((x) => x ?? "level " + v.best[f]).join("/")).join(", ")) : "no measurements")).join("<br>");
-  $("#recommend").className = "note";
+  if (a.error) { note("#recommend-note", "Taguchi recommendation: " + a.error); return; }
+  const j = a.result, cur = j.current || {};
+  // each factor's best level(s), with the physical setting where one was recorded
+  const best = (v) => v ? esc(Object.entries(v.best_settings).map(([f, xs]) => f + " " + xs.map((x, i) => x ?? v.best[f][i]).join("/")).join(", ")) : "<small>not measured</small>";
+  $("#recommend tbody").innerHTML = j.pairs.map((p) => {
+    const now = p.tool === cur.tool && p.material === cur.material;
+    const head = `<td>${esc(p.tool)} / ${esc(p.material)}${now ? " <small>(in use)</small>" : ""}</td>`;
+    if (p.error) return `<tr>${head}<td colspan="4" class="bad">${esc(p.error)}</td></tr>`;
+    const o = p.objectives || {};
+    return `<tr class="${now ? "current" : ""}">${head}<td>${p.trials}</td><td>${best(o.precision)}</td><td>${best(o.surface)}</td><td>${best(o.efficiency)}</td></tr>`;
+  }).join("");
+  note("#recommend-note", j.pairs.length ? `in use: ${cur.tool} / ${cur.material}` : "no experiment records yet: add them with `lathectl experiment add`");
 }
 
 // -- actions ----------------------------------------------------------------------------------
@@ -276,6 +296,11 @@ $("#suppress-now").addEventListener("click", async () => {
 $("#touchoff").addEventListener("click", async () => {
   const [st] = await act("thermal", { action: "touchoff" }, "#thermal-note");
   if (st === 200) note("#thermal-note", `touch-off recorded by ${META.user}: growth counts from now`);
+});
+$("#refit").addEventListener("click", async () => {
+  note("#thermal-note", "refitting the thermal model…");
+  const [st, j] = await act("thermal", { action: "refit" }, "#thermal-note");
+  if (st === 200) note("#thermal-note", "refit: " + refitText(j));
 });
 $("#inspect").addEventListener("submit", async (e) => {
   e.preventDefault();
