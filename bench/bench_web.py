@@ -7,8 +7,8 @@ open on lathed-web throughout, and ``--cycles`` pairs of phases of
 ``--seconds`` each, interleaved so that the shared machine's drift falls on
 both alike:
 
-  none   lathed-web stopped: no subscriber (the pages wait to reconnect)
-  web    lathed-web running, subscribed to the daemon, the 5 pages live on it
+  none   lathed-web stopped: no subscriber (the pages wait, disconnected)
+  web    lathed-web running, subscribed to the daemon, the 5 pages reloaded and live on it
 
 Per phase: the daemon's CPU (its process only, from /proc), its event-loop lag
 (status -> daemon.loop_lag_ms, p50 and p99 of its 10 s windows), the chatter
@@ -139,9 +139,9 @@ def run(cycles: int, seconds: float, warmup: float) -> dict:
                     res["none"].append(phase(proc, sock, seconds, None))
                     web = start_web(port, sock)
                     until(lambda: subscribers(sock) == 1, 20, "lathed-web subscribing")
-                    for page in pages:      # each page's EventSource comes back by itself
+                    for page in pages:      # (a page's EventSource comes back by itself, after a backoff)
+                        page.reload()
                         page.wait_for_selector("#link.ok", timeout=30_000)
-                        page.evaluate("window.__lat = []")
                     res["web"].append(phase(proc, sock, seconds, web))
                     res["latency_ms"] += [x * 1000 for page in pages for x in page.evaluate("window.__lat")]
                     print(f"cycle {c + 1}/{cycles}: daemon CPU {res['none'][-1]['daemon_cpu_pct']:.1f} % "

@@ -66,7 +66,7 @@ class Settings:
         self.listen = listen or sec.getstr("listen", "127.0.0.1")
         self.port = port if port is not None else sec.getint("port", 8780, minval=1, maxval=65535)
         self.socket = Path(sock or sec.getstr("socket", "") or default_socket())
-        self.rate_hz = sec.getfloat("rate_hz", 5.0, minval=0.5, maxval=20.0)
+        self.rate_hz = sec.getfloat("rate_hz", 4.0, minval=0.5, maxval=20.0)   # the page draws 4 times a second
         sec.check_unused()
         self.users: dict[str, tuple[str, str]] = {}
         for name, table in (data.get("users") or {}).items():
