@@ -247,6 +247,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if not hasattr(args, "socket"):
         args.socket = None
+    if getattr(args, "plot", None):
+        # before the analysis, not after it: matplotlib is an extra (lathed.extras)
+        from lathed.extras import missing
+        if why := missing("matplotlib"):
+            print(f"lathectl: --plot: {why}", file=sys.stderr)
+            return EX_UNAVAILABLE
     try:
         return args.func(args)
     except DaemonUnavailable as e:
