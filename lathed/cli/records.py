@@ -1,7 +1,8 @@
 """``lathectl parts|inspect|experiment|recommend|export``: production records.
 
 Asks the daemon's records analyzer (``[analyzer.records]``) over the control
-socket.
+socket; ``parts`` and ``experiment list`` read its database, read-only, when
+the daemon is down.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import math
 import sys
 
 from lathed.cli import EX_CANTCREAT
-from lathed.lathectl import print_json, remote
+from lathed.client import DaemonUnavailable
+from lathed.lathectl import add_db_argument, print_json, remote, remote_or_db
 
 
 def _num(text: str) -> float:
@@ -68,7 +70,8 @@ def register(sub) -> None:
                                    "applied, and the post-process inspection joined to each.")
     p.add_argument("--abnormal", action="store_true", help="only parts cut under abnormal vibration")
     p.add_argument("--queue", action="store_true", help="only parts waiting for sampling inspection")
-    p.add_argument("--limit", type=int, default=100)
+    p.add_argument("--limit", type=_positive_int, default=100)
+    add_db_argument(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_parts)
 
@@ -105,10 +108,13 @@ def register(sub) -> None:
     a.add_argument("--ra", type=_num, metavar="UM", help="measured Ra, µm (surface)")
     a.add_argument("--diameter-error", type=_num, metavar="UM", help="measured diameter error, µm (precision)")
     a.add_argument("--removal-rate", type=_num, metavar="MM3_MIN", help="material removal rate (efficiency)")
+    a.add_argument("--json", action="store_true", help="print the recorded trial's id as JSON")
     a.set_defaults(func=cmd_experiment_add)
     ls = esub.add_parser("list", help="the trials recorded for a tool holder and material")
-    ls.add_argument("--tool")
-    ls.add_argument("--material")
+    ls.add_argument("--tool", help="tool holder (default: the records analyzer's tool; needed with the daemon down)")
+    ls.add_argument("--material", help="work material (default: the records analyzer's; needed with the daemon "
+                                       "down)")
+    add_db_argument(ls)
     ls.add_argument("--json", action="store_true")
     ls.set_defaults(func=cmd_experiment_list)
 
@@ -130,8 +136,18 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_export)
 
 
+def _query(con):
+    """lathed.records' query function on a connection lathectl opened."""
+    from lathed.store import read_rows
+    return lambda sql, params=(): read_rows(con, sql, params)
+
+
 def cmd_parts(args: argparse.Namespace) -> int:
-    rows = remote(args, "parts", {"abnormal": args.abnormal, "pending": args.queue, "limit": args.limit})
+    def read(con):
+        from lathed import records
+        return records.parts(_query(con), args.abnormal, args.queue, args.limit)
+    rows = remote_or_db(args, "parts", "parts", {"abnormal": args.abnormal, "pending": args.queue,
+                                                 "limit": args.limit}, read)
     if args.json:
         print_json(rows)
         return 0
@@ -180,12 +196,22 @@ def cmd_experiment_add(args: argparse.Namespace) -> int:
                                           "levels": args.levels, "settings": settings, "ra_um": args.ra,
                                           "diameter_error_um": args.diameter_error,
                                           "removal_rate": args.removal_rate})
-    print(f"trial {res['id']} recorded")
+    if args.json:
+        print_json(res)
+    else:
+        print(f"trial {res['id']} recorded")
     return 0
 
 
 def cmd_experiment_list(args: argparse.Namespace) -> int:
-    rows = remote(args, "experiments", {"tool": args.tool, "material": args.material})
+    def read(con):
+        from lathed import records
+        if args.tool is None or args.material is None:
+            # their defaults are the running records analyzer's configuration
+            raise DaemonUnavailable("lathed is not running: give --tool and --material to read the trials "
+                                    "from its database")
+        return records.experiments(_query(con), args.tool, args.material)
+    rows = remote_or_db(args, "experiments", "experiments", {"tool": args.tool, "material": args.material}, read)
     if args.json:
         print_json(rows)
         return 0
