@@ -232,3 +232,18 @@ def experiments(query: Query, tool: str, material: str) -> list[dict]:
     for r in rows:
         r["levels"], r["settings"] = json.loads(r["levels"]), json.loads(r["settings"])
     return rows
+
+
+def recommendation(query: Query, tool: str, material: str) -> dict:
+    """The Taguchi recommendation from the trials of one tool and material;
+    ValueError (one line) when there is none to make."""
+    from lathed.analysis import taguchi    # numpy: not for every reader of records
+    trials = experiments(query, tool, material)
+    if not trials:
+        raise ValueError(f"no experiment records for tool {tool} and material {material}; "
+                         "add them with `lathectl experiment add`")
+    try:
+        rec = taguchi.recommend(trials)
+    except ValueError as e:
+        raise ValueError(f"recommend: {tool}/{material}: {e}") from None
+    return {"tool": tool, "material": material, **rec}

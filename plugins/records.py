@@ -153,15 +153,10 @@ class Records(Analyzer):
         a = Args("recommend", args)
         tool, material = self._tool(a), self._material(a)
         a.check_unused()
-        trials = await offload(records.experiments, self._query, tool, material)
-        if not trials:
-            raise RequestError(f"no experiment records for tool {tool} and material {material}; "
-                               "add them with `lathectl experiment add`")
         try:
-            rec = await offload(taguchi.recommend, trials)
+            return await offload(records.recommendation, self._query, tool, material)
         except ValueError as e:
-            raise RequestError(f"recommend: {tool}/{material}: {e}") from None
-        return {"tool": tool, "material": material, **rec}
+            raise RequestError(str(e)) from None
 
     async def _cmd_export(self, args: dict) -> Any:
         a = Args("export", args)

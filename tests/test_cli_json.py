@@ -155,3 +155,24 @@ def test_records_still_in_the_wal_are_read(tmp_path, capsys):
         assert [t["ra_um"] for t in json.loads(out)] == [0.8]
     finally:
         store.close()
+
+
+def test_recommend_reads_the_trials_from_the_database_while_the_daemon_is_down(tmp_path, capsys):
+    from tests.test_taguchi import FACTORS, PHADKE_BEST, phadke_trials
+    path = tmp_path / "lathed.db"
+    store = Store(path)
+    for run, trial in enumerate(phadke_trials("ra_um"), 1):
+        store.insert("experiments", {"t": float(run), "tool": "T0101", "material": "C45", "run": run,
+                                     "levels": trial["levels"], "settings": {}, "ra_um": trial["ra_um"]}).result()
+    store.close()
+    code, out, err = _offline(tmp_path, capsys, "recommend", "--tool", "T0101", "--material", "C45",
+                              "--db", str(path), "--json")
+    assert code == 0, err
+    assert err == f"lathectl: lathed is not running; experiments read from {path}\n"
+    surface = json.loads(out)["objectives"]["surface"]
+    assert {f: surface["best"][f] for f in FACTORS} == PHADKE_BEST
+    code, out, err = _offline(tmp_path, capsys, "recommend", "--tool", "T0202", "--material", "C45",
+                              "--db", str(path))
+    assert (code, out) == (1, "")
+    assert err == ("lathectl: no experiment records for tool T0202 and material C45; add them with "
+                   "`lathectl experiment add`\n")

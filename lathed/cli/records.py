@@ -1,8 +1,8 @@
 """``lathectl parts|inspect|experiment|recommend|export``: production records.
 
 Asks the daemon's records analyzer (``[analyzer.records]``) over the control
-socket; ``parts`` and ``experiment list`` read its database, read-only, when
-the daemon is down.
+socket; ``parts``, ``experiment list`` and ``recommend`` read its database,
+read-only, when the daemon is down.
 """
 from __future__ import annotations
 
@@ -125,6 +125,7 @@ def register(sub) -> None:
                                    "of the S/N ratios of the recorded trials.")
     p.add_argument("--tool", required=True)
     p.add_argument("--material", required=True)
+    add_db_argument(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_recommend)
 
@@ -225,7 +226,14 @@ def cmd_experiment_list(args: argparse.Namespace) -> int:
 
 
 def cmd_recommend(args: argparse.Namespace) -> int:
-    rec = remote(args, "recommend", {"tool": args.tool, "material": args.material})
+    def read(con):
+        from lathed import records
+        return records.recommendation(_query(con), args.tool, args.material)
+    try:
+        rec = remote_or_db(args, "experiments", "recommend", {"tool": args.tool, "material": args.material}, read)
+    except ValueError as e:       # read from the database: the daemon's refusal, in the same words
+        print(f"lathectl: {e}", file=sys.stderr)
+        return 1
     if args.json:
         print_json(rec)
         return 0
