@@ -29,14 +29,19 @@ def remote(args: argparse.Namespace, cmd: str, cmd_args: dict | None = None) -> 
 
 
 def remote_or_db(args: argparse.Namespace, what: str, cmd: str, cmd_args: dict, read: Callable[[Any], Any]) -> Any:
-    """Ask the daemon; when it is down, ``read(con)`` its records from its database
-    (--db, else client.default_db()) opened read-only, saying so in one line on stderr."""
+    """Ask the daemon; when it is down, ``read(con)`` its records from its database (read_db)."""
     try:
         return remote(args, cmd, cmd_args)
-    except DaemonUnavailable:
-        db = Path(args.db) if args.db else default_db()
-        if not db.is_file():
-            raise
+    except DaemonUnavailable as e:
+        return read_db(args, what, read, e)
+
+
+def read_db(args: argparse.Namespace, what: str, read: Callable[[Any], Any], down: DaemonUnavailable) -> Any:
+    """``read(con)`` on the daemon's database (--db, else client.default_db()) opened
+    read-only, saying so in one line on stderr; with no database there, ``down`` is raised."""
+    db = Path(args.db) if args.db else default_db()
+    if not db.is_file():
+        raise down
     import sqlite3
 
     from lathed.store import connect

@@ -247,3 +247,25 @@ def recommendation(query: Query, tool: str, material: str) -> dict:
     except ValueError as e:
         raise ValueError(f"recommend: {tool}/{material}: {e}") from None
     return {"tool": tool, "material": material, **rec}
+
+
+# what `lathectl export` names -> the record table it is read from
+EXPORT_TABLES = {"events": "events", "parts": "workpieces", "inspections": "inspections", "experiments": "experiments"}
+
+
+def export_page(query: Query, what: str, limit: int, after: int | None = None) -> list[dict]:
+    """One page of rows to export, oldest first: the newest ``limit`` (``after`` None),
+    else the first ``limit`` with an id above ``after`` (to page through every row)."""
+    table = EXPORT_TABLES[what]
+    limit = int(limit)     # ints, checked by the caller: they go into the SQL text
+    if after is None:
+        page = f"id IN (SELECT id FROM {table} ORDER BY id DESC LIMIT {limit})"
+    else:
+        page = f"id IN (SELECT id FROM {table} WHERE id > {int(after)} ORDER BY id LIMIT {limit})"
+    if what == "events":
+        return query(f"SELECT id, uuid, machine_id, t, source, kind, payload FROM events WHERE {page} ORDER BY id")
+    if what == "parts":
+        return parts_where(query, "w." + page)
+    if what == "inspections":
+        return decode(query(f"SELECT * FROM inspections WHERE {page} ORDER BY id"))
+    return query(f"SELECT * FROM experiments WHERE {page} ORDER BY id")

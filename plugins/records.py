@@ -26,7 +26,7 @@ from lathed.bus import Sample
 from lathed.config import Section
 from lathed.control import RequestError, offload
 
-EXPORTS = ("events", "parts", "inspections", "experiments")
+EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
 
 
@@ -166,23 +166,7 @@ class Records(Analyzer):
         limit = a.getint("limit", 100_000, minval=1, maxval=100_000)
         after = a.getint("after_id", None, minval=0, maxval=2 ** 62)
         a.check_unused()
-        q = self._query
-        table = {"events": "events", "parts": "workpieces", "inspections": "inspections",
-                 "experiments": "experiments"}[what]
-        if after is None:        # the newest ``limit`` rows, oldest first (as before)
-            page = f"id IN (SELECT id FROM {table} ORDER BY id DESC LIMIT {limit})"
-        else:
-            page = f"id IN (SELECT id FROM {table} WHERE id > {after} ORDER BY id LIMIT {limit})"
-        if what == "events":
-            fn = lambda: q("SELECT id, uuid, machine_id, t, source, kind, payload FROM events "  # noqa: E731
-                           f"WHERE {page} ORDER BY id")
-        elif what == "parts":
-            fn = lambda: records.parts_where(q, "w." + page)  # noqa: E731
-        elif what == "inspections":
-            fn = lambda: records.decode(q(f"SELECT * FROM inspections WHERE {page} ORDER BY id"))  # noqa: E731
-        else:
-            fn = lambda: q(f"SELECT * FROM experiments WHERE {page} ORDER BY id")  # noqa: E731
-        return await offload(fn)
+        return await offload(records.export_page, self._query, what, limit, after)
 
     def _tool(self, a: Args) -> str:
         return self._default(a, "tool", self.tool)

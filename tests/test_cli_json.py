@@ -176,3 +176,31 @@ def test_recommend_reads_the_trials_from_the_database_while_the_daemon_is_down(t
     assert (code, out) == (1, "")
     assert err == ("lathectl: no experiment records for tool T0202 and material C45; add them with "
                    "`lathectl experiment add`\n")
+
+
+def test_export_reads_every_row_from_the_database_while_the_daemon_is_down(db, tmp_path, capsys, monkeypatch):
+    import asyncio
+
+    from lathed.cli import records as records_cli
+    store = Store(db, machine_id="cell-3")
+
+    async def record():
+        for i in range(23):
+            await store.record("test_marker", "test", {"i": i})
+    asyncio.run(record())
+    store.close()
+    monkeypatch.setattr(records_cli, "EXPORT_PAGE", 7)          # pages through, as from the daemon
+    code, out, err = _offline(tmp_path, capsys, "export", "events", "--db", str(db), "--json")
+    assert code == 0, err
+    assert err == f"lathectl: lathed is not running; events read from {db}\n"
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert [json.loads(r["payload"])["i"] for r in rows] == list(range(23))
+    assert [r["id"] for r in rows] == sorted({r["id"] for r in rows})
+    code, out, err = _offline(tmp_path, capsys, "export", "events", "--db", str(db), "--limit", "5", "--json")
+    assert [json.loads(json.loads(line)["payload"])["i"] for line in out.splitlines()] == list(range(18, 23))
+    csv_out = tmp_path / "parts.csv"
+    code, out, err = _offline(tmp_path, capsys, "export", "parts", "--db", str(db), "--out", str(csv_out))
+    assert code == 0 and err.endswith(f"2 parts written to {csv_out}\n"), err
+    lines = csv_out.read_text().splitlines()
+    assert lines[0].startswith("id,uuid,machine_id,") and [ln.split(",")[1] for ln in lines[1:]] == ["part-1",
+                                                                                                     "part-2"]

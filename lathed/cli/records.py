@@ -1,8 +1,8 @@
 """``lathectl parts|inspect|experiment|recommend|export``: production records.
 
 Asks the daemon's records analyzer (``[analyzer.records]``) over the control
-socket; ``parts``, ``experiment list`` and ``recommend`` read its database,
-read-only, when the daemon is down.
+socket; ``parts``, ``experiment list``, ``recommend`` and ``export`` read its
+database, read-only, when the daemon is down.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import sys
 
 from lathed.cli import EX_CANTCREAT
 from lathed.client import DaemonUnavailable
-from lathed.lathectl import add_db_argument, print_json, remote, remote_or_db
+from lathed.lathectl import add_db_argument, print_json, read_db, remote, remote_or_db
 
 
 def _num(text: str) -> float:
@@ -133,6 +133,7 @@ def register(sub) -> None:
     p.add_argument("what", choices=("events", "parts", "inspections", "experiments"))
     p.add_argument("--out", metavar="FILE.csv", help="write here instead of standard output")
     p.add_argument("--limit", type=_positive_int, help="only the newest N rows (default: every row)")
+    add_db_argument(p)
     p.add_argument("--json", action="store_true", help="JSON lines, one object per row, instead of CSV")
     p.set_defaults(func=cmd_export)
 
@@ -267,14 +268,15 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def _pages(args: argparse.Namespace):
-    """Every row, oldest first, a page per request (or the newest --limit in one, at most 100000)."""
-    if args.limit:
-        yield remote(args, "export", {"what": args.what, "limit": min(args.limit, 100_000)})
+def _pages(fetch, limit: int | None):
+    """Every row, oldest first, a page per ``fetch(limit, after_id)`` (or the newest ``limit`` in one,
+    at most 100000)."""
+    if limit:
+        yield fetch(min(limit, 100_000), None)
         return
     after = 0
     while True:
-        rows = remote(args, "export", {"what": args.what, "limit": EXPORT_PAGE, "after_id": after})
+        rows = fetch(EXPORT_PAGE, after)
         yield rows
         if len(rows) < EXPORT_PAGE:
             return
@@ -288,17 +290,36 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
         return EX_CANTCREAT
     n, w = 0, None
+
+    def write(rows: list[dict]) -> None:
+        nonlocal n, w
+        for r in rows:
+            if args.json:
+                out.write(json.dumps(r) + "\n")
+                continue
+            if w is None:
+                w = csv.DictWriter(out, fieldnames=list(r))
+                w.writeheader()
+            w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
+        n += len(rows)
+
+    def from_db(con) -> None:
+        from lathed import records
+        q = _query(con)
+        for rows in _pages(lambda limit, after: records.export_page(q, args.what, limit, after), args.limit):
+            write(rows)
+
+    pages = _pages(lambda limit, after: remote(args, "export", {"what": args.what, "limit": limit}
+                                               | ({} if after is None else {"after_id": after})), args.limit)
     try:
-        for rows in _pages(args):
-            for r in rows:
-                if args.json:
-                    out.write(json.dumps(r) + "\n")
-                    continue
-                if w is None:
-                    w = csv.DictWriter(out, fieldnames=list(r))
-                    w.writeheader()
-                w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
-            n += len(rows)
+        try:
+            first = next(pages)
+        except DaemonUnavailable as e:   # before any row: the whole table from the database instead
+            read_db(args, args.what, from_db, e)
+        else:
+            write(first)
+            for rows in pages:
+                write(rows)
     finally:
         if args.out:
             out.close()
