@@ -201,8 +201,9 @@ JSON_COLUMNS = frozenset({"payload", "measured", "levels", "settings"})
 def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
     if readonly:
         # A stopped daemon's store (lathectl). A clean stop leaves no -wal: opened immutable, reading
-        # creates no -shm/-wal beside it (root's would lock the daemon out of its own store) and needs
-        # no write access to the directory. After a crash the -wal holds records: read it too.
+        # creates no -shm/-wal beside it, so a member of the lathed group, who may read the store but
+        # not write its directory, can read it (mode=ro alone: "attempt to write a readonly database").
+        # After a crash the -wal holds records: read it too.
         immutable = "" if Path(f"{path}-wal").exists() else "&immutable=1"
         con = sqlite3.connect(f"{Path(path).absolute().as_uri()}?mode=ro{immutable}", uri=True, timeout=10,
                               check_same_thread=False)
