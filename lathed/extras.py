@@ -19,16 +19,22 @@ class MissingExtra(ImportError):
 
 def missing(module: str) -> str | None:
     """None when ``module`` can be imported; else one line naming the extra to install."""
-    try:
-        found = importlib.util.find_spec(module) is not None
-    except ValueError:     # in sys.modules without a spec: it is there
-        found = True
-    return None if found else f"{module} is not installed: pip install 'lathed[{EXTRAS[module]}]'"
+    return None if _found(module) else f"{module} is not installed: {_install(module)}"
 
 
 def need(module: str, what: str) -> ModuleType:
     """Import ``module``, or raise MissingExtra: '<what> needs <module>, which is not installed: pip install ...'."""
-    why = missing(module)
-    if why:
-        raise MissingExtra(f"{what} needs {why.replace(' is not installed', ', which is not installed')}")
+    if not _found(module):
+        raise MissingExtra(f"{what} needs {module}, which is not installed: {_install(module)}")
     return importlib.import_module(module)
+
+
+def _found(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ValueError:     # in sys.modules without a spec: it is there
+        return True
+
+
+def _install(module: str) -> str:
+    return f"pip install 'lathed[{EXTRAS[module]}]'"
