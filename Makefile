@@ -50,5 +50,79 @@ bench-web: $(STAMP)
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
 	bench-hostile bench-web
 
+# --- Installed as a service (README "Running as a service") ---------------------------
+# A wheel of this checkout (not editable, no test tools) in a venv of its own at
+# $(PREFIX)/lib/lathed, with links in $(PREFIX)/bin, the systemd units, sysusers.d and
+# tmpfiles.d files; the config goes to /etc/lathed only where none is yet. /usr/lib
+# rather than /opt: the units, sysusers.d and tmpfiles.d files belong under /usr/lib
+# anyway (systemd has no /opt for them), so one PREFIX names all that uninstall takes.
+# DESTDIR stages the tree for a package: the venv is built there, then its paths are
+# rewritten to the final ones (scripts' #! lines, bytecode's file names).
+PREFIX ?= /usr
+DESTDIR ?=
+EXTRAS ?=                       # e.g. EXTRAS=postgres,plots
+LIBDIR = $(PREFIX)/lib/lathed
+BINDIR = $(PREFIX)/bin
+DOCDIR = $(PREFIX)/share/doc/lathed
+UNITDIR ?= /lib/systemd/system
+SYSUSERSDIR ?= $(PREFIX)/lib/sysusers.d
+TMPFILESDIR ?= $(PREFIX)/lib/tmpfiles.d
+CONFDIR ?= /etc/lathed
+PROGRAMS := lathed lathectl lathed-web lathed-sim
+UNITS := lathed.service lathed-web.service
+STAGE = $(DESTDIR)$(LIBDIR)
+
+install: install-venv install-config
+	install -d $(DESTDIR)$(BINDIR) $(DESTDIR)$(UNITDIR) $(DESTDIR)$(SYSUSERSDIR) $(DESTDIR)$(TMPFILESDIR) \
+		$(DESTDIR)$(DOCDIR)/examples
+	for p in $(PROGRAMS); do ln -sfn $(LIBDIR)/bin/$$p $(DESTDIR)$(BINDIR)/$$p; done
+	for u in $(UNITS); do sed -e 's|/usr/lib/lathed/|$(LIBDIR)/|g' -e 's|/usr/share/doc/lathed/|$(DOCDIR)/|g' \
+		systemd/$$u > $(DESTDIR)$(UNITDIR)/$$u && chmod 0644 $(DESTDIR)$(UNITDIR)/$$u; done
+	install -m 0644 systemd/lathed.sysusers $(DESTDIR)$(SYSUSERSDIR)/lathed.conf
+	install -m 0644 systemd/lathed.tmpfiles $(DESTDIR)$(TMPFILESDIR)/lathed.conf
+	install -m 0644 README.md $(DESTDIR)$(DOCDIR)/
+# this version's defaults, to compare with an edited /etc/lathed after an upgrade
+	cp -r etc/. $(DESTDIR)$(DOCDIR)/examples/
+	@if [ -z "$(DESTDIR)" ]; then \
+		systemd-sysusers $(SYSUSERSDIR)/lathed.conf && systemd-tmpfiles --create $(TMPFILESDIR)/lathed.conf; \
+		if [ -d /run/systemd/system ]; then systemctl daemon-reload; fi; \
+		echo "installed; edit $(CONFDIR)/lathed.toml, then: systemctl enable --now lathed lathed-web"; fi
+
+install-venv:
+	@case "$$($(PY) -c 'import os, sys; print(os.path.realpath(sys.base_prefix))')" in /home/*|/root/*) \
+		echo "warning: $(PY) lives under /home or /root, which the units' ProtectHome= hides from the" \
+		     "service; give PY=/usr/bin/python3.11";; esac
+	$(PY) -m venv --clear $(STAGE)
+# The wheel is built from a copy: a build in the checkout leaves files there (root's, under sudo).
+	tmp=$$(mktemp -d) && trap 'rm -rf "$$tmp"' EXIT && mkdir "$$tmp/src" && \
+	tar -c --exclude=./.venv --exclude=./.git --exclude=./build --exclude=./var --exclude=./out . | \
+		tar -x -C "$$tmp/src" && \
+	PIP_ROOT_USER_ACTION=ignore $(STAGE)/bin/pip wheel -q --no-deps -w "$$tmp/dist" "$$tmp/src" && \
+	PIP_ROOT_USER_ACTION=ignore $(STAGE)/bin/pip install -q --no-compile -c constraints.txt \
+		"$$(echo "$$tmp"/dist/lathed-*.whl)$(if $(strip $(EXTRAS)),[$(strip $(EXTRAS))])"
+	@if [ -n "$(DESTDIR)" ]; then grep -rlIF -- '$(STAGE)' $(STAGE) | xargs -r sed -i 's|$(STAGE)|$(LIBDIR)|g'; fi
+	$(STAGE)/bin/python -m compileall -q -f $(if $(DESTDIR),-s '$(DESTDIR)' -p /) $(STAGE)/lib
+
+# Never overwrites a config that is there: an edited one stays as it is.
+install-config:
+	install -d -m 0750 $(DESTDIR)$(CONFDIR)
+	for f in lathed.toml lathed-web.toml; do [ -e $(DESTDIR)$(CONFDIR)/$$f ] || \
+		install -m 0640 etc/$$f $(DESTDIR)$(CONFDIR)/$$f; done
+	[ -e $(DESTDIR)$(CONFDIR)/robot_arm.dbc ] || install -m 0644 etc/robot_arm.dbc $(DESTDIR)$(CONFDIR)/
+	[ -e $(DESTDIR)$(CONFDIR)/plugins.d ] || cp -r etc/plugins.d $(DESTDIR)$(CONFDIR)/
+
+# What install put, but the config, the records (/var/lib/lathed) and the users.
+uninstall:
+	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl disable --now $(UNITS) || true; fi
+	for p in $(PROGRAMS); do l=$(DESTDIR)$(BINDIR)/$$p; \
+		if [ "$$(readlink $$l)" = "$(LIBDIR)/bin/$$p" ]; then rm -f $$l; fi; done
+	for u in $(UNITS); do rm -f $(DESTDIR)$(UNITDIR)/$$u; done
+	rm -f $(DESTDIR)$(SYSUSERSDIR)/lathed.conf $(DESTDIR)$(TMPFILESDIR)/lathed.conf
+	rm -rf $(DESTDIR)$(DOCDIR)
+	if [ -f $(STAGE)/pyvenv.cfg ]; then rm -rf $(STAGE); fi
+	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl daemon-reload; fi
+	@echo "kept: $(CONFDIR) (config), /var/lib/lathed (records), the users lathed and lathed-web"
+
+.PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
 	bench-stability bench-hostile bench-web

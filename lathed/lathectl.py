@@ -14,7 +14,7 @@ import pkgutil
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from lathed import __version__
 from lathed import cli as cli_pkg
@@ -26,6 +26,40 @@ EX_UNAVAILABLE = 69
 def remote(args: argparse.Namespace, cmd: str, cmd_args: dict | None = None) -> Any:
     """Ask the daemon; errors propagate to main() which prints one line."""
     return call(cmd, cmd_args, sock_path=args.socket)
+
+
+def remote_or_db(args: argparse.Namespace, what: str, cmd: str, cmd_args: dict, read: Callable[[Any], Any]) -> Any:
+    """Ask the daemon; when it is down, ``read(con)`` its records from its database (read_db)."""
+    try:
+        return remote(args, cmd, cmd_args)
+    except DaemonUnavailable as e:
+        return read_db(args, what, read, e)
+
+
+def read_db(args: argparse.Namespace, what: str, read: Callable[[Any], Any], down: DaemonUnavailable) -> Any:
+    """``read(con)`` on the daemon's database (--db, else client.default_db()) opened
+    read-only, saying so in one line on stderr; with no database there, ``down`` is raised."""
+    db = Path(args.db) if args.db else default_db()
+    if not db.is_file():
+        raise down
+    import sqlite3
+
+    from lathed.store import connect
+    try:
+        con = connect(db, readonly=True)
+        try:
+            result = read(con)
+        finally:
+            con.close()
+    except sqlite3.Error as e:
+        raise DaemonUnavailable(f"lathed is not running, and {db} cannot be read: {e}") from None
+    print(f"lathectl: lathed is not running; {what} read from {db}", file=sys.stderr)
+    return result
+
+
+def add_db_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", help="when the daemon is down, read this lathed.db (default: the service's "
+                                "/var/lib/lathed/lathed.db, or the one in this environment)")
 
 
 def print_json(obj: Any) -> None:
@@ -137,24 +171,12 @@ def cmd_events(args: argparse.Namespace) -> int:
             for r in frame.get("events", []):
                 _print_event(r, args.json)
         return 0
-    try:
-        rows = remote(args, "events", {"limit": args.limit, "kind": args.kind, "source": args.source})
-    except DaemonUnavailable:
-        # the daemon is down: its records are still on disk, read without writing
-        db = Path(args.db) if args.db else default_db()
-        if not db.is_file():
-            raise
-        import sqlite3
 
-        from lathed.store import connect, read_events
-        try:
-            con = connect(db, readonly=True)
-            rows = read_events(con, args.limit, args.kind, args.source)
-            con.close()
-        except sqlite3.Error as e:
-            print(f"lathectl: lathed is not running, and {db} cannot be read: {e}", file=sys.stderr)
-            return EX_UNAVAILABLE
-        print(f"lathectl: lathed is not running; events read from {db}", file=sys.stderr)
+    def read(con):
+        from lathed.store import read_events
+        return read_events(con, args.limit, args.kind, args.source)
+    rows = remote_or_db(args, "events", "events", {"limit": args.limit, "kind": args.kind, "source": args.source},
+                        read)
     if args.json:
         print_json(rows)
         return 0
@@ -206,8 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--kind")
     s.add_argument("--source")
     s.add_argument("--follow", "-f", action="store_true", help="then print each new event as it is recorded")
-    s.add_argument("--db", help="when the daemon is down, read this lathed.db (default: the service's "
-                                "/var/lib/lathed/lathed.db, or the one in this environment)")
+    add_db_argument(s)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_events)
     s = sub.add_parser("watch", help="live values as they change (SOURCE/QUANTITY patterns, default all)")
@@ -247,6 +268,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if not hasattr(args, "socket"):
         args.socket = None
+    if getattr(args, "plot", None):
+        # before the analysis, not after it: matplotlib is an extra (lathed.extras)
+        from lathed.extras import missing
+        if why := missing("matplotlib"):
+            print(f"lathectl: --plot: {why}", file=sys.stderr)
+            return EX_UNAVAILABLE
     try:
         return args.func(args)
     except DaemonUnavailable as e:

@@ -239,3 +239,53 @@ def experiments(query: Query, tool: str, material: str) -> list[dict]:
     for r in rows:
         r["levels"], r["settings"] = json.loads(r["levels"]), json.loads(r["settings"])
     return rows
+
+
+def recommendation(query: Query, tool: str, material: str) -> dict:
+    """The Taguchi recommendation from the trials of one tool and material;
+    ValueError (one line) when there is none to make."""
+    from lathed.analysis import taguchi    # numpy: not for every reader of records
+    trials = experiments(query, tool, material)
+    if not trials:
+        raise ValueError(f"no experiment records for tool {tool} and material {material}; "
+                         "add them with `lathectl experiment add`")
+    try:
+        rec = taguchi.recommend(trials)
+    except ValueError as e:
+        raise ValueError(f"recommend: {tool}/{material}: {e}") from None
+    return {"tool": tool, "material": material, **rec}
+
+
+def recommendations(query: Query, tool: str, material: str) -> dict:
+    """One recommendation per tool holder and material tried, most recent first, each
+    with its own error: a pair whose trials cannot be analysed does not hide the others.
+    ``tool``/``material``: the ones in use, marked."""
+    out = []
+    for t, m in experiment_pairs(query):
+        try:
+            out.append(recommendation(query, t, m))
+        except ValueError as e:
+            out.append({"tool": t, "material": m, "error": str(e)})
+    return {"current": {"tool": tool, "material": material}, "pairs": out}
+
+
+# what `lathectl export` names -> the record table it is read from
+EXPORT_TABLES = {"events": "events", "parts": "workpieces", "inspections": "inspections", "experiments": "experiments"}
+
+
+def export_page(query: Query, what: str, limit: int, after: int | None = None) -> list[dict]:
+    """One page of rows to export, oldest first: the newest ``limit`` (``after`` None),
+    else the first ``limit`` with an id above ``after`` (to page through every row)."""
+    table = EXPORT_TABLES[what]
+    limit = int(limit)     # ints, checked by the caller: they go into the SQL text
+    if after is None:
+        page = f"id IN (SELECT id FROM {table} ORDER BY id DESC LIMIT {limit})"
+    else:
+        page = f"id IN (SELECT id FROM {table} WHERE id > {int(after)} ORDER BY id LIMIT {limit})"
+    if what == "events":
+        return query(f"SELECT id, uuid, machine_id, t, source, kind, payload FROM events WHERE {page} ORDER BY id")
+    if what == "parts":
+        return parts_where(query, "w." + page)
+    if what == "inspections":
+        return decode(query(f"SELECT * FROM inspections WHERE {page} ORDER BY id"))
+    return query(f"SELECT * FROM experiments WHERE {page} ORDER BY id")

@@ -221,13 +221,24 @@ JSON_COLUMNS = frozenset({"payload", "measured", "levels", "settings"})
 
 def connect(path: str | Path, readonly: bool = False) -> sqlite3.Connection:
     if readonly:
-        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=10, check_same_thread=False)
+        # A stopped daemon's store (lathectl). A clean stop leaves no -wal: opened immutable, reading
+        # creates no -shm/-wal beside it, so a member of the lathed group, who may read the store but
+        # not write its directory, can read it (mode=ro alone: "attempt to write a readonly database").
+        # After a crash the -wal holds records: read it too.
+        immutable = "" if Path(f"{path}-wal").exists() else "&immutable=1"
+        con = sqlite3.connect(f"{Path(path).absolute().as_uri()}?mode=ro{immutable}", uri=True, timeout=10,
+                              check_same_thread=False)
     else:
         con = sqlite3.connect(str(path), timeout=10, isolation_level=None, check_same_thread=False)
         con.execute("PRAGMA journal_mode=WAL")
         con.execute("PRAGMA synchronous=FULL")
     con.row_factory = sqlite3.Row
     return con
+
+
+def read_rows(con: sqlite3.Connection, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
+    """Store.query on any connection (lathectl reads a stopped daemon's database read-only)."""
+    return [dict(r) for r in con.execute(sql, params).fetchall()]
 
 
 def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] | None = None,
@@ -614,7 +625,7 @@ class Store:
     # -- reading --------------------------------------------------------
     def query(self, sql: str, params: tuple = ()) -> list[dict[str, Any]]:
         with self._rlock:
-            return [dict(r) for r in self._rcon.execute(sql, params).fetchall()]
+            return read_rows(self._rcon, sql, params)
 
     def events(self, limit: int = 50, kind: str | list[str] | None = None,
                source: str | list[str] | None = None, since_id: int = 0,

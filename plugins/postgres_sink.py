@@ -27,21 +27,20 @@ from __future__ import annotations
 import asyncio
 import itertools
 import time
-from typing import Any
-
-import psycopg
-from psycopg import sql
-from psycopg.conninfo import conninfo_to_dict
+from typing import TYPE_CHECKING, Any
 
 from lathed import hookimpl
 from lathed.analyzer import Analyzer
 from lathed.config import Section
+from lathed.extras import MissingExtra, need
 from lathed.store import FORWARDED, JSON_COLUMNS
+
+if TYPE_CHECKING:
+    import psycopg
+    from psycopg import sql
 
 _PG_TYPES = {"INTEGER": "bigint", "REAL": "double precision", "TEXT": "text"}
 _DDL_LOCK = 0x6C617468   # advisory lock: daemons starting together create the tables once
-# What the server raises for a row's content, as opposed to an outage or a schema fault.
-_ROW_REFUSED = (psycopg.DataError, psycopg.IntegrityError)
 
 # The central counterparts of the local views over the analyzers' events.
 _VIEWS = {
@@ -69,10 +68,17 @@ class PostgresSink(Analyzer):
 
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
+        # imported here, by a configured sink only: psycopg takes 0.2 s to import and is an extra
+        try:
+            self.pg = pg = need("psycopg", "the postgres_sink plugin")
+        except MissingExtra as e:
+            raise section.error("plugin", str(e)) from None
+        # what the server raises for a row's content, as opposed to an outage or a schema fault
+        self.row_refused = (pg.DataError, pg.IntegrityError)
         self.dsn = section.getstr("dsn")
         try:
-            info = conninfo_to_dict(self.dsn)
-        except psycopg.ProgrammingError as e:
+            info = pg.conninfo.conninfo_to_dict(self.dsn)
+        except pg.ProgrammingError as e:
             raise section.error("dsn", f"not a PostgreSQL connection string: {e}") from None
         self.where = f"{info.get('host', 'localhost')}:{info.get('port', 5432)}/{info.get('dbname', '')}"
         self.batch = section.getint("batch", 500, minval=1, maxval=10_000)
@@ -86,15 +92,15 @@ class PostgresSink(Analyzer):
     async def run(self) -> None:
         try:
             await self._forward()
-        except (psycopg.Error, OSError, asyncio.TimeoutError) as e:
-            self.last_error = _cause(e, self.where)
+        except (self.pg.Error, OSError, asyncio.TimeoutError) as e:
+            self.last_error = self._cause(e)
             raise ConnectionError(self.last_error) from None
         finally:
             self.connected = False
 
     async def _forward(self) -> None:
         store = self.ctx.store
-        con = await asyncio.wait_for(psycopg.AsyncConnection.connect(
+        con = await asyncio.wait_for(self.pg.AsyncConnection.connect(
             self.dsn, connect_timeout=max(1, int(self.timeout))), self.timeout)
         async with con:
             inserts = await asyncio.wait_for(self._schema(con), self.timeout)
@@ -107,7 +113,7 @@ class PostgresSink(Analyzer):
                     continue
                 try:
                     await asyncio.wait_for(self._send(con, inserts, batch), self.timeout)
-                except _ROW_REFUSED:
+                except self.row_refused:
                     await asyncio.wait_for(self._send_each(con, inserts, batch), self.timeout)
                 # After the central commit: a crash here only causes a resend, which the keys absorb.
                 await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
@@ -116,6 +122,7 @@ class PostgresSink(Analyzer):
 
     async def _schema(self, con: psycopg.AsyncConnection) -> dict[str, tuple[sql.Composed, list[str]]]:
         """Create or extend the central tables from the local schema; returns the inserts."""
+        sql = self.pg.sql
         inserts = {}
         async with con.transaction():
             await con.execute("SELECT pg_advisory_xact_lock(%s)", (_DDL_LOCK,))
@@ -165,8 +172,8 @@ class PostgresSink(Analyzer):
                     try:
                         async with con.transaction():
                             await cur.execute(stmt, _params(r, cols))
-                    except _ROW_REFUSED as e:
-                        why = _cause(e, self.where)
+                    except self.row_refused as e:
+                        why = self._cause(e)
                         await asyncio.wrap_future(self.ctx.store.refuse(self.name, oid, table, r["id"], why))
                         self.ctx.log.error("forward_refused", table=table, row_id=r["id"], error=why)
                         self.ctx.record("forward_refused", {"sink": self.name, "table": table, "row_id": r["id"],
@@ -184,18 +191,18 @@ class PostgresSink(Analyzer):
                               if refused else "")
                            + (f", last error: {self.last_error}" if self.last_error else "")}
 
+    def _cause(self, e: BaseException) -> str:
+        where = self.where
+        if isinstance(e, asyncio.TimeoutError):
+            return f"PostgreSQL at {where} did not answer in time (server overloaded or network down)"
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if isinstance(e, (self.pg.OperationalError, OSError)):
+            return f"PostgreSQL at {where} unreachable (server down, network, or credentials): {msg}"
+        return f"PostgreSQL at {where} refused the records: {type(e).__name__}: {msg}"
+
 
 def _params(r: dict, cols: list[str]) -> tuple:
     return (r["machine_id"], r["uuid"], r["id"], *(r[c] for c in cols))
-
-
-def _cause(e: BaseException, where: str) -> str:
-    if isinstance(e, asyncio.TimeoutError):
-        return f"PostgreSQL at {where} did not answer in time (server overloaded or network down)"
-    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    if isinstance(e, (psycopg.OperationalError, OSError)):
-        return f"PostgreSQL at {where} unreachable (server down, network, or credentials): {msg}"
-    return f"PostgreSQL at {where} refused the records: {type(e).__name__}: {msg}"
 
 
 @hookimpl

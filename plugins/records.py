@@ -26,7 +26,7 @@ from lathed.bus import Sample
 from lathed.config import Section
 from lathed.control import RequestError, offload
 
-EXPORTS = ("events", "parts", "inspections", "experiments")
+EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
 
 
@@ -154,28 +154,12 @@ class Records(Analyzer):
         every = a.getbool("all", False)
         tool, material = self._tool(a), self._material(a)
         a.check_unused()
-        if not every:
-            return await self._recommend(tool, material)
-        # the operator view's table: one recommendation per tool holder and material tried,
-        # each with its own error (a pair whose trials cannot be analysed does not hide the others)
-        out = []
-        for t, m in await offload(records.experiment_pairs, self._query):
-            try:
-                out.append(await self._recommend(t, m))
-            except RequestError as e:
-                out.append({"tool": t, "material": m, "error": str(e)})
-        return {"current": {"tool": tool, "material": material}, "pairs": out}
-
-    async def _recommend(self, tool: str, material: str) -> dict:
-        trials = await offload(records.experiments, self._query, tool, material)
-        if not trials:
-            raise RequestError(f"no experiment records for tool {tool} and material {material}; "
-                               "add them with `lathectl experiment add`")
+        if every:       # the operator view's table
+            return await offload(records.recommendations, self._query, tool, material)
         try:
-            rec = await offload(taguchi.recommend, trials)
+            return await offload(records.recommendation, self._query, tool, material)
         except ValueError as e:
-            raise RequestError(f"recommend: {tool}/{material}: {e}") from None
-        return {"tool": tool, "material": material, **rec}
+            raise RequestError(str(e)) from None
 
     async def _cmd_export(self, args: dict) -> Any:
         a = Args("export", args)
@@ -185,23 +169,7 @@ class Records(Analyzer):
         limit = a.getint("limit", 100_000, minval=1, maxval=100_000)
         after = a.getint("after_id", None, minval=0, maxval=2 ** 62)
         a.check_unused()
-        q = self._query
-        table = {"events": "events", "parts": "workpieces", "inspections": "inspections",
-                 "experiments": "experiments"}[what]
-        if after is None:        # the newest ``limit`` rows, oldest first (as before)
-            page = f"id IN (SELECT id FROM {table} ORDER BY id DESC LIMIT {limit})"
-        else:
-            page = f"id IN (SELECT id FROM {table} WHERE id > {after} ORDER BY id LIMIT {limit})"
-        if what == "events":
-            fn = lambda: q("SELECT id, uuid, machine_id, t, source, kind, payload FROM events "  # noqa: E731
-                           f"WHERE {page} ORDER BY id")
-        elif what == "parts":
-            fn = lambda: records.parts_where(q, "w." + page)  # noqa: E731
-        elif what == "inspections":
-            fn = lambda: records.decode(q(f"SELECT * FROM inspections WHERE {page} ORDER BY id"))  # noqa: E731
-        else:
-            fn = lambda: q(f"SELECT * FROM experiments WHERE {page} ORDER BY id")  # noqa: E731
-        return await offload(fn)
+        return await offload(records.export_page, self._query, what, limit, after)
 
     def _tool(self, a: Args) -> str:
         return self._default(a, "tool", self.tool)

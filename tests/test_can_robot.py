@@ -16,7 +16,7 @@ from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.sim.can_peer import CanPeer, robot_frames
 from lathed.sim.line import SimRobotArm
-from plugins.can_robot import CanRobot
+from lathed_plugins.can_robot import CanRobot
 from tests.conftest import ROOT
 
 DBC = str(ROOT / "etc" / "robot_arm.dbc")

@@ -7,7 +7,7 @@ import structlog
 from lathed.analyzer import AnalyzerContext
 from lathed.bus import Block, Bus, Sample
 from lathed.config import Section
-from plugins.chatter import ChatterAnalyzer
+from lathed_plugins.chatter import ChatterAnalyzer
 
 
 def _analyzer():

@@ -1,5 +1,6 @@
 """constraints.txt, the tested set of exact versions for field installs, pins
-every runtime dependency of pyproject.toml within its declared range."""
+every runtime dependency of pyproject.toml, and those of the optional extras a
+field install may take (postgres, plots), within its declared range."""
 from __future__ import annotations
 
 import tomllib
@@ -25,10 +26,15 @@ def pins() -> dict[str, str]:
     return found
 
 
+FIELD_EXTRAS = ("postgres", "plots")     # not "test": a field install has no test tools
+
+
 def test_every_runtime_dependency_is_pinned_within_its_range():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     pinned = pins()
-    for spec in project["dependencies"]:
+    extras = project["optional-dependencies"]
+    assert set(FIELD_EXTRAS) <= set(extras), f"pyproject.toml lacks the extras {FIELD_EXTRAS}"
+    for spec in project["dependencies"] + [s for e in FIELD_EXTRAS for s in extras[e]]:
         req = Requirement(spec)
         key = canonicalize_name(req.name)
         assert key in pinned, f"{req.name} (pyproject.toml) has no pin in constraints.txt"

@@ -14,7 +14,7 @@ from lathed.driver import DriverContext
 from lathed.sim.serial_peer import SerialPeer
 from lathed.supervisor import Runner
 from lathed.wire import crc16, format_temperature_line, xor_checksum
-from plugins.ds18b20_serial import DS18B20Serial
+from lathed_plugins.ds18b20_serial import DS18B20Serial
 
 
 def sensor(port="/dev/null", stale_after="1s") -> DS18B20Serial:

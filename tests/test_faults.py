@@ -29,10 +29,10 @@ from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
 from lathed.supervisor import Runner
-from plugins.can_robot import CanRobot
-from plugins.ds18b20_serial import DS18B20Serial
-from plugins.modbus_cnc import ModbusCNC
-from plugins.vibration_tcp import VibrationTCP
+from lathed_plugins.can_robot import CanRobot
+from lathed_plugins.ds18b20_serial import DS18B20Serial
+from lathed_plugins.modbus_cnc import ModbusCNC
+from lathed_plugins.vibration_tcp import VibrationTCP
 from tests.conftest import ROOT, free_port
 
 RECONNECT_S = 5.0

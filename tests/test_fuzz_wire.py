@@ -17,9 +17,9 @@ from lathed.config import Section
 from lathed.driver import DriverContext
 from lathed.wire import (VIB_HEADER, FrameError, LineError, format_temperature_line, parse_temperature_line,
                          unpack_vibration_header, vibration_header_problem)
-from plugins.can_robot import CanRobot
-from plugins.ds18b20_serial import DS18B20Serial
-from plugins.modbus_cnc import TYPES, Register
+from lathed_plugins.can_robot import CanRobot
+from lathed_plugins.ds18b20_serial import DS18B20Serial
+from lathed_plugins.modbus_cnc import TYPES, Register
 from tests.conftest import ROOT
 
 FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

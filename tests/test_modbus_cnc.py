@@ -18,7 +18,7 @@ from lathed.sim.line import MILL_PROGRAM, SimCycleMachine
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
 from lathed.sim.serial_peer import NullModem
-from plugins.modbus_cnc import ModbusCNC, poll_groups
+from lathed_plugins.modbus_cnc import ModbusCNC, poll_groups
 from tests.conftest import free_port
 
 REGS = {"spindle_rpm_cmd": {"address": 0, "type": "float32", "writable": True},
@@ -212,7 +212,7 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
 
     from lathed.sim.modbus_peer import _Registers
     from lathed.supervisor import Runner
-    from plugins import modbus_cnc
+    from lathed_plugins import modbus_cnc
 
     link = tmp_path / "ttyBUS"
     nm = NullModem(link)

@@ -14,8 +14,8 @@ from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.plausible import Plausibility
 from lathed.wire import format_temperature_line
-from plugins.ds18b20_serial import DS18B20Serial
-from plugins.modbus_cnc import ModbusCNC
+from lathed_plugins.ds18b20_serial import DS18B20Serial
+from lathed_plugins.modbus_cnc import ModbusCNC
 
 
 def ctx(events=None, plausible=None) -> DriverContext:

@@ -13,7 +13,7 @@ import structlog
 
 from lathed.config import Section
 from lathed.store import FORWARDED, Store
-from plugins.postgres_sink import PostgresSink
+from lathed_plugins.postgres_sink import PostgresSink
 from tests.conftest import Daemon, wait_until
 from tests.pg_fixtures import pg_count, pg_dsn, postgres  # noqa: F401
 

@@ -136,7 +136,7 @@ def test_experiment_run_must_be_a_sane_integer(run):
     # issue 18 D1: a run of 10**30 reached the store writer and killed it
     from lathed.config import Section
     from lathed.control import RequestError
-    from plugins.records import Records
+    from lathed_plugins.records import Records
     r = Records("records", Section("f.toml", "analyzer.records", {"tool": "T", "material": "M"}))
     with pytest.raises(RequestError, match=r"^experiment_add: run: .*an integer in \[1, 10000\]"):
         asyncio.run(r._cmd_experiment_add({"levels": {"A": 1}, "ra_um": 1.0, "run": run}))

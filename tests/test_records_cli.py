@@ -151,6 +151,7 @@ def test_chattered_part_is_queued_inspected_and_joined(daemon, tmp_path):
     assert any(",part_abnormal," in ln for ln in events) and any(",chatter_alarm," in ln for ln in events)
 
 
-def test_no_daemon_exits_69(tmp_path):
+def test_no_daemon_exits_69(tmp_path, monkeypatch):
     from lathed.lathectl import main
+    monkeypatch.setenv("LATHED_DB", str(tmp_path / "no.db"))    # nor a database to read instead
     assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from lathed.config import Section
-from plugins.chatter import ChatterAnalyzer
+from lathed_plugins.chatter import ChatterAnalyzer
 from tests.conftest import wait_until
 from tests.test_chatter_live import CHATTER
 

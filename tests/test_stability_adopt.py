@@ -19,7 +19,7 @@ from lathed.analyzer import AnalyzerContext
 from lathed.bus import Bus, Sample
 from lathed.config import Section
 from lathed.store import Store
-from plugins.suppression import SuppressionAnalyzer
+from lathed_plugins.suppression import SuppressionAnalyzer
 
 MODES = [f"{m.fn_hz:g},{m.zeta:g},{m.k_n_per_m:g},{m.theta_deg:g}" for m in GIVEN.modes]
 
@@ -210,7 +210,7 @@ def test_a_new_tap_test_in_the_configuration_supersedes_the_adopted_model(h):
 
 
 def test_the_refit_takes_the_newest_cut_speeds_and_says_how_many_it_left(h, monkeypatch):
-    import plugins.suppression as sup
+    import lathed_plugins.suppression as sup
     monkeypatch.setattr(sup, "MAX_REFIT_SPEEDS", 100)
     h.start()
     h.add_cuts(generate_cuts(true_dynamics("none"), 130, seed=3))

@@ -16,7 +16,7 @@ from tests.conftest import ROOT
 def test_unit_verifies_clean(tmp_path):
     unit = (ROOT / "systemd" / "lathed.service").read_text()
     # the unit names the installed location; point it at this environment's lathed
-    unit = unit.replace("/opt/lathed/.venv/bin/lathed", str(Path(sys.executable).parent / "lathed"))
+    unit = unit.replace("/usr/lib/lathed/bin/lathed", str(Path(sys.executable).parent / "lathed"))
     path = tmp_path / "lathed.service"
     path.write_text(unit)
     r = subprocess.run(["systemd-analyze", "verify", str(path)], capture_output=True, text=True)
@@ -45,7 +45,7 @@ def test_web_unit_verifies_clean(tmp_path):
     for name in ("lathed.service", "lathed-web.service"):
         unit = (ROOT / "systemd" / name).read_text()
         for exe in ("lathed", "lathed-web"):
-            unit = unit.replace(f"/opt/lathed/.venv/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
+            unit = unit.replace(f"/usr/lib/lathed/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
         (tmp_path / name).write_text(unit)
     r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "lathed-web.service")], capture_output=True,
                        text=True, cwd=tmp_path)

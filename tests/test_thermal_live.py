@@ -13,7 +13,7 @@ import pytest
 
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
-from plugins.thermal import MIN_REFIT_ROWS
+from lathed_plugins.thermal import MIN_REFIT_ROWS
 from tests.conftest import ROOT, sim_call, wait_until
 
 DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
@@ -242,7 +242,7 @@ def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path)
     and rows from another cold start (the next morning) are a run of their own."""
     from lathed.analysis.thermal import ThermalRuns
     from lathed.config import Section
-    from plugins.thermal import ThermalAnalyzer
+    from lathed_plugins.thermal import ThermalAnalyzer
 
     an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
                                             {"input": "temps", "machine": "lathe"}))

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 from lathed.analysis.thermal import eq14_model, load_model, save_model
 from lathed.config import Section
-from plugins.thermal import ThermalAnalyzer
+from lathed_plugins.thermal import ThermalAnalyzer
 
 KILLED_MID_SAVE = """
 import os, signal, sys

@@ -11,7 +11,7 @@ from lathed.bus import Bus
 from lathed.config import Section
 from lathed.driver import DriverContext
 from lathed.wire import pack_vibration
-from plugins.vibration_tcp import VibrationTCP
+from lathed_plugins.vibration_tcp import VibrationTCP
 from tests.conftest import free_port
 
 

@@ -1,7 +1,8 @@
 """``lathectl parts|inspect|experiment|recommend|export``: production records.
 
 Asks the daemon's records analyzer (``[analyzer.records]``) over the control
-socket.
+socket; ``parts``, ``experiment list``, ``recommend`` and ``export`` read its
+database, read-only, when the daemon is down.
 """
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ import math
 import sys
 
 from lathed.cli import EX_CANTCREAT
-from lathed.lathectl import print_json, remote
+from lathed.client import DaemonUnavailable
+from lathed.lathectl import add_db_argument, print_json, read_db, remote, remote_or_db
 
 
 def _num(text: str) -> float:
@@ -68,7 +70,8 @@ def register(sub) -> None:
                                    "applied, and the post-process inspection joined to each.")
     p.add_argument("--abnormal", action="store_true", help="only parts cut under abnormal vibration")
     p.add_argument("--queue", action="store_true", help="only parts waiting for sampling inspection")
-    p.add_argument("--limit", type=int, default=100)
+    p.add_argument("--limit", type=_positive_int, default=100)
+    add_db_argument(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_parts)
 
@@ -105,10 +108,13 @@ def register(sub) -> None:
     a.add_argument("--ra", type=_num, metavar="UM", help="measured Ra, µm (surface)")
     a.add_argument("--diameter-error", type=_num, metavar="UM", help="measured diameter error, µm (precision)")
     a.add_argument("--removal-rate", type=_num, metavar="MM3_MIN", help="material removal rate (efficiency)")
+    a.add_argument("--json", action="store_true", help="print the recorded trial's id as JSON")
     a.set_defaults(func=cmd_experiment_add)
     ls = esub.add_parser("list", help="the trials recorded for a tool holder and material")
-    ls.add_argument("--tool")
-    ls.add_argument("--material")
+    ls.add_argument("--tool", help="tool holder (default: the records analyzer's tool; needed with the daemon down)")
+    ls.add_argument("--material", help="work material (default: the records analyzer's; needed with the daemon "
+                                       "down)")
+    add_db_argument(ls)
     ls.add_argument("--json", action="store_true")
     ls.set_defaults(func=cmd_experiment_list)
 
@@ -120,6 +126,7 @@ def register(sub) -> None:
     p.add_argument("--tool", help="tool holder (default: the records analyzer's)")
     p.add_argument("--material", help="material (default: the records analyzer's)")
     p.add_argument("--all", action="store_true", help="one recommendation per tool holder and material tried")
+    add_db_argument(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_recommend)
 
@@ -127,12 +134,23 @@ def register(sub) -> None:
     p.add_argument("what", choices=("events", "parts", "inspections", "experiments"))
     p.add_argument("--out", metavar="FILE.csv", help="write here instead of standard output")
     p.add_argument("--limit", type=_positive_int, help="only the newest N rows (default: every row)")
+    add_db_argument(p)
     p.add_argument("--json", action="store_true", help="JSON lines, one object per row, instead of CSV")
     p.set_defaults(func=cmd_export)
 
 
+def _query(con):
+    """lathed.records' query function on a connection lathectl opened."""
+    from lathed.store import read_rows
+    return lambda sql, params=(): read_rows(con, sql, params)
+
+
 def cmd_parts(args: argparse.Namespace) -> int:
-    rows = remote(args, "parts", {"abnormal": args.abnormal, "pending": args.queue, "limit": args.limit})
+    def read(con):
+        from lathed import records
+        return records.parts(_query(con), args.abnormal, args.queue, args.limit)
+    rows = remote_or_db(args, "parts", "parts", {"abnormal": args.abnormal, "pending": args.queue,
+                                                 "limit": args.limit}, read)
     if args.json:
         print_json(rows)
         return 0
@@ -181,12 +199,22 @@ def cmd_experiment_add(args: argparse.Namespace) -> int:
                                           "levels": args.levels, "settings": settings, "ra_um": args.ra,
                                           "diameter_error_um": args.diameter_error,
                                           "removal_rate": args.removal_rate})
-    print(f"trial {res['id']} recorded")
+    if args.json:
+        print_json(res)
+    else:
+        print(f"trial {res['id']} recorded")
     return 0
 
 
 def cmd_experiment_list(args: argparse.Namespace) -> int:
-    rows = remote(args, "experiments", {"tool": args.tool, "material": args.material})
+    def read(con):
+        from lathed import records
+        if args.tool is None or args.material is None:
+            # their defaults are the running records analyzer's configuration
+            raise DaemonUnavailable("lathed is not running: give --tool and --material to read the trials "
+                                    "from its database")
+        return records.experiments(_query(con), args.tool, args.material)
+    rows = remote_or_db(args, "experiments", "experiments", {"tool": args.tool, "material": args.material}, read)
     if args.json:
         print_json(rows)
         return 0
@@ -201,7 +229,21 @@ def cmd_experiment_list(args: argparse.Namespace) -> int:
 
 def cmd_recommend(args: argparse.Namespace) -> int:
     req = {k: v for k, v in (("tool", args.tool), ("material", args.material)) if v is not None}
-    rec = remote(args, "recommend", {**req, "all": True} if args.all else req)
+
+    def read(con):
+        from lathed import records
+        if args.all:
+            return records.recommendations(_query(con), args.tool, args.material)
+        if args.tool is None or args.material is None:
+            # their defaults are the running records analyzer's configuration
+            raise DaemonUnavailable("lathed is not running: give --tool and --material (or --all) to read the "
+                                    "trials from its database")
+        return records.recommendation(_query(con), args.tool, args.material)
+    try:
+        rec = remote_or_db(args, "experiments", "recommend", {**req, "all": True} if args.all else req, read)
+    except ValueError as e:       # read from the database: the daemon's refusal, in the same words
+        print(f"lathectl: {e}", file=sys.stderr)
+        return 1
     if args.json:
         print_json(rec)
         return 0
@@ -248,14 +290,15 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def _pages(args: argparse.Namespace):
-    """Every row, oldest first, a page per request (or the newest --limit in one, at most 100000)."""
-    if args.limit:
-        yield remote(args, "export", {"what": args.what, "limit": min(args.limit, 100_000)})
+def _pages(fetch, limit: int | None):
+    """Every row, oldest first, a page per ``fetch(limit, after_id)`` (or the newest ``limit`` in one,
+    at most 100000)."""
+    if limit:
+        yield fetch(min(limit, 100_000), None)
         return
     after = 0
     while True:
-        rows = remote(args, "export", {"what": args.what, "limit": EXPORT_PAGE, "after_id": after})
+        rows = fetch(EXPORT_PAGE, after)
         yield rows
         if len(rows) < EXPORT_PAGE:
             return
@@ -269,17 +312,36 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
         return EX_CANTCREAT
     n, w = 0, None
+
+    def write(rows: list[dict]) -> None:
+        nonlocal n, w
+        for r in rows:
+            if args.json:
+                out.write(json.dumps(r) + "\n")
+                continue
+            if w is None:
+                w = csv.DictWriter(out, fieldnames=list(r))
+                w.writeheader()
+            w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
+        n += len(rows)
+
+    def from_db(con) -> None:
+        from lathed import records
+        q = _query(con)
+        for rows in _pages(lambda limit, after: records.export_page(q, args.what, limit, after), args.limit):
+            write(rows)
+
+    pages = _pages(lambda limit, after: remote(args, "export", {"what": args.what, "limit": limit}
+                                               | ({} if after is None else {"after_id": after})), args.limit)
     try:
-        for rows in _pages(args):
-            for r in rows:
-                if args.json:
-                    out.write(json.dumps(r) + "\n")
-                    continue
-                if w is None:
-                    w = csv.DictWriter(out, fieldnames=list(r))
-                    w.writeheader()
-                w.writerow({k: json.dumps(v) if isinstance(v, (dict, list)) else v for k, v in r.items()})
-            n += len(rows)
+        try:
+            first = next(pages)
+        except DaemonUnavailable as e:   # before any row: the whole table from the database instead
+            read_db(args, args.what, from_db, e)
+        else:
+            write(first)
+            for rows in pages:
+                write(rows)
     finally:
         if args.out:
             out.close()

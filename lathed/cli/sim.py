@@ -9,7 +9,7 @@ from pathlib import Path
 
 from lathed.cli import positive
 from lathed.client import DaemonUnavailable, RemoteError, default_socket
-from lathed.lathectl import print_json
+from lathed.lathectl import _fmt_value, print_json
 
 
 # lathed.sim.thermal.EFFECTS, named here so lathectl starts without numpy and scipy (a test keeps them equal)
@@ -68,6 +68,11 @@ def thermal_run(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"lathectl: cannot write {args.out}: {e.strerror}", file=sys.stderr)
         return EX_CANTCREAT
+    if args.json:
+        print_json({"out": str(args.out), "rows": len(run), "hours": args.hours, "seed": args.seed,
+                    "effects": sorted(run.effects), "noise_um": args.noise_um, "sensors": args.sensors,
+                    "periodic_min": args.periodic_min, "speed_step_um": args.speed_step_um})
+        return 0
     print(f"{args.out}: {len(run)} rows, {args.hours:g} h from a cold start, speed schedule and day of seed "
           f"{args.seed}, effects: {', '.join(sorted(run.effects)) or 'none'}, probe noise {args.noise_um:g} µm"
           + "".join(f", {e}" for e in extra))
@@ -81,12 +86,29 @@ def run(args: argparse.Namespace) -> int:
         (Path(args.socket) if args.socket else default_socket()).with_name("sim.sock")
     if args.what == "depth":
         r = call(path, "set", {"depth_mm": args.value})
+        text = f"simulator: depth of cut {r['depth_mm']:g} mm" + \
+            (" (the program's)" if args.value is None else " (override; 'program' goes back)")
     elif args.what == "outage":
         r = call(path, "outage", {"peer": args.peer, "seconds": args.seconds})
+        text = f"simulator: {r['peer']} down for {r['seconds']:g} s"
     else:
         r = call(path, "status", {})
-    print_json(r)
+        text = _status_text(r)
+    if args.json:
+        print_json(r)
+    else:
+        print(text)
     return 0
+
+
+def _status_text(r: dict) -> str:
+    lines = [f"simulator: {r['phase']}, part {r['part']}, simulated time {r['t']:.0f} s, "
+             f"thermal growth {r['displacement_um']:.1f} µm, {r['overruns']} overruns",
+             "peers: " + ", ".join(f"{p} {'up' if up else 'DOWN'}" for p, up in r["peers"].items()),
+             "registers: " + _fmt_value(r["registers"]),
+             "temperatures: " + _fmt_value(r["temperatures"])]
+    lines += [f"{name}: {_fmt_value(m)}" for name, m in r["line"].items()]
+    return "\n".join(lines)
 
 
 def register(sub) -> None:
@@ -98,7 +120,9 @@ def register(sub) -> None:
     o = s.add_parser("outage", help="take a peer down and bring it back")
     o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
     o.add_argument("seconds", type=float)
-    s.add_parser("status", help="the simulator's state")
+    st = s.add_parser("status", help="the simulator's state")
+    for c in (d, o, st):
+        c.add_argument("--json", action="store_true", help="print the simulator's reply as JSON")
     t = s.add_parser("thermal-run", help="write a simulated thermal run (CSV) for `lathectl analyze thermal`; "
                                          "no daemon needed")
     t.add_argument("out", metavar="OUT.csv")
@@ -115,4 +139,5 @@ def register(sub) -> None:
                                                          "that no sensor sees")
     t.add_argument("--speed-step-um", type=float, help="add a step of this size to the growth while the "
                                                        "speed is at 2750 r/min or more")
+    t.add_argument("--json", action="store_true", help="print what was written as JSON")
     p.set_defaults(func=run)

@@ -1,0 +1,48 @@
+"""PostgreSQL and plots are extras (issue 17 item 5): without one, what needs it
+says in one line which extra to install, and nothing else imports it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from lathed.config import ConfigError, Section
+from lathed.lathectl import main
+from lathed_plugins.postgres_sink import PostgresSink
+from tests.conftest import ROOT
+
+
+def test_postgres_sink_without_psycopg_is_one_config_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "psycopg", None)      # as if the postgres extra were not installed
+    sec = Section("plant.toml", "analyzer.central", {"dsn": "host=db.plant dbname=lathed"})
+    with pytest.raises(ConfigError) as e:
+        PostgresSink("central", sec)
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert "plant.toml" in msg and "[analyzer.central]" in msg
+    assert "pip install 'lathed[postgres]'" in msg
+
+
+@pytest.mark.parametrize("what", [
+    ["lobes", "--mode", "250,0.03,2e7", "--kf", "1e9"],
+    ["thermal", str(ROOT / "tests" / "no_such_run.csv")],      # refused before the file is even read
+])
+def test_plot_without_matplotlib_is_one_line_naming_the_extra(what, monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)   # as if the plots extra were not installed
+    png = tmp_path / "out.png"
+    assert main(["analyze", *what, "--plot", str(png)]) == 69
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == "lathectl: --plot: matplotlib is not installed: pip install 'lathed[plots]'\n"
+    assert not png.exists()
+
+
+def test_plugins_load_without_importing_psycopg():
+    # psycopg takes ~0.2 s to import: only a configured postgres_sink pays it
+    code = ("import sys; from lathed.plugins import load_all; loader = load_all([]);"
+            "assert not [p.error for p in loader.plugins if p.error], loader.summary();"
+            "print('postgres_sink' in loader.analyzer_types(), 'psycopg' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT / "tests")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "False"]
