@@ -384,3 +384,16 @@ def test_a_lost_daemon_marks_values_bad_and_the_server_comes_back_with_it(stack)
     d.log.close()
     again.wait_ready(timeout=60)
     wait_until(lambda: asyncio.run(status()).is_good(), timeout=30, interval=0.2, what="good values again")
+
+
+def test_a_machine_nameplate_is_checked_like_any_key(tmp_path):
+    from tests.conftest import sim_config
+    for extra, wanted in (
+            ("[machine.lathe.identification]\nyear_of_construction = 1800\n",
+             "[machine.lathe.identification] year_of_construction: 1800 is out of range; allowed: an integer in "
+             "[1900, 2200]"),
+            ("[sensor.temps.identification]\nmodel = \"DS18B20\"\n", "[sensor.temps] identification: unknown key")):
+        cfg, _ = sim_config(tmp_path, extra=extra)
+        r = subprocess.run([str(BIN / "lathed"), "--check-config", str(cfg)], capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 78 and wanted in r.stderr, r.stderr
