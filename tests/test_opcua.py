@@ -397,3 +397,36 @@ def test_a_machine_nameplate_is_checked_like_any_key(tmp_path):
         r = subprocess.run([str(BIN / "lathed"), "--check-config", str(cfg)], capture_output=True, text=True,
                            timeout=60)
         assert r.returncode == 78 and wanted in r.stderr, r.stderr
+
+
+def test_a_value_that_cannot_be_shown_does_not_hold_back_the_rest_of_its_frame():
+    from asyncua import Server
+
+    from lathed.opcua.space import Space
+
+    async def go():
+        server = Server()
+        await server.init()
+        space = Space(server, await server.register_namespace(NAMESPACE))
+        await space.build(writable=False)
+        t = time.time()
+        await space.apply({"status": {"machines": [{"name": "lathe", "kind": "lathe", "state": "connected"}],
+                                      "sensors": [], "analyzers": [{"name": "chatter", "plugin": "chatter",
+                                                                    "machine": "lathe"}]},
+                           "samples": {"lathe/spindle_rpm": [t, 1500.0, "r/min"]}})
+        space.last_event_id = 0
+        await space.apply({"samples": {"chatter/chatter_frequency_hz": [t, None, "Hz"],   # no chatter: no frequency
+                                       "lathe/spindle_rpm": [t, "not a number", "r/min"],
+                                       "lathe/x_mm": [t, 3.0, "mm"]},
+                           "events": [{"id": 5, "t": t, "source": "chatter", "kind": "chatter_alarm",
+                                       "payload": {"machine": "lathe"}}]})
+        def read(path: str) -> ua.DataValue:   # as stored (a client's read raises a bad status)
+            return server.iserver.aspace.read_attribute_value(space.vars[path].node.nodeid, ua.AttributeIds.Value)
+        return (read("Machines/lathe/Monitoring/Axes/X"), read("Machines/lathe/Monitoring/Chatter/ChatterFrequency"),
+                read("Machines/lathe/Monitoring/Spindle/RotationalSpeed").Value.Value, space.events_sent,
+                space.failing)
+    x, freq, speed, sent, failing = asyncio.run(go())
+    assert x.Value.Value == 3.0 and x.StatusCode.is_good()
+    assert freq.Value.Value is None and freq.StatusCode.value == ua.StatusCodes.BadNoDataAvailable
+    assert speed == 1500.0 and list(failing) == ["lathe/spindle_rpm"]   # said once (logged), the last good value kept
+    assert sent == 1

@@ -266,8 +266,11 @@ async def _feed(link: UaLink, space: Space) -> None:
             else:
                 if msg["type"] == "init":
                     space.connected = True
-                    if space.last_event_id is None:   # first start: the snapshot's events are history
-                        space.last_event_id = max((e["id"] for e in msg.get("events") or []), default=0)
+                    latest = max((e["id"] for e in msg.get("events") or []), default=0)
+                    # first start: the snapshot's events are history; after a reconnection those
+                    # past the last one shown were missed and go out now (a new store starts over)
+                    if space.last_event_id is None or latest < space.last_event_id:
+                        space.last_event_id = latest
                 await space.apply(msg)
             failing = None
         except Exception as e:   # a bug here must not stop the values (the next frame goes on); said once

@@ -20,7 +20,8 @@ Chatter, Thermal, PartCount...) are lathed's own.
 
 Values carry the sample's own time as SourceTimestamp. While the daemon is unreachable every
 live value is BadNoCommunication; while a machine's driver is not connected its values are
-UncertainNoCommunicationLastUsableValue.
+UncertainNoCommunicationLastUsableValue; a value the daemon has none of now (the chatter
+frequency while there is no chatter) is BadNoDataAvailable.
 """
 from __future__ import annotations
 
@@ -82,6 +83,7 @@ SEVERITY = {"chatter_alarm": 800, "chatter_cleared": 300, "suppression_action": 
 GOOD = ua.StatusCode(ua.StatusCodes.Good)
 NO_DAEMON = ua.StatusCode(ua.StatusCodes.BadNoCommunication)
 NO_MACHINE = ua.StatusCode(ua.StatusCodes.UncertainNoCommunicationLastUsableValue)
+NO_DATA = ua.StatusCode(ua.StatusCodes.BadNoDataAvailable)
 
 
 def eu_information(unit: str) -> ua.EUInformation:
@@ -124,6 +126,7 @@ class Space:
         self.quality: dict[str, ua.StatusCode] = {}   # machine -> GOOD or NO_MACHINE
         self.last_event_id: int | None = None
         self.events_sent = 0
+        self.failing: dict[str, str] = {}         # what -> the error last logged for it
 
     # -- building ---------------------------------------------------------------------
     async def build(self, writable: bool) -> None:
@@ -220,12 +223,22 @@ class Space:
 
     # -- applying what the daemon pushes ------------------------------------------------
     async def apply(self, frame: dict) -> None:
+        """One pushed frame; a value that cannot be shown is said once (log) and the rest goes on."""
         if frame.get("status"):
-            await self.apply_status(frame["status"])
+            await self._guarded("status", self.apply_status(frame["status"]))
         for key, (t, value, unit) in (frame.get("samples") or {}).items():
-            await self.apply_sample(key, t, value, unit)
+            await self._guarded(key, self.apply_sample(key, t, value, unit))
         for e in sorted(frame.get("events") or [], key=lambda e: e["id"]):
-            await self.apply_event(e)
+            await self._guarded(f"event {e.get('kind')}", self.apply_event(e))
+
+    async def _guarded(self, what: str, step) -> None:
+        try:
+            await step
+            self.failing.pop(what, None)
+        except Exception as e:
+            if self.failing.get(what) != repr(e):
+                self.failing[what] = repr(e)
+                log.exception("value_not_shown", what=what, error=repr(e))
 
     async def apply_status(self, status: dict) -> None:
         for m in status.get("machines", []):
@@ -241,7 +254,8 @@ class Space:
             if state is not None:
                 v = await self._var(f"{base}/Monitoring/MachineTool/MachineState", ua.VariantType.String, None, None)
                 await self._set(v, str(state), None, GOOD)
-        self.sensors = {s["name"] for s in status.get("sensors", [])}
+        if "sensors" in status:
+            self.sensors = {s["name"] for s in status["sensors"]}
         for a in status.get("analyzers", []):
             self.analyzers[a["name"]] = a
             if a.get("plugin") == "suppression" and a.get("machine") in self.machines:
@@ -303,9 +317,13 @@ class Space:
 
     async def _set(self, v: Var, value: Any, t: float | None, status: ua.StatusCode) -> None:
         v.value, v.t, v.status = value, t, status
-        await self.server.write_attribute_value(v.node.nodeid, ua.DataValue(
-            Value=ua.Variant(value, v.vtype), StatusCode_=status, SourceTimestamp=_time(t),
-            ServerTimestamp=datetime.now(timezone.utc)))
+        if value is None:    # the source has none now (no chatter: no chatter frequency)
+            status = NO_DATA
+        dv = ua.DataValue(Value=ua.Variant(ua.get_default_value(v.vtype) if value is None else value, v.vtype),
+                          StatusCode_=status, SourceTimestamp=_time(t), ServerTimestamp=datetime.now(timezone.utc))
+        # to the address space itself: Server.write_attribute_value drops the status it answers
+        res = await self.server.iserver.aspace.write_attribute_value(v.node.nodeid, ua.AttributeIds.Value, dv)
+        res.check()     # e.g. BadTypeMismatch: a value of another type than the node's first
 
     async def apply_event(self, e: dict) -> None:
         if self.last_event_id is not None and e["id"] <= self.last_event_id:
