@@ -22,7 +22,7 @@ from lathed.config import ConfigError
 from lathed.opcua.app import Settings
 from lathed.opcua.space import NAMESPACE
 from lathed.web import accounts
-from tests.conftest import BIN, Daemon, free_port, sim_call, wait_until
+from tests.conftest import BIN, ROOT, Daemon, free_port, sim_call, wait_until
 from tests.test_web import shipped_config
 
 CLIENT_URI = "urn:lathed:test-client"
@@ -338,7 +338,13 @@ def test_off_loopback_only_encrypted_sessions_with_an_account(stack):
                     dv = await (await lathe_node(c, "Monitoring", "Spindle", "RotationalSpeed")).read_data_value()
                     return dv.StatusCode.is_good() and dv
                 assert (await until(good, 20, "the spindle speed over the encrypted session")).Value.Value > 0
+            # read-only unless configured: not even an operator writes here
+            async with await encrypted(server.url, key, cert, "olga", "olga-pw") as c:
+                mode = await lathe_node(c, "Monitoring", "Suppression", "Mode")
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await mode.write_value(ua.DataValue(ua.Variant("off", ua.VariantType.String)))
         asyncio.run(go())
+        assert stack["daemon"].item("analyzers", "suppress")["mode"] == "auto"
         # the certificate made on first start, its key for this user only
         state = tmp / "ua-net"
         assert stat.S_IMODE((state / "server-key.pem").stat().st_mode) == 0o600
@@ -348,6 +354,9 @@ def test_off_loopback_only_encrypted_sessions_with_an_account(stack):
 
 
 def test_bad_config_is_one_line_and_exit_78(tmp_path):
+    shipped = Settings(str(ROOT / "etc" / "lathed-opcua.toml"))   # what `make run` serves
+    assert (shipped.url, shipped.loopback, shipped.writable, shipped.users) == \
+        ("opc.tcp://127.0.0.1:4840", True, False, {})
     with pytest.raises(ConfigError, match=r"listen = '0.0.0.0' opens the server to the network: that needs accounts"):
         Settings(None, "0.0.0.0")
     cfg = tmp_path / "o.toml"
