@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import socket
 import stat
 import subprocess
@@ -439,3 +438,23 @@ def test_a_value_that_cannot_be_shown_does_not_hold_back_the_rest_of_its_frame()
     assert freq.Value.Value is None and freq.StatusCode.value == ua.StatusCodes.BadNoDataAvailable
     assert speed == 1500.0 and list(failing) == ["lathe/spindle_rpm"]   # said once (logged), the last good value kept
     assert sent == 1
+
+
+def test_password_guessing_cannot_stall_the_server(monkeypatch):
+    from lathed.opcua.app import Accounts
+    checks = []
+    real = accounts.verify
+    monkeypatch.setattr(accounts, "verify", lambda pw, h: checks.append(pw) or real(pw, h))
+    now = [100.0]
+    users = Accounts({"olga": ("operator", accounts.hash_password("olga-pw"))}, anonymous=False,
+                     clock=lambda: now[0])
+    assert users.get_user(None) is None                          # no anonymous off loopback
+    for i in range(Accounts.FAILS_MAX):
+        assert users.get_user(None, "olga", f"guess{i}") is None
+    assert len(checks) == Accounts.FAILS_MAX
+    # the next guesses, even the right password, are refused without the ~50 ms check
+    assert users.get_user(None, "olga", "guess9") is None and users.get_user(None, "olga", "olga-pw") is None
+    assert len(checks) == Accounts.FAILS_MAX
+    now[0] += Accounts.FAILS_WINDOW_S
+    assert users.get_user(None, "olga", "olga-pw").name == "olga"
+    assert users.get_user(None, "olga", "olga-pw").name == "olga" and len(checks) == Accounts.FAILS_MAX + 1

@@ -24,7 +24,9 @@ import signal
 import socket
 import stat
 import sys
+import time
 import tomllib
+from collections import deque
 from pathlib import Path
 
 import structlog
@@ -91,12 +93,21 @@ class Settings:
 
 
 class Accounts:
-    """asyncua's user manager: anonymous (where allowed) or an account of the config."""
+    """asyncua's user manager: anonymous (where allowed) or an account of the config.
 
-    def __init__(self, users: dict[str, tuple[str, str]], anonymous: bool):
-        self.users, self.anonymous = users, anonymous
+    asyncua asks synchronously, in the server's one event loop, so a password check (scrypt,
+    ~50 ms on purpose) holds every value update meanwhile: after FAILS_MAX wrong passwords for
+    an account within FAILS_WINDOW_S the next are refused unchecked, and a guesser cannot
+    stall the server."""
+
+    FAILS_MAX = 5
+    FAILS_WINDOW_S = 10.0
+
+    def __init__(self, users: dict[str, tuple[str, str]], anonymous: bool, clock=time.monotonic):
+        self.users, self.anonymous, self.clock = users, anonymous, clock
         self._salt = os.urandom(16)
         self._verified: set[tuple[str, bytes]] = set()
+        self._fails: dict[str, deque] = {}
 
     def get_user(self, iserver, username=None, password=None, certificate=None):
         if username is None:
@@ -107,10 +118,18 @@ class Accounts:
             return None
         pw = password.decode(errors="replace") if isinstance(password, bytes) else password
         key = (username, hashlib.sha256(pw.encode() + self._salt).digest())
-        # scrypt costs ~50 ms on purpose; a session re-activated with the same password skips it
-        if key in self._verified or accounts.verify(pw, acct[1]):
+        if key in self._verified:     # a session re-activated with a password checked before
+            return User(role=UserRole.User, name=username)
+        now = self.clock()
+        fails = self._fails.setdefault(username, deque(maxlen=self.FAILS_MAX))
+        if len(fails) == self.FAILS_MAX and now - fails[0] < self.FAILS_WINDOW_S:
+            log.warning("login_refused", user=username,
+                        why=f"{self.FAILS_MAX} wrong passwords within {self.FAILS_WINDOW_S:g} s: not checked")
+            return None
+        if accounts.verify(pw, acct[1]):
             self._verified.add(key)
             return User(role=UserRole.User, name=username)
+        fails.append(now)
         log.warning("login_refused", user=username, why="wrong password")
         return None
 
