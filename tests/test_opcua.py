@@ -27,10 +27,12 @@ from tests.test_web import shipped_config
 CLIENT_URI = "urn:lathed:test-client"
 
 
-def opcua_config(tmp: Path, name: str, sock: Path, listen: str = "127.0.0.1", writable: bool = True) -> Path:
+def opcua_config(tmp: Path, name: str, sock: Path, listen: str = "127.0.0.1", writable: bool = True,
+                 extra: str = "") -> Path:
     cfg = tmp / f"{name}.toml"
     cfg.write_text(f"""
 [opcua]
+{extra}
 listen = "{listen}"
 port = {free_port()}
 socket = "{sock}"
@@ -155,8 +157,9 @@ async def every_sample(sub, node, handle: int = 1) -> None:
     assert isinstance(res, int), res
 
 
-def client_certificate(tmp: Path) -> tuple[Path, Path]:
-    key, cert = tmp / "client-key.pem", tmp / "client-cert.der"
+def client_certificate(where: Path) -> tuple[Path, Path]:
+    where.mkdir(parents=True, exist_ok=True)
+    key, cert = where / "client-key.pem", where / "client-cert.der"
     asyncio.run(setup_self_signed_certificate(key, cert, CLIENT_URI, "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH],
                                               {"commonName": "lathed test client"}))
     return key, cert
@@ -316,8 +319,12 @@ def test_off_loopback_only_encrypted_sessions_with_an_account(stack):
     """0.0.0.0 listens on every interface of the PC, the network's too, so lathed-opcua takes it as
     a network listener (only loopback addresses are not); the test reaches it through 127.0.0.1."""
     tmp = stack["tmp"]
-    server = OpcUa(opcua_config(tmp, "ua-net", stack["sock"], listen="0.0.0.0", writable=False))
-    key, cert = client_certificate(tmp)
+    key, cert = client_certificate(tmp / "client")
+    stranger_key, stranger_cert = client_certificate(tmp / "stranger")
+    (tmp / "trusted").mkdir()
+    (tmp / "trusted" / "client.der").write_bytes(cert.read_bytes())
+    server = OpcUa(opcua_config(tmp, "ua-net", stack["sock"], listen="0.0.0.0", writable=False,
+                                extra=f'trusted_clients = "{tmp / "trusted"}"'))
     try:
         server.wait_serving()
 
@@ -331,6 +338,9 @@ def test_off_loopback_only_encrypted_sessions_with_an_account(stack):
                     await c.nodes.objects.get_children()
             with pytest.raises(ua.uaerrors.BadIdentityTokenRejected):   # encrypted, but anonymous
                 async with await encrypted(server.url, key, cert):
+                    pass
+            with pytest.raises(ua.UaError):    # a client application not among the trusted ones
+                async with await encrypted(server.url, stranger_key, stranger_cert, "victor", "victor-pw"):
                     pass
             async with await encrypted(server.url, key, cert, "victor", "victor-pw") as c:
                 async def good():

@@ -10,7 +10,9 @@ Access: on a loopback address anonymous clients may read, without security (and 
 in, their passwords encrypted with the server's certificate). On any other address only
 Basic256Sha256 SignAndEncrypt and user accounts ([users.NAME], lathed-web's format and roles):
 no anonymous access, nothing in clear. The certificate is self-signed, made on first start
-in the state directory (key 0600). A write needs the operator role.
+in the state directory (key 0600). Any client application certificate opens a secure channel
+unless ``trusted_clients`` names a directory of the ones to accept; the user's account is
+checked either way. A write needs the operator role.
 """
 from __future__ import annotations
 
@@ -33,6 +35,8 @@ import structlog
 from asyncua import Server, ua
 from asyncua.crypto.cert_gen import dump_private_key_as_pem, generate_private_key, setup_self_signed_certificate
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from lathed import __version__
@@ -75,7 +79,12 @@ class Settings:
         self.rate_hz = sec.getfloat("rate_hz", 10.0, minval=0.5, maxval=20.0)
         self.writable = sec.getbool("writable", False)
         self.name = sec.getstr("name", "lathed")
+        trusted = sec.getstr("trusted_clients", "")
+        self.trusted_clients = Path(trusted) if trusted else None
         sec.check_unused()
+        if self.trusted_clients is not None and not self.trusted_clients.is_dir():
+            raise ConfigError(f"{file}: [opcua] trusted_clients: {trusted!r} is not a directory (of the client "
+                              "application certificates to accept, DER or PEM)")
         self.users = accounts.users_from(file, data.get("users"), "lathed-opcua")
         self.loopback = _loopback(self.listen)
         if not self.loopback and not self.users:
@@ -249,6 +258,17 @@ async def serve(settings: Settings, stop: asyncio.Event) -> int:
     else:
         server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
         server.set_identity_tokens([ua.UserNameIdentityToken])
+    if settings.trusted_clients is not None:
+        # only the client applications whose certificates are there, in date, their URI as they say
+        store = TrustStore([settings.trusted_clients], [])
+        try:
+            await store.load()
+        except ValueError as e:   # every file there is read as a certificate
+            raise ConfigError(f"[opcua] trusted_clients: {settings.trusted_clients} holds a file that is not a "
+                              f"certificate: {e}") from None
+        server.set_certificate_validator(CertificateValidator(
+            CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI |
+            CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.PEER_CLIENT, store))
     idx = await server.register_namespace(NAMESPACE)
     space = Space(server, idx)
     await space.build(settings.writable)
