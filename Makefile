@@ -12,10 +12,12 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-# The daemon, and beside it the operator view (lathed-web prints its URL); Ctrl-C stops both.
+# The daemon, and beside it the operator view and the OPC UA server on loopback (lathed-web
+# and lathed-opcua print their URLs); Ctrl-C stops all three.
 run: $(STAMP)
 	@$(BIN)/lathed-web --config etc/lathed-web.toml & web=$$!; \
-	trap 'kill $$web 2>/dev/null' EXIT INT TERM; \
+	$(BIN)/lathed-opcua --config etc/lathed-opcua.toml & opcua=$$!; \
+	trap 'kill $$web $$opcua 2>/dev/null' EXIT INT TERM; \
 	$(BIN)/lathed --config etc/lathed.toml
 
 test: $(STAMP)
@@ -47,6 +49,9 @@ bench-hostile: $(STAMP)
 bench-web: $(STAMP)
 	bash tests/ensure_chromium.sh
 	$(BIN)/python bench/bench_web.py
+# issue 15: OPC UA subscription latency with 10 clients, CPU/RSS of lathed and lathed-opcua
+bench-plant-opcua: $(STAMP)
+	$(BIN)/python bench/bench_plant_opcua.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
 	bench-hostile bench-web
 
@@ -125,4 +130,4 @@ uninstall:
 
 .PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile bench-web
+	bench-stability bench-hostile bench-web bench-plant-opcua

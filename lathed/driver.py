@@ -95,6 +95,17 @@ class Driver:
         self.last_data_t: float | None = None
         # bounds of what a peer may plausibly send ([<table>.plausible]), checked by the framework
         self.plausible = Plausibility.from_section(section.getsection("plausible", required=False))
+        # a machine's nameplate ([machine.NAME.identification]), for plant systems (lathed-opcua)
+        self.identification: dict[str, Any] = {}
+        if self.role == "machine":
+            ident = section.getsection("identification", required=False)
+            for key in ("manufacturer", "model", "serial_number"):
+                if key in ident:
+                    self.identification[key] = ident.getstr(key)
+            if "year_of_construction" in ident:
+                self.identification["year_of_construction"] = ident.getint("year_of_construction", minval=1900,
+                                                                           maxval=2200)
+            ident.check_unused()
 
     async def connect(self) -> None:
         """Open the link; raise on failure."""

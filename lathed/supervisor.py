@@ -343,7 +343,8 @@ class Supervisor:
                     "age_s": age}
             extra = {**_safe(drv.ctx.bus.plausible.status), **_safe(drv.status)}
             if drv.role == "machine":
-                machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"), **extra})
+                machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"),
+                                 "identification": drv.identification, **extra})
             else:
                 last = {q: s.value for q, s in self.bus.latest_of(name).items()}
                 sensors.append({**base, "kind": drv.kind, "last_value": last or None, **extra})
@@ -357,8 +358,10 @@ class Supervisor:
             else:
                 analyzers.append(entry)
         for name, r in self.analyzer_runners.items():
+            machine = getattr(r.obj, "machine", None)   # the machine it works on, if one
             analyzers.append({"name": name, "plugin": self.plan.analyzers[name][0].plugin, "state": r.state,
-                              "detail": r.describe(), "last_error": r.last_error, **_safe(r.obj.status)})
+                              "detail": r.describe(), "last_error": r.last_error,
+                              "machine": machine if isinstance(machine, str) else None, **_safe(r.obj.status)})
         return {"machines": machines, "sensors": sensors, "analyzers": analyzers}
 
 

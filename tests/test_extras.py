@@ -46,3 +46,11 @@ def test_plugins_load_without_importing_psycopg():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT / "tests")
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["True", "False"]
+
+
+def test_lathed_opcua_without_asyncua_is_one_line_naming_the_extra(monkeypatch, capsys):
+    import lathed.opcua
+    monkeypatch.setitem(sys.modules, "asyncua", None)    # as if the opcua extra were not installed
+    assert lathed.opcua.main(["--port", "1"]) == 69
+    out, err = capsys.readouterr()
+    assert (out, err) == ("", "lathed-opcua: asyncua is not installed: pip install 'lathed[opcua]'\n")

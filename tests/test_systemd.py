@@ -59,3 +59,23 @@ def test_web_unit_runs_after_the_daemon_as_its_own_user():
                  "CapabilityBoundingSet=\n"):
         assert line in unit
     assert "StateDirectory" not in unit      # it keeps nothing: the records are the daemon's
+
+
+@pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
+def test_opcua_unit_verifies_clean(tmp_path):
+    for name in ("lathed.service", "lathed-opcua.service"):
+        unit = (ROOT / "systemd" / name).read_text()
+        for exe in ("lathed", "lathed-opcua"):
+            unit = unit.replace(f"/opt/lathed/.venv/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
+        (tmp_path / name).write_text(unit)
+    r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "lathed-opcua.service")], capture_output=True,
+                       text=True, cwd=tmp_path)
+    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
+
+
+def test_opcua_unit_runs_after_the_daemon_as_its_own_user_with_its_key_kept():
+    unit = (ROOT / "systemd" / "lathed-opcua.service").read_text()
+    for line in ("Wants=lathed.service", "After=lathed.service", "User=lathed-opcua", "SupplementaryGroups=lathed",
+                 "StateDirectory=lathed-opcua", "StateDirectoryMode=0700", "UMask=0077", "ProtectSystem=strict",
+                 "PrivateDevices=yes", "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6", "CapabilityBoundingSet=\n"):
+        assert line in unit

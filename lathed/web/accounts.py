@@ -9,6 +9,8 @@ import hashlib
 import hmac
 import os
 
+from lathed.config import ConfigError, Section
+
 ROLES = ("viewer", "operator")
 N, R, P = 1 << 14, 8, 1     # ~16 MiB and ~50 ms per check: cheap for a login, dear for a guesser
 
@@ -19,11 +21,11 @@ def hash_password(password: str, salt: bytes | None = None) -> str:
     return f"scrypt${N}${R}${P}${salt.hex()}${key.hex()}"
 
 
-def check_hash_format(text: str) -> str | None:
+def check_hash_format(text: str, tool: str = "lathed-web") -> str | None:
     """Why ``text`` is not a hash this module makes, or None."""
     parts = text.split("$")
     if len(parts) != 6 or parts[0] != "scrypt":
-        return "not an scrypt hash (scrypt$N$r$p$salt$key); make one with `lathed-web hash-password`"
+        return f"not an scrypt hash (scrypt$N$r$p$salt$key); make one with `{tool} hash-password`"
     try:
         n, r, p = (int(x) for x in parts[1:4])
         bytes.fromhex(parts[4]), bytes.fromhex(parts[5])
@@ -32,6 +34,20 @@ def check_hash_format(text: str) -> str | None:
     if n < 2 or n & (n - 1) or n > 1 << 20 or not 1 <= r <= 64 or not 1 <= p <= 16:
         return f"scrypt parameters out of range (N={n} must be a power of 2 up to 2**20, r 1..64, p 1..16)"
     return None
+
+
+def users_from(file: str, tables: object, tool: str = "lathed-web") -> dict[str, tuple[str, str]]:
+    """The [users.NAME] tables of a config: name -> (role, password hash); ConfigError names a bad one."""
+    users: dict[str, tuple[str, str]] = {}
+    for name, table in (tables or {}).items():
+        u = Section(file, f"users.{name}", table if isinstance(table, dict) else {})
+        role = u.getstr("role", choices=ROLES)
+        pw = u.getstr("password")
+        u.check_unused()
+        if (why := check_hash_format(pw, tool)) is not None:
+            raise ConfigError(f"{file}: [users.{name}] password: {why}")
+        users[name] = (role, pw)
+    return users
 
 
 def verify(password: str, stored: str) -> bool:

@@ -68,15 +68,7 @@ class Settings:
         self.socket = Path(sock or sec.getstr("socket", "") or default_socket())
         self.rate_hz = sec.getfloat("rate_hz", 4.0, minval=0.5, maxval=20.0)   # the page draws 4 times a second
         sec.check_unused()
-        self.users: dict[str, tuple[str, str]] = {}
-        for name, table in (data.get("users") or {}).items():
-            u = Section(file, f"users.{name}", table if isinstance(table, dict) else {})
-            role = u.getstr("role", choices=accounts.ROLES)
-            pw = u.getstr("password")
-            u.check_unused()
-            if (why := accounts.check_hash_format(pw)) is not None:
-                raise ConfigError(f"{file}: [users.{name}] password: {why}")
-            self.users[name] = (role, pw)
+        self.users = accounts.users_from(file, data.get("users"))
         if not self.users and not _loopback(self.listen):
             raise ConfigError(f"{file}: [web] listen = {self.listen!r} opens the view to the network: that needs "
                               "accounts ([users.NAME] with role and a password hash from `lathed-web "
@@ -108,6 +100,11 @@ class DaemonLink:
         self.browsers: set[asyncio.Queue] = set()
         self.dropped_browsers = 0
         self.frames = 0
+
+    def subscription(self) -> dict:
+        """What to ask the daemon for (lathed.push)."""
+        return {"samples": ["*/*"], "vibration": ["*"], "views": ["*"], "states": True, "events": True,
+                "events_limit": EVENTS_KEPT, "rate_hz": self.rate_hz}
 
     def snapshot(self) -> dict:
         return {"type": "init", "connected": self.connected, "error": self.error, "status": self.status,
@@ -165,9 +162,7 @@ class DaemonLink:
     async def _session(self) -> None:
         reader, writer = await asyncio.open_unix_connection(str(self.sock), limit=LINE_LIMIT)
         try:
-            writer.write(json.dumps({"cmd": "subscribe", "args": {
-                "samples": ["*/*"], "vibration": ["*"], "views": ["*"], "states": True, "events": True,
-                "events_limit": EVENTS_KEPT, "rate_hz": self.rate_hz}}).encode() + b"\n")
+            writer.write(json.dumps({"cmd": "subscribe", "args": self.subscription()}).encode() + b"\n")
             await writer.drain()
             first = await self._line(reader)
             if not first.get("ok"):

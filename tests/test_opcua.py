@@ -1,0 +1,470 @@
+"""lathed-opcua with real peers: a daemon on the simulator running the shipped configuration,
+lathed-opcua as its own process, and asyncua's client. One daemon and one loopback server for
+the module (the suite's time budget is tight); the non-loopback server only where needed."""
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import stat
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+from asyncua import Client, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from cryptography.x509.oid import ExtendedKeyUsageOID
+
+from lathed.config import ConfigError
+from lathed.opcua.app import Settings
+from lathed.opcua.space import NAMESPACE
+from lathed.web import accounts
+from tests.conftest import BIN, ROOT, Daemon, free_port, sim_call, wait_until
+from tests.test_web import shipped_config
+
+CLIENT_URI = "urn:lathed:test-client"
+
+
+def opcua_config(tmp: Path, name: str, sock: Path, listen: str = "127.0.0.1", writable: bool = True,
+                 extra: str = "") -> Path:
+    cfg = tmp / f"{name}.toml"
+    cfg.write_text(f"""
+[opcua]
+{extra}
+listen = "{listen}"
+port = {free_port()}
+socket = "{sock}"
+state_dir = "{tmp / name}"
+writable = {str(writable).lower()}
+rate_hz = 20.0
+
+[users.olga]
+role = "operator"
+password = "{accounts.hash_password('olga-pw')}"
+
+[users.victor]
+role = "viewer"
+password = "{accounts.hash_password('victor-pw')}"
+""")
+    return cfg
+
+
+class OpcUa:
+    """lathed-opcua as a process; ``url`` is where a client on this PC reaches it."""
+
+    def __init__(self, cfg: Path):
+        self.cfg = cfg
+        self.port = int(next(l for l in cfg.read_text().splitlines() if l.startswith("port")).split("=")[1])
+        self.url = f"opc.tcp://127.0.0.1:{self.port}"
+        self.log = open(cfg.with_suffix(".log"), "wb")
+        self.proc = subprocess.Popen([str(BIN / "lathed-opcua"), "--config", str(cfg)], stdout=self.log,
+                                     stderr=subprocess.STDOUT)
+
+    def wait_serving(self) -> None:
+        def up():
+            assert self.proc.poll() is None, f"lathed-opcua exited {self.proc.returncode}: {self.output()}"
+            with socket.create_connection(("127.0.0.1", self.port), timeout=1):
+                return True
+        wait_until(up, timeout=30, what="lathed-opcua listening")
+
+    def output(self) -> str:
+        self.log.flush()
+        return self.cfg.with_suffix(".log").read_text(errors="replace")[-4000:]
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.log.close()
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("opcua")
+    cfg, sock = shipped_config(tmp)
+    d = Daemon(cfg, sock)
+    d.paths = {"sim": tmp / "run" / "sim.sock"}
+    server = OpcUa(opcua_config(tmp, "ua", sock))
+    try:
+        d.wait_ready()
+        server.wait_serving()
+        asyncio.run(_until_good(server.url, ["Monitoring", "Spindle", "RotationalSpeed"]))
+        stack = {"daemon": d, "server": server, "tmp": tmp, "sock": sock}
+        yield stack
+    finally:
+        server.stop()
+        stack["daemon"].stop() if "stack" in locals() else d.stop()
+
+
+# -- helpers --------------------------------------------------------------------------
+async def until(fn, timeout: float, what: str):
+    """Poll an async condition (wait_until's asyncio twin)."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        try:
+            if v := await fn():
+                return v
+        except (ua.UaError, KeyError) as e:   # not there yet
+            last = e
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}" + (f" (last: {last!r})" if last else ""))
+
+
+async def lathe_node(c: Client, *path: str):
+    ns = await c.get_namespace_index(NAMESPACE)
+    return await c.nodes.objects.get_child([f"{ns}:Machines", f"{ns}:lathe", *(f"{ns}:{p}" for p in path)])
+
+
+async def _until_good(url: str, path: list[str], timeout: float = 40.0) -> None:
+    async with Client(url) as c:
+        async def good():
+            dv = await (await lathe_node(c, *path)).read_data_value()
+            return dv.StatusCode.is_good()
+        await until(good, timeout, f"{'/'.join(path)} good")
+
+
+class Collect:
+    """asyncua subscription handler: data changes and events into queues, stamped on arrival."""
+
+    def __init__(self):
+        self.changes: asyncio.Queue = asyncio.Queue()
+        self.events: asyncio.Queue = asyncio.Queue()
+
+    def datachange_notification(self, node, val, data):
+        self.changes.put_nowait((time.time(), data.monitored_item.Value))
+
+    def event_notification(self, event):
+        self.events.put_nowait((time.time(), event))
+
+
+async def every_sample(sub, node, handle: int = 1) -> None:
+    """Monitor ``node`` reporting every new sample (a new source time), not only a changed value."""
+    rv = ua.ReadValueId()
+    rv.NodeId, rv.AttributeId = node.nodeid, ua.AttributeIds.Value
+    params = ua.MonitoringParameters()
+    params.ClientHandle, params.SamplingInterval, params.QueueSize, params.DiscardOldest = handle, 0, 100, True
+    params.Filter = ua.DataChangeFilter()
+    params.Filter.Trigger = ua.DataChangeTrigger.StatusValueTimestamp
+    req = ua.MonitoredItemCreateRequest()
+    req.ItemToMonitor, req.MonitoringMode, req.RequestedParameters = rv, ua.MonitoringMode.Reporting, params
+    (res,) = await sub.create_monitored_items([req])
+    assert isinstance(res, int), res
+
+
+def client_certificate(where: Path) -> tuple[Path, Path]:
+    where.mkdir(parents=True, exist_ok=True)
+    key, cert = where / "client-key.pem", where / "client-cert.der"
+    asyncio.run(setup_self_signed_certificate(key, cert, CLIENT_URI, "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH],
+                                              {"commonName": "lathed test client"}))
+    return key, cert
+
+
+async def encrypted(url: str, key: Path, cert: Path, user: str | None = None, pw: str | None = None) -> Client:
+    c = Client(url)
+    c.application_uri = CLIENT_URI
+    await c.set_security(SecurityPolicyBasic256Sha256, certificate=str(cert), private_key=str(key),
+                         mode=ua.MessageSecurityMode.SignAndEncrypt)
+    if user:
+        c.set_user(user)
+        c.set_password(pw)
+    return c
+
+
+def _events(d, kind: str) -> list[dict]:
+    return json.loads(d.ctl("events", "--kind", kind, "--limit", "20", "--json").stdout)
+
+
+# -- the tests ------------------------------------------------------------------------
+def test_a_client_browses_every_machine_in_the_machine_tools_layout(stack):
+    async def go():
+        async with Client(stack["server"].url) as c:
+            ns = await c.get_namespace_index(NAMESPACE)
+            machines = await c.nodes.objects.get_child(f"{ns}:Machines")
+            names = {(await n.read_browse_name()).Name for n in await machines.get_children()}
+            assert names == {"lathe", "mill", "grinder", "robot"}
+            lathe = await lathe_node(c)
+            parts = {(await n.read_browse_name()).Name for n in await lathe.get_children()}
+            assert parts == {"Identification", "Monitoring", "Production", "Notification"}
+            # Identification from [machine.lathe.identification]
+            assert (await (await lathe_node(c, "Identification", "Manufacturer")).read_value()).Text == \
+                "lathed simulator"
+            assert await (await lathe_node(c, "Identification", "SerialNumber")).read_value() == "SIM-LATHE-0001"
+            assert await (await lathe_node(c, "Identification", "YearOfConstruction")).read_value() == 2026
+            # live values, with their units
+            speed = await lathe_node(c, "Monitoring", "Spindle", "RotationalSpeed")
+            dv = await speed.read_data_value()
+            assert dv.StatusCode.is_good() and dv.Value.Value > 0
+            assert await speed.read_type_definition() == ua.NodeId(ua.ObjectIds.AnalogUnitType)
+            eu = await (await speed.get_child("0:EngineeringUnits")).read_value()
+            assert (eu.DisplayName.Text, eu.UnitId) == ("r/min", 0x52504D)   # UNECE "RPM"
+            assert await (await lathe_node(c, "Monitoring", "Spindle", "IsRotating")).read_value() is True
+            assert await (await lathe_node(c, "Monitoring", "Spindle", "Override")).read_value() == 100.0
+            assert await (await lathe_node(c, "Monitoring", "Channel1", "ChannelState")).read_value() in (0, 1, 2)
+            # the lathe's analyzers: chatter index, thermal growth and compensation, suppression mode
+            for path in (("Chatter", "ChatterIndex"), ("Chatter", "ChatterThreshold"), ("Thermal", "ThermalGrowth"),
+                         ("Thermal", "Compensation")):
+                node = await until(lambda: lathe_node(c, "Monitoring", *path), 20, "/".join(path))
+                assert (await node.read_data_value()).StatusCode.is_good()
+            eu = await (await (await lathe_node(c, "Monitoring", "Thermal", "ThermalGrowth")).get_child(
+                "0:EngineeringUnits")).read_value()
+            assert eu.DisplayName.Text == "µm"
+            assert await (await lathe_node(c, "Monitoring", "Suppression", "Mode")).read_value() == "auto"
+            # production: program, its state, part count and cycle time
+            for path in (("ActiveProgram", "Name"), ("ActiveProgram", "State", "CurrentState"), ("PartCount",),
+                         ("CycleTime",)):
+                assert (await (await lathe_node(c, "Production", *path)).read_data_value()).StatusCode.is_good()
+            # another machine of the line: the mill's Z axis
+            z = await machines.get_child([f"{ns}:mill", f"{ns}:Monitoring", f"{ns}:Axes", f"{ns}:Z"])
+            assert (await z.read_data_value()).StatusCode.is_good()
+            assert await (await lathe_node(c, "Notification", "Messages")).read_event_notifier() == \
+                {ua.EventNotifier.SubscribeToEvents}
+    asyncio.run(go())
+
+
+def test_a_subscribed_client_receives_the_spindle_speed_as_the_daemon_samples_it(stack):
+    async def go():
+        async with Client(stack["server"].url) as c:
+            got = Collect()
+            sub = await c.create_subscription(50, got)
+            await every_sample(sub, await lathe_node(c, "Monitoring", "Spindle", "RotationalSpeed"))
+            stamps = []
+            while len(stamps) < 6:    # the lathe is polled every 100 ms: a dozen a second
+                _, dv = await asyncio.wait_for(got.changes.get(), 5.0)
+                assert dv.StatusCode.is_good() and dv.Value.Value > 0
+                stamps.append(dv.SourceTimestamp)
+            assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+            # the sample's own time, not the server's: at most a second behind
+            assert abs(stamps[-1].timestamp() - time.time()) < 1.0
+    asyncio.run(go())
+
+
+def test_a_chatter_alarm_arrives_as_an_event_within_a_second(stack):
+    d = stack["daemon"]
+
+    async def go():
+        async with Client(stack["server"].url) as c:
+            ns = await c.get_namespace_index(NAMESPACE)
+            etype = await c.nodes.base_event_type.get_child(f"{ns}:NotificationEventType")
+            got = Collect()
+            sub = await c.create_subscription(50, got)
+            await sub.subscribe_events(await lathe_node(c, "Notification", "Messages"), etype)
+            await sub.subscribe_events(c.nodes.server, etype)
+            known = {e["id"] for e in _events(d, "chatter_alarm")}
+            # every cut now goes 3 mm deep, past the lobes' limit: the next cut chatters
+            wait_until(lambda: sim_call(d.paths["sim"], "set", {"depth_mm": 3.0}), what="simulator control")
+            seen = []
+            while len(seen) < 2:      # on the lathe's Messages and on the Server object
+                at, ev = await asyncio.wait_for(got.events.get(), 60.0)
+                if ev.Identifier == "chatter_alarm":
+                    seen.append((at, ev))
+            return seen, known
+    try:
+        seen, known = asyncio.run(go())
+    finally:
+        sim_call(d.paths["sim"], "set", {"depth_mm": None})
+    alarm = [e for e in _events(d, "chatter_alarm") if e["id"] not in known][0]
+    for at, ev in seen:
+        assert ev.RecordId == alarm["id"] and ev.Severity == 800 and ev.SourceName == "lathe"
+        assert json.loads(ev.Payload)["chatter_frequency_hz"] == alarm["payload"]["chatter_frequency_hz"]
+        assert abs(ev.Time.timestamp() - alarm["t"]) < 0.001
+        assert "chatter_alarm on lathe" in ev.Message.Text
+        # the issue's bound, from the alarm's record to the OPC UA client
+        assert at - alarm["t"] < 1.0, f"the chatter alarm took {at - alarm['t']:.2f} s to reach the client"
+
+
+def test_the_suppression_mode_is_written_only_by_an_operator_and_through_the_daemon(stack):
+    d = stack["daemon"]
+    url = stack["server"].url
+
+    async def write(user: str | None, pw: str | None, value) -> ua.StatusCode:
+        c = Client(url)
+        if user:
+            c.set_user(user)
+            c.set_password(pw)
+        async with c:
+            node = await lathe_node(c, "Monitoring", "Suppression", "Mode")
+            try:
+                await node.write_value(ua.DataValue(ua.Variant(value, ua.VariantType.String)))
+            except ua.UaStatusCodeError as e:
+                return ua.StatusCode(e.code)
+            return ua.StatusCode(ua.StatusCodes.Good)
+
+    before = d.item("analyzers", "suppress")["mode"]
+    assert before == "auto"
+    denied = ua.StatusCodes.BadUserAccessDenied
+    assert asyncio.run(write(None, None, "off")).value == denied            # anonymous
+    assert asyncio.run(write("victor", "victor-pw", "off")).value == denied  # a viewer
+    assert d.item("analyzers", "suppress")["mode"] == "auto"
+    assert [e for e in _events(d, "suppression_mode") if e["payload"]["to"] == "off"] == []
+    with pytest.raises(ua.uaerrors.BadUserAccessDenied):    # a wrong password: no session at all
+        asyncio.run(write("olga", "wrong", "off"))
+    assert asyncio.run(write("olga", "olga-pw", "fast")).value == ua.StatusCodes.BadOutOfRange
+    try:
+        assert asyncio.run(write("olga", "olga-pw", "manual")).is_good()
+        assert d.item("analyzers", "suppress")["mode"] == "manual"
+        # the daemon's own command, recorded with the OPC UA user's name
+        last = _events(d, "suppression_mode")[-1]["payload"]
+        assert (last["to"], last["by"]) == ("manual", "olga")
+    finally:
+        d.ctl("suppress", "auto")
+
+
+def test_off_loopback_only_encrypted_sessions_with_an_account(stack):
+    """0.0.0.0 listens on every interface of the PC, the network's too, so lathed-opcua takes it as
+    a network listener (only loopback addresses are not); the test reaches it through 127.0.0.1."""
+    tmp = stack["tmp"]
+    key, cert = client_certificate(tmp / "client")
+    stranger_key, stranger_cert = client_certificate(tmp / "stranger")
+    (tmp / "trusted").mkdir()
+    (tmp / "trusted" / "client.der").write_bytes(cert.read_bytes())
+    server = OpcUa(opcua_config(tmp, "ua-net", stack["sock"], listen="0.0.0.0", writable=False,
+                                extra=f'trusted_clients = "{tmp / "trusted"}"'))
+    try:
+        server.wait_serving()
+
+        async def go():
+            endpoints = await Client(server.url).connect_and_get_server_endpoints()
+            assert {(e.SecurityPolicyUri.rsplit("#", 1)[1], e.SecurityMode) for e in endpoints} == \
+                {("Basic256Sha256", ua.MessageSecurityMode.SignAndEncrypt)}
+            assert {t.TokenType for e in endpoints for t in e.UserIdentityTokens} == {ua.UserTokenType.UserName}
+            with pytest.raises(Exception):              # no endpoint without security
+                async with Client(server.url, timeout=5) as c:
+                    await c.nodes.objects.get_children()
+            with pytest.raises(ua.uaerrors.BadIdentityTokenRejected):   # encrypted, but anonymous
+                async with await encrypted(server.url, key, cert):
+                    pass
+            with pytest.raises(ua.UaError):    # a client application not among the trusted ones
+                async with await encrypted(server.url, stranger_key, stranger_cert, "victor", "victor-pw"):
+                    pass
+            async with await encrypted(server.url, key, cert, "victor", "victor-pw") as c:
+                async def good():
+                    dv = await (await lathe_node(c, "Monitoring", "Spindle", "RotationalSpeed")).read_data_value()
+                    return dv.StatusCode.is_good() and dv
+                assert (await until(good, 20, "the spindle speed over the encrypted session")).Value.Value > 0
+            # read-only unless configured: not even an operator writes here
+            async with await encrypted(server.url, key, cert, "olga", "olga-pw") as c:
+                mode = await lathe_node(c, "Monitoring", "Suppression", "Mode")
+                with pytest.raises(ua.uaerrors.BadUserAccessDenied):
+                    await mode.write_value(ua.DataValue(ua.Variant("off", ua.VariantType.String)))
+        asyncio.run(go())
+        assert stack["daemon"].item("analyzers", "suppress")["mode"] == "auto"
+        # the certificate made on first start, its key for this user only
+        state = tmp / "ua-net"
+        assert stat.S_IMODE((state / "server-key.pem").stat().st_mode) == 0o600
+        assert (state / "server-cert.der").stat().st_size > 500
+    finally:
+        server.stop()
+
+
+def test_bad_config_is_one_line_and_exit_78(tmp_path):
+    shipped = Settings(str(ROOT / "etc" / "lathed-opcua.toml"))   # what `make run` serves
+    assert (shipped.url, shipped.loopback, shipped.writable, shipped.users) == \
+        ("opc.tcp://127.0.0.1:4840", True, False, {})
+    with pytest.raises(ConfigError, match=r"listen = '0.0.0.0' opens the server to the network: that needs accounts"):
+        Settings(None, "0.0.0.0")
+    cfg = tmp_path / "o.toml"
+    cfg.write_text('[opcua]\nwritable = true\n')
+    with pytest.raises(ConfigError, match=r"writable = true but no \[users.NAME\] has role = \"operator\""):
+        Settings(str(cfg))
+    cfg.write_text('[opcua]\nport = 70000\n')
+    r = subprocess.run([str(BIN / "lathed-opcua"), "--config", str(cfg)], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 78
+    assert r.stderr.strip().splitlines() == \
+        [f"lathed-opcua: {cfg}: [opcua] port: 70000 is out of range; allowed: an integer in [1, 65535]"]
+
+
+def test_a_lost_daemon_marks_values_bad_and_the_server_comes_back_with_it(stack):
+    d = stack["daemon"]
+    url = stack["server"].url
+
+    async def status() -> ua.StatusCode:
+        async with Client(url) as c:
+            node = await lathe_node(c, "Monitoring", "Spindle", "RotationalSpeed")
+            try:
+                return (await node.read_data_value()).StatusCode
+            except ua.UaStatusCodeError as e:    # asyncua raises a bad one
+                return ua.StatusCode(e.code)
+
+    d.proc.kill()          # not a clean stop: the socket is left behind, the simulator too
+    d.proc.wait()
+    wait_until(lambda: asyncio.run(status()).value == ua.StatusCodes.BadNoCommunication, timeout=15,
+               interval=0.2, what="BadNoCommunication while the daemon is gone")
+    assert stack["server"].proc.poll() is None
+    again = Daemon(d.cfg, d.socket)
+    again.paths = d.paths
+    stack["daemon"] = again
+    d.log.close()
+    again.wait_ready(timeout=60)
+    wait_until(lambda: asyncio.run(status()).is_good(), timeout=30, interval=0.2, what="good values again")
+
+
+def test_a_machine_nameplate_is_checked_like_any_key(tmp_path):
+    from tests.conftest import sim_config
+    for extra, wanted in (
+            ("[machine.lathe.identification]\nyear_of_construction = 1800\n",
+             "[machine.lathe.identification] year_of_construction: 1800 is out of range; allowed: an integer in "
+             "[1900, 2200]"),
+            ("[sensor.temps.identification]\nmodel = \"DS18B20\"\n", "[sensor.temps] identification: unknown key")):
+        cfg, _ = sim_config(tmp_path, extra=extra)
+        r = subprocess.run([str(BIN / "lathed"), "--check-config", str(cfg)], capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 78 and wanted in r.stderr, r.stderr
+
+
+def test_a_value_that_cannot_be_shown_does_not_hold_back_the_rest_of_its_frame():
+    from asyncua import Server
+
+    from lathed.opcua.space import Space
+
+    async def go():
+        server = Server()
+        await server.init()
+        space = Space(server, await server.register_namespace(NAMESPACE))
+        await space.build(writable=False)
+        t = time.time()
+        await space.apply({"status": {"machines": [{"name": "lathe", "kind": "lathe", "state": "connected"}],
+                                      "sensors": [], "analyzers": [{"name": "chatter", "plugin": "chatter",
+                                                                    "machine": "lathe"}]},
+                           "samples": {"lathe/spindle_rpm": [t, 1500.0, "r/min"]}})
+        space.last_event_id = 0
+        await space.apply({"samples": {"chatter/chatter_frequency_hz": [t, None, "Hz"],   # no chatter: no frequency
+                                       "lathe/spindle_rpm": [t, "not a number", "r/min"],
+                                       "lathe/x_mm": [t, 3.0, "mm"]},
+                           "events": [{"id": 5, "t": t, "source": "chatter", "kind": "chatter_alarm",
+                                       "payload": {"machine": "lathe"}}]})
+        def read(path: str) -> ua.DataValue:   # as stored (a client's read raises a bad status)
+            return server.iserver.aspace.read_attribute_value(space.vars[path].node.nodeid, ua.AttributeIds.Value)
+        return (read("Machines/lathe/Monitoring/Axes/X"), read("Machines/lathe/Monitoring/Chatter/ChatterFrequency"),
+                read("Machines/lathe/Monitoring/Spindle/RotationalSpeed").Value.Value, space.events_sent,
+                space.failing)
+    x, freq, speed, sent, failing = asyncio.run(go())
+    assert x.Value.Value == 3.0 and x.StatusCode.is_good()
+    assert freq.Value.Value is None and freq.StatusCode.value == ua.StatusCodes.BadNoDataAvailable
+    assert speed == 1500.0 and list(failing) == ["lathe/spindle_rpm"]   # said once (logged), the last good value kept
+    assert sent == 1
+
+
+def test_password_guessing_cannot_stall_the_server(monkeypatch):
+    from lathed.opcua.app import Accounts
+    checks = []
+    real = accounts.verify
+    monkeypatch.setattr(accounts, "verify", lambda pw, h: checks.append(pw) or real(pw, h))
+    now = [100.0]
+    users = Accounts({"olga": ("operator", accounts.hash_password("olga-pw"))}, anonymous=False,
+                     clock=lambda: now[0])
+    assert users.get_user(None) is None                          # no anonymous off loopback
+    for i in range(Accounts.FAILS_MAX):
+        assert users.get_user(None, "olga", f"guess{i}") is None
+    assert len(checks) == Accounts.FAILS_MAX
+    # the next guesses, even the right password, are refused without the ~50 ms check
+    assert users.get_user(None, "olga", "guess9") is None and users.get_user(None, "olga", "olga-pw") is None
+    assert len(checks) == Accounts.FAILS_MAX
+    now[0] += Accounts.FAILS_WINDOW_S
+    assert users.get_user(None, "olga", "olga-pw").name == "olga"
+    assert users.get_user(None, "olga", "olga-pw").name == "olga" and len(checks) == Accounts.FAILS_MAX + 1
