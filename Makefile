@@ -65,7 +65,7 @@ bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal ben
 # rewritten to the final ones (scripts' #! lines, bytecode's file names).
 PREFIX ?= /usr
 DESTDIR ?=
-EXTRAS ?=                       # e.g. EXTRAS=postgres,plots
+EXTRAS ?=                       # e.g. EXTRAS=postgres,plots,opcua (opcua: for lathed-opcua)
 LIBDIR = $(PREFIX)/lib/lathed
 BINDIR = $(PREFIX)/bin
 DOCDIR = $(PREFIX)/share/doc/lathed
@@ -73,8 +73,8 @@ UNITDIR ?= /lib/systemd/system
 SYSUSERSDIR ?= $(PREFIX)/lib/sysusers.d
 TMPFILESDIR ?= $(PREFIX)/lib/tmpfiles.d
 CONFDIR ?= /etc/lathed
-PROGRAMS := lathed lathectl lathed-web lathed-sim
-UNITS := lathed.service lathed-web.service
+PROGRAMS := lathed lathectl lathed-web lathed-opcua lathed-sim
+UNITS := lathed.service lathed-web.service lathed-opcua.service
 STAGE = $(DESTDIR)$(LIBDIR)
 
 install: install-venv install-config
@@ -111,7 +111,7 @@ install-venv:
 # Never overwrites a config that is there: an edited one stays as it is.
 install-config:
 	install -d -m 0750 $(DESTDIR)$(CONFDIR)
-	for f in lathed.toml lathed-web.toml; do [ -e $(DESTDIR)$(CONFDIR)/$$f ] || \
+	for f in lathed.toml lathed-web.toml lathed-opcua.toml; do [ -e $(DESTDIR)$(CONFDIR)/$$f ] || \
 		install -m 0640 etc/$$f $(DESTDIR)$(CONFDIR)/$$f; done
 	[ -e $(DESTDIR)$(CONFDIR)/robot_arm.dbc ] || install -m 0644 etc/robot_arm.dbc $(DESTDIR)$(CONFDIR)/
 	[ -e $(DESTDIR)$(CONFDIR)/plugins.d ] || cp -r etc/plugins.d $(DESTDIR)$(CONFDIR)/
@@ -126,7 +126,7 @@ uninstall:
 	rm -rf $(DESTDIR)$(DOCDIR)
 	if [ -f $(STAGE)/pyvenv.cfg ]; then rm -rf $(STAGE); fi
 	@if [ -z "$(DESTDIR)" ] && [ -d /run/systemd/system ]; then systemctl daemon-reload; fi
-	@echo "kept: $(CONFDIR) (config), /var/lib/lathed (records), the users lathed and lathed-web"
+	@echo "kept: $(CONFDIR) (config), /var/lib/lathed (records), the users lathed, lathed-web, lathed-opcua"
 
 .PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \

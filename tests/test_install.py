@@ -23,9 +23,9 @@ from lathed import __version__
 from tests.conftest import ROOT
 
 LIBDIR = "/usr/lib/lathed"
-PROGRAMS = ("lathed", "lathectl", "lathed-web", "lathed-sim")
-UNITS = ("lathed.service", "lathed-web.service")
-CONFIG = ("lathed.toml", "lathed-web.toml", "robot_arm.dbc", "plugins.d/README.md")
+PROGRAMS = ("lathed", "lathectl", "lathed-web", "lathed-opcua", "lathed-sim")
+UNITS = ("lathed.service", "lathed-web.service", "lathed-opcua.service")
+CONFIG = ("lathed.toml", "lathed-web.toml", "lathed-opcua.toml", "robot_arm.dbc", "plugins.d/README.md")
 
 
 # -- the import name, without installing ---------------------------------------------
@@ -202,7 +202,7 @@ def test_sysusers_and_tmpfiles_make_the_users_and_directories(root, tmp_path):
                                                                                .splitlines())}
     assert users["lathed"][5:] == ["/var/lib/lathed", "/usr/sbin/nologin"]
     assert users["lathed-web"][6] == "/usr/sbin/nologin"
-    assert "lathed" in groups["dialout"] and "lathed-web" in groups["lathed"]
+    assert "lathed" in groups["dialout"] and "lathed-web" in groups["lathed"] and "lathed-opcua" in groups["lathed"]
     shutil.copytree(root / "etc" / "lathed", sysroot / "etc" / "lathed")
     r = subprocess.run(["systemd-tmpfiles", f"--root={sysroot}", "--create",
                         str(root / "usr/lib/tmpfiles.d/lathed.conf")], capture_output=True, text=True)

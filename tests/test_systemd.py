@@ -41,13 +41,14 @@ def test_unit_exposure_is_at_most_2_5():
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
-def test_web_unit_verifies_clean(tmp_path):
-    for name in ("lathed.service", "lathed-web.service"):
+@pytest.mark.parametrize("exe", ["lathed-web", "lathed-opcua"])
+def test_a_side_unit_verifies_clean(tmp_path, exe):
+    for name in ("lathed.service", f"{exe}.service"):
         unit = (ROOT / "systemd" / name).read_text()
-        for exe in ("lathed", "lathed-web"):
-            unit = unit.replace(f"/usr/lib/lathed/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
+        for e in ("lathed", exe):
+            unit = unit.replace(f"/usr/lib/lathed/bin/{e} ", f"{Path(sys.executable).parent / e} ")
         (tmp_path / name).write_text(unit)
-    r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "lathed-web.service")], capture_output=True,
+    r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / f"{exe}.service")], capture_output=True,
                        text=True, cwd=tmp_path)
     assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
 
@@ -62,17 +63,6 @@ def test_web_unit_runs_after_the_daemon_as_its_own_user():
 
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze not installed")
-def test_opcua_unit_verifies_clean(tmp_path):
-    for name in ("lathed.service", "lathed-opcua.service"):
-        unit = (ROOT / "systemd" / name).read_text()
-        for exe in ("lathed", "lathed-opcua"):
-            unit = unit.replace(f"/opt/lathed/.venv/bin/{exe} ", f"{Path(sys.executable).parent / exe} ")
-        (tmp_path / name).write_text(unit)
-    r = subprocess.run(["systemd-analyze", "verify", str(tmp_path / "lathed-opcua.service")], capture_output=True,
-                       text=True, cwd=tmp_path)
-    assert r.returncode == 0 and r.stdout == "" and r.stderr == "", r.stdout + r.stderr
-
-
 def test_opcua_unit_runs_after_the_daemon_as_its_own_user_with_its_key_kept():
     unit = (ROOT / "systemd" / "lathed-opcua.service").read_text()
     for line in ("Wants=lathed.service", "After=lathed.service", "User=lathed-opcua", "SupplementaryGroups=lathed",
