@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,mqtt]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -21,6 +21,7 @@ run: $(STAMP)
 test: $(STAMP)
 	bash tests/ensure_postgres.sh
 	bash tests/ensure_chromium.sh
+	bash tests/ensure_mosquitto.sh
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 # Benchmarks: each prints a Markdown table (the README's performance section).
