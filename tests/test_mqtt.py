@@ -121,8 +121,8 @@ def _records(sub: Subscriber) -> list[dict]:
 
 
 def test_broker_outage_and_daemon_crash_lose_nothing(tmp_path, broker):
-    total = 2500
-    cfg, sock = _writer_config(tmp_path, broker.port, total)
+    total = 1000
+    cfg, sock = _writer_config(tmp_path, broker.port, total, every="10ms")
     db = tmp_path / "state" / "lathed.db"
     # a persistent session: what the broker queued for us survives its restart
     sub = Subscriber(broker.port, "lathed/cell-mq/#", client_id="plant-historian")
@@ -137,14 +137,14 @@ def test_broker_outage_and_daemon_crash_lose_nothing(tmp_path, broker):
         wait_until(lambda: "MQTT broker at 127.0.0.1" in (d.item("analyzers", "mqtt").get("last_error") or ""),
                    20, what="the sink to report the outage")
         assert not d.item("analyzers", "mqtt")["connected"]
-        wait_until(lambda: _local(db, "SELECT count(*) FROM events WHERE kind = 'tick'")[0][0] >= at_stop + 200,
+        wait_until(lambda: _local(db, "SELECT count(*) FROM events WHERE kind = 'tick'")[0][0] >= at_stop + 100,
                    20, what="records written locally during the outage")
         d.proc.kill()                               # and the daemon crashes during the outage
         d.proc.wait(10)
         d.log.close()
         d = Daemon(cfg, sock)
         d.wait_ready()
-        assert d.item("analyzers", "mqtt")["backlog"] > 200, "records should wait while the broker is down"
+        assert d.item("analyzers", "mqtt")["backlog"] > 100, "records should wait while the broker is down"
         # the outage lasts OUTAGE_S: this wait is the scenario's length, not a synchronisation
         wait_until(lambda: time.monotonic() - down >= OUTAGE_S, OUTAGE_S + 5, what="the outage's end")
         broker.start()                              # back on the same port
