@@ -48,8 +48,12 @@ bench-hostile: $(STAMP)
 bench-web: $(STAMP)
 	bash tests/ensure_chromium.sh
 	$(BIN)/python bench/bench_web.py
+# issue 15: MQTT end to end with a broker restart (tests/ensure_mosquitto.sh installs mosquitto)
+bench-plant-mqtt: $(STAMP)
+	bash tests/ensure_mosquitto.sh
+	$(BIN)/python bench/bench_plant_mqtt.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
 	bench-hostile bench-web
 
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile bench-web
+	bench-stability bench-hostile bench-web bench-plant-mqtt
