@@ -53,7 +53,7 @@ bench-plant-mqtt: $(STAMP)
 	bash tests/ensure_mosquitto.sh
 	$(BIN)/python bench/bench_plant_mqtt.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
-	bench-hostile bench-web
+	bench-hostile bench-web bench-plant-mqtt
 
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
 	bench-stability bench-hostile bench-web bench-plant-mqtt
