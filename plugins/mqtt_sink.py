@@ -154,6 +154,7 @@ class MqttSink(Analyzer):
             password=self.password, will=aiomqtt.Will(state, "offline", qos=1, retain=True),
             clean_session=True, timeout=self.timeout, keepalive=self.keepalive, tls_context=self.tls_context,
             max_inflight_messages=min(self.batch, 100))
+        client.pending_calls_threshold = self.batch + len(self.live) + 2   # a batch in flight is no warning
         async with client:
             await client.publish(state, "online", qos=1, retain=True)
             self.connected, self.last_error = True, None
@@ -179,21 +180,26 @@ class MqttSink(Analyzer):
 
     async def _records(self, client: aiomqtt.Client) -> None:
         store = self.ctx.store
+        batch = await asyncio.to_thread(store.pending, self.name, self.batch)
         while True:
-            batch = await asyncio.to_thread(store.pending, self.name, self.batch)
             if not batch:
                 await asyncio.sleep(self.interval)
+                batch = await asyncio.to_thread(store.pending, self.name, self.batch)
                 continue
             sends = [asyncio.create_task(client.publish(*self.record_message(*e), qos=1)) for e in batch]
+            # read the next batch while the broker acknowledges this one
+            ahead = asyncio.create_task(asyncio.to_thread(store.pending, self.name, self.batch, batch[-1][0]))
             try:
                 await asyncio.gather(*sends)    # every PUBACK of the batch...
-            finally:
-                for s in sends:
-                    s.cancel()
+            except BaseException:
+                for t in (*sends, ahead):
+                    t.cancel()
+                raise
             # ... before the progress moves: a crash before this line only sends the batch again
             await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             self.published += len(batch)
             self.last_publish_t = time.time()
+            batch = await ahead
 
     async def _live(self, client: aiomqtt.Client) -> None:
         sent: dict[tuple[str, str], float] = {}
