@@ -19,8 +19,8 @@
     keepalive = "30s"
 
 Topics (<machine> is the machine a record is about: its ``machine`` field,
-else the instance that wrote it; records about no machine use the daemon's
-name; segments have ``/ + #`` replaced by ``_``):
+else the instance that wrote it; the daemon's own events and records about
+no machine use the daemon's name; segments have ``/ + #`` replaced by ``_``):
 
     lathed/<cell>/<daemon>/state               "online" / "offline", retained; "offline" is the last will
     lathed/<cell>/<machine>/events/<kind>      every event (chatter_alarm, alarm_raised, part_completed...)
@@ -119,7 +119,8 @@ class MqttSink(Analyzer):
                                "daemon": r["machine_id"], "table": table}
         if table == "events":
             payload = fields["payload"] if isinstance(fields["payload"], dict) else {"value": fields["payload"]}
-            machine = payload.get("machine") or fields["source"]
+            # the daemon's own events (source "lathed") go beside its state topic
+            machine = payload.get("machine") or (daemon if fields["source"] == "lathed" else fields["source"])
             topic = f"lathed/{cell}/{_seg(machine)}/events/{_seg(fields['kind'])}"
             msg.update(machine=machine, kind=fields["kind"], source=fields["source"], t=fields["t"],
                        time=_iso(fields["t"]), payload=payload, units=_units(payload))

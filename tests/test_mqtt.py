@@ -75,7 +75,7 @@ def test_daemon_on_the_simulator_publishes_events_values_and_state(sim_daemon, b
                      f"SELECT o.id, e.kind FROM events e JOIN outbox o ON o.tbl = 'events' AND o.row_id = e.id "
                      f"WHERE e.uuid = '{uuid}'")
         assert row == [(int(seq), "part_completed")]
-        started = sub.json("lathed/cell-7/lathed/events/daemon_started")
+        started = sub.json("lathed/cell-7/test-cell/events/daemon_started")
         assert started and started[0][1]["payload"]["pid"] == d.proc.pid
 
         wait_until(lambda: sub.received("lathed/cell-7/lathe/values/spindle_rpm"), 10, what="a live spindle speed")
@@ -316,3 +316,36 @@ def test_tls_with_client_certificate_and_password(tmp_path):
     finally:
         store.close()
         broker.stop()
+
+
+def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
+    store = Store(tmp_path / "a.db", machine_id="cell-a")
+    sub = Subscriber(broker.port)
+    part = "00000000-0000-0000-0000-000000000001"
+
+    async def main():
+        await store.record("chatter_alarm", "chatter", {"machine": "lathe", "index": 2.5, "rpm": 2500.0,
+                                                        "chatter_frequency_hz": 197.0, "depth_mm": 3.0})
+        await store.record("config_reloaded", "lathed", {"changed": []})
+        await store.add("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1.0, "end_t": 2.0,
+                                       "outcome": "finished", "chatter_alarms": 1, "abnormal": 1})
+        await store.add("inspections", {"t": 3.0, "part_uuid": part, "ra_um": 4.2, "measured": {"roundness_um": 3.0}})
+        await _until_drained(_sink(store, port=broker.port, cell="hall-2"))
+
+    try:
+        asyncio.run(main())
+        wait_until(lambda: len(sub.received("lathed/hall-2/")) >= 5, 10, what="four records and the state")
+        got = {t: json.loads(p) for t, p, _ in sub.received("lathed/hall-2/") if not t.endswith("/state")}
+    finally:
+        sub.close()
+        store.close()
+    assert set(got) == {"lathed/hall-2/lathe/events/chatter_alarm", "lathed/hall-2/cell-a/events/config_reloaded",
+                        "lathed/hall-2/lathe/records/workpieces", "lathed/hall-2/cell-a/records/inspections"}
+    alarm = got["lathed/hall-2/lathe/events/chatter_alarm"]
+    assert alarm["units"] == {"rpm": "r/min", "chatter_frequency_hz": "Hz", "depth_mm": "mm"}
+    assert [m["seq"] for m in sorted(got.values(), key=lambda m: m["seq"])] == [1, 2, 3, 4]
+    wp = got["lathed/hall-2/lathe/records/workpieces"]
+    assert (wp["table"], wp["uuid"], wp["t"], wp["row"]["outcome"]) == ("workpieces", part, 2.0, "finished")
+    insp = got["lathed/hall-2/cell-a/records/inspections"]
+    assert insp["row"]["measured"] == {"roundness_um": 3.0} and insp["units"] == {"ra_um": "µm"}
+    assert insp["time"] == "1970-01-01T00:00:03.000Z"
