@@ -148,7 +148,7 @@ class MqttSink(Analyzer):
             self.connected = False
 
     async def _run(self) -> None:
-        cell, daemon = self._names()
+        _, daemon = self._names()
         state = self.state_topic()
         client = aiomqtt.Client(
             self.host, self.port, identifier=f"lathed-{daemon}-{self.name}", username=self.username,
@@ -192,12 +192,12 @@ class MqttSink(Analyzer):
             ahead = asyncio.create_task(asyncio.to_thread(store.pending, self.name, self.batch, batch[-1][0]))
             try:
                 await asyncio.gather(*sends)    # every PUBACK of the batch...
+                # ... before the progress moves: a crash before this line only sends the batch again
+                await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             except BaseException:
                 for t in (*sends, ahead):
                     t.cancel()
                 raise
-            # ... before the progress moves: a crash before this line only sends the batch again
-            await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             self.published += len(batch)
             self.last_publish_t = time.time()
             batch = await ahead
