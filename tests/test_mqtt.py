@@ -121,7 +121,7 @@ def _records(sub: Subscriber) -> list[dict]:
 
 
 def test_broker_outage_and_daemon_crash_lose_nothing(tmp_path, broker):
-    total = 1000
+    total = 600
     cfg, sock = _writer_config(tmp_path, broker.port, total, every="10ms")
     db = tmp_path / "state" / "lathed.db"
     # a persistent session: what the broker queued for us survives its restart
