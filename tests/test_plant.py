@@ -1,6 +1,7 @@
 """A plant of two cells: two lathed daemons (two identities, each on its own
-simulator) forward to one central PostgreSQL, and ``lathectl plant`` lists
-both cells' machines and open alarms from it."""
+simulator) forward to one central PostgreSQL and publish to one MQTT broker;
+``lathectl plant`` lists both cells' machines and open alarms from the
+database, a subscriber sees both cells on the broker."""
 from __future__ import annotations
 
 import json
@@ -9,16 +10,22 @@ import subprocess
 import psycopg
 
 from tests.conftest import BIN, Daemon, free_port, sim_call, sim_config, wait_until
+from tests.mqtt_fixtures import Broker, Subscriber
 from tests.pg_fixtures import pg_dsn, postgres  # noqa: F401
 
 
-def _cell(tmp, name: str, dsn: str, mill: bool) -> Daemon:
+def _cell(tmp, name: str, dsn: str, broker_port: int, mill: bool) -> Daemon:
     tmp.mkdir()
     sink = f"""
 [analyzer.central]
 plugin = "postgres_sink"
 dsn = "{dsn}"
 interval = "100ms"
+
+[analyzer.mqtt]
+plugin = "mqtt_sink"
+host = "127.0.0.1"
+port = {broker_port}
 """
     mill_port = free_port()
     extra = f"""
@@ -59,8 +66,11 @@ def _central(dsn: str, sql: str, args=()) -> list:
 def test_two_cells_one_database_plant_lists_both(tmp_path, pg_dsn):  # noqa: F811
     r = _plant(pg_dsn)
     assert r.returncode == 66 and "holds no lathed records" in r.stderr, r
-    a = _cell(tmp_path / "a", "cell-a", pg_dsn, mill=True)
-    b = _cell(tmp_path / "b", "cell-b", pg_dsn, mill=False)
+    broker = Broker(tmp_path / "broker")
+    broker.start()
+    sub = Subscriber(broker.port)
+    a = _cell(tmp_path / "a", "cell-a", pg_dsn, broker.port, mill=True)
+    b = _cell(tmp_path / "b", "cell-b", pg_dsn, broker.port, mill=False)
     try:
         a.wait_ready()
         b.wait_ready()
@@ -101,6 +111,14 @@ def test_two_cells_one_database_plant_lists_both(tmp_path, pg_dsn):  # noqa: F81
         mill = next(m for c in json.loads(_plant(pg_dsn, "--json").stdout) if c["cell"] == "cell-a"
                     for m in c["machines"] if m["name"] == "mill")
         assert mill["open_alarms"] == []
+
+        # and both on the one broker, each under its own cell
+        for cell in ("cell-a", "cell-b"):
+            assert sub.received(f"lathed/{cell}/{cell}/state")[-1][1] == b"online"
+            assert sub.received(f"lathed/{cell}/lathe/events/part_completed")
+        assert sub.received("lathed/cell-a/mill/events/alarm_raised")
     finally:
         a.stop()
         b.stop()
+        sub.close()
+        broker.stop()
