@@ -47,9 +47,9 @@ def fill(db: Path, n: int) -> None:
 
 def run(tmp: Path, n: int, outage: float | None) -> dict:
     tmp.mkdir()
+    fill(tmp / "state" / "lathed.db", n)
     broker = Broker(tmp / "broker")
     broker.start()
-    fill(tmp / "state" / "lathed.db", n)
     cfg = tmp / "lathed.toml"
     cfg.write_text(f"""
 [daemon]
@@ -68,11 +68,12 @@ timeout = "2s"
 retry_initial = "100ms"
 retry_max = "500ms"
 """)
-    sub = Subscriber(broker.port, f"lathed/{NAME}/lathe/events/#", client_id="bench-historian")
-    d = Daemon(cfg, tmp / "run" / "lathed.sock")
-    t0, c0 = time.monotonic(), cpu_s(d.proc.pid)
+    sub = d = None
     down_s = 0.0
     try:
+        sub = Subscriber(broker.port, f"lathed/{NAME}/lathe/events/#", client_id="bench-historian")
+        d = Daemon(cfg, tmp / "run" / "lathed.sock")
+        t0, c0 = time.monotonic(), cpu_s(d.proc.pid)
         d.wait_ready(60)
         if outage is not None:
             wait_until(lambda: len(sub.received()) >= n // 2, 300, what="half the records")
@@ -89,8 +90,10 @@ retry_max = "500ms"
         cpu = 100 * (cpu_s(d.proc.pid) - c0) / wall
         rss = rss_mb(d.proc.pid)
     finally:
-        d.stop()
-        sub.close()
+        if d is not None:
+            d.stop()
+        if sub is not None:
+            sub.close()
         broker.stop()
     msgs = [json.loads(p) for _, p, _ in sub.received()]
     ids = [m["id"] for m in msgs]

@@ -68,10 +68,11 @@ def test_two_cells_one_database_plant_lists_both(tmp_path, pg_dsn):  # noqa: F81
     assert r.returncode == 66 and "holds no lathed records" in r.stderr, r
     broker = Broker(tmp_path / "broker")
     broker.start()
-    sub = Subscriber(broker.port)
-    a = _cell(tmp_path / "a", "cell-a", pg_dsn, broker.port, mill=True)
-    b = _cell(tmp_path / "b", "cell-b", pg_dsn, broker.port, mill=False)
+    sub = a = b = None
     try:
+        sub = Subscriber(broker.port)
+        a = _cell(tmp_path / "a", "cell-a", pg_dsn, broker.port, mill=True)
+        b = _cell(tmp_path / "b", "cell-b", pg_dsn, broker.port, mill=False)
         a.wait_ready()
         b.wait_ready()
         wait_until(lambda: {"mill"} <= {m["name"] for m in json.loads(a.ctl("machines", "--json").stdout)
@@ -118,7 +119,9 @@ def test_two_cells_one_database_plant_lists_both(tmp_path, pg_dsn):  # noqa: F81
             assert sub.received(f"lathed/{cell}/lathe/events/part_completed")
         assert sub.received("lathed/cell-a/mill/events/alarm_raised")
     finally:
-        a.stop()
-        b.stop()
-        sub.close()
+        for cell in (a, b):
+            if cell is not None:
+                cell.stop()
+        if sub is not None:
+            sub.close()
         broker.stop()
