@@ -227,11 +227,14 @@ class MqttSink(Analyzer):
 
     def status(self) -> dict[str, Any]:
         backlog = self.ctx.store.backlog(self.name) if self.ctx else None
+        # a live value no source has published: a misspelt source.quantity, or a source not running
+        unseen = [f"{s}.{q}" for s, q in self.live if self.ctx and (s, q) not in self.ctx.bus.latest]
         state = "publishing" if self.connected else "waiting for the broker"
         return {"broker": self.where, "connected": self.connected, "backlog": backlog,
-                "published": self.published, "live_published": self.live_published,
+                "published": self.published, "live_published": self.live_published, "live_unseen": unseen,
                 "last_error": self.last_error, "last_publish_t": self.last_publish_t,
                 "summary": f"{state} ({self.where}), backlog {backlog}"
+                           + (f", no value yet on the bus for {', '.join(unseen)}" if unseen else "")
                            + (f", last error: {self.last_error}" if self.last_error else "")}
 
 

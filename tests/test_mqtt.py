@@ -59,7 +59,7 @@ def _local(db: Path, sql: str):
 def test_daemon_on_the_simulator_publishes_events_values_and_state(sim_daemon, broker):
     sub = Subscriber(broker.port)
     try:
-        d = sim_daemon(analyzers=_sink_section(broker.port, cell="cell-7", live=["lathe.spindle_rpm"],
+        d = sim_daemon(analyzers=_sink_section(broker.port, cell="cell-7", live=["lathe.spindle_rpm", "lathe.spindle_rmp"],
                                                live_every="200ms"))
         wait_until(lambda: sub.received("lathed/cell-7/lathe/events/part_completed"), 30,
                    what="a part_completed event of the simulated lathe")
@@ -89,6 +89,9 @@ def test_daemon_on_the_simulator_publishes_events_values_and_state(sim_daemon, b
         assert late.received() == [("lathed/cell-7/test-cell/state", b"online", True)]
         st = d.item("analyzers", "mqtt")
         assert st["connected"] and st["published"] >= 2 and st["live_published"] >= 1
+        # a misspelt live value is named, not silently never sent
+        assert st["live_unseen"] == ["lathe.spindle_rmp"] and "no value yet on the bus for lathe.spindle_rmp" \
+            in st["summary"]
         d.stop()                                   # a clean stop says "offline" itself
         wait_until(lambda: sub.received("lathed/cell-7/test-cell/state")[-1][1] == b"offline", 10,
                    what="offline state after a clean stop")
