@@ -63,6 +63,7 @@ from lathed.store import JSON_COLUMNS, dumps
 _UNITS = (("_hz", "Hz"), ("_mm_rev", "mm/rev"), ("_mm", "mm"), ("_um", "µm"), ("_pct", "%"), ("_deg", "deg"),
           ("_s", "s"), ("_c", "°C"), ("rpm", "r/min"), ("_nm", "N·m"))
 _ROW_META = ("id", "uuid", "machine_id")
+INFLIGHT = 100     # QoS 1 messages awaiting their PUBACK at once
 
 
 class MqttSink(Analyzer):
@@ -154,8 +155,8 @@ class MqttSink(Analyzer):
             self.host, self.port, identifier=f"lathed-{daemon}-{self.name}", username=self.username,
             password=self.password, will=aiomqtt.Will(state, "offline", qos=1, retain=True),
             clean_session=True, timeout=self.timeout, keepalive=self.keepalive, tls_context=self.tls_context,
-            max_inflight_messages=min(self.batch, 100))
-        client.pending_calls_threshold = self.batch + len(self.live) + 2   # a batch in flight is no warning
+            max_inflight_messages=INFLIGHT)
+        client.pending_calls_threshold = INFLIGHT + len(self.live) + 2   # a full window is no warning
         async with client:
             await client.publish(state, "online", qos=1, retain=True)
             self.connected, self.last_error = True, None
@@ -181,13 +182,14 @@ class MqttSink(Analyzer):
 
     async def _records(self, client: aiomqtt.Client) -> None:
         store = self.ctx.store
+        window = asyncio.Semaphore(INFLIGHT)
         batch = await asyncio.to_thread(store.pending, self.name, self.batch)
         while True:
             if not batch:
                 await asyncio.sleep(self.interval)
                 batch = await asyncio.to_thread(store.pending, self.name, self.batch)
                 continue
-            sends = [asyncio.create_task(client.publish(*self.record_message(*e), qos=1)) for e in batch]
+            sends = [asyncio.create_task(self._send(client, window, *self.record_message(*e))) for e in batch]
             # read the next batch while the broker acknowledges this one
             ahead = asyncio.create_task(asyncio.to_thread(store.pending, self.name, self.batch, batch[-1][0]))
             try:
@@ -201,6 +203,12 @@ class MqttSink(Analyzer):
             self.published += len(batch)
             self.last_publish_t = time.time()
             batch = await ahead
+
+    @staticmethod
+    async def _send(client: aiomqtt.Client, window: asyncio.Semaphore, topic: str, payload: str) -> None:
+        # at most INFLIGHT publishes in the clients at once: both keep per-message lists they scan
+        async with window:
+            await client.publish(topic, payload, qos=1)
 
     async def _live(self, client: aiomqtt.Client) -> None:
         sent: dict[tuple[str, str], float] = {}
