@@ -133,13 +133,15 @@ def main() -> int:
                 (f"broker restart ({a.outage:g} s down) in the middle", run(Path(t) / "restart", a.records,
                                                                              a.outage))]
     print(f"| MQTT end to end ({a.records} records, QoS 1, Mosquitto on loopback, {os.cpu_count()} cores) "
-          "| wall | events/s | events/s while the broker is up | of which the sink (PUBACKed) | lost | duplicates "
+          "| wall | events/s | events/s while the broker is up | sink events/s (PUBACKed) | lost | duplicates "
           "| daemon CPU | daemon RSS |")
     print("|---|---|---|---|---|---|---|---|---|")
     for label, r in rows:
         print(f"| {label} | {r['wall']:.1f} s | {r['rate']:.0f} | {r['rate_up']:.0f} | {r['sink_rate']:.0f} "
               f"| {r['lost']} | {r['dups']} "
               f"| {r['cpu']:.0f} % of one core | {r['rss']:.0f} MB |")
+    print(f"\nCPU is over the whole run (outage included); machine load average at the end "
+          f"{os.getloadavg()[0]:.1f} (other processes share the cores).")
     return 1 if any(r["lost"] for _, r in rows) else 0
 
 
