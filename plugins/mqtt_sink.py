@@ -17,6 +17,7 @@
     interval = "200ms"       # how often to look for new records when caught up
     timeout = "10s"          # a connect or an acknowledgement that takes longer counts as an outage
     keepalive = "30s"
+    protocol = "5"           # or "3.1.1": then a message the broker discards (ACL) cannot be told
 
 Topics (<machine> is the machine a record is about: its ``machine`` field,
 else the instance that wrote it; the daemon's own events and records about
@@ -35,7 +36,10 @@ sends a batch again. Each message carries ``id`` = ``<uuid>/<seq>``, where
 ``seq`` is the outbox id: it grows by one per record of a daemon, so a
 subscriber sees duplicates (an id seen before) and gaps (a jump in seq).
 When the broker is down, ``run()`` raises; the supervisor retries with
-backoff while records wait locally.
+backoff while records wait locally. So it does when an MQTT 5 broker
+acknowledges a message with a failure (its ACL does not let this client
+publish there): the batch is not marked sent, and the status names the
+reason until the broker's configuration is fixed.
 
 Live values are read from the bus's latest value of each configured
 ``source.quantity`` every ``live_every`` and sent when new, at QoS 1 but not
@@ -64,6 +68,24 @@ _UNITS = (("_hz", "Hz"), ("_mm_rev", "mm/rev"), ("_mm", "mm"), ("_um", "µm"), (
           ("_s", "s"), ("_c", "°C"), ("rpm", "r/min"), ("_nm", "N·m"))
 _ROW_META = ("id", "uuid", "machine_id")
 INFLIGHT = 100     # QoS 1 messages awaiting their PUBACK at once
+
+
+class Refused(aiomqtt.MqttError):
+    """The broker acknowledged messages with a failure reason: it discarded them."""
+
+
+class _Client(aiomqtt.Client):
+    """aiomqtt drops a PUBACK's reason code, where an MQTT 5 broker says it
+    discarded the message (not authorised by its ACL, quota exceeded...)."""
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        self.refused: list[str] = []
+        super().__init__(*args, **kwargs)
+
+    def _on_publish(self, client, userdata, mid, reason_code, properties=None) -> None:
+        if getattr(reason_code, "is_failure", False):
+            self.refused.append(str(reason_code))
+        super()._on_publish(client, userdata, mid, reason_code, properties)
 
 
 class MqttSink(Analyzer):
@@ -95,6 +117,8 @@ class MqttSink(Analyzer):
         self.interval = section.getduration("interval", 0.2, minval=0.01, maxval=3600)
         self.timeout = section.getduration("timeout", 10.0, minval=0.5, maxval=3600)
         self.keepalive = int(section.getduration("keepalive", 30.0, minval=5, maxval=3600))
+        # MQTT 5 by default: only there does a PUBACK say that the broker discarded the message
+        self.protocol = section.getstr("protocol", "5", choices=("5", "3.1.1"))
         self.where = f"{self.host}:{self.port}"
         self.published = 0
         self.live_published = 0
@@ -151,17 +175,20 @@ class MqttSink(Analyzer):
     async def _run(self) -> None:
         _, daemon = self._names()
         state = self.state_topic()
-        client = aiomqtt.Client(
+        session = ({"protocol": aiomqtt.ProtocolVersion.V5, "clean_start": True} if self.protocol == "5" else
+                   {"protocol": aiomqtt.ProtocolVersion.V311, "clean_session": True})
+        client = _Client(
             self.host, self.port, identifier=f"lathed-{daemon}-{self.name}", username=self.username,
-            password=self.password, will=aiomqtt.Will(state, "offline", qos=1, retain=True),
-            clean_session=True, timeout=self.timeout, keepalive=self.keepalive, tls_context=self.tls_context,
+            password=self.password, will=aiomqtt.Will(state, "offline", qos=1, retain=True), **session,
+            timeout=self.timeout, keepalive=self.keepalive, tls_context=self.tls_context,
             max_inflight_messages=INFLIGHT)
         client.pending_calls_threshold = INFLIGHT + len(self.live) + 2   # a full window is no warning
         async with client:
             await client.publish(state, "online", qos=1, retain=True)
+            self._check(client)
             self.connected, self.last_error = True, None
             self.ctx.log.info("mqtt_connected", broker=self.where, backlog=self.ctx.store.backlog(self.name))
-            tasks = [asyncio.create_task(self._records(client))]
+            tasks = [asyncio.create_task(self._records(client)), asyncio.create_task(self._watch(client))]
             if self.live:
                 tasks.append(asyncio.create_task(self._live(client)))
             try:
@@ -194,6 +221,7 @@ class MqttSink(Analyzer):
             ahead = asyncio.create_task(asyncio.to_thread(store.pending, self.name, self.batch, batch[-1][0]))
             try:
                 await asyncio.gather(*sends)    # every PUBACK of the batch...
+                self._check(client)
                 # ... before the progress moves: a crash before this line only sends the batch again
                 await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             except BaseException:
@@ -210,6 +238,20 @@ class MqttSink(Analyzer):
         async with window:
             await client.publish(topic, payload, qos=1)
 
+    @staticmethod
+    async def _watch(client: aiomqtt.Client) -> None:
+        """Raises when the connection drops: caught up, the sink publishes
+        nothing that would notice, and the status would say connected."""
+        async for _ in client.messages:   # nothing is subscribed: this only ends
+            pass
+        raise aiomqtt.MqttError("Disconnected during message iteration")
+
+    def _check(self, client: _Client) -> None:
+        if client.refused:
+            raise Refused(f"MQTT broker at {self.where} discarded {len(client.refused)} message(s): "
+                          f"{client.refused[0]} (its ACL must let this client publish under "
+                          f"{self.state_topic().rsplit('/', 2)[0]}/#)")
+
     async def _live(self, client: aiomqtt.Client) -> None:
         sent: dict[tuple[str, str], float] = {}
         while True:
@@ -223,9 +265,13 @@ class MqttSink(Analyzer):
                 self.live_published += 1
 
     def _cause(self, e: BaseException) -> str:
+        if isinstance(e, Refused):
+            return str(e)
         if isinstance(e, MqttConnectError):
             return f"MQTT broker at {self.where} refused the connection: {_reason(e)}"
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        if "Disconnected during message iteration" in msg:
+            return f"MQTT broker at {self.where} closed the connection (broker down or network)"
         if "timed out" in msg.lower() or isinstance(e, asyncio.TimeoutError):
             return (f"MQTT broker at {self.where} did not answer within {self.timeout:g} s "
                     "(broker down or overloaded, or the network)")

@@ -352,3 +352,46 @@ def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
     insp = got["lathed/hall-2/cell-a/records/inspections"]
     assert insp["row"]["measured"] == {"roundness_um": 3.0} and insp["units"] == {"ra_um": "µm"}
     assert insp["time"] == "1970-01-01T00:00:03.000Z"
+
+
+def test_a_message_the_broker_discards_is_not_marked_sent(tmp_path):
+    """An ACL that lets the sink connect but not publish: MQTT 5's PUBACK says
+    so, the records stay in the backlog, and the cause is named."""
+    acl = tmp_path / "acl"
+    acl.write_text("topic read lathed/#\n")          # anonymous: read only
+    broker = Broker(tmp_path / "broker", extra=f"acl_file {acl}\n")
+    broker.start()
+    store = Store(tmp_path / "a.db", machine_id="cell-acl")
+    sink = _sink(store, port=broker.port)
+    try:
+        async def main():
+            await store.record("tick", "w", {"seq": 0})
+            with pytest.raises(ConnectionError, match=r"discarded 1 message\(s\): Not authorized .*lathed/cell-acl/#"):
+                await asyncio.wait_for(sink.run(), 10)
+
+        asyncio.run(main())
+        assert store.backlog("mqtt") == 1 and sink.published == 0
+    finally:
+        store.close()
+        broker.stop()
+
+
+def test_a_caught_up_sink_notices_the_broker_going_away(tmp_path, broker):
+    """Nothing to publish would not show the outage: the status must not say connected."""
+    store = Store(tmp_path / "a.db", machine_id="cell-idle")
+    sink = _sink(store, port=broker.port)
+
+    async def main():
+        task = asyncio.create_task(sink.run())
+        while not sink.connected:
+            assert not task.done(), task.result()
+            await asyncio.sleep(0.01)
+        await asyncio.to_thread(broker.stop)
+        with pytest.raises(ConnectionError, match="closed the connection"):
+            await asyncio.wait_for(task, 10)
+
+    try:
+        asyncio.run(main())
+        assert not sink.status()["connected"] and "closed the connection" in sink.status()["summary"]
+    finally:
+        store.close()
