@@ -13,7 +13,7 @@
     key_file = "client.key"
     live = ["lathe.spindle_rpm", "chatter.chatter_index", "thermal.predicted_growth_um"]
     live_every = "1s"        # each live value at most this often
-    batch = 200              # records in flight before the progress is saved
+    batch = 200              # records per progress update (at most 100 await their PUBACK at once)
     interval = "200ms"       # how often to look for new records when caught up
     timeout = "10s"          # a connect or an acknowledgement that takes longer counts as an outage
     keepalive = "30s"
@@ -34,7 +34,10 @@ SQLite, and advances only once the broker has acknowledged (PUBACK) every
 message of a batch: a broker outage or a crash loses nothing, and at worst
 sends a batch again. Each message carries ``id`` = ``<uuid>/<seq>``, where
 ``seq`` is the outbox id: it grows by one per record of a daemon, so a
-subscriber sees duplicates (an id seen before) and gaps (a jump in seq).
+subscriber sees duplicates (an id seen before) and gaps (a jump in seq),
+and orders by seq. A subscriber that must not miss what is published while
+it is away needs a persistent session (clean session off, QoS 1), and the
+broker persistence across its own restarts.
 When the broker is down, ``run()`` raises; the supervisor retries with
 backoff while records wait locally. So it does when an MQTT 5 broker
 acknowledges a message with a failure (its ACL does not let this client
