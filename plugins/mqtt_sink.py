@@ -58,8 +58,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-import aiomqtt
-from aiomqtt.exceptions import MqttConnectError
+try:
+    import aiomqtt
+    from aiomqtt.exceptions import MqttConnectError
+except ImportError as e:   # an optional extra: say which
+    raise ImportError(f"{e}: the MQTT sink needs the mqtt extra (pip install 'lathed[mqtt]')") from None
 
 from lathed import hookimpl
 from lathed.analyzer import Analyzer
