@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,mqtt]'
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -23,6 +23,7 @@ run: $(STAMP)
 test: $(STAMP)
 	bash tests/ensure_postgres.sh
 	bash tests/ensure_chromium.sh
+	bash tests/ensure_mosquitto.sh
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 # Benchmarks: each prints a Markdown table (the README's performance section).
@@ -52,8 +53,14 @@ bench-web: $(STAMP)
 # issue 15: OPC UA subscription latency with 10 clients, CPU/RSS of lathed and lathed-opcua
 bench-plant-opcua: $(STAMP)
 	$(BIN)/python bench/bench_plant_opcua.py
+# issue 15: MQTT end to end with a broker restart (tests/ensure_mosquitto.sh installs mosquitto)
+bench-plant-mqtt: $(STAMP)
+	bash tests/ensure_mosquitto.sh
+	$(BIN)/python bench/bench_plant_mqtt.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
-	bench-hostile bench-web
+	bench-hostile bench-web bench-plant
+# issue 15: both plant protocols
+bench-plant: bench-plant-mqtt bench-plant-opcua
 
 # --- Installed as a service (README "Running as a service") ---------------------------
 # A wheel of this checkout (not editable, no test tools) in a venv of its own at
@@ -130,4 +137,4 @@ uninstall:
 
 .PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile bench-web bench-plant-opcua
+	bench-stability bench-hostile bench-web bench-plant bench-plant-mqtt bench-plant-opcua

@@ -151,7 +151,11 @@ class Daemon:
         # outside peer, however local) listens, so they do not begin in retry.
         starting = asyncio.create_task(self._start_drivers())
         self.state = "running"
-        self.supervisor.record("daemon_started", "lathed", {"version": __version__, "pid": os.getpid()})
+        # the machines this daemon runs, by kind: a plant view (lathectl plant) lists them from the central store
+        machines = {n: getattr(drv, "kind", None) for n, (inst, drv) in self.plan.drivers.items()
+                    if inst.category == "machine"}
+        self.supervisor.record("daemon_started", "lathed", {"version": __version__, "pid": os.getpid(),
+                                                            "machines": machines})
         log.info("ready", socket=str(self.settings.socket_path), version=__version__,
                  startup_s=round(time.monotonic() - self.started, 3))
         notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")

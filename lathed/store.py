@@ -517,9 +517,10 @@ class Store:
         last = self.query("SELECT max(id) AS m FROM outbox")[0]["m"] or 0
         return last - self.progress(sink)
 
-    def pending(self, sink: str, limit: int) -> list[tuple[int, str, dict[str, Any]]]:
-        """The next records a sink has not forwarded: (outbox id, table, row), in order."""
-        after = self.progress(sink)
+    def pending(self, sink: str, limit: int, after: int | None = None) -> list[tuple[int, str, dict[str, Any]]]:
+        """The next records a sink has not forwarded: (outbox id, table, row), in order;
+        ``after`` an outbox id instead of the sink's saved progress (a sink reading ahead)."""
+        after = self.progress(sink) if after is None else after
         entries = self.query("SELECT id, tbl, row_id FROM outbox WHERE id > ? ORDER BY id LIMIT ?",
                              (after, limit))
         by_table: dict[str, list[int]] = {}

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install Debian packages for the test set-up (ensure_postgres.sh, ensure_chromium.sh):
+# Install Debian packages for the test set-up (ensure_postgres.sh, ensure_chromium.sh, ensure_mosquitto.sh):
 # as root, or through sudo; one clear line when neither is possible.
 # Usage: apt_install.sh WHO PACKAGE...   (WHO names the caller in messages)
 set -euo pipefail

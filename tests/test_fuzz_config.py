@@ -17,9 +17,10 @@ KEYS = ["plugin", "host", "port", "poll", "input", "machine", "chatter", "therma
         "retry_initial", "retry_max", "enabled", "device", "baudrate", "stale_after", "kind", "transport",
         "spindle_rpm_max", "spindle_rpm_min", "offset_max_um", "address", "type", "writable", "mode",
         "strategy", "modes", "detector", "tool", "material", "dsn", "name", "state_dir", "runtime_dir",
-        "plugin_dirs", "log_level", "keep_days", "prune_every", "serial_link", "time_scale", "x"]
+        "plugin_dirs", "log_level", "keep_days", "prune_every", "serial_link", "time_scale", "x",
+        "tls", "ca_file", "cert_file", "key_file", "username", "password", "live", "cell", "batch"]
 PLUGINS = ["modbus_cnc", "ds18b20_serial", "vibration_tcp", "records", "postgres_sink", "can_robot", "chatter",
-           "suppression", "thermal", "nope"]
+           "suppression", "thermal", "mqtt_sink", "nope"]
 
 scalars = st.one_of(
     st.booleans(), st.integers(min_value=-(2 ** 63), max_value=2 ** 63 - 1),
