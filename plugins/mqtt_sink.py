@@ -58,15 +58,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-try:
-    import aiomqtt
-    from aiomqtt.exceptions import MqttConnectError
-except ImportError as e:   # an optional extra: say which
-    raise ImportError(f"{e}: the MQTT sink needs the mqtt extra (pip install 'lathed[mqtt]')") from None
-
 from lathed import hookimpl
 from lathed.analyzer import Analyzer
 from lathed.config import Section
+from lathed.extras import MissingExtra, need
 from lathed.store import JSON_COLUMNS, dumps
 
 # A field's unit, from the suffix of its name (the records' naming convention).
@@ -76,22 +71,37 @@ _ROW_META = ("id", "uuid", "machine_id")
 INFLIGHT = 100     # QoS 1 messages awaiting their PUBACK at once
 
 
-class Refused(aiomqtt.MqttError):
-    """The broker acknowledged messages with a failure reason: it discarded them."""
+# aiomqtt (the mqtt extra) is imported by the first sink configured, never by a daemon without one
+aiomqtt: Any = None
+MqttConnectError: Any = None
+Refused: Any = None
+_Client: Any = None
 
 
-class _Client(aiomqtt.Client):
-    """aiomqtt drops a PUBACK's reason code, where an MQTT 5 broker says it
-    discarded the message (not authorised by its ACL, quota exceeded...)."""
+def _import_aiomqtt() -> None:
+    global aiomqtt, MqttConnectError, Refused, _Client
+    if aiomqtt is not None:
+        return
+    mod = need("aiomqtt", "the mqtt_sink plugin")
+    from aiomqtt.exceptions import MqttConnectError as connect_error
 
-    def __init__(self, *args: Any, **kwargs: Any):
-        self.refused: list[str] = []
-        super().__init__(*args, **kwargs)
+    class Refused_(mod.MqttError):
+        """The broker acknowledged messages with a failure reason: it discarded them."""
 
-    def _on_publish(self, client, userdata, mid, reason_code, properties=None) -> None:
-        if getattr(reason_code, "is_failure", False):
-            self.refused.append(str(reason_code))
-        super()._on_publish(client, userdata, mid, reason_code, properties)
+    class Client(mod.Client):
+        """aiomqtt drops a PUBACK's reason code, where an MQTT 5 broker says it
+        discarded the message (not authorised by its ACL, quota exceeded...)."""
+
+        def __init__(self, *args: Any, **kwargs: Any):
+            self.refused: list[str] = []
+            super().__init__(*args, **kwargs)
+
+        def _on_publish(self, client, userdata, mid, reason_code, properties=None) -> None:
+            if getattr(reason_code, "is_failure", False):
+                self.refused.append(str(reason_code))
+            super()._on_publish(client, userdata, mid, reason_code, properties)
+
+    aiomqtt, MqttConnectError, Refused, _Client = mod, connect_error, Refused_, Client
 
 
 class MqttSink(Analyzer):
@@ -99,6 +109,10 @@ class MqttSink(Analyzer):
 
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
+        try:
+            _import_aiomqtt()
+        except MissingExtra as e:
+            raise section.error("plugin", str(e)) from None
         self.host = section.getstr("host")
         if not self.host:
             raise section.error("host", "empty: name the MQTT broker's host")

@@ -15,6 +15,7 @@ import structlog
 from lathed import client
 from lathed.analysis import taguchi
 from lathed.control import MAX_LINE, AcceptErrorLog, ControlServer
+from tests.conftest import wait_until
 from tests.inproc_daemon import InProcessDaemon
 
 
@@ -396,7 +397,9 @@ def test_the_kernel_names_the_caller_and_only_operator_groups_may_act():
         # root is an operator; the event names root's uid and pid, beside the name the client typed
         code, out, err, pid = d.run(lathectl("suppress", {"action": "manual", "by": "someone"}))
         assert code == 0, err
-        ev = d.handle(b'{"cmd": "events", "args": {"kind": "suppression_mode"}}\n')["result"]
+        # recorded through the store's writer thread: polled until committed, not assumed
+        ev = wait_until(lambda: d.handle(b'{"cmd": "events", "args": {"kind": "suppression_mode"}}\n')["result"],
+                        timeout=10, what="the suppression_mode event committed")
         assert [(e["payload"]["to"], e["payload"]["by"], e["payload"]["caller"]) for e in ev] == [
             ("manual", "someone", {"uid": os.getuid(), "user": "root", "pid": pid})]
     finally:

@@ -1,5 +1,5 @@
-"""PostgreSQL and plots are extras (issue 17 item 5): without one, what needs it
-says in one line which extra to install, and nothing else imports it."""
+"""PostgreSQL, plots, MQTT and OPC UA are extras (issue 17 item 5): without one, what
+needs it says in one line which extra to install, and nothing else imports it."""
 from __future__ import annotations
 
 import subprocess
@@ -9,19 +9,26 @@ import pytest
 
 from lathed.config import ConfigError, Section
 from lathed.lathectl import main
+from lathed_plugins import mqtt_sink
+from lathed_plugins.mqtt_sink import MqttSink
 from lathed_plugins.postgres_sink import PostgresSink
 from tests.conftest import ROOT
 
 
-def test_postgres_sink_without_psycopg_is_one_config_line_naming_the_extra(monkeypatch):
-    monkeypatch.setitem(sys.modules, "psycopg", None)      # as if the postgres extra were not installed
-    sec = Section("plant.toml", "analyzer.central", {"dsn": "host=db.plant dbname=lathed"})
+@pytest.mark.parametrize("module, sink, table, keys, extra", [
+    ("psycopg", PostgresSink, "analyzer.central", {"dsn": "host=db.plant dbname=lathed"}, "postgres"),
+    ("aiomqtt", MqttSink, "analyzer.mqtt", {"host": "broker.plant"}, "mqtt"),
+])
+def test_a_sink_without_its_extra_is_one_config_line_naming_it(monkeypatch, module, sink, table, keys, extra):
+    monkeypatch.setitem(sys.modules, module, None)      # as if the extra were not installed
+    monkeypatch.setattr(mqtt_sink, "aiomqtt", None)     # and not imported by an earlier test
+    sec = Section("plant.toml", table, keys)
     with pytest.raises(ConfigError) as e:
-        PostgresSink("central", sec)
+        sink("central", sec)
     msg = str(e.value)
     assert "\n" not in msg
-    assert "plant.toml" in msg and "[analyzer.central]" in msg
-    assert "pip install 'lathed[postgres]'" in msg
+    assert "plant.toml" in msg and f"[{table}]" in msg
+    assert f"pip install 'lathed[{extra}]'" in msg
 
 
 @pytest.mark.parametrize("what", [
@@ -38,14 +45,15 @@ def test_plot_without_matplotlib_is_one_line_naming_the_extra(what, monkeypatch,
     assert not png.exists()
 
 
-def test_plugins_load_without_importing_psycopg():
-    # psycopg takes ~0.2 s to import: only a configured postgres_sink pays it
+def test_plugins_load_without_importing_their_extras():
+    # psycopg takes ~0.2 s to import: only a configured postgres_sink pays it (and aiomqtt, mqtt_sink)
     code = ("import sys; from lathed.plugins import load_all; loader = load_all([]);"
             "assert not [p.error for p in loader.plugins if p.error], loader.summary();"
-            "print('postgres_sink' in loader.analyzer_types(), 'psycopg' in sys.modules)")
+            "print('postgres_sink' in loader.analyzer_types(), 'mqtt_sink' in loader.analyzer_types(),"
+            "      'psycopg' in sys.modules, 'aiomqtt' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT / "tests")
     assert r.returncode == 0, r.stderr
-    assert r.stdout.split() == ["True", "False"]
+    assert r.stdout.split() == ["True", "True", "False", "False"]
 
 
 def test_lathed_opcua_without_asyncua_is_one_line_naming_the_extra(monkeypatch, capsys):
