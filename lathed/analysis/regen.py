@@ -352,7 +352,9 @@ class RegenerativeTurning:
 @dataclass(frozen=True)
 class Segment:
     """A stretch of a simulated cut: speed (r/min), depth (mm), duration (s).
-    The speed ramps linearly from the previous segment's over ``ramp_s``."""
+    The speed and the depth ramp linearly from the previous segment's over
+    ``ramp_s`` (a speed change; a taper or growing stock: a depth that rises
+    through the stability limit without the kick of a step)."""
     duration_s: float
     rpm: float
     depth_mm: float
@@ -427,7 +429,7 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
                               flat_fraction, seed, process_noise, flank, diameter_mm)
     lobes = StabilityLobes(modes, kf_n_per_m2)
     acc, ys, inc, th, rpms, deps = [], [], [], [], [], []
-    prev_rpm = segs[0].rpm
+    prev_rpm, prev_depth = segs[0].rpm, segs[0].depth_mm
     for seg in segs:
         n_seg = int(round(seg.duration_s * rate_hz))
         done = 0
@@ -435,15 +437,17 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
             k = min(block, n_seg - done)
             t_in = done / rate_hz
             if seg.ramp_s > 0 and t_in < seg.ramp_s:
-                rpm = prev_rpm + (seg.rpm - prev_rpm) * (t_in + 0.5 * k / rate_hz) / seg.ramp_s
+                frac = (t_in + 0.5 * k / rate_hz) / seg.ramp_s
+                rpm = prev_rpm + (seg.rpm - prev_rpm) * frac
+                depth = prev_depth + (seg.depth_mm - prev_depth) * frac
             else:
-                rpm = seg.rpm
-            out = sim.run(k, rpm, seg.depth_mm, feed_mm_rev)
+                rpm, depth = seg.rpm, seg.depth_mm
+            out = sim.run(k, rpm, depth, feed_mm_rev)
             acc.append(out.accel); ys.append(out.y_m); inc.append(out.in_cut)
             th.append(out.theta_rad)
-            rpms.append(np.full(k, rpm)); deps.append(np.full(k, seg.depth_mm))
+            rpms.append(np.full(k, rpm)); deps.append(np.full(k, depth))
             done += k
-        prev_rpm = seg.rpm
+        prev_rpm, prev_depth = seg.rpm, seg.depth_mm
     signal = np.concatenate(acc)
     y = np.concatenate(ys)
     in_cut = np.concatenate(inc)

@@ -1,0 +1,104 @@
+"""Process damping from the worn flank (issue 12 item 4): mild chatter that
+saturates at a small amplitude just above the stability limit."""
+import math
+
+import numpy as np
+import pytest
+
+from lathed.analysis.lobes import StabilityLobes
+from lathed.analysis.process_damping import FlankWear
+from lathed.analysis.regen import (
+    DEFAULT_KF, DEFAULT_MODES, RegenerativeTurning, Segment as S, simulate_cut, wav_rev)
+from lathed.analysis.surface import turned_surface
+
+RATE = 51200
+FEED_MM = 0.3          # the paper's feed: a stable cut's Ra is 3.6 um with the 0.8 mm nose
+B_LIM_2000_MM = float(StabilityLobes(DEFAULT_MODES, DEFAULT_KF).b_lim_at(2000.0)[0][0]) * 1e3
+
+
+def _ra_um(rec, lo_s, hi_s):
+    i, j = int(lo_s * RATE), int(hi_s * RATE)
+    th = np.cumsum(2 * np.pi * rec.rpm / 60.0 / RATE)
+    return turned_surface(rec.y_m[i:j], th[i:j], FEED_MM * 1e-3).ra_m() * 1e6
+
+
+def _waviness_per_rev_um(rec, rpm):
+    """rms pass-to-pass surface difference per revolution from the unstable instant."""
+    th = np.cumsum(2 * np.pi * rec.rpm / 60.0 / RATE)
+    rev = int(RATE * 60 / rpm)
+    w = wav_rev(rec.y_m, th, rec.in_cut)[int(rec.unstable_at_s * RATE):]
+    n = len(w) // rev
+    return np.sqrt(np.mean(w[:n * rev].reshape(n, rev) ** 2, axis=1)) * 1e6
+
+
+def _near_limit_cut(flank, seed=3):
+    # a stable cut at 0.9 x the limit, then the depth rises (a taper) to 1.1 x
+    segs = [S(1.0, 2000, 0.9 * B_LIM_2000_MM), S(2.0, 2000, 1.1 * B_LIM_2000_MM, 0.5)]
+    return simulate_cut(segs, flank=flank, feed_mm_rev=FEED_MM, seed=seed)
+
+
+def test_worn_flank_holds_chatter_just_above_the_limit_at_a_mild_level():
+    worn = _near_limit_cut(FlankWear())
+    assert worn.label == "chatter"          # regen's "visible" rule still calls it chatter
+    stable_ra = _ra_um(worn, 0.2, 1.0)
+    assert stable_ra == pytest.approx(3.6, abs=0.15)
+    ratio = _ra_um(worn, 2.2, 3.0) / stable_ra
+    assert 1.1 < ratio < 1.6                # the paper's 3.6 -> 4.5 um is 1.25
+    assert worn.in_cut[int(2.2 * RATE):].all()   # the tool never leaves the cut
+    # slow: it takes many revolutions to reach its saturated level
+    r = _waviness_per_rev_um(worn, 2000)
+    sat = np.median(r[-len(r) // 3:])
+    assert 2.0 < sat < 15.0
+    assert np.argmax(r >= 0.8 * sat) >= 8
+
+    sharp = _near_limit_cut(None)           # the same cut with a sharp tool
+    assert _ra_um(sharp, 2.2, 3.0) / _ra_um(sharp, 0.2, 1.0) > 5
+    assert not sharp.in_cut[int(2.2 * RATE):].all()
+
+
+def test_worn_flank_does_not_hold_a_cut_far_above_the_limit():
+    rec = simulate_cut([S(1.0, 2000, 1.0), S(1.5, 2000, 3.0)], flank=FlankWear(),
+                       feed_mm_rev=FEED_MM, seed=1)
+    assert rec.label == "chatter"
+    assert _ra_um(rec, 1.7, 2.5) / _ra_um(rec, 0.2, 1.0) > 5
+    assert rec.in_cut[int(1.7 * RATE):].mean() < 0.95   # bounded only by leaving the cut
+
+
+def test_worn_flank_leaves_a_stable_cut_unchanged():
+    # past the entry transient its vibration stays below what the land's
+    # clearance lets through: no ploughing, the same surface
+    segs = [S(2.0, 2000, 1.0)]
+    worn = simulate_cut(segs, flank=FlankWear(), feed_mm_rev=FEED_MM, seed=4)
+    sharp = simulate_cut(segs, feed_mm_rev=FEED_MM, seed=4)
+    assert worn.label == sharp.label == "stable"
+    assert _ra_um(worn, 0.5, 2.0) == pytest.approx(_ra_um(sharp, 0.5, 2.0), rel=0.02)
+    tail = slice(int(0.5 * RATE), None)
+    assert np.std(worn.y_m[tail]) == pytest.approx(np.std(sharp.y_m[tail]), rel=0.05)
+
+
+def test_describing_function_is_the_harmonic_balance_of_the_dead_zone_force():
+    fl = FlankWear(land_mm=0.25, clearance_deg=0.3, k_sp_n_per_m3=3e13)
+    b, v = 2e-3, 3.0
+    k = fl.k_sp_n_per_m3 * b * (fl.land_mm * 1e-3) ** 2 / 2
+    tan_g = math.tan(math.radians(fl.clearance_deg))
+    phi = np.linspace(-np.pi, np.pi, 200001)
+    for r in (0.5, 1.0, 1.2, 2.0, 5.0, 1e4):
+        a = r * tan_g                       # peak surface slope
+        force = k * np.maximum(0.0, a * np.cos(phi) - tan_g)
+        fund = np.trapezoid(force * np.cos(phi), phi) / np.pi    # in phase with the velocity a V cos
+        mean = np.trapezoid(force, phi) / (2 * np.pi)
+        c_eq, f_dc = fl.equivalent(b, v, a * v)
+        assert c_eq == pytest.approx(fund / (a * v), rel=1e-4, abs=1e-9)
+        assert f_dc == pytest.approx(mean, rel=1e-4, abs=1e-9)
+    # saturated: half the two-sided damper
+    assert fl.equivalent(b, v, 1e6)[0] == pytest.approx(fl.c_max(b, v), rel=1e-3)
+
+
+@pytest.mark.parametrize("kw, msg", [({"land_mm": 2.0}, "flank wear land"),
+                                     ({"clearance_deg": -1.0}, "clearance"),
+                                     ({"k_sp_n_per_m3": 0.0}, "indentation coefficient")])
+def test_flank_parameters_are_checked(kw, msg):
+    with pytest.raises(ValueError, match=msg):
+        FlankWear(**kw)
+    with pytest.raises(ValueError, match="diameter"):
+        RegenerativeTurning(flank=FlankWear(), diameter_mm=0.0)
