@@ -102,3 +102,27 @@ def test_flank_parameters_are_checked(kw, msg):
         FlankWear(**kw)
     with pytest.raises(ValueError, match="diameter"):
         RegenerativeTurning(flank=FlankWear(), diameter_mm=0.0)
+
+
+def test_simulator_config_gives_the_simulated_lathe_a_worn_flank(tmp_path):
+    from lathed.config import ConfigError, Section
+    from lathed.sim.__main__ import parse_args
+    from lathed.sim.lathe import SimLathe
+    from lathed.sim.launch import SimulatorSettings
+
+    def settings(**keys):
+        return SimulatorSettings(Section("lathed.toml", "simulator", {"spawn": False, **keys}), tmp_path)
+
+    # off by default: a sharp tool, the simulator's command line unchanged
+    argv = settings().argv()
+    assert not any(a.startswith("--flank") for a in argv)
+    assert parse_args(argv[3:]).flank is None
+    argv = settings(flank_wear_mm=0.3, flank_clearance_deg=0.05).argv()
+    flank = parse_args(argv[3:]).flank
+    assert flank == FlankWear(0.3, 0.05, 4.0e13)
+    assert SimLathe(flank=flank).cutter.flank == flank
+    with pytest.raises(ConfigError, match=r"^lathed.toml: \[simulator\] flank_wear_mm: 0.005 is out of range; "
+                                          r"allowed: 0 \(a sharp tool\) or a wear land in \[0.01, 1\] mm$"):
+        settings(flank_wear_mm=0.005)
+    with pytest.raises(ConfigError, match=r"\[simulator\] flank_clearance_deg: 12"):
+        settings(flank_wear_mm=0.2, flank_clearance_deg=12.0)

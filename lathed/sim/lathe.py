@@ -21,6 +21,7 @@ import numpy as np
 
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
+from lathed.analysis.process_damping import FlankWear
 from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, SimBlock
 from lathed.sim.thermal import SpindleThermal
 
@@ -172,14 +173,16 @@ RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
 class SimLathe:
     def __init__(self, program: tuple[Cut, ...] = DEFAULT_PROGRAM, rate_hz: int = 51200,
                  time_scale: float = 1.0, accel_rpm_s: float = 3000.0, max_rpm: float = 6000.0,
-                 depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0):
+                 depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0,
+                 flank: FlankWear | None = None):
         self.program = program
         self.rate_hz = rate_hz
         self.time_scale = time_scale          # thermal clock speed-up
         self.accel_rpm_s = accel_rpm_s
         self.max_rpm = max_rpm
         self.depth_override_mm = depth_override_mm
-        self.cutter = RegenerativeTurning(LATHE_MODES, LATHE_KF, rate_hz=float(rate_hz), seed=seed)
+        # flank: the tool's worn land (process damping), None for a sharp tool
+        self.cutter = RegenerativeTurning(LATHE_MODES, LATHE_KF, rate_hz=float(rate_hz), seed=seed, flank=flank)
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
         self.t = 0.0
@@ -273,7 +276,7 @@ class SimLathe:
         was = self.phase
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
-        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev)
+        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.part.diameter_mm)
         self._load(depth, block)
         self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)
