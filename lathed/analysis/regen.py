@@ -10,12 +10,12 @@ the part, so a larger y thins the chip):
 it is T = 60/n).  In the cut s(t) = y(t); out of the cut (h <= 0, or over the
 flat of an interrupted surface) no material is removed and s(t) = s(t-T) + h0.
 The force Kf*b*h (plus a small random cutting-process part that makes a stable
-cut sound like one) is zero out of the cut, which bounds chatter.  Optionally
-(``flank``, off by default) the worn flank land ploughs the wavy surface
-(lathed.analysis.process_damping): a damping force that grows with the
-chatter amplitude, so a cut just above the limit saturates at a small
-amplitude (mild chatter) instead of growing until the tool leaves the cut.  Each
-``Mode`` takes the force projected by its directional factor ``u``
+cut sound like one) is zero out of the cut, which bounds chatter.
+Optionally (``flank``, off by default) the worn flank land ploughs the wavy
+surface (lathed.analysis.process_damping): a damping force that grows with
+the chatter amplitude, so a cut just above the limit saturates at a small
+amplitude (mild chatter) instead of growing until the tool leaves the cut.
+Each ``Mode`` takes the force projected by its directional factor ``u``
 (lathed.analysis.modal) and the accelerometer reads the summed modal
 acceleration along the normal, plus sensor noise.
 
@@ -35,8 +35,8 @@ re-enters the cut.  The flank's nonlinear force enters through its
 describing function (equivalent damping and mean force) at the vibration
 amplitude of the samples just simulated, held constant over each chunk, so
 every chunk stays linear; the amplitude grows or settles over many
-revolutions, far slower than a chunk.  No asyncio here: the simulated lathe, the benchmark and
-the tests share it.
+revolutions, far slower than a chunk.  No asyncio here: the simulated
+lathe, the benchmark and the tests share it.
 """
 from __future__ import annotations
 
@@ -422,7 +422,9 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     rms pass-to-pass surface difference (``wav_rev``) is at least
     VISIBLE_WAVINESS_M and does not shrink (by more than 10 %) over the next
     two revolutions.  Label "chatter" iff that happens.  The lobes do not
-    include the flank's damping (``flank``): it adds none to small vibrations.
+    include the flank's damping (``flank``): it adds none to vibrations below
+    its clearance (with a clearance of 0 it damps every vibration and raises
+    the limit itself, so ``unstable_at_s`` is then early).
     """
     segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
     sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,

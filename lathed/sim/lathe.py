@@ -4,7 +4,8 @@ A simulator of physics, not of a particular controller: the spindle follows
 its commanded speed within an acceleration limit; the program turns parts
 one after another (load, cut along the part, retract); the cut's vibration
 comes from the regenerative chip-thickness model (lathed.analysis.regen), so
-a depth above the stability limit really chatters; the spindle warms with
+a depth above the stability limit really chatters (with a worn tool,
+``flank``, chatter just above it stays mild); the spindle warms with
 speed (lathed.sim.thermal). It also watches its own cut for the instant
 chatter becomes visible on the surface (``VisibleChatter``, regen's rule
 applied live), so the closed loop's reaction can be timed against the truth.
