@@ -10,8 +10,12 @@ the part, so a larger y thins the chip):
 it is T = 60/n).  In the cut s(t) = y(t); out of the cut (h <= 0, or over the
 flat of an interrupted surface) no material is removed and s(t) = s(t-T) + h0.
 The force Kf*b*h (plus a small random cutting-process part that makes a stable
-cut sound like one) is zero out of the cut, which bounds chatter.  Each
-``Mode`` takes the force projected by its directional factor ``u``
+cut sound like one) is zero out of the cut, which bounds chatter.
+Optionally (``flank``, off by default) the worn flank land ploughs the wavy
+surface (lathed.analysis.process_damping): a damping force that grows with
+the chatter amplitude, so a cut just above the limit saturates at a small
+amplitude (mild chatter) instead of growing until the tool leaves the cut.
+Each ``Mode`` takes the force projected by its directional factor ``u``
 (lathed.analysis.modal) and the accelerometer reads the summed modal
 acceleration along the normal, plus sensor noise.
 
@@ -27,18 +31,22 @@ and evaluates every mode's complex first-order recursion in closed form
 (powers and a cumulative sum, ``_Regime.response``) over a chunk shorter
 than one revolution (its delayed input is then already
 known).  It only falls back to shorter chunks where the tool leaves or
-re-enters the cut.  No asyncio here: the simulated lathe, the benchmark and
-the tests share it.
+re-enters the cut.  The flank's nonlinear force enters through its
+describing function (equivalent damping and mean force) at the vibration
+amplitude of the samples just simulated, held constant over each chunk, so
+every chunk stays linear; the amplitude grows or settles over many
+revolutions, far slower than a chunk.  No asyncio here: the simulated
+lathe, the benchmark and the tests share it.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.linalg import expm
 
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
+from lathed.analysis.process_damping import FlankWear
 
 # Default lathe structure: a compliant tool-post/spindle mode at 620 Hz at
 # 30 deg to the surface normal, plus a stiffer one at 1450 Hz.  With
@@ -61,6 +69,11 @@ DEFAULT_PROCESS_NOISE = 0.03  # relative random part of the cutting force
 VISIBLE_WAVINESS_M = 2.0e-6
 
 _HIST = 1 << 19             # samples of surface history kept (>= 10 s at 51.2 kS/s)
+DEFAULT_DIAMETER_MM = 30.0  # workpiece diameter: sets the cutting speed the flank land sees
+# The flank force's amplitude is the peak normal velocity, sqrt(2) x its rms
+# over about this long (several chatter periods; chatter grows over tens of
+# revolutions, so the describing function's lag is negligible).
+_VEL_TAU_S = 0.01
 
 
 @dataclass
@@ -73,17 +86,19 @@ class SimBlock:
 
 
 class _Regime:
-    """Diagonalised ZOH discretisation of x' = A x + B*g*w."""
+    """Diagonalised ZOH discretisation of x' = A x + B*g*w.
+
+    From the eigen-decomposition A = V diag(s) V^-1 (damped modes: distinct,
+    non-zero s): A_d = V diag(e^(s dt)) V^-1 and B_d = V diag((e^(s dt) - 1)/s)
+    V^-1 B g, the same as expm's ZOH at a fraction of its cost (a regime is
+    built per flank damping level)."""
 
     def __init__(self, a: np.ndarray, bvec: np.ndarray, gain: float, dt: float) -> None:
-        ad = expm(a * dt)
-        bd = np.linalg.solve(a, (ad - np.eye(len(a))) @ bvec) * gain
-        lam, v = np.linalg.eig(ad)
-        self.lam = lam
-        self.loglam = np.log(lam.astype(complex))
+        s, v = np.linalg.eig(a)
+        self.loglam = s.astype(complex) * dt
         self.v = v
         self.vinv = np.linalg.inv(v)
-        self.beta = self.vinv @ bd
+        self.beta = np.expm1(self.loglam) / s * (self.vinv @ bvec) * gain
         # the closed form below divides by lam**k; keep |lam|**-k under e**30
         # so no precision is lost
         self.safe_len = int(min(1 << 20, 30.0 / max(1e-12, float(np.max(np.abs(self.loglam.real))))))
@@ -110,7 +125,8 @@ class RegenerativeTurning:
     def __init__(self, modes=DEFAULT_MODES, kf_n_per_m2: float = DEFAULT_KF,
                  rate_hz: float = DEFAULT_RATE_HZ, noise_rms: float = DEFAULT_NOISE_RMS,
                  runout_um: float = 0.0, flat_fraction: float = 0.0, seed: int = 0,
-                 process_noise: float = DEFAULT_PROCESS_NOISE) -> None:
+                 process_noise: float = DEFAULT_PROCESS_NOISE, flank: FlankWear | None = None,
+                 diameter_mm: float = DEFAULT_DIAMETER_MM) -> None:
         if not modes:
             raise ValueError("the simulator needs at least one structural mode")
         if not kf_n_per_m2 > 0:
@@ -121,6 +137,8 @@ class RegenerativeTurning:
             raise ValueError(f"flat fraction must be in [0, 1), got {flat_fraction}")
         if noise_rms < 0 or runout_um < 0 or process_noise < 0:
             raise ValueError("noise, runout and process noise must be >= 0")
+        if not diameter_mm > 0:
+            raise ValueError(f"workpiece diameter must be > 0 mm, got {diameter_mm}")
         self.modes = tuple(modes)
         self.kf = float(kf_n_per_m2)
         self.rate = float(rate_hz)
@@ -129,18 +147,22 @@ class RegenerativeTurning:
         self.runout_m = runout_um * 1e-6
         self.flat_fraction = float(flat_fraction)
         self.process_noise = float(process_noise)
+        self.flank = flank
+        self.diameter_mm = float(diameter_mm)
         self.rng = np.random.default_rng(seed)
 
         m = len(self.modes)
         a = np.zeros((2 * m, 2 * m))
         b = np.zeros(2 * m)
         self._c = np.zeros(2 * m)          # displacement along the normal
+        self._cv = np.zeros(2 * m)         # velocity along the normal
         for i, md in enumerate(self.modes):
             a[2 * i, 2 * i + 1] = 1.0
             a[2 * i + 1, 2 * i] = -md.wn ** 2
             a[2 * i + 1, 2 * i + 1] = -2 * md.zeta * md.wn
             b[2 * i + 1] = md.u / md.mass_kg
             self._c[2 * i] = 1.0
+            self._cv[2 * i + 1] = 1.0
         self._a0 = a
         self._b = b
         # acceleration along the normal = acc_row . x + acc_gain * F
@@ -150,7 +172,11 @@ class RegenerativeTurning:
             self._acc_row[2 * i + 1] = -2 * md.zeta * md.wn
         self._acc_gain = float(b.sum())
         self._free = _Regime(a, b, 0.0, self.dt)
-        self._cut_cache: dict[float, _Regime] = {}
+        self._cut_cache: dict[tuple[float, float], _Regime] = {}
+        # flank damping is quantised to 0.25 % of the weakest mode's own
+        # damping (far below what moves a limit) so regimes can be cached
+        self._c_step = 0.0025 * min(2 * md.zeta * md.wn * md.mass_kg for md in self.modes)
+        self._vel_ms = 0.0                  # mean square normal velocity, recent (m^2/s^2)
 
         self.x = np.zeros(2 * m)
         self.theta = 0.0
@@ -180,24 +206,42 @@ class RegenerativeTurning:
         lo = max(lo, 0)
         return np.interp(q, self._th[lo:self._n], self._s[lo:self._n], left=0.0)
 
-    def _cut_regime(self, b_m: float) -> _Regime:
-        reg = self._cut_cache.get(b_m)
+    def _cut_regime(self, b_m: float, c_n_s_m: float = 0.0) -> _Regime:
+        """In-cut regime at depth b_m with extra (flank) damping c along the normal."""
+        reg = self._cut_cache.get((b_m, c_n_s_m))
         if reg is None:
             g = self.kf * b_m
-            reg = _Regime(self._a0 - g * np.outer(self._b, self._c), self._b, g, self.dt)
+            a = self._a0 - g * np.outer(self._b, self._c) - c_n_s_m * np.outer(self._b, self._cv)
+            reg = _Regime(a, self._b, g, self.dt)
             if len(self._cut_cache) > 64:
                 self._cut_cache.clear()
-            self._cut_cache[b_m] = reg
+            self._cut_cache[(b_m, c_n_s_m)] = reg
         return reg
+
+    def _flank_terms(self, b_m: float, rpm: float, diameter_mm: float) -> tuple[float, float]:
+        """Flank land's equivalent damping (quantised) and mean force at the recent amplitude."""
+        v = np.pi * diameter_mm * 1e-3 * rpm / 60.0
+        c, f_dc = self.flank.equivalent(b_m, v, float(np.sqrt(2.0 * self._vel_ms)))
+        return round(c / self._c_step) * self._c_step, f_dc
+
+    def _track_velocity(self, xs: np.ndarray) -> None:
+        k = xs.shape[1]
+        if k:
+            vel = self._cv @ xs
+            w = np.exp(-k * self.dt / _VEL_TAU_S)
+            self._vel_ms = w * self._vel_ms + (1.0 - w) * float(vel @ vel) / k
 
     # -- public ------------------------------------------------------------------
     def reset(self) -> None:
         self.x[:] = 0.0
         self.theta = 0.0
         self._n = 0
+        self._vel_ms = 0.0
 
-    def run(self, n_samples: int, rpm: float, depth_mm: float, feed_mm_rev: float) -> SimBlock:
-        """Advance ``n_samples`` at a constant speed, depth and feed."""
+    def run(self, n_samples: int, rpm: float, depth_mm: float, feed_mm_rev: float,
+            diameter_mm: float | None = None) -> SimBlock:
+        """Advance ``n_samples`` at a constant speed, depth and feed (``diameter_mm``:
+        the part's, for the cutting speed the flank land sees; default the constructor's)."""
         if not rpm > 0:
             raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
         if depth_mm < 0 or feed_mm_rev < 0:
@@ -220,10 +264,15 @@ class RegenerativeTurning:
             y[:] = self._c @ xs[:, 1:]
             acc[:] = self._acc_row @ xs[:, 1:]
             self.x = xs[:, -1]
+            if self.flank is not None:
+                self._track_velocity(xs[:, 1:])
             h[:] = 0.0
             self._push(theta, np.zeros(n))
         else:
-            self._run_cut(theta, n, b_m, h0, spr, y, acc, h, inc)
+            dia = self.diameter_mm if diameter_mm is None else float(diameter_mm)
+            if not dia > 0:
+                raise ValueError(f"workpiece diameter must be > 0 mm, got {dia}")
+            self._run_cut(theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia)
 
         self.theta = float(theta[-1]) if n else self.theta
         if self.noise_rms:
@@ -233,7 +282,7 @@ class RegenerativeTurning:
     def _free_run(self, n: int) -> np.ndarray:
         return self._free.response(self._free.vinv @ self.x, None, n)
 
-    def _run_cut(self, theta, n, b_m, h0, spr, y, acc, h, inc) -> None:
+    def _run_cut(self, theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia) -> None:
         cut = self._cut_regime(b_m)
         free = self._free
         g = self.kf * b_m
@@ -252,11 +301,16 @@ class RegenerativeTurning:
             y0 = float(self._c @ self.x)
             cutting = geo[0] - y0 > 0 and not (flat is not None and flat[0])
             reg = cut if cutting else free
+            c_fl = f_dc = 0.0
+            if cutting and self.flank is not None:
+                c_fl, f_dc = self._flank_terms(b_m, rpm, dia)
+                reg = self._cut_regime(b_m, c_fl)
             z0 = reg.vinv @ self.x
             if cutting:
-                w = geo
+                # force g*(w - y) - c_fl*y': the flank's mean force enters as chip
+                w = geo + f_dc / g
                 if self.process_noise:
-                    w = geo + h0 * self.process_noise * self.rng.standard_normal(m)
+                    w = w + h0 * self.process_noise * self.rng.standard_normal(m)
                 z = reg.response(z0, w, m)
             else:
                 z = reg.response(z0, None, m)
@@ -275,7 +329,11 @@ class RegenerativeTurning:
             h[sl] = hs[:j]
             inc[sl] = cutting
             force = g * (w[:j] - ys[:j]) if cutting else 0.0
+            if c_fl:
+                force = force - c_fl * (self._cv @ xs[:, :j])
             acc[sl] = self._acc_row @ xs[:, :j] + self._acc_gain * force
+            if self.flank is not None:
+                self._track_velocity(xs[:, :j])
             if cutting:
                 surf = ys[:j]
             else:
@@ -294,7 +352,9 @@ class RegenerativeTurning:
 @dataclass(frozen=True)
 class Segment:
     """A stretch of a simulated cut: speed (r/min), depth (mm), duration (s).
-    The speed ramps linearly from the previous segment's over ``ramp_s``."""
+    The speed and the depth ramp linearly from the previous segment's over
+    ``ramp_s`` (a speed change; a taper or growing stock: a depth that rises
+    through the stability limit without the kick of a step)."""
     duration_s: float
     rpm: float
     depth_mm: float
@@ -352,7 +412,8 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
                  rate_hz: float = DEFAULT_RATE_HZ, feed_mm_rev: float = 0.25,
                  runout_um: float = 0.0, flat_fraction: float = 0.0,
                  noise_rms: float = DEFAULT_NOISE_RMS, process_noise: float = DEFAULT_PROCESS_NOISE,
-                 seed: int = 0, block: int = 512) -> Recording:
+                 seed: int = 0, block: int = 512, flank: FlankWear | None = None,
+                 diameter_mm: float = DEFAULT_DIAMETER_MM) -> Recording:
     """Simulate a cut made of ``Segment``s and label it.
 
     ``unstable_at_s``: first instant the (depth, speed) pair lies above the
@@ -360,14 +421,17 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     start of the first revolution (counted from the unstable instant) whose
     rms pass-to-pass surface difference (``wav_rev``) is at least
     VISIBLE_WAVINESS_M and does not shrink (by more than 10 %) over the next
-    two revolutions.  Label "chatter" iff that happens.
+    two revolutions.  Label "chatter" iff that happens.  The lobes do not
+    include the flank's damping (``flank``): it adds none to vibrations below
+    its clearance (with a clearance of 0 it damps every vibration and raises
+    the limit itself, so ``unstable_at_s`` is then early).
     """
     segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
     sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,
-                              flat_fraction, seed, process_noise)
+                              flat_fraction, seed, process_noise, flank, diameter_mm)
     lobes = StabilityLobes(modes, kf_n_per_m2)
     acc, ys, inc, th, rpms, deps = [], [], [], [], [], []
-    prev_rpm = segs[0].rpm
+    prev_rpm, prev_depth = segs[0].rpm, segs[0].depth_mm
     for seg in segs:
         n_seg = int(round(seg.duration_s * rate_hz))
         done = 0
@@ -375,15 +439,17 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
             k = min(block, n_seg - done)
             t_in = done / rate_hz
             if seg.ramp_s > 0 and t_in < seg.ramp_s:
-                rpm = prev_rpm + (seg.rpm - prev_rpm) * (t_in + 0.5 * k / rate_hz) / seg.ramp_s
+                frac = (t_in + 0.5 * k / rate_hz) / seg.ramp_s
+                rpm = prev_rpm + (seg.rpm - prev_rpm) * frac
+                depth = prev_depth + (seg.depth_mm - prev_depth) * frac
             else:
-                rpm = seg.rpm
-            out = sim.run(k, rpm, seg.depth_mm, feed_mm_rev)
+                rpm, depth = seg.rpm, seg.depth_mm
+            out = sim.run(k, rpm, depth, feed_mm_rev)
             acc.append(out.accel); ys.append(out.y_m); inc.append(out.in_cut)
             th.append(out.theta_rad)
-            rpms.append(np.full(k, rpm)); deps.append(np.full(k, seg.depth_mm))
+            rpms.append(np.full(k, rpm)); deps.append(np.full(k, depth))
             done += k
-        prev_rpm = seg.rpm
+        prev_rpm, prev_depth = seg.rpm, seg.depth_mm
     signal = np.concatenate(acc)
     y = np.concatenate(ys)
     in_cut = np.concatenate(inc)
@@ -416,4 +482,5 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
                      "chatter" if visible_at is not None else "stable",
                      unstable_at, visible_at,
                      {"feed_mm_rev": feed_mm_rev, "runout_um": runout_um,
-                      "flat_fraction": flat_fraction, "seed": seed})
+                      "flat_fraction": flat_fraction, "seed": seed, "flank": flank,
+                      "diameter_mm": diameter_mm})

@@ -33,6 +33,7 @@ import time
 from collections import deque
 from pathlib import Path
 
+from lathed.analysis.process_damping import FlankWear
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe, parse_cut
@@ -51,7 +52,7 @@ class Simulator:
     def __init__(self, args: argparse.Namespace):
         self.args = args
         self.lathe = SimLathe(rate_hz=args.rate, time_scale=args.time_scale, seed=args.seed,
-                              depth_override_mm=args.depth_mm, **args.lathe)
+                              depth_override_mm=args.depth_mm, flank=args.flank, **args.lathe)
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.serial = SerialPeer(Path(args.serial_link))
@@ -298,6 +299,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--time-scale", type=float, default=1.0, help="speed-up of the thermal clock")
     p.add_argument("--depth-mm", type=float, default=None, help="override every part's depth of cut")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--flank-wear-mm", type=float, default=0.0,
+                   help="the tool's flank wear land VB, mm: process damping (0: a sharp tool, none)")
+    p.add_argument("--flank-clearance-deg", type=float, default=FlankWear.clearance_deg,
+                   help="the wear land's clearance to the cut surface, deg")
+    p.add_argument("--flank-indentation", type=float, default=FlankWear.k_sp_n_per_m3,
+                   help="indentation coefficient under the land, N/m^3")
     p.add_argument("--exit-with-parent", action="store_true")
     p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
     p.add_argument("--grinder-link", default="",
@@ -326,6 +333,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if not (0 <= args.load_s <= 60 and 0 <= args.retract_s <= 60):
         p.error("--load-s and --retract-s must be within 0..60 s")
     args.lathe = lathe
+    args.flank = None
+    if args.flank_wear_mm:
+        try:
+            args.flank = FlankWear(args.flank_wear_mm, args.flank_clearance_deg, args.flank_indentation)
+        except ValueError as e:
+            p.error(str(e))
     return args
 
 

@@ -4,7 +4,8 @@ A simulator of physics, not of a particular controller: the spindle follows
 its commanded speed within an acceleration limit; the program turns parts
 one after another (load, cut along the part, retract); the cut's vibration
 comes from the regenerative chip-thickness model (lathed.analysis.regen), so
-a depth above the stability limit really chatters; the spindle warms with
+a depth above the stability limit really chatters (with a worn tool,
+``flank``, chatter just above it stays mild); the spindle warms with
 speed (lathed.sim.thermal). It also watches its own cut for the instant
 chatter becomes visible on the surface (``VisibleChatter``, regen's rule
 applied live), so the closed loop's reaction can be timed against the truth.
@@ -21,6 +22,7 @@ import numpy as np
 
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
+from lathed.analysis.process_damping import FlankWear
 from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, SimBlock
 from lathed.sim.thermal import SpindleThermal
 
@@ -188,7 +190,8 @@ class SimLathe:
                  time_scale: float = 1.0, accel_rpm_s: float = 3000.0, max_rpm: float = 6000.0,
                  depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0,
                  modes: tuple[Mode, ...] = LATHE_MODES, kf: float = LATHE_KF,
-                 load_s: float = LOAD_S, retract_s: float = RETRACT_S):
+                 load_s: float = LOAD_S, retract_s: float = RETRACT_S,
+                 flank: FlankWear | None = None):
         self.program = program
         self.rate_hz = rate_hz
         self.time_scale = time_scale          # thermal clock speed-up
@@ -196,8 +199,9 @@ class SimLathe:
         self.max_rpm = max_rpm
         self.depth_override_mm = depth_override_mm
         # the true dynamics: by default the model the default configuration gives the daemon;
-        # other modes or Kf make an effect the daemon's model lacks (issue 16's tests)
-        self.cutter = RegenerativeTurning(modes, kf, rate_hz=float(rate_hz), seed=seed)
+        # other modes or Kf make an effect the daemon's model lacks (issue 16's tests);
+        # flank: the tool's worn land (process damping, issue 12), None for a sharp tool
+        self.cutter = RegenerativeTurning(modes, kf, rate_hz=float(rate_hz), seed=seed, flank=flank)
         self.load_s, self.retract_s = load_s, retract_s
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
@@ -292,7 +296,7 @@ class SimLathe:
         was = self.phase
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
-        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev)
+        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.part.diameter_mm)
         self._load(depth, block)
         self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)

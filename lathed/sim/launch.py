@@ -30,6 +30,14 @@ class SimulatorSettings:
         self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
         self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=10.0)
         self.seed = sec.getint("seed", 0, minval=0)
+        # the tool's worn flank ploughing the wavy surface (process damping: mild
+        # chatter just above the limit, lathed.analysis.process_damping); 0: a sharp tool
+        self.flank_wear_mm = sec.getfloat("flank_wear_mm", 0.0, minval=0.0, maxval=1.0)
+        if 0.0 < self.flank_wear_mm < 0.01:
+            raise sec.error("flank_wear_mm", f"{self.flank_wear_mm} is out of range; allowed: 0 (a sharp "
+                                             "tool) or a wear land in [0.01, 1] mm")
+        self.flank_clearance_deg = sec.getfloat("flank_clearance_deg", 0.2, minval=0.0, maxval=10.0)
+        self.flank_indentation = sec.getfloat("flank_indentation_n_m3", 4.0e13, minval=1e11, maxval=1e16)
         # the lathe's neighbours; each off unless configured
         self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
         self.grinder_link = sec.getstr("grinder_link", "")
@@ -84,6 +92,9 @@ class SimulatorSettings:
             a += ["--load-s", str(self.load_s)]
         if self.retract_s >= 0:
             a += ["--retract-s", str(self.retract_s)]
+        if self.flank_wear_mm:
+            a += ["--flank-wear-mm", str(self.flank_wear_mm), "--flank-clearance-deg",
+                  str(self.flank_clearance_deg), "--flank-indentation", str(self.flank_indentation)]
         return a
 
 
