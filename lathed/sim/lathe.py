@@ -222,6 +222,7 @@ class SimLathe:
         self.load_pct = 0.0
         self.lobes = StabilityLobes(modes, kf)
         self.watch = VisibleChatter(rate_hz)
+        self._tracked: PartRecord | None = None     # the part the watch follows
         self.n_samples = 0
         self.parts: deque[PartRecord] = deque(maxlen=64)
         self._new_part()
@@ -319,6 +320,7 @@ class SimLathe:
             # regen's rule counts from the instant the cut is above the limit
             if self.depth_mm > rec.b_lim_mm:
                 self.watch.start(i, max(self.rpm, 60.0))
+                self._tracked = rec
         elif was == "cut" and self.phase != "cut":
             # the part record moved on only after retract, so this is still its part
             rec.cut_end_s = i / self.rate_hz
@@ -328,10 +330,13 @@ class SimLathe:
         tracking = w.i0 is not None
         self.watch.feed(block)
         self.n_samples += n
+        # the tracked part's record, not the current one: the watch finishes a part's last
+        # revolutions after the program has moved on to the next part
+        trec = self._tracked
         if tracking and w.visible_at is not None and before is None:
-            rec.visible_at_s = w.visible_at / self.rate_hz
-        if tracking and len(w.revs) != len(rec.waviness_um) and len(w.revs) <= 8:
-            rec.waviness_um = [round(r * 1e6, 2) for r in w.revs]
+            trec.visible_at_s = w.visible_at / self.rate_hz
+        if tracking and len(w.revs) != len(trec.waviness_um) and len(w.revs) <= 8:
+            trec.waviness_um = [round(r * 1e6, 2) for r in w.revs]
 
     def registers(self) -> dict[str, float]:
         radius = self.part.diameter_mm / 2
