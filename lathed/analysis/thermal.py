@@ -737,16 +737,27 @@ def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[st
 
 
 def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int = 10, max_sensors: int = 8,
-                   min_gain: float = 0.005, min_z: float = 1.0, *, start: Sequence[LinearTerm] | None = None,
+                   min_gain: float = 0.005, min_z: float = 2.0, *, start: Sequence[LinearTerm] | None = None,
                    fixed: Sequence[Term] = (), prune: bool = True
                    ) -> tuple[list[LinearTerm], list[str], list[SensorKept]]:
-    """Forward stepwise choice of sensors (each with the filter of
-    ``_filters`` that suits it) on held-out time blocks: the one that most
-    lowers the held-out error enters while it lowers it by ``min_gain``
-    (relative) with a Diebold-Mariano z of ``min_z``, at most
-    ``max_sensors``; then any made redundant by later ones leaves. Sixteen
-    sensors on one spindle mostly read the same few heats: all of them in
-    one regression fit their noise and oscillations, not the growth.
+    """Choice of sensors (each with the filter of ``_filters`` that suits
+    it) on held-out time blocks, at most ``max_sensors``. Sixteen sensors on
+    one spindle mostly read the same few heats: all of them in one
+    regression fit their noise and oscillations, not the growth.
+
+    The search floats (sequential floating forward selection): for each
+    number of sensors it keeps the set with the least held-out error found
+    so far; after a sensor enters, swaps of one sensor (or its filter) for
+    another and removals are taken while they beat the best set of their
+    size. A plain forward pass is led astray by decoys: a sensor on a part
+    that lags a heated one (a housing further out) stands in for two true
+    sensors at once and, once in, keeps them out. The set grows by one only
+    while the best set one larger lowers the held-out error by ``min_gain``
+    (relative) with a Diebold-Mariano z of ``min_z``: the residual loop's
+    test for an effect. Among some thirty sensor-filter candidates the best
+    one always lowers the held-out error a little, by chance or by a slow
+    wander that fits within one run and not on the next; the old z of 1
+    took such sensors in.
 
     With no more usable sensors than ``max_sensors`` and no ``start``, all
     enter (each with its best filter): on a few sensors a missing effect
@@ -759,37 +770,87 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
     if y is None:
         return [LinearTerm(s) for s in keep], notes, []
     fixed = list(fixed)
-    grid: dict[str, list[float]] = {}
-    if start is None and len(keep) <= max_sensors:
+    few = len(keep) <= max_sensors
+    grid = {s: _filters(data, s) for s in keep}
+    if start is None and few:
         start = [LinearTerm(s) for s in keep]
         for i, s in enumerate(keep):
-            grid[s] = _filters(data, s)
             if len(grid[s]) > 1:
                 start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid[s]), key=lambda t: rmse(
                     _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
+    cands = [LinearTerm(s, float(round(sm, 1))) for s in keep for sm in grid[s]]
+    scored: dict[tuple[str, ...], tuple[float, np.ndarray]] = {}
+
+    def score(ts: Sequence[LinearTerm]) -> tuple[float, np.ndarray]:
+        key = tuple(sorted(repr(t) for t in ts))
+        if key not in scored:
+            e = (_heldout(data, [*ts, *fixed], n_blocks, gap) if ts or fixed
+                 else heldout_errors(np.empty((len(y), 0)), y, n_blocks, gap))
+            scored[key] = (rmse(e), e)
+        return scored[key]
+
+    def significant(small: Sequence[LinearTerm], big: Sequence[LinearTerm], gain: float, z: float) -> bool:
+        (r0, e0), (r1, e1) = score(small), score(big)
+        return 1 - r1 / r0 >= gain and improvement_z(e0, e1) >= z
+
+    def free(c: LinearTerm, ts: Sequence[LinearTerm]) -> bool:
+        return all(t.sensor != c.sensor for t in ts)
+
     chosen: list[LinearTerm] = [t for t in (start or ()) if t.sensor in keep]
-    e_cur = (_heldout(data, [*chosen, *fixed], n_blocks, gap) if chosen or fixed
-             else heldout_errors(np.empty((len(y), 0)), y, n_blocks, gap))
-    while len(chosen) < max_sensors:
-        best = None
-        for s in keep:
-            if any(t.sensor == s for t in chosen):
+    best: dict[int, list[LinearTerm]] = {len(chosen): chosen}
+
+    def better(ts: list[LinearTerm]) -> bool:
+        """Is ``ts`` the best set of its size yet? (kept if so)"""
+        k = len(ts)
+        if k in best and score(ts)[0] >= score(best[k])[0] - 1e-12:
+            return False
+        best[k] = ts
+        return True
+
+    def float_(ts: list[LinearTerm]) -> list[LinearTerm]:
+        while True:
+            swaps = [[*ts[:i], c, *ts[i + 1:]] for i in range(len(ts)) for c in cands
+                     if repr(c) != repr(ts[i]) and free(c, ts[:i] + ts[i + 1:])]
+            sw = min(swaps, key=lambda m: score(m)[0], default=None)
+            if sw is not None and better(sw):
+                ts = sw
                 continue
-            if s not in grid:
-                grid[s] = _filters(data, s)
-            for sm in grid[s]:
-                t = LinearTerm(s, float(round(sm, 1)))
-                e = _heldout(data, [*chosen, t, *fixed], n_blocks, gap)
-                if best is None or rmse(e) < best[0]:
-                    best = (rmse(e), t, e)
-        if best is None:
-            break
-        r, t, e = best
-        if (chosen and (1 - r / rmse(e_cur) < min_gain or improvement_z(e_cur, e) < min_z)):
-            break     # the first always enters: the growth is fitted to something
-        chosen.append(t)
-        e_cur = e
-    for t in list(chosen if prune else ()):     # made redundant by those that came after
+            # a smaller set only against the best of its size met on the way up
+            drops = [ts[:i] + ts[i + 1:] for i in range(len(ts))] if len(ts) - 1 in best else []
+            dr = min(drops, key=lambda m: score(m)[0], default=None)
+            if dr is not None and better(dr):
+                ts = dr
+                continue
+            return ts
+
+    if not few:
+        # Every size up to the cap, then the smallest set no larger one beats
+        # significantly: a plain "stop at the first step that is not
+        # significant" would stop where a decoy blocks the way (two true
+        # sensors in place of one decoy show only one size further on).
+        lo = len(chosen)
+        ts = float_(chosen) if chosen else chosen
+        if prune:      # sizes below the start: let go of sensors made redundant
+            while len(ts) > 1:
+                dr = min((ts[:i] + ts[i + 1:] for i in range(len(ts))), key=lambda m: score(m)[0])
+                better(dr)
+                ts = float_(best[len(dr)])
+            lo = 1
+        ts = best[len(chosen)]
+        while len(ts) < max_sensors:
+            adds = [[*ts, c] for c in cands if free(c, ts)]
+            if not adds:
+                break
+            nxt = min(adds, key=lambda m: score(m)[0])
+            better(nxt)
+            ts = float_(best[len(nxt)])
+        sizes = sorted(k for k in best if k >= max(lo, 1))
+        # the first always enters: the growth is fitted to something
+        k = next(k for k in sizes if not any(significant(best[k], best[j], min_gain, min_z)
+                                             for j in sizes if j > k))
+        chosen = best[k]
+    e_cur = score(chosen)[1]
+    for t in list(chosen if prune and few else ()):     # few sensors: only those that add next to nothing go
         rest = [o for o in chosen if o is not t]
         if not rest:
             break
