@@ -609,12 +609,14 @@ def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[float]:
     any: lags of a fraction of its period damp the oscillation and delay the
     slow heat little. A plain sensor is not filtered: a lag there is a
     physical effect, for the residual loop to find and name."""
-    # Any line that stands out, however small beside the warm-up; only a
-    # fast one: a slow swing (the room's) is heat the growth follows.
-    period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
-    if period is None or period > _FILTER_MAX_PERIOD_S:
-        return [0.0]
-    return [0.0, *(period * f for f in (0.25, 0.5, 1.0))]
+    cache = data.__dict__.setdefault("_smooth", {})     # shared with select(): same rows, same rises
+    if ("filters", sensor) not in cache:
+        # Any line that stands out, however small beside the warm-up; only a
+        # fast one: a slow swing (the room's) is heat the growth follows.
+        period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
+        cache[("filters", sensor)] = ([0.0] if period is None or period > _FILTER_MAX_PERIOD_S
+                                      else [0.0, *(period * f for f in (0.25, 0.5, 1.0))])
+    return list(cache[("filters", sensor)])
 
 
 class _HeldoutCache:
@@ -771,14 +773,14 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
         return [LinearTerm(s) for s in keep], notes, []
     fixed = list(fixed)
     few = len(keep) <= max_sensors
-    grid = {s: _filters(data, s) for s in keep}
     if start is None and few:
         start = [LinearTerm(s) for s in keep]
         for i, s in enumerate(keep):
-            if len(grid[s]) > 1:
-                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid[s]), key=lambda t: rmse(
+            grid = _filters(data, s)
+            if len(grid) > 1:
+                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid), key=lambda t: rmse(
                     _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
-    cands = [LinearTerm(s, float(round(sm, 1))) for s in keep for sm in grid[s]]
+    cands = [] if few else [LinearTerm(s, float(round(sm, 1))) for s in keep for sm in _filters(data, s)]
     scored: dict[tuple[str, ...], tuple[float, np.ndarray]] = {}
 
     def score(ts: Sequence[LinearTerm]) -> tuple[float, np.ndarray]:
