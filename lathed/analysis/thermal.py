@@ -738,8 +738,29 @@ def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[st
     return keep, notes
 
 
+def block_t(e_old: np.ndarray, e_new: np.ndarray, n_blocks: int) -> float:
+    """Paired t of the fall in held-out error across the held-out blocks (the
+    log of each block's mean squared error before over after; NaN with one
+    block). A block's held-out errors all come from one fit, so they are
+    correlated over the whole block: the block, not the row, is the unit of
+    evidence. The Diebold-Mariano z with its Newey-West window of sqrt(rows)
+    counts a 100-row block as several independent pieces, and called sensors
+    significant that fitted one run's course only."""
+    lr = np.array([np.log(np.mean(e_old[a:b] ** 2) / max(np.mean(e_new[a:b] ** 2), 1e-300))
+                   for a, b in blocks(len(e_old), n_blocks)])
+    if len(lr) < 2:
+        return math.nan
+    sd = float(lr.std(ddof=1))
+    return math.copysign(math.inf, lr.mean()) if sd == 0 else float(lr.mean() / (sd / math.sqrt(len(lr))))
+
+
+# One-sided level of the test a sensor passes to enter (see select_sensors).
+SENSOR_ALPHA = 0.05
+
+
 def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int = 10, max_sensors: int = 8,
-                   min_gain: float = 0.005, min_z: float = 2.0, *, start: Sequence[LinearTerm] | None = None,
+                   min_gain: float = 0.005, alpha: float = SENSOR_ALPHA, *,
+                   start: Sequence[LinearTerm] | None = None,
                    fixed: Sequence[Term] = (), prune: bool = True
                    ) -> tuple[list[LinearTerm], list[str], list[SensorKept]]:
     """Choice of sensors (each with the filter of ``_filters`` that suits
@@ -753,13 +774,15 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
     another and removals are taken while they beat the best set of their
     size. A plain forward pass is led astray by decoys: a sensor on a part
     that lags a heated one (a housing further out) stands in for two true
-    sensors at once and, once in, keeps them out. The set grows by one only
-    while the best set one larger lowers the held-out error by ``min_gain``
-    (relative) with a Diebold-Mariano z of ``min_z``: the residual loop's
-    test for an effect. Among some thirty sensor-filter candidates the best
-    one always lowers the held-out error a little, by chance or by a slow
-    wander that fits within one run and not on the next; the old z of 1
-    took such sensors in.
+    sensors at once and, once in, keeps them out. The search goes to the
+    cap, and the smallest set that no larger one beats significantly is
+    kept: beating means a held-out error lower by ``min_gain`` (relative)
+    and consistently so across the held-out blocks (``block_t`` at one-sided
+    level ``alpha``, Student's t with blocks - 1 degrees of freedom). Among
+    some thirty sensor-filter candidates the best one always lowers the
+    held-out error a little, by chance or by a slow wander that fits within
+    one run and not on the next; the old test (a Diebold-Mariano z of 1 on
+    rows) took such sensors in.
 
     With no more usable sensors than ``max_sensors`` and no ``start``, all
     enter (each with its best filter): on a few sensors a missing effect
@@ -791,9 +814,12 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
             scored[key] = (rmse(e), e)
         return scored[key]
 
-    def significant(small: Sequence[LinearTerm], big: Sequence[LinearTerm], gain: float, z: float) -> bool:
+    from scipy.stats import t as student
+    t_crit = float(student.ppf(1 - alpha, n_blocks - 1)) if n_blocks > 1 else math.inf
+
+    def significant(small: Sequence[LinearTerm], big: Sequence[LinearTerm]) -> bool:
         (r0, e0), (r1, e1) = score(small), score(big)
-        return 1 - r1 / r0 >= gain and improvement_z(e0, e1) >= z
+        return 1 - r1 / r0 >= min_gain and block_t(e0, e1, n_blocks) >= t_crit
 
     def free(c: LinearTerm, ts: Sequence[LinearTerm]) -> bool:
         return all(t.sensor != c.sensor for t in ts)
@@ -848,8 +874,7 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
             ts = float_(best[len(nxt)])
         sizes = sorted(k for k in best if k >= max(lo, 1))
         # the first always enters: the growth is fitted to something
-        k = next(k for k in sizes if not any(significant(best[k], best[j], min_gain, min_z)
-                                             for j in sizes if j > k))
+        k = next(k for k in sizes if not any(significant(best[k], best[j]) for j in sizes if j > k))
         chosen = best[k]
     e_cur = score(chosen)[1]
     for t in list(chosen if prune and few else ()):     # few sensors: only those that add next to nothing go
