@@ -1,9 +1,11 @@
 """Thermal error model of the spindle and the loop that finds what it lacks.
 
 The paper (eq. 14) fits the nose growth as a static linear function of four
-temperature rises. This module selects the sensors (any number; stepwise on
-held-out time, capped; a sensor that oscillates on its own is filtered the
-same way at fit and at prediction), fits that regression by least squares,
+temperature rises. This module selects the sensors (any number; a floating
+stepwise search on held-out time, capped, each kept sensor lowering the
+error consistently across the held-out blocks; a sensor that oscillates on
+its own is filtered the same way at fit and at prediction), fits that
+regression by least squares,
 then runs a residual loop: each *candidate effect* (sensor lag, temperature
 rate, speed, nonlinearity, hysteresis, drift, lag of speed, speed x
 temperature, lag of T - ambient, or one a plugin supplies) proposes extra
