@@ -155,7 +155,7 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
     return ratio <= 1.10, f"{ratio:.2f}x least squares on the 4 true ({ls4.test_rmse_um:.2f} µm)"
 
 
-def bench_second_pass(seeds: int, hours: float, base: int = 0) -> None:
+def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] | None = None) -> None:
     print(f"## Second pass: combined effects, many sensors, off-library structure ({seeds} pairs, "
           f"train seed s = {base + 1}..{base + seeds}, test seed s+100, {hours:g} h each)\n")
     print("| case | bar | meets bar | bar reachable | median test rmse before µm | after µm | "
@@ -167,6 +167,8 @@ def bench_second_pass(seeds: int, hours: float, base: int = 0) -> None:
             "16 sensors, 4 true": "within 10 % of least squares on the 4 true"}
     misses = []
     for case, bar in bars.items():
+        if cases and case not in cases:
+            continue
         ok = not_worse = not_worse_cv = reachable = 0
         noise = 0.2 if case == "lag+speed" else 0.3 if case.startswith("16") else NOISE_UM
         need = {"lag+speed": 0.9, "periodic 20 min": 0.6, "speed steps": 0.6}.get(case)
@@ -209,6 +211,8 @@ def main() -> None:
     ap.add_argument("--skip-time", action="store_true")
     ap.add_argument("--second-pass-seeds", type=int, default=10, help="pairs per second-pass case")
     ap.add_argument("--only-second-pass", action="store_true")
+    ap.add_argument("--case", action="append", metavar="CASE",
+                    help="second-pass case(s) only, e.g. --case '16 sensors, 4 true' (with --only-second-pass)")
     ap.add_argument("--seed-base", type=int, default=0,
                     help="train seeds are base+1..base+N: another range checks that nothing was tuned to the first")
     a = ap.parse_args()
@@ -216,7 +220,7 @@ def main() -> None:
         if not a.skip_time:
             bench_time(a.repeats)
         bench_recovery(a.seeds, a.hours, a.seed_base)
-    bench_second_pass(a.second_pass_seeds, a.hours, a.seed_base)
+    bench_second_pass(a.second_pass_seeds, a.hours, a.seed_base, a.case)
 
 
 if __name__ == "__main__":
