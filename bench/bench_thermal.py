@@ -1,6 +1,6 @@
 """Thermal residual loop: time to analyse 3000 rows, and effect recovery.
 
-    .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R]
+    .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R] [--seed-base B]
 
 Prints Markdown: (1) the median time of ``analyze`` on a 3000-row run
 (5 h at one row per 6 s, as in the paper) and on one 8-h shift, against the
@@ -77,8 +77,9 @@ def bench_time(repeats: int) -> None:
     print(f"\ntarget < 2 s for 3000 rows: {'met' if t3000 < 2.0 else 'NOT met'}\n")
 
 
-def bench_recovery(seeds: int, hours: float) -> None:
-    print(f"## Effect recovery, {seeds} train/test pairs (train seed s, test seed s+100, {hours:g} h each, "
+def bench_recovery(seeds: int, hours: float, base: int = 0) -> None:
+    print(f"## Effect recovery, {seeds} train/test pairs (train seed s = {base + 1}..{base + seeds}, test seed s+100, "
+          f"{hours:g} h each, "
           f"probe noise {NOISE_UM} µm)\n")
     print("| effect in data | named first | median test rmse before µm | after µm | median fall | "
           "meets bar | bar reachable | effects added (per pair) |")
@@ -88,7 +89,7 @@ def bench_recovery(seeds: int, hours: float) -> None:
         effects = () if eff == "none" else (eff,)
         named = ok = reachable = 0
         before, after, falls, added = [], [], [], []
-        for s in range(1, seeds + 1):
+        for s in range(base + 1, base + seeds + 1):
             tr = data(generate_run(random_schedule(s, total_s=hours * 3600), effects, seed=s, noise_um=NOISE_UM))
             te = data(generate_run(random_schedule(s + 100, total_s=hours * 3600), effects, seed=s + 100,
                                    noise_um=NOISE_UM))
@@ -154,9 +155,9 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
     return ratio <= 1.10, f"{ratio:.2f}x least squares on the 4 true ({ls4.test_rmse_um:.2f} µm)"
 
 
-def bench_second_pass(seeds: int, hours: float) -> None:
+def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] | None = None) -> None:
     print(f"## Second pass: combined effects, many sensors, off-library structure ({seeds} pairs, "
-          f"train seed s, test seed s+100, {hours:g} h each)\n")
+          f"train seed s = {base + 1}..{base + seeds}, test seed s+100, {hours:g} h each)\n")
     print("| case | bar | meets bar | bar reachable | median test rmse before µm | after µm | "
           "least squares (all sensors) µm | new <= least squares, held-out blocks / test run | "
           "median s per analysis | effects added (per pair) |")
@@ -166,11 +167,13 @@ def bench_second_pass(seeds: int, hours: float) -> None:
             "16 sensors, 4 true": "within 10 % of least squares on the 4 true"}
     misses = []
     for case, bar in bars.items():
+        if cases and case not in cases:
+            continue
         ok = not_worse = not_worse_cv = reachable = 0
         noise = 0.2 if case == "lag+speed" else 0.3 if case.startswith("16") else NOISE_UM
         need = {"lag+speed": 0.9, "periodic 20 min": 0.6, "speed steps": 0.6}.get(case)
         before, after, lsq, secs, added, details = [], [], [], [], [], []
-        for s in range(1, seeds + 1):
+        for s in range(base + 1, base + seeds + 1):
             tr, te = _pair(case, s, hours)
             t0 = time.perf_counter()
             a = analyze(tr, te)
@@ -208,12 +211,16 @@ def main() -> None:
     ap.add_argument("--skip-time", action="store_true")
     ap.add_argument("--second-pass-seeds", type=int, default=10, help="pairs per second-pass case")
     ap.add_argument("--only-second-pass", action="store_true")
+    ap.add_argument("--case", action="append", metavar="CASE",
+                    help="second-pass case(s) only, e.g. --case '16 sensors, 4 true' (with --only-second-pass)")
+    ap.add_argument("--seed-base", type=int, default=0,
+                    help="train seeds are base+1..base+N: another range checks that nothing was tuned to the first")
     a = ap.parse_args()
     if not a.only_second_pass:
         if not a.skip_time:
             bench_time(a.repeats)
-        bench_recovery(a.seeds, a.hours)
-    bench_second_pass(a.second_pass_seeds, a.hours)
+        bench_recovery(a.seeds, a.hours, a.seed_base)
+    bench_second_pass(a.second_pass_seeds, a.hours, a.seed_base, a.case)
 
 
 if __name__ == "__main__":

@@ -243,3 +243,40 @@ def test_sixteen_sensors_of_which_four_carry_the_growth():
     live = [pred.update({k: te.temps_c[k][i] for k in m.sensors}, rpm=te.rpm[i], t_s=te.time_s[i])
             for i in range(len(te))]
     assert live == pytest.approx(m.predict(te), abs=1e-6)
+
+
+def test_a_decoy_lagging_a_heated_sensor_does_not_keep_the_true_ones_out():
+    # Pair 7: a sensor on a part that lags the front bearing (t_extra07_c) stands
+    # in for the front bearing and the motor at once; a forward pass took it
+    # second and then saw no gain in either true one (6x least squares on the
+    # four true sensors on the next run). The floating search finds the true set.
+    from lathed.analysis.thermal import LinearTerm, _stage, select_sensors
+    from lathed.sim.thermal import TRUE_SENSORS, many_sensors
+
+    def run(seed):
+        return data(many_sensors(generate_run(random_schedule(seed, SHIFT_S), (), seed=seed, dt_s=60.0,
+                                              noise_um=0.3), seed))
+    tr, te = run(7), run(107)
+    chosen, _, _ = select_sensors(tr, prune=False)
+    names = {t.sensor for t in chosen}
+    assert names <= set(TRUE_SENSORS) and "t_front_bearing_c" in names, names
+    sel, _ = _stage(tr, chosen, te, 5, 10, [])
+    ls4, _ = _stage(tr.select(list(TRUE_SENSORS)), [LinearTerm(k) for k in TRUE_SENSORS],
+                    te.select(list(TRUE_SENSORS)), 5, 10, [], raw=True)
+    assert sel.test_rmse_um <= 1.10 * ls4.test_rmse_um, (sel.test_rmse_um, ls4.test_rmse_um)
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_sensors_that_only_wander_do_not_enter(seed):
+    # Twelve cabinet sensors on random walks carry no growth; within one run a
+    # walk can still follow the residual's slow course. The old test (a z of 1
+    # over rows, Newey-West window sqrt(rows)) took one to three of them in.
+    from lathed.analysis.thermal import select_sensors
+    r = generate_run(random_schedule(seed, SHIFT_S), (), seed=seed, dt_s=60.0, noise_um=0.3).columns
+    rng = np.random.default_rng(seed)
+    temps = {k: v for k, v in r.items() if k.startswith("t_")}
+    for i in range(12):
+        temps[f"t_cabinet{i:02d}_c"] = np.round((20 + np.cumsum(rng.normal(0, 0.01, len(r["time_s"])))) * 16) / 16
+    d = ThermalData(r["time_s"], temps, r["displacement_um"], r["spindle_rpm"])
+    chosen, _, _ = select_sensors(d, prune=False)
+    assert {t.sensor for t in chosen} == {"t_front_bearing_c", "t_rear_bearing_c", "t_motor_c"}

@@ -1,9 +1,11 @@
 """Thermal error model of the spindle and the loop that finds what it lacks.
 
 The paper (eq. 14) fits the nose growth as a static linear function of four
-temperature rises. This module selects the sensors (any number; stepwise on
-held-out time, capped; a sensor that oscillates on its own is filtered the
-same way at fit and at prediction), fits that regression by least squares,
+temperature rises. This module selects the sensors (any number; a floating
+stepwise search on held-out time, capped, each kept sensor lowering the
+error consistently across the held-out blocks; a sensor that oscillates on
+its own is filtered the same way at fit and at prediction), fits that
+regression by least squares,
 then runs a residual loop: each *candidate effect* (sensor lag, temperature
 rate, speed, nonlinearity, hysteresis, drift, lag of speed, speed x
 temperature, lag of T - ambient, or one a plugin supplies) proposes extra
@@ -609,12 +611,14 @@ def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[float]:
     any: lags of a fraction of its period damp the oscillation and delay the
     slow heat little. A plain sensor is not filtered: a lag there is a
     physical effect, for the residual loop to find and name."""
-    # Any line that stands out, however small beside the warm-up; only a
-    # fast one: a slow swing (the room's) is heat the growth follows.
-    period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
-    if period is None or period > _FILTER_MAX_PERIOD_S:
-        return [0.0]
-    return [0.0, *(period * f for f in (0.25, 0.5, 1.0))]
+    cache = data.__dict__.setdefault("_smooth", {})     # shared with select(): same rows, same rises
+    if ("filters", sensor) not in cache:
+        # Any line that stands out, however small beside the warm-up; only a
+        # fast one: a slow swing (the room's) is heat the growth follows.
+        period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
+        cache[("filters", sensor)] = ([0.0] if period is None or period > _FILTER_MAX_PERIOD_S
+                                      else [0.0, *(period * f for f in (0.25, 0.5, 1.0))])
+    return list(cache[("filters", sensor)])
 
 
 class _HeldoutCache:
@@ -631,6 +635,8 @@ class _HeldoutCache:
         n = len(y)
         self.blocks = blocks(n, n_blocks)
         self.segs = [(max(lo - gap, 0), min(hi + gap, n)) for lo, hi in self.blocks]
+        self.row_block = np.repeat(np.arange(len(self.blocks)), [hi - lo for lo, hi in self.blocks])
+        self.fit_rows = np.array([max(n - (c - a), 1) for a, c in self.segs], dtype=float)
         self.cols: dict[str, np.ndarray] = {"1": np.ones(n), "y": y}
         self.sums: dict[tuple[str, str], np.ndarray] = {}
         self.by_id: dict[tuple[int, bool], tuple[Term, list[str]]] = {}
@@ -680,15 +686,12 @@ class _HeldoutCache:
         var = S[np.arange(m), np.arange(m), 0] / n - (S[:, m - 1, 0] / n) ** 2
         var = np.where(var > 0, var, 1.0)
         var[-1] = 0.0
-        err = np.empty(n)
-        for b, ((lo, hi), (a, c)) in enumerate(zip(self.blocks, self.segs)):
-            G = S[:, :, 0] - S[:, :, b + 1]
-            coef = np.linalg.solve(G + np.diag(_RIDGE * max(n - (c - a), 1) * var), Sy[:, 0] - Sy[:, b + 1])
-            pred = np.full(hi - lo, coef[-1])
-            for j, k in enumerate(pk):
-                pred += coef[j] * self.cols[k][lo:hi]
-            err[lo:hi] = y[lo:hi] - pred
-        return err
+        # every block's fit in one batched solve, every row predicted by its block's
+        G = np.moveaxis(S[:, :, :1] - S[:, :, 1:], 2, 0)
+        G[:, np.arange(m), np.arange(m)] += _RIDGE * self.fit_rows[:, None] * var
+        coef = np.linalg.solve(G, (Sy[:, :1] - Sy[:, 1:]).T[:, :, None])[:, :, 0][self.row_block]
+        P = np.column_stack([self.cols[k] for k in pk]) if pk else np.empty((n, 0))
+        return y - np.einsum("ij,ij->i", P, coef[:, :-1]) - coef[:, -1]
 
 
 def _heldout(data: ThermalData | ThermalRuns, terms: Sequence[Term], n_blocks: int, gap: int) -> np.ndarray:
@@ -736,17 +739,51 @@ def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[st
     return keep, notes
 
 
+def block_t(e_old: np.ndarray, e_new: np.ndarray, n_blocks: int) -> float:
+    """Paired t of the fall in held-out error across the held-out blocks (the
+    log of each block's mean squared error before over after; NaN with one
+    block). A block's held-out errors all come from one fit, so they are
+    correlated over the whole block: the block, not the row, is the unit of
+    evidence. The Diebold-Mariano z with its Newey-West window of sqrt(rows)
+    counts a 100-row block as several independent pieces, and called sensors
+    significant that fitted one run's course only."""
+    lr = np.array([np.log(np.mean(e_old[a:b] ** 2) / max(np.mean(e_new[a:b] ** 2), 1e-300))
+                   for a, b in blocks(len(e_old), n_blocks)])
+    if len(lr) < 2:
+        return math.nan
+    sd = float(lr.std(ddof=1))
+    return math.copysign(math.inf, lr.mean()) if sd == 0 else float(lr.mean() / (sd / math.sqrt(len(lr))))
+
+
+# One-sided level of the test a sensor passes to enter (see select_sensors).
+SENSOR_ALPHA = 0.05
+
+
 def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int = 10, max_sensors: int = 8,
-                   min_gain: float = 0.005, min_z: float = 1.0, *, start: Sequence[LinearTerm] | None = None,
+                   min_gain: float = 0.005, alpha: float = SENSOR_ALPHA, *,
+                   start: Sequence[LinearTerm] | None = None,
                    fixed: Sequence[Term] = (), prune: bool = True
                    ) -> tuple[list[LinearTerm], list[str], list[SensorKept]]:
-    """Forward stepwise choice of sensors (each with the filter of
-    ``_filters`` that suits it) on held-out time blocks: the one that most
-    lowers the held-out error enters while it lowers it by ``min_gain``
-    (relative) with a Diebold-Mariano z of ``min_z``, at most
-    ``max_sensors``; then any made redundant by later ones leaves. Sixteen
-    sensors on one spindle mostly read the same few heats: all of them in
-    one regression fit their noise and oscillations, not the growth.
+    """Choice of sensors (each with the filter of ``_filters`` that suits
+    it) on held-out time blocks, at most ``max_sensors``. Sixteen sensors on
+    one spindle mostly read the same few heats: all of them in one
+    regression fit their noise and oscillations, not the growth.
+
+    The search floats (sequential floating forward selection): for each
+    number of sensors it keeps the set with the least held-out error found
+    so far; after a sensor enters, swaps of one sensor (or its filter) for
+    another and removals are taken while they beat the best set of their
+    size. A plain forward pass is led astray by decoys: a sensor on a part
+    that lags a heated one (a housing further out) stands in for two true
+    sensors at once and, once in, keeps them out. The search goes to the
+    cap, and the smallest set that no larger one beats significantly is
+    kept: beating means a held-out error lower by ``min_gain`` (relative)
+    and consistently so across the held-out blocks (``block_t`` at one-sided
+    level ``alpha``, Student's t with blocks - 1 degrees of freedom). Among
+    some thirty sensor-filter candidates the best one always lowers the
+    held-out error a little, by chance or by a slow wander that fits within
+    one run and not on the next; the old test (a Diebold-Mariano z of 1 on
+    rows) took such sensors in.
 
     With no more usable sensors than ``max_sensors`` and no ``start``, all
     enter (each with its best filter): on a few sensors a missing effect
@@ -759,37 +796,89 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
     if y is None:
         return [LinearTerm(s) for s in keep], notes, []
     fixed = list(fixed)
-    grid: dict[str, list[float]] = {}
-    if start is None and len(keep) <= max_sensors:
+    few = len(keep) <= max_sensors
+    if start is None and few:
         start = [LinearTerm(s) for s in keep]
         for i, s in enumerate(keep):
-            grid[s] = _filters(data, s)
-            if len(grid[s]) > 1:
-                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid[s]), key=lambda t: rmse(
+            grid = _filters(data, s)
+            if len(grid) > 1:
+                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid), key=lambda t: rmse(
                     _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
+    cands = [] if few else [LinearTerm(s, float(round(sm, 1))) for s in keep for sm in _filters(data, s)]
+    scored: dict[tuple[str, ...], tuple[float, np.ndarray]] = {}
+
+    def score(ts: Sequence[LinearTerm]) -> tuple[float, np.ndarray]:
+        key = tuple(sorted(repr(t) for t in ts))
+        if key not in scored:
+            e = (_heldout(data, [*ts, *fixed], n_blocks, gap) if ts or fixed
+                 else heldout_errors(np.empty((len(y), 0)), y, n_blocks, gap))
+            scored[key] = (rmse(e), e)
+        return scored[key]
+
+    from scipy.special import stdtrit      # Student's t quantile (scipy.stats costs a second to import)
+    t_crit = float(stdtrit(n_blocks - 1, 1 - alpha)) if n_blocks > 1 else math.inf
+
+    def significant(small: Sequence[LinearTerm], big: Sequence[LinearTerm]) -> bool:
+        (r0, e0), (r1, e1) = score(small), score(big)
+        return 1 - r1 / r0 >= min_gain and block_t(e0, e1, n_blocks) >= t_crit
+
+    def free(c: LinearTerm, ts: Sequence[LinearTerm]) -> bool:
+        return all(t.sensor != c.sensor for t in ts)
+
     chosen: list[LinearTerm] = [t for t in (start or ()) if t.sensor in keep]
-    e_cur = (_heldout(data, [*chosen, *fixed], n_blocks, gap) if chosen or fixed
-             else heldout_errors(np.empty((len(y), 0)), y, n_blocks, gap))
-    while len(chosen) < max_sensors:
-        best = None
-        for s in keep:
-            if any(t.sensor == s for t in chosen):
+    best: dict[int, list[LinearTerm]] = {len(chosen): chosen}
+
+    def better(ts: list[LinearTerm]) -> bool:
+        """Is ``ts`` the best set of its size yet? (kept if so)"""
+        k = len(ts)
+        if k in best and score(ts)[0] >= score(best[k])[0] - 1e-12:
+            return False
+        best[k] = ts
+        return True
+
+    def float_(ts: list[LinearTerm]) -> list[LinearTerm]:
+        while True:
+            swaps = [[*ts[:i], c, *ts[i + 1:]] for i in range(len(ts)) for c in cands
+                     if repr(c) != repr(ts[i]) and free(c, ts[:i] + ts[i + 1:])]
+            sw = min(swaps, key=lambda m: score(m)[0], default=None)
+            if sw is not None and better(sw):
+                ts = sw
                 continue
-            if s not in grid:
-                grid[s] = _filters(data, s)
-            for sm in grid[s]:
-                t = LinearTerm(s, float(round(sm, 1)))
-                e = _heldout(data, [*chosen, t, *fixed], n_blocks, gap)
-                if best is None or rmse(e) < best[0]:
-                    best = (rmse(e), t, e)
-        if best is None:
-            break
-        r, t, e = best
-        if (chosen and (1 - r / rmse(e_cur) < min_gain or improvement_z(e_cur, e) < min_z)):
-            break     # the first always enters: the growth is fitted to something
-        chosen.append(t)
-        e_cur = e
-    for t in list(chosen if prune else ()):     # made redundant by those that came after
+            # a smaller set only against the best of its size met on the way up
+            drops = [ts[:i] + ts[i + 1:] for i in range(len(ts))] if len(ts) - 1 in best else []
+            dr = min(drops, key=lambda m: score(m)[0], default=None)
+            if dr is not None and better(dr):
+                ts = dr
+                continue
+            return ts
+
+    if not few:
+        # Every size up to the cap, then the smallest set no larger one beats
+        # significantly: a plain "stop at the first step that is not
+        # significant" would stop where a decoy blocks the way (two true
+        # sensors in place of one decoy show only one size further on).
+        lo = len(chosen)
+        ts = float_(chosen) if chosen else chosen
+        if prune:      # sizes below the start: let go of sensors made redundant
+            while len(ts) > 1:
+                dr = min((ts[:i] + ts[i + 1:] for i in range(len(ts))), key=lambda m: score(m)[0])
+                better(dr)
+                ts = float_(best[len(dr)])
+            lo = 1
+        ts = best[len(chosen)]
+        while len(ts) < max_sensors:
+            adds = [[*ts, c] for c in cands if free(c, ts)]
+            if not adds:
+                break
+            nxt = min(adds, key=lambda m: score(m)[0])
+            better(nxt)
+            ts = float_(best[len(nxt)])
+        sizes = sorted(k for k in best if k >= max(lo, 1))
+        # the first always enters: the growth is fitted to something
+        k = next(k for k in sizes if not any(significant(best[k], best[j]) for j in sizes if j > k))
+        chosen = best[k]
+    e_cur = score(chosen)[1]
+    for t in list(chosen if prune and few else ()):     # few sensors: only those that add next to nothing go
         rest = [o for o in chosen if o is not t]
         if not rest:
             break
