@@ -7,6 +7,7 @@ once per frame period for all subscribers together.
 """
 from __future__ import annotations
 
+import base64
 from functools import lru_cache
 
 import numpy as np
@@ -59,9 +60,17 @@ class Ring:
                 **spectrum(x, self.rate_hz)}
 
 
+def packed(a: np.ndarray) -> dict:
+    """``a`` as {"f32": base64 of its little-endian float32 bytes}: a plot needs no more than
+    float32's 7 digits, and encoding is a copy, where JSON's float by float cost a subscriber
+    a millisecond a frame (issue 14). Non-finite values stay NaN/inf: a page shows them as gaps."""
+    return {"f32": base64.b64encode(np.ascontiguousarray(a, dtype="<f4").tobytes()).decode("ascii")}
+
+
 def rounded(a: np.ndarray, digits: int = 4) -> list[float | None]:
     """``a`` as a list to ``digits`` significant digits of its largest value (a plot shows no
-    finer; the JSON is a third the size), vectorised; a non-finite value becomes None (null)."""
+    finer; the JSON is a third the size), vectorised; a non-finite value becomes None (null).
+    For what is sent once (a lobe chart); what changes every frame is ``packed``."""
     a = np.asarray(a, dtype=float)
     finite = np.isfinite(a)
     m = float(np.max(np.abs(a[finite]))) if finite.any() else 0.0
@@ -71,13 +80,20 @@ def rounded(a: np.ndarray, digits: int = 4) -> list[float | None]:
     return [v if ok else None for v, ok in zip(out.tolist(), finite.tolist())]
 
 
+def unpacked(v: dict | list) -> np.ndarray:
+    """A client's side of ``packed`` (a plain list passes as it is)."""
+    if isinstance(v, dict):
+        return np.frombuffer(base64.b64decode(v["f32"]), dtype="<f4").astype(float)
+    return np.asarray(v, dtype=float)
+
+
 def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
     """Min and max of x per column, with each column's time from the window's start (s)."""
     cols = min(columns, len(x))
     edges = np.linspace(0, len(x), cols + 1).astype(int)
     lo = np.minimum.reduceat(x, edges[:-1])
     hi = np.maximum.reduceat(x, edges[:-1])
-    return {"env_t": rounded(edges[:-1] / rate_hz), "env_min": rounded(lo), "env_max": rounded(hi)}
+    return {"env_t": packed(edges[:-1] / rate_hz), "env_min": packed(lo), "env_max": packed(hi)}
 
 
 def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bins: int = SPECTRUM_BINS) -> dict:
@@ -92,9 +108,9 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
     group = max(1, int(np.ceil(len(mag) / bins)))
     m = len(mag) // group * group
     if m == 0:
-        return {"spec_f": [], "spec_a": []}
+        return {"spec_f": packed(np.empty(0)), "spec_a": packed(np.empty(0))}
     peaks = mag[:m].reshape(-1, group).max(axis=1)
-    return {"spec_f": rounded(f[:m].reshape(-1, group)[:, 0]), "spec_a": rounded(peaks)}
+    return {"spec_f": packed(f[:m].reshape(-1, group)[:, 0]), "spec_a": packed(peaks)}
 
 
 @lru_cache(maxsize=4)

@@ -40,7 +40,7 @@ from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
-from lathed.display import rounded, thin
+from lathed.display import packed, thin
 
 EYE_POINTS = 600   # chaos-eye points sent to a screen
 
@@ -264,9 +264,9 @@ class ChatterAnalyzer(Analyzer):
             return self._eye_view[1]     # no new window since: the same points
         p1, p2 = det.eye_points()
         base = det.eye_baseline
-        out = {"eye_phi1": rounded(thin(p1, EYE_POINTS)), "eye_phi2": rounded(thin(p2, EYE_POINTS))}
+        out = {"eye_phi1": packed(thin(p1, EYE_POINTS)), "eye_phi2": packed(thin(p2, EYE_POINTS))}
         if base is not None:
-            out.update(base_phi1=rounded(thin(base[0], EYE_POINTS)), base_phi2=rounded(thin(base[1], EYE_POINTS)))
+            out.update(base_phi1=packed(thin(base[0], EYE_POINTS)), base_phi2=packed(thin(base[1], EYE_POINTS)))
         self._eye_view = ((id(det), self.windows), out)
         return out
 

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from lathed.display import COLUMNS, SPECTRUM_BINS, Ring, envelope, rounded, spectrum
+from lathed.display import COLUMNS, SPECTRUM_BINS, Ring, envelope, packed, rounded, spectrum, unpacked
 
 RATE = 51200.0
 
@@ -13,15 +13,15 @@ RATE = 51200.0
 def test_envelope_keeps_every_extreme():
     x = np.random.default_rng(1).normal(size=8192)
     x[5000] = 9.0                      # one sample spike: a plot of every 20th sample would miss it
-    env = envelope(x, RATE)
+    env = {k: unpacked(v) for k, v in envelope(x, RATE).items()}
     assert len(env["env_max"]) == COLUMNS
-    assert max(env["env_max"]) == 9.0 and min(env["env_min"]) == rounded(np.array([x.min(), 9.0]))[0]
+    assert max(env["env_max"]) == 9.0 and min(env["env_min"]) == np.float32(x.min())
 
 
 def test_spectrum_finds_a_chatter_tone_at_its_frequency_and_amplitude():
     t = np.arange(8192) / RATE
     x = 0.01 * np.random.default_rng(2).normal(size=t.size) + 2.0 * np.sin(2 * np.pi * 620.0 * t)
-    sp = spectrum(x, RATE)
+    sp = {k: unpacked(v) for k, v in spectrum(x, RATE).items()}
     assert len(sp["spec_f"]) <= SPECTRUM_BINS and max(sp["spec_f"]) <= 5000
     peak = int(np.argmax(sp["spec_a"]))
     assert abs(sp["spec_f"][peak] - 620.0) < 15      # a bin is 12.5 Hz wide
@@ -52,3 +52,13 @@ def test_ring_keeps_the_last_window_in_order_across_wraps():
 def test_rounded_is_json_safe():
     assert rounded(np.array([0.0123456, 1.23456, np.nan, np.inf])) == [0.012, 1.235, None, None]
     assert json.dumps(rounded(np.zeros(2))) == "[0.0, 0.0]"
+
+
+def test_packed_arrays_are_float32_exact_and_smaller_than_json():
+    a = np.random.default_rng(4).normal(size=400) * 1e3
+    a[7] = np.nan                                  # a gap stays a gap
+    p = packed(a)
+    back = unpacked(json.loads(json.dumps(p)))
+    assert np.array_equal(back[np.isfinite(a)], a[np.isfinite(a)].astype(np.float32)) and np.isnan(back[7])
+    assert len(json.dumps(p)) < len(json.dumps(rounded(a)))
+    assert unpacked([1.0, 2.0]).tolist() == [1.0, 2.0] and unpacked(packed(np.empty(0))).size == 0

@@ -16,10 +16,22 @@ function addSample(key, t, v, unit) {
   S.latest[key] = v;
   if (unit !== undefined) S.units[key] = unit;
 }
+// An array the daemon packed (lathed.display.packed: {"f32": base64 of little-endian float32}),
+// as numbers; NaN (a gap) as null, which uPlot draws as a gap.
+function unpack(v) {
+  if (!v || typeof v !== "object" || typeof v.f32 !== "string") return v;
+  const bin = atob(v.f32), bytes = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
+  return Array.from(new Float32Array(bytes.buffer), (x) => (Number.isFinite(x) ? x : null));
+}
+function unpackAll(views) {
+  for (const v of Object.values(views || {})) if (v && typeof v === "object") for (const k of Object.keys(v)) v[k] = unpack(v[k]);
+  return views || {};
+}
 function onInit(m) {
   S.hist = {}; S.latest = {}; S.units = m.units || {};
   for (const [k, [ts, vs]] of Object.entries(m.history || {})) ts.forEach((t, i) => addSample(k, t, vs[i]));
-  S.status = m.status; S.events = m.events || []; S.vib = m.vibration || {}; S.views = m.views || {};
+  S.status = m.status; S.events = m.events || []; S.vib = unpackAll(m.vibration); S.views = unpackAll(m.views);
   recordsDirty = true;
   setLink(m.connected, m.error);
 }
@@ -34,8 +46,8 @@ function onFrame(m) {
       to[k] = o;
     } else to[k] = v;
   } };
-  merge(S.vib, m.vibration);
-  merge(S.views, m.views);
+  merge(S.vib, unpackAll(m.vibration));
+  merge(S.views, unpackAll(m.views));
   if (m.events && m.events.length) { S.events = S.events.concat(m.events).slice(-500); recordsDirty = true; refreshParts(); }
   S.lastFrame = Date.now();
   if (!S.connected) setLink(true, null);
