@@ -106,7 +106,7 @@ def until(cond, timeout: float, what: str) -> None:
         time.sleep(0.1)
 
 
-def run(cycles: int, seconds: float, warmup: float) -> dict:
+def run(cycles: int, seconds: float, warmup: float, browsers: int = BROWSERS) -> dict:
     from playwright.sync_api import sync_playwright
     with tempfile.TemporaryDirectory(prefix="bench-web-") as d:
         tmp = Path(d)
@@ -122,7 +122,7 @@ def run(cycles: int, seconds: float, warmup: float) -> dict:
             with sync_playwright() as p:
                 browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
                 pages = []
-                for _ in range(BROWSERS):
+                for _ in range(browsers):
                     page = browser.new_page(viewport={"width": 1600, "height": 1300})
                     page.add_init_script(LATENCY_PROBE)
                     for _ in range(50):
@@ -163,9 +163,11 @@ def main() -> int:
     ap.add_argument("--cycles", type=int, default=6, help="pairs of phases (none, web)")
     ap.add_argument("--seconds", type=float, default=20.0, help="seconds per phase")
     ap.add_argument("--warmup", type=float, default=20.0)
+    ap.add_argument("--browsers", type=int, default=BROWSERS,
+                    help="pages open (0: the daemon's cost of lathed-web's subscription alone)")
     ap.add_argument("--json", help="also write the results here")
     a = ap.parse_args()
-    r = run(a.cycles, a.seconds, a.warmup)
+    r = run(a.cycles, a.seconds, a.warmup, a.browsers)
     if a.json:
         Path(a.json).write_text(json.dumps(r, indent=2))
     n, w = r["none"], r["web"]
@@ -180,9 +182,9 @@ def main() -> int:
 
     acts = sum(x["actions"] for x in n), sum(x["actions"] for x in w)
     print(f"Operator view cost: default config on the simulator, {DEPTH_MM:g} mm cuts; {a.cycles} interleaved "
-          f"cycles of {a.seconds:.0f} s without and {a.seconds:.0f} s with lathed-web and {BROWSERS} Chromium "
+          f"cycles of {a.seconds:.0f} s without and {a.seconds:.0f} s with lathed-web and {a.browsers} Chromium "
           f"pages on it; medians over the cycles\n")
-    print("| measure | no clients | lathed-web + 5 browsers | ratio with / without, median (range) "
+    print(f"| measure | no clients | lathed-web + {a.browsers} browsers | ratio with / without, median (range) "
           "(bar: <= 1.10) |")
     print("|---|---|---|---|")
 
