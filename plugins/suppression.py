@@ -470,7 +470,8 @@ class SuppressionAnalyzer(Analyzer):
 
     async def _act(self, d: Decision, by: str | None = None, trigger: str = "alarm") -> dict:
         source = by or self.name
-        payload = {**d.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger}
+        payload = {**d.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger,
+                   "model": self.model_name}       # the stability model whose lobes chose the speed
         if d.variation is not None:
             self._start_ssv(d)
             result = {"sent": True, "reason": "modulating"}

@@ -90,9 +90,11 @@ def test_the_refit_names_the_shifted_mode_and_suppression_uses_it(shifted, tmp_p
     act = wait_until(lambda: [a for a in events(d, "suppression_action") if a["t"] > t_adopt
                               and a["payload"]["strategy"] == "sss_lobes"],
                      timeout=60, interval=0.5, what="a lobe-selected action after the adoption")[0]["payload"]
+    # named in the action, and its limit is the adopted lobes' (at some speeds the old and new
+    # lobes agree within a percent, so the limit alone cannot tell which model chose)
+    assert act["model"] == "lathe-v1.json"
     b_new = float(adopted.limit(act["rpm_after"])[0][0]) * 1e3
-    b_old = float(StabilityModel(LATHE_MODES, LATHE_KF).limit(act["rpm_after"])[0][0]) * 1e3
-    assert act["expected_b_lim_mm"] == pytest.approx(b_new, rel=0.02) and b_new != pytest.approx(b_old, rel=0.02)
+    assert act["expected_b_lim_mm"] == pytest.approx(b_new, rel=0.005)
     wait_until(lambda: any(c["model"] == "lathe-v1.json" for c in cuts(d)), timeout=30, interval=0.5,
                what="a cut recorded under the adopted model")
 
