@@ -13,11 +13,15 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 # The daemon, and beside it the operator view and the OPC UA server on loopback (lathed-web
-# and lathed-opcua print their URLs); Ctrl-C stops all three.
+# and lathed-opcua print their URLs); Ctrl-C stops all three. On a terminal, job control
+# (set -m) gives the daemon the terminal: Ctrl-C reaches it alone, it stops its drivers and
+# exits 0, the other two are stopped after it, and make too exits 0 (without it, make gets
+# the SIGINT as well and reports "Interrupt" whatever the daemon did).
 run: $(STAMP)
-	@$(BIN)/lathed-web --config etc/lathed-web.toml & web=$$!; \
+	@[ -t 0 ] && set -m; \
+	$(BIN)/lathed-web --config etc/lathed-web.toml & web=$$!; \
 	$(BIN)/lathed-opcua --config etc/lathed-opcua.toml & opcua=$$!; \
-	trap 'kill $$web $$opcua 2>/dev/null' EXIT INT TERM; \
+	trap 'kill $$web $$opcua 2>/dev/null; wait $$web $$opcua 2>/dev/null' EXIT INT TERM; \
 	$(BIN)/lathed --config etc/lathed.toml
 
 test: $(STAMP)

@@ -185,6 +185,11 @@ class ControlServer:
                 await self._reply(writer, reply)
         except (ConnectionError, asyncio.IncompleteReadError, TimeoutError):
             pass
+        except asyncio.CancelledError:
+            # the daemon stops with this client connected (a subscriber: lathed-web, lathed-opcua).
+            # The connection ends here; let through, Python 3.11's stream callback would log the
+            # cancellation as an "Exception in callback" traceback (fixed in 3.12).
+            pass
         finally:
             self._waiting.pop(writer, None)
             self.clients -= 1

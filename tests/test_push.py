@@ -364,3 +364,16 @@ def test_views_sent_as_changed_keys_merge_back_to_the_view(views):
     # unchanged long values are not sent again
     big = {"spec_f": list(range(400)), "spec_a": [1.0] * 400}
     assert changed_keys(big, {"spec_f": list(range(400)), "spec_a": [2.0] * 400}) == (True, {"spec_a": [2.0] * 400})
+
+
+def test_the_daemon_stops_cleanly_with_a_subscriber_connected(sim_daemon):
+    """lathed-web and lathed-opcua stay subscribed while the daemon stops (systemctl stop, Ctrl-C
+    on make run): the cancelled connection was logged as an "Exception in callback" traceback."""
+    d = sim_daemon()
+    frames = subscribe({"samples": ["lathe/*"], "rate_hz": 5}, sock_path=d.socket)
+    next(frames)                                                   # the snapshot: subscribed
+    wait_until(lambda: d.status()["daemon"]["control"]["subscribers"] == 1, what="the subscription")
+    assert d.stop() == 0
+    out = d.cfg.with_suffix(".log").read_text(errors="replace")
+    assert "Traceback" not in out and "Exception in callback" not in out, out[-3000:]
+    frames.close()
