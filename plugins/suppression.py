@@ -142,6 +142,7 @@ class SuppressionAnalyzer(Analyzer):
         self.configured = StabilityModel(modes, kf) if modes else None
         self.lobes = self.configured
         self.model_name = "configured"
+        self.policy_model = self.model_name   # the model the running cut's policy was built with
         self._models_loaded = False
         self._refitting = False
         self.last_refit: dict | None = None
@@ -189,6 +190,8 @@ class SuppressionAnalyzer(Analyzer):
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
         fallback = None if self.strategy_name in ("rated", "variation") else rated
+        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
+        self.policy_model = self.model_name
         return SuppressionPolicy(strategy, limits, fallback=fallback, settle_revs=self.settle_revs)
 
     # -- running -----------------------------------------------------------------
@@ -471,7 +474,8 @@ class SuppressionAnalyzer(Analyzer):
     async def _act(self, d: Decision, by: str | None = None, trigger: str = "alarm") -> dict:
         source = by or self.name
         payload = {**d.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger,
-                   "model": self.model_name}       # the stability model whose lobes chose the speed
+                   # the stability model whose lobes chose the speed (a cut keeps the one it began with)
+                   "model": self.policy_model if self.policy is not None else self.model_name}
         if d.variation is not None:
             self._start_ssv(d)
             result = {"sent": True, "reason": "modulating"}
