@@ -16,9 +16,7 @@ checked either way. A write needs the operator role.
 """
 from __future__ import annotations
 
-import argparse
 import asyncio
-import getpass
 import hashlib
 import logging
 import os
@@ -319,25 +317,11 @@ async def _feed(link: UaLink, space: Space) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="lathed-opcua",
-                                description="lathed's line as an OPC UA server (OPC 40501 Machine Tools layout).")
-    p.add_argument("--config", "-c", default=os.environ.get("LATHED_OPCUA_CONFIG"),
-                   help="TOML with [opcua] and [users.NAME] (default: $LATHED_OPCUA_CONFIG; none: loopback, "
-                        "read-only)")
-    p.add_argument("--listen", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--port", type=int, help="port (default 4840)")
-    p.add_argument("--socket", help="the daemon's control socket (default: as lathectl finds it)")
-    p.add_argument("--version", action="version", version=f"lathed-opcua {__version__}")
-    p.add_argument("command", nargs="?", choices=["serve", "hash-password"], default="serve",
-                   help="hash-password: read a password, print its hash for [users.NAME] password")
-    args = p.parse_args(argv)
-    if args.command == "hash-password":
-        pw = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
-        if not pw:
-            print("lathed-opcua: empty password", file=sys.stderr)
-            return 1
-        print(accounts.hash_password(pw))
-        return 0
+    args = accounts.side_process_args("lathed-opcua", "lathed's line as an OPC UA server (OPC 40501 Machine "
+                                      "Tools layout).", "LATHED_OPCUA_CONFIG", "none: loopback, read-only", 4840,
+                                      argv, __version__)
+    if isinstance(args, int):      # hash-password
+        return args
     logmod.setup("info")
     logging.getLogger("asyncua").setLevel(logging.ERROR)   # its per-request chatter; ours says what matters
     try:

@@ -5,9 +5,12 @@ makes one); only hashes are ever stored in the config.
 """
 from __future__ import annotations
 
+import argparse
+import getpass
 import hashlib
 import hmac
 import os
+import sys
 
 from lathed.config import ConfigError, Section
 
@@ -56,3 +59,27 @@ def verify(password: str, stored: str) -> bool:
     got = hashlib.scrypt(password.encode(), salt=bytes.fromhex(salt), n=int(n), r=int(r), p=int(p),
                          dklen=len(want), maxmem=256 << 20)
     return hmac.compare_digest(got, want)
+
+
+def side_process_args(prog: str, description: str, config_env: str, config_help: str, port: int,
+                      argv: list[str] | None, version: str) -> argparse.Namespace | int:
+    """The command line shared by the processes beside the daemon (lathed-web, lathed-opcua):
+    the namespace to serve with, or, for ``hash-password``, its exit code once the hash is printed."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--config", "-c", default=os.environ.get(config_env),
+                   help=f"TOML with [{prog.split('-')[-1]}] and [users.NAME] (default: ${config_env}; {config_help})")
+    p.add_argument("--listen", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, help=f"port (default {port})")
+    p.add_argument("--socket", help="the daemon's control socket (default: as lathectl finds it)")
+    p.add_argument("--version", action="version", version=f"{prog} {version}")
+    p.add_argument("command", nargs="?", choices=["serve", "hash-password"], default="serve",
+                   help="hash-password: read a password, print its hash for [users.NAME] password")
+    args = p.parse_args(argv)
+    if args.command != "hash-password":
+        return args
+    pw = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
+    if not pw:
+        print(f"{prog}: empty password", file=sys.stderr)
+        return 1
+    print(hash_password(pw))
+    return 0

@@ -14,15 +14,12 @@ the page's CSRF token in X-CSRF-Token, which a cross-site page cannot read.
 """
 from __future__ import annotations
 
-import argparse
 import asyncio
 import base64
-import getpass
 import hashlib
 import hmac
 import ipaddress
 import json
-import os
 import secrets
 import sys
 import time
@@ -356,23 +353,10 @@ class App:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="lathed-web", description="The operator view of lathed, in a browser.")
-    p.add_argument("--config", "-c", default=os.environ.get("LATHED_WEB_CONFIG"),
-                   help="TOML with [web] and [users.NAME] (default: $LATHED_WEB_CONFIG; none: local only)")
-    p.add_argument("--listen", help="address to listen on (default 127.0.0.1)")
-    p.add_argument("--port", type=int, help="port (default 8780)")
-    p.add_argument("--socket", help="the daemon's control socket (default: as lathectl finds it)")
-    p.add_argument("--version", action="version", version=f"lathed-web {__version__}")
-    p.add_argument("command", nargs="?", choices=["serve", "hash-password"], default="serve",
-                   help="hash-password: read a password, print its hash for [users.NAME] password")
-    args = p.parse_args(argv)
-    if args.command == "hash-password":
-        pw = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline().rstrip("\n")
-        if not pw:
-            print("lathed-web: empty password", file=sys.stderr)
-            return 1
-        print(accounts.hash_password(pw))
-        return 0
+    args = accounts.side_process_args("lathed-web", "The operator view of lathed, in a browser.",
+                                      "LATHED_WEB_CONFIG", "none: local only", 8780, argv, __version__)
+    if isinstance(args, int):      # hash-password
+        return args
     logmod.setup("info")
     try:
         settings = Settings(args.config, args.listen, args.port, args.socket)
