@@ -14,7 +14,7 @@ from lathed.lathectl import _fmt_value, print_json
 
 # lathed.sim.thermal.EFFECTS, named here so lathectl starts without numpy and scipy (a test keeps them equal)
 THERMAL_EFFECTS = ("lag", "rate", "speed", "nonlinear", "hysteresis", "drift")
-DEPTH_MAX_MM = 50.0   # beyond any turning pass
+DEPTH_MAX_MM = 10.0   # lathed.sim.lathe.MAX_DEPTH_MM, the simulated lathe's (a test keeps them equal)
 
 
 def depth_value(text: str) -> float | None:
@@ -26,7 +26,7 @@ def depth_value(text: str) -> float | None:
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is neither a depth in mm nor 'program'") from None
     if not 0.0 <= v <= DEPTH_MAX_MM:
-        raise argparse.ArgumentTypeError(f"{text} mm is not a depth of cut (0..{DEPTH_MAX_MM:g} mm)")
+        raise argparse.ArgumentTypeError(f"{text} mm is outside the depths the simulated lathe cuts (0..{DEPTH_MAX_MM:g} mm)")
     return v
 
 

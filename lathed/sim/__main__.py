@@ -36,7 +36,7 @@ from pathlib import Path
 from lathed.analysis.process_damping import FlankWear
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
-from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe, parse_cut
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, MAX_DEPTH_MM, RETRACT_S, SimLathe, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
@@ -238,8 +238,8 @@ class Simulator:
         if cmd == "set":
             if "depth_mm" in args:
                 d = args["depth_mm"]
-                if d is not None and not (isinstance(d, (int, float)) and 0 <= d <= 10):
-                    raise ValueError("depth_mm must be null or in [0, 10]")
+                if d is not None and not (isinstance(d, (int, float)) and 0 <= d <= MAX_DEPTH_MM):
+                    raise ValueError(f"depth_mm must be null or in [0, {MAX_DEPTH_MM:g}]")
                 self.lathe.depth_override_mm = d
             return {"depth_mm": self.lathe.depth_mm}
         if cmd == "outage":

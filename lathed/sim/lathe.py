@@ -56,6 +56,9 @@ DEFAULT_PROGRAM = (
 )
 
 
+MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, override, config)
+
+
 def parse_cut(text: str) -> Cut:
     """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]``: one part of a cut program."""
     try:
@@ -65,8 +68,10 @@ def parse_cut(text: str) -> Cut:
     if not 2 <= len(vals) <= 4:
         raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]")
     c = Cut(*vals)
-    if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= 10 and 0 < c.feed_mm_rev <= 2 and 0 < c.length_mm <= 1000):
-        raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..10 mm deep, 0..2 mm/rev, 0..1000 mm long")
+    if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
+            and 0 < c.length_mm <= 1000):
+        raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "
+                         "0..2 mm/rev, 0..1000 mm long")
     return c
 
 class VisibleChatter:

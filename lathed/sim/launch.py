@@ -13,6 +13,7 @@ from pathlib import Path
 import structlog
 
 from lathed.config import Section
+from lathed.sim.lathe import MAX_DEPTH_MM
 from lathed.sim.serial_peer import link_dir_problem
 
 log = structlog.get_logger("lathed.sim")
@@ -28,7 +29,7 @@ class SimulatorSettings:
         self.serial_link = sec.getstr("serial_link", str(runtime_dir / "sim" / "ttyARDUINO"))
         self.control = sec.getstr("control", str(runtime_dir / "sim.sock"))
         self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
-        self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=10.0)
+        self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=MAX_DEPTH_MM)
         self.seed = sec.getint("seed", 0, minval=0)
         # the tool's worn flank ploughing the wavy surface (process damping: mild
         # chatter just above the limit, lathed.analysis.process_damping); 0: a sharp tool
