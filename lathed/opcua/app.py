@@ -43,7 +43,7 @@ from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
 from lathed.opcua.space import NAMESPACE, SUPPRESSION_MODES, Space
 from lathed.web import accounts
-from lathed.web.app import DaemonLink, _loopback, ask
+from lathed.link import DaemonLink, ask, loopback
 
 log = structlog.get_logger("lathed.opcua")
 EVENTS_REPLAYED = 200    # events a reconnection looks back for, so a short daemon restart loses none
@@ -84,7 +84,7 @@ class Settings:
             raise ConfigError(f"{file}: [opcua] trusted_clients: {trusted!r} is not a directory (of the client "
                               "application certificates to accept, DER or PEM)")
         self.users = accounts.users_from(file, data.get("users"), "lathed-opcua")
-        self.loopback = _loopback(self.listen)
+        self.loopback = loopback(self.listen)
         if not self.loopback and not self.users:
             raise ConfigError(f"{file}: [opcua] listen = {self.listen!r} opens the server to the network: that "
                               "needs accounts ([users.NAME] with role and a password hash from `lathed-opcua "
@@ -196,7 +196,7 @@ class WriteGate:
 
 
 class UaLink(DaemonLink):
-    """lathed-web's daemon link, asking for what the address space shows, handing it on in order."""
+    """The daemon link, asking for what the address space shows, handing it on in order."""
 
     def __init__(self, sock: Path, rate_hz: float):
         super().__init__(sock, rate_hz)

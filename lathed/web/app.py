@@ -18,15 +18,12 @@ import asyncio
 import base64
 import hashlib
 import hmac
-import ipaddress
 import json
 import secrets
 import sys
 import time
 import tomllib
-from collections import deque
 from pathlib import Path
-from typing import Any
 
 import structlog
 from aiohttp import web
@@ -35,16 +32,12 @@ from lathed import __version__
 from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
+from lathed.link import DaemonLink, ask, loopback
 from lathed.web import accounts
-from lathed.viewdelta import merge_view
 
 log = structlog.get_logger("lathed.web")
 STATIC = Path(__file__).parent / "static"
-HISTORY = 300          # points per value kept for a new page's charts
-EVENTS_KEPT = 200
 BROWSER_QUEUE = 64     # messages waiting for one browser before it is dropped (it reconnects by itself)
-RETRY_S = 1.0
-LINE_LIMIT = 16 << 20  # one pushed line (a status of a large line of machines, with views)
 
 
 class Settings:
@@ -66,61 +59,19 @@ class Settings:
         self.rate_hz = sec.getfloat("rate_hz", 4.0, minval=0.5, maxval=20.0)   # the page draws 4 times a second
         sec.check_unused()
         self.users = accounts.users_from(file, data.get("users"))
-        if not self.users and not _loopback(self.listen):
+        if not self.users and not loopback(self.listen):
             raise ConfigError(f"{file}: [web] listen = {self.listen!r} opens the view to the network: that needs "
                               "accounts ([users.NAME] with role and a password hash from `lathed-web "
                               "hash-password`)")
 
 
-def _loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-class DaemonLink:
-    """The one subscription; what it has seen, for a page that opens now."""
+class BrowserLink(DaemonLink):
+    """The daemon link, fanned out to the browsers' event streams."""
 
     def __init__(self, sock: Path, rate_hz: float):
-        self.sock, self.rate_hz = sock, rate_hz
-        self.connected = False
-        self.error: str | None = "not connected yet"
-        self.status: dict | None = None
-        self.latest: dict[str, list] = {}
-        self.history: dict[str, deque] = {}
-        self.vibration: dict[str, Any] = {}
-        self.views: dict[str, Any] = {}
-        self.events: deque = deque(maxlen=EVENTS_KEPT)
+        super().__init__(sock, rate_hz)
         self.browsers: set[asyncio.Queue] = set()
         self.dropped_browsers = 0
-        self.frames = 0
-
-    def subscription(self) -> dict:
-        """What to ask the daemon for (lathed.push)."""
-        return {"samples": ["*/*"], "vibration": ["*"], "views": ["*"], "states": True, "events": True,
-                "events_limit": EVENTS_KEPT, "rate_hz": self.rate_hz}
-
-    def snapshot(self) -> dict:
-        return {"type": "init", "connected": self.connected, "error": self.error, "status": self.status,
-                "units": {k: v[2] for k, v in self.latest.items()},
-                "history": {k: [[p[0] for p in h], [p[1] for p in h]] for k, h in self.history.items()},
-                "vibration": self.vibration, "views": self.views, "events": list(self.events)}
-
-    def _merge(self, f: dict) -> None:
-        for k, (t, v, unit) in f.get("samples", {}).items():
-            self.latest[k] = [t, v, unit]
-            self.history.setdefault(k, deque(maxlen=HISTORY)).append((t, v))
-        for k, v in f.get("vibration", {}).items():
-            if v is not None:
-                self.vibration[k] = merge_view(self.vibration.get(k), v)
-        for k, v in f.get("views", {}).items():
-            self.views[k] = merge_view(self.views.get(k), v)
-        if f.get("status"):
-            self.status = f["status"]
-        self.events.extend(f.get("events", []))
 
     def broadcast(self, msg: dict) -> None:
         data = json.dumps(msg)
@@ -138,81 +89,12 @@ class DaemonLink:
             q.get_nowait()
         q.put_nowait(None)
 
-    def _down(self, why: str) -> None:
-        if self.connected or self.error != why:
-            self.connected, self.error = False, why
-            log.warning("daemon_link_down", socket=str(self.sock), error=why)
-            self.broadcast({"type": "link", "connected": False, "error": why})
-
-    async def run(self) -> None:
-        while True:
-            try:
-                await self._session()
-            except (FileNotFoundError, ConnectionRefusedError) as e:
-                self._down(f"no daemon on {self.sock} ({e.strerror or e})")
-            except (OSError, asyncio.IncompleteReadError, ValueError) as e:
-                self._down(f"lost the daemon on {self.sock}: {getattr(e, 'strerror', None) or e}")
-            except _Refused as e:
-                self._down(str(e))
-            await asyncio.sleep(RETRY_S)
-
-    async def _session(self) -> None:
-        reader, writer = await asyncio.open_unix_connection(str(self.sock), limit=LINE_LIMIT)
-        try:
-            writer.write(json.dumps({"cmd": "subscribe", "args": self.subscription()}).encode() + b"\n")
-            await writer.drain()
-            first = await self._line(reader)
-            if not first.get("ok"):
-                raise _Refused(f"the daemon refused the subscription: {first.get('error')}")
-            snap = first["result"]
-            self.latest, self.history, self.vibration, self.views = {}, {}, {}, {}
-            self.events.clear()
-            self._merge(snap)
-            self.connected, self.error = True, None
-            log.info("daemon_link_up", socket=str(self.sock))
-            self.broadcast(self.snapshot())
-            while True:
-                msg = await self._line(reader)
-                if "push" not in msg:
-                    raise _Refused(msg.get("error", "the daemon ended the subscription"))
-                self.frames += 1
-                self._merge(msg["push"])
-                self.broadcast({"type": "frame", **msg["push"]})
-        finally:
-            writer.close()
-
-    @staticmethod
-    async def _line(reader: asyncio.StreamReader) -> dict:
-        async with asyncio.timeout(10.0):   # the daemon sends a frame every second at least
-            line = await reader.readline()
-        if not line:
-            raise ConnectionResetError(0, "it closed the connection (stopped or restarting?)")
-        return json.loads(line)
-
-
-class _Refused(Exception):
-    pass
-
-
-async def ask(sock: Path, cmd: str, args: dict) -> Any:
-    """One control request; RuntimeError with the daemon's one-line reason if refused."""
-    reader, writer = await asyncio.open_unix_connection(str(sock), limit=LINE_LIMIT)
-    try:
-        writer.write(json.dumps({"cmd": cmd, "args": args}).encode() + b"\n")
-        async with asyncio.timeout(15.0):
-            reply = json.loads(await reader.readline())
-    finally:
-        writer.close()
-    if not reply.get("ok"):
-        raise RuntimeError(reply.get("error", "refused"))
-    return reply["result"]
-
 
 # -- the web side ----------------------------------------------------------------
 class App:
     def __init__(self, settings: Settings):
         self.s = settings
-        self.link = DaemonLink(settings.socket, settings.rate_hz)
+        self.link = BrowserLink(settings.socket, settings.rate_hz)
         self.secret = secrets.token_bytes(32)
         self._verified: dict[tuple[str, bytes], float] = {}
 
