@@ -6,7 +6,9 @@
     port = 1883              # 8883 when tls = true
     cell = "cell-1"          # the topic's <cell>; default: the daemon's name
     username = "lathed"      # optional; password only with a username
-    password = "secret"
+    password_file = "mqtt.pass"  # the password, alone in a file only lathed reads (mode 0600 or
+                             # 0640; relative to this config file); or password = "..." in the
+                             # config itself, which anyone who can read the config then sees
     tls = true               # on when ca_file or cert_file is given
     ca_file = "ca.crt"       # default: the system's CAs; relative paths are from this config file
     cert_file = "client.crt" # client certificate and its key, both or neither
@@ -129,8 +131,13 @@ class MqttSink(Analyzer):
         self.cell = section.getstr("cell", "")
         self.username = section.getstr("username", "") or None
         self.password = section.getstr("password", "") or None
+        pw_file = _file(section, here, "password_file")
+        if pw_file and self.password:
+            raise section.error("password_file", "and password are both given: keep one (the file)")
+        if pw_file:
+            self.password = _read_secret(section, "password_file", pw_file)
         if self.password and not self.username:
-            raise section.error("password", "given without a username")
+            raise section.error("password_file" if pw_file else "password", "given without a username")
         self.live = [_live_key(section, s) for s in section.getlist("live", [])]
         self.live_every = section.getduration("live_every", 1.0, minval=0.05, maxval=3600)
         self.batch = section.getint("batch", 200, minval=1, maxval=10_000)
@@ -347,6 +354,21 @@ def _file(section: Section, here: Path, key: str) -> Path | None:
     if not p.is_file():
         raise section.error(key, f"{p}: no such file")
     return p
+
+
+def _read_secret(section: Section, key: str, p: Path) -> str:
+    """A secret alone in a file: its first line; refused when others may read it."""
+    mode = p.stat().st_mode & 0o777
+    if mode & 0o007:
+        raise section.error(key, f"{p}: readable by every user (mode {mode:04o}): chmod 600 it "
+                                 "(640 with the lathed group)")
+    try:
+        text = p.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as e:
+        raise section.error(key, f"{p}: cannot be read ({e})") from None
+    if not text or not text[0]:
+        raise section.error(key, f"{p}: empty: the first line is the password")
+    return text[0]
 
 
 def _tls_context(section: Section, files: dict[str, Path | None]) -> ssl.SSLContext:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import shutil
 import signal
 import sqlite3
@@ -232,6 +233,24 @@ def test_bad_keys_are_refused_by_name(keys, expect):
         MqttSink("mqtt", Section("lathed.toml", "analyzer.mqtt", {"host": "b", **keys}))
     assert str(e.value).startswith("lathed.toml: [analyzer.mqtt] ") and expect in str(e.value), str(e.value)
     assert "\n" not in str(e.value)
+
+
+def test_the_password_comes_from_a_file_only_lathed_reads(tmp_path):
+    pw = tmp_path / "mqtt.pass"
+    pw.write_text("s3cret\n")
+    pw.chmod(0o640)
+    cfg = {"host": "b", "username": "lathed", "password_file": "mqtt.pass"}
+    sink = MqttSink("mqtt", Section(str(tmp_path / "lathed.toml"), "analyzer.mqtt", cfg))
+    assert sink.password == "s3cret"
+    for mode, extra, expect in [(0o644, {}, "readable by every user (mode 0644): chmod 600"),
+                                (0o600, {"password": "p"}, "password_file: and password are both given"),
+                                (0o600, {"username": ""}, "password_file: given without a username")]:
+        pw.chmod(mode)
+        with pytest.raises(ConfigError, match=re.escape(expect)):
+            MqttSink("mqtt", Section(str(tmp_path / "lathed.toml"), "analyzer.mqtt", {**cfg, **extra}))
+    pw.write_text("")
+    with pytest.raises(ConfigError, match="empty: the first line is the password"):
+        MqttSink("mqtt", Section(str(tmp_path / "lathed.toml"), "analyzer.mqtt", cfg))
 
 
 class Ctx:
