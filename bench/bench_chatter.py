@@ -16,7 +16,7 @@ checkout (four recordings of Khasawneh, Otto, Yesilli, "Turning dataset for
 chatter diagnosis using machine learning", Mendeley Data v1,
 doi:10.17632/hvm4wh3jzx.1, CC BY 4.0), a second table gives each detector's
 verdict on each file against the data set's label (no reference: the baseline
-is learned from the recording's start, as on a cut).
+is learned from the recording's start, so no onset is "unknown", never "stable").
 
 Per detector: false alarms (stable/trap cases with any alarm, and chatter
 cases alarmed before the cut became unstable), misses (chatter cases never
@@ -206,6 +206,7 @@ def real_table(names) -> list[str]:
     lines = ["| recording | label | " + " | ".join(names) + " |",
              "|---|---|" + "---|" * len(names)]
     right = {n: 0 for n in names}
+    unknown = {n: 0 for n in names}
     for stem, label, rpm, sig in recs:
         cells = []
         for n in names:
@@ -214,12 +215,15 @@ def real_table(names) -> list[str]:
             for i in range(0, len(sig.data), BLOCK):
                 wins += det.process(sig.data[i:i + BLOCK], rpm)
             first = next((w.t_s for w in wins if w.alarm), None)
-            verdict = "chatter" if first is not None else "stable"
+            # no onset without a stable reference is "unknown" (lathectl analyze chatter's verdict)
+            verdict = "chatter" if first is not None else "unknown"
             right[n] += verdict == label
+            unknown[n] += verdict == "unknown"
             cells.append(verdict + (f" at {first:.2f} s" if first is not None else "")
-                         + ("" if verdict == label else " **wrong**"))
+                         + ("" if verdict in (label, "unknown") else " **wrong**"))
         lines.append(f"| {stem} ({sig.duration_s:.1f} s, {rpm:g} r/min) | {label} | " + " | ".join(cells) + " |")
-    lines.append("| right | | " + " | ".join(f"{right[n]}/{len(recs)}" for n in names) + " |")
+    lines.append("| right / unknown / wrong | | " + " | ".join(
+        f"{right[n]} / {unknown[n]} / {len(recs) - right[n] - unknown[n]}" for n in names) + " |")
     return lines
 
 

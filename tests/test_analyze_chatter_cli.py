@@ -81,11 +81,15 @@ def test_stable_24bit_and_csv(files, capsys):
     for f in ("stable_24.wav", "stable.csv"):
         code, out, _ = _cli([str(d / f), "--rpm", "2000", "--json", "--detector", "chaos_sync"], capsys)
         obj = json.loads(out)
-        assert code == 0 and obj["verdict"] == "stable"
-        assert obj["first_alarm_s"] is None and obj["chatter_frequency_hz"] is None
-        # without a reference, "stable" is no change from the start, and says so (issue 12)
-        assert obj["baseline"] == "recording start"
+        assert code == 0 and obj["first_alarm_s"] is None and obj["chatter_frequency_hz"] is None
+        # without a reference no onset is not "stable": a recording that chatters from its
+        # first sample shows none either (issue 12)
+        assert obj["verdict"] == "unknown" and obj["baseline"] == "recording start"
         assert any("chatters from its first sample looks the same" in n for n in obj["notes"])
+    ref = d / "stable.csv"
+    code, out, _ = _cli([str(d / "stable_24.wav"), "--rpm", "2000", "--json", "--reference", str(ref)], capsys)
+    obj = json.loads(out)
+    assert code == 0 and obj["verdict"] == "stable" and obj["baseline"] == "reference", obj["notes"]
 
 
 def test_24bit_reader_matches_values(files):

@@ -6,9 +6,12 @@
 FILE is WAV, CSV (time_s and value columns, or one column with --rate) or a
 MATLAB .mat (--var names the variable: samples, or time and value columns).
 
-``--json`` prints one object: verdict ("chatter"|"stable"), first_alarm_s,
+``--json`` prints one object: verdict, first_alarm_s,
 chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
-clipped_samples, rate_hz, duration_s and notes.
+clipped_samples, rate_hz, duration_s and notes. The verdict is "chatter" (an
+onset found), "stable" (none, against --reference) or "unknown" (none, and no
+reference: the baseline is the recording's start, and a recording that
+chatters from its first sample shows no onset either).
 Exit: 0 ok, 2 usage, 66 file missing/unreadable, 65 data invalid, 73 plot
 cannot be written.
 """
@@ -123,7 +126,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
     alarms = [w for w in wins if w.alarm]
     freqs = [w.chatter_frequency_hz for w in alarms if w.chatter_frequency_hz]
     out = {
-        "verdict": "chatter" if alarms else "stable",
+        "verdict": "chatter" if alarms else ("stable" if ref is not None else "unknown"),
         "first_alarm_s": round(alarms[0].t_s, 6) if alarms else None,
         "chatter_frequency_hz": round(float(np.median(freqs)), 2) if freqs else None,
         "detector": det.name,
@@ -137,10 +140,11 @@ def run(args, extra_detectors: dict | None = None) -> int:
     }
     caveat = []
     if not alarms and ref is None:
-        # what "stable" means without a reference: no growth from the start, which a
-        # recording that chatters from its first sample at a steady level also shows
-        caveat = ["stable here means no change from the recording's start: one that chatters from its "
-                  "first sample looks the same; give --reference (a stable cut) to tell"]
+        # no growth from the start is also what a recording that chatters from its first
+        # sample at a steady level shows: never called stable without a stable reference
+        caveat = ["unknown: no chatter onset, but the baseline is the recording's start, and one that "
+                  "chatters from its first sample looks the same; give --reference (a stable cut at "
+                  "this speed and depth) to tell"]
         out["notes"] = out["notes"] + caveat
     if sig.clipped:
         msg = (f"{sig.clipped} clipped samples (first at {sig.first_clip_s:.6g} s): the sensor or "
