@@ -216,6 +216,8 @@ class SuppressionAnalyzer(Analyzer):
         finally:
             self.ctx.bus.unsubscribe(sub)
             self._stop_ssv()
+            # a cut the daemon stops in is evidence too, up to now: recorded, never lost
+            self._cut_ended(time.time(), ended="daemon stopped")
 
     async def _on_machine(self, s: Sample) -> None:
         if s.quantity == "spindle_rpm":
@@ -282,10 +284,11 @@ class SuppressionAnalyzer(Analyzer):
         else:
             self.cut.depth_mm = self.cut.depth_from = None
 
-    def _cut_ended(self, t: float) -> None:
+    def _cut_ended(self, t: float, ended: str = "cut ended") -> None:
         if not self.cut.active:
             return
         rec = self.cut.end(t)
+        rec["ended"] = ended
         rec["model"] = self.model_name
         self.cuts_recorded += 1
         self.ctx.record("cut", rec)

@@ -106,6 +106,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     assert rec["machine"] == "lathe" and (rec["tool"], rec["material"]) == ("T0101", "C45")
     assert rec["depth_mm"] == 2.2 and rec["depth_from"] == "register" and rec["feed_mm_rev"] == 0.3
     assert rec["outcome"] == "chatter" and rec["cured"] is True and rec["alarms"] == 1
+    assert rec["ended"] == "cut ended"
     assert rec["chatter_frequency_hz"] == 655.0
     assert rec["first_alarm_rev"] == pytest.approx(41.7, abs=0.5)
     assert rec["rpm_start"] == 2500.0 and rec["rpm_end"] == pytest.approx(target, abs=0.1)
@@ -120,6 +121,31 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     cuts, skipped = cut_rows([rec])
     assert list(cuts.rpm) == [2500.0, pytest.approx(target, abs=0.1)] and list(cuts.chatter) == [True, False]
     assert skipped == {}
+
+
+def test_a_cut_the_daemon_stops_in_is_recorded_up_to_the_stop(h):
+    an = h.start()
+    an._models_loaded = True
+
+    async def main():
+        t = time.time()
+        await an._on_machine(Sample("lathe", "spindle_rpm", 1500.0, "r/min", t))
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.2, "mm", t + 0.01))
+        for _ in range(10):                      # 25 revolutions at 1500 r/min, stable so far
+            t += 0.1
+            await an._on_machine(Sample("lathe", "spindle_rpm", 1500.0, "r/min", t))
+        task = asyncio.create_task(an.run())
+        for _ in range(1000):                    # until it reads the bus
+            if an.ctx.bus._subs.get("lathe"):
+                break
+            await asyncio.sleep(0)
+        assert an.ctx.bus._subs.get("lathe") and h.events("cut") == []
+        task.cancel()                            # the daemon stops
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    (rec,) = h.events("cut")
+    assert rec["ended"] == "daemon stopped" and rec["depth_mm"] == 1.2
+    assert rec["revs"] == pytest.approx(25.0, abs=0.5) and rec["outcome"] == "stable"
 
 
 def test_without_a_depth_the_cut_is_recorded_and_the_refit_says_it_left_it_out(h):
