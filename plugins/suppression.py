@@ -204,6 +204,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.lobes is not None and self.grid is None:
             self.grid = await asyncio.to_thread(lobe_grid, self.lobes, self.limits)
         sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
+        ended = "analyzer failed"     # the supervisor restarts it; the cut so far is kept
         try:
             while True:
                 s = await sub.get()
@@ -213,11 +214,14 @@ class SuppressionAnalyzer(Analyzer):
                     await self._on_machine(s)
                 elif s.source == self.chatter:
                     await self._on_chatter(s)
+        except asyncio.CancelledError:
+            ended = "daemon stopped"
+            raise
         finally:
             self.ctx.bus.unsubscribe(sub)
             self._stop_ssv()
             # a cut the daemon stops in is evidence too, up to now: recorded, never lost
-            self._cut_ended(time.time(), ended="daemon stopped")
+            self._cut_ended(time.time(), ended=ended)
 
     async def _on_machine(self, s: Sample) -> None:
         if s.quantity == "spindle_rpm":
