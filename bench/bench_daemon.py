@@ -49,6 +49,17 @@ def config(tmp: Path) -> Path:
     return cfg
 
 
+def as_unit(unit: str) -> dict:
+    """Popen arguments that start a process at its systemd unit's Nice= (systemd/UNIT.service),
+    as the service runs; a priority above the default needs root, else it is said and left."""
+    m = re.search(r"^Nice=(-?\d+)", (ROOT / "systemd" / f"{unit}.service").read_text(), re.M)
+    nice = int(m.group(1)) if m else 0
+    if nice < 0 and os.geteuid() != 0:
+        print(f"note: {unit} runs at nice 0, not its unit's {nice} (that needs root)", file=sys.stderr)
+        return {}
+    return {"preexec_fn": (lambda: os.nice(nice))} if nice else {}
+
+
 def cpu_s(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / CLK
@@ -68,7 +79,8 @@ def start(cfg: Path, tmp: Path) -> tuple[subprocess.Popen, float]:
     srv.settimeout(60)
     t0 = time.monotonic()
     proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, env={**os.environ, "NOTIFY_SOCKET": str(sock_path)})
+                            stderr=subprocess.DEVNULL, env={**os.environ, "NOTIFY_SOCKET": str(sock_path)},
+                            **as_unit("lathed"))
     while True:
         try:
             msg = srv.recv(4096).decode()

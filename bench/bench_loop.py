@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_daemon import BIN, config  # noqa: E402
+from bench_daemon import BIN, as_unit, config  # noqa: E402
 
 from lathed.client import call  # noqa: E402
 
@@ -49,14 +49,14 @@ DEPTH_MM = 3.0
 
 
 def start(cfg: Path, tmp: Path) -> subprocess.Popen:
-    """The daemon as systemd starts it; its log kept for when it does not stop."""
+    """The daemon as systemd starts it (notify, the unit's Nice=); its log kept for when it does not stop."""
     sock_path = tmp / "notify.sock"
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     srv.bind(str(sock_path))
     srv.settimeout(60)
     log = open(tmp / "lathed.log", "wb")
     proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=log, stderr=log,
-                            env={**os.environ, "NOTIFY_SOCKET": str(sock_path)})
+                            env={**os.environ, "NOTIFY_SOCKET": str(sock_path)}, **as_unit("lathed"))
     try:
         while "READY=1" not in srv.recv(4096).decode():
             pass

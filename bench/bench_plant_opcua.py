@@ -32,7 +32,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from bench_daemon import BIN, config, cpu_s, free_port, rss_mb  # noqa: E402
+from bench_daemon import BIN, as_unit, config, cpu_s, free_port, rss_mb  # noqa: E402
 from bench_loop import DEPTH_MM, start, stop  # noqa: E402
 from bench_web import pct  # noqa: E402
 
@@ -123,7 +123,7 @@ def run(duration: float, warmup: float) -> dict:
                              f"rate_hz = {RATE_HZ}\n")
             log = open(tmp / "lathed-opcua.log", "wb")
             ua = subprocess.Popen([str(BIN / "lathed-opcua"), "--config", str(uacfg)], stdout=log,
-                                  stderr=subprocess.STDOUT)
+                                  stderr=subprocess.STDOUT, **as_unit("lathed-opcua"))
             url = f"opc.tcp://127.0.0.1:{port}"
 
             async def measure() -> tuple[dict, list[float]]:

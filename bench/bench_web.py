@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_daemon import BIN, config, cpu_s, free_port, rss_mb  # noqa: E402
+from bench_daemon import BIN, as_unit, config, cpu_s, free_port, rss_mb  # noqa: E402
 from bench_loop import DEPTH_MM, start, stop  # noqa: E402
 
 from lathed.client import call  # noqa: E402
@@ -91,7 +91,7 @@ def phase(proc: subprocess.Popen, sock: Path, seconds: float, web: subprocess.Po
 
 def start_web(port: int, sock: Path) -> subprocess.Popen:
     return subprocess.Popen([str(BIN / "lathed-web"), "--port", str(port), "--socket", str(sock)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, **as_unit("lathed-web"))
 
 
 def subscribers(sock: Path) -> int:
