@@ -19,6 +19,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
     avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
+    when_no_stable_speed = "hold" # lobes: no speed within reach stable at this depth -> hold | move
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
@@ -28,7 +29,20 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
 
 Every action is recorded as ``suppression_action`` with its critical values
 (index and threshold, chatter frequency, speed before and after, strategy,
-whether the guard let it through). ``lathectl suppress auto|manual|off``
+whether the guard let it through).
+
+When the lobes (the cut's model: configured or adopted) call no speed within
+reach stable at the cut's depth, a move would only trade one chatter for
+another.  With ``when_no_stable_speed = "hold"`` (the default) the speed is
+kept, no command is sent, and ``suppression_advice`` is recorded once for the
+cut: the depth, the model's limit here and at the best speed within reach,
+and the cure (a cut below the limit / margin, or a stiffer set-up).  The
+chatter goes on, so the part is flagged as any chattering part is.  "move"
+keeps the paper's behaviour (the most stable speed, then the rated speed):
+for a model one suspects of being pessimistic, or to gather cuts at other
+speeds for a refit.  Holding needs the depth: with none known (no register,
+no spindle-load estimate yet, no ``depth_mm``) the lobes cannot say that no
+speed is stable, and suppression moves as before. ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
 
@@ -77,8 +91,9 @@ from lathed import hookimpl
 from lathed.analysis import stability_files
 from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
-from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
-                                             SpindleLimits, SuppressionPolicy, VariationSelection, lobe_grid)
+from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
+                                             LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
+                                             VariationSelection, lobe_grid, lobe_policy, reach)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.analysis.stability_refit import StabilityModel, refit
 from lathed.analyzer import Analyzer
@@ -124,6 +139,7 @@ class SuppressionAnalyzer(Analyzer):
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
         self.avoid = section.getbool("avoid", False)
+        self.when_no_stable_speed = section.getstr("when_no_stable_speed", "hold", choices=WHEN_NO_STABLE_SPEED)
         try:
             self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
                                             section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
@@ -162,6 +178,8 @@ class SuppressionAnalyzer(Analyzer):
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
         self.actions = 0                       # a count: the records keep every action
         self.last_action: dict | None = None
+        self.advisories = 0
+        self.last_advice: dict | None = None
         self.pending: Decision | None = None
         self.pending_trigger = "alarm"
         self._ssv_task: asyncio.Task | None = None
@@ -175,23 +193,28 @@ class SuppressionAnalyzer(Analyzer):
         return [self.machine]
 
     # -- strategy ----------------------------------------------------------------
+    def _depth_known_mm(self) -> float | None:
+        """The cut's depth: the register or the spindle load's estimate, else the programmed depth_mm."""
+        return self.depth_mm if self.depth_mm > 0 else self.program_depth_mm
+
     def _cut(self) -> Cut:
-        return Cut(max(self.depth_mm, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
+        return Cut(max(self._depth_known_mm() or 0.0, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
 
     def _policy(self) -> SuppressionPolicy:
         cut = self._cut()
-        limits = self.limits
-        if self.rpm:
-            # the cutting speed the tool and material were programmed for bounds how far up we go
-            limits = replace(limits, max_rpm=min(limits.max_rpm, self.max_speed_ratio * self.rpm))
+        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
+        self.policy_model = self.model_name
+        if self.strategy_name == "lobes":
+            # with no depth known the lobes cannot say that no speed is stable: no hold
+            hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
+            return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
+                               grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
+        limits = reach(self.limits, self.rpm, self.max_speed_ratio)
         rated = RatedSpeed(self.rated_rpm, self.lobes, cut)
-        strategy = {"lobes": lambda: LobeSelection(self.lobes, cut, limits, grid=self.grid),
-                    "frequency": lambda: FrequencySelection(limits, cut),
+        strategy = {"frequency": lambda: FrequencySelection(limits, cut),
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
         fallback = None if self.strategy_name in ("rated", "variation") else rated
-        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
-        self.policy_model = self.model_name
         return SuppressionPolicy(strategy, limits, fallback=fallback, settle_revs=self.settle_revs)
 
     # -- running -----------------------------------------------------------------
@@ -249,7 +272,8 @@ class SuppressionAnalyzer(Analyzer):
             self.depth_from = "spindle load"
             if self.policy is not None:
                 # this cut's policy (bans, budget) keeps going with the depth known now
-                self.policy.strategy = self._policy().strategy
+                p = self._policy()
+                self.policy.strategy, self.policy.when_no_stable_speed = p.strategy, p.when_no_stable_speed
 
     async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
         """The machine's depth register or the chatter analyzer's cut state
@@ -434,12 +458,19 @@ class SuppressionAnalyzer(Analyzer):
         d = self.policy.observe(time.monotonic(), self.rpm, True)
         if d is None:
             return
+        if isinstance(d, Advice):
+            await self._decided(d, "predicted")
+            return
         await self._decided(replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes "
                                               f"allow {b_mm:.2f} mm at {self.rpm:.0f} r/min; {d.reason}"),
                             "predicted")
 
-    async def _decided(self, d: Decision, trigger: str) -> None:
-        """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal."""
+    async def _decided(self, d: Decision | Advice, trigger: str) -> None:
+        """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal.
+        Advice (no stable speed within reach): recorded in either mode; nothing to act on."""
+        if isinstance(d, Advice):
+            self._advise(d, trigger)
+            return
         if self.mode == "auto":
             await self._act(d, trigger=trigger)
         else:
@@ -504,6 +535,19 @@ class SuppressionAnalyzer(Analyzer):
         self.ctx.record("suppression_action", payload)
         return payload
 
+    def _advise(self, a: Advice, trigger: str) -> dict:
+        """The speed is held: say why and what would cure the chatter (no command is sent)."""
+        payload = {**a.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger,
+                   "model": self.policy_model if self.policy is not None else self.model_name,
+                   "depth_from": self.depth_from if self.depth_mm > 0 else "program"}
+        self.cut.advised(a.advice)
+        self.advisories += 1
+        self.last_advice = payload
+        self.ctx.log.warning("suppression_advice", rpm=round(a.rpm), depth_mm=a.depth_mm,
+                             limit_mm=round(a.limit_mm, 3), advice=a.advice, trigger=trigger)
+        self.ctx.record("suppression_advice", payload)
+        return payload
+
     # -- spindle speed variation ---------------------------------------------------
     def _start_ssv(self, d: Decision) -> None:
         self._stop_ssv()
@@ -550,6 +594,10 @@ class SuppressionAnalyzer(Analyzer):
                     raise RequestError("the machine is not cutting (no spindle speed or depth of cut known)")
                 d = self.policy.observe(time.monotonic(), self.rpm, True, self.chat["frequency"],
                                         self.chat["index"], self.chat["threshold"])
+                if isinstance(d, Advice):
+                    self._advise(d, trigger)
+                if d is None and self.policy.advice is not None or isinstance(d, Advice):
+                    raise RequestError(f"speed held: {self.policy.advice.advice}")
                 if d is None:
                     raise RequestError("no admissible speed: every candidate is banned for this part or "
                                        "the policy is holding after a change")
@@ -576,12 +624,16 @@ class SuppressionAnalyzer(Analyzer):
                 "model": self.model_name, "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": self.actions, "last_action": self.last_action,
+                "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
+                "advisories": self.advisories, "last_advice": self.last_advice,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
-                           + f", {self.actions} action(s)"}
+                           + f", {self.actions} action(s)"
+                           + (f", {self.advisories} held with advice (no stable speed within reach)"
+                              if self.advisories else "")}
 
 
 @hookimpl

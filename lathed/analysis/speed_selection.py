@@ -15,6 +15,13 @@ Strategies (each has ``select(rpm_now, chatter_frequency_hz, avoid) -> Decision`
 * ``RatedSpeed`` - the paper's rule: drop to a configured rated speed.
 * ``VariationSelection`` - keep the speed, modulate it (speed_variation.py).
 
+When the lobes find no speed within reach that they call stable at the cut's
+depth, moving only trades one chatter for another (the benchmark's closed
+loop: every such move chattered again).  A policy set to hold
+(``when_no_stable_speed = "hold"``) then keeps the speed and returns an
+``Advice``: the model's limit depth here and at the best speed within reach,
+i.e. what would cure it (a shallower cut, a stiffer set-up).
+
 Removal rate in turning is depth * feed * cutting speed, so at fixed depth,
 feed and diameter it scales with the spindle speed: the decision's
 ``removal_rate_ratio`` is rpm_after / rpm_before.
@@ -22,7 +29,7 @@ feed and diameter it scales with the spindle speed: the decision's
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -100,6 +107,37 @@ class Decision:
         d = asdict(self)
         d["variation"] = None if self.variation is None else asdict(self.variation)
         return d
+
+
+@dataclass(frozen=True)
+class Advice:
+    """No move: the lobes call no speed within reach stable at this depth.  Limits
+    are the worst b_lim within +-band of a speed (the rule speeds are picked by)."""
+    rpm: float
+    depth_mm: float
+    limit_mm: float               # the model's limit at ``rpm``
+    best_rpm: float               # the speed within reach with the highest limit
+    best_limit_mm: float
+    min_rpm: float                # the reach: the spindle's range under the speed cap,
+    max_rpm: float                # where the cut's torque is available
+    margin: float
+    chatter_frequency_hz: float | None = None
+    chatter_index: float | None = None
+    threshold: float | None = None
+
+    @property
+    def advice(self) -> str:
+        cure = min(self.limit_mm, self.depth_mm) / self.margin
+        return (f"no stable speed within {self.min_rpm:.0f}-{self.max_rpm:.0f} r/min at {self.depth_mm:.2f} mm: "
+                f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, "
+                f"{self.best_limit_mm:.2f} mm at best ({self.best_rpm:.0f} r/min); speed held: reduce the depth "
+                f"of cut below {cure:.2f} mm (limit / {self.margin:g} margin) or stiffen the set-up")
+
+    def record(self) -> dict:
+        return {**asdict(self), "advice": self.advice}
+
+
+WHEN_NO_STABLE_SPEED = ("hold", "move")
 
 
 class Strategy(Protocol):
@@ -182,6 +220,24 @@ class LobeSelection:
         return Decision(self.name, rpm_now, float(n[i]), chatter_frequency_hz,
                         float(b[i] * 1e3), ok_stable, float(n[i]) / rpm_now, reason)
 
+    def limit_mm(self, rpm: float) -> float:
+        """The worst b_lim within +-band of ``rpm``, mm: the limit this rule judges a speed by."""
+        if self.grid is None:
+            self.grid = lobe_grid(self.lobes, self.limits, self.band, self.resolution)
+        n, _, worst = self.grid
+        return float(np.interp(rpm, n, worst)) * 1e3
+
+    def advise(self, rpm_now: float, chatter_frequency_hz: float | None = None) -> Advice | None:
+        """What the model says when it has no stable speed within reach (None: nothing drivable)."""
+        self.limit_mm(rpm_now)                 # the grid
+        n, _, worst = self.grid
+        ok = self.cut.drivable(n, self.limits)
+        if not ok.any():
+            return None
+        i = int(np.flatnonzero(ok)[np.argmax(worst[ok])])
+        return Advice(rpm_now, self.cut.depth_m * 1e3, self.limit_mm(rpm_now), float(n[i]), float(worst[i] * 1e3),
+                      float(n[ok][0]), float(n[ok][-1]), self.margin, chatter_frequency_hz)
+
 
 @dataclass
 class RatedSpeed:
@@ -234,6 +290,11 @@ class SuppressionPolicy:
     5. At most ``max_changes`` changes per part; when the strategy has no
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
+    6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes call
+       no speed within reach stable, and the fallback is no better (the model
+       says it chatters too), the speed is kept and ``observe`` returns an
+       Advice, once: the policy is then exhausted for this part.  "move" takes
+       the most stable speed and then the fallback, as the paper's rule would.
     """
     strategy: Strategy
     limits: SpindleLimits
@@ -242,11 +303,18 @@ class SuppressionPolicy:
     confirm: int = 1
     ban_band: float = 0.04
     max_changes: int = 3
+    when_no_stable_speed: str = "move"
     changes: list[Decision] = field(default_factory=list)
     banned: list[tuple[float, float]] = field(default_factory=list)
     _streak: int = 0
     _hold_until_s: float = -math.inf
     exhausted: bool = False
+    advice: Advice | None = None
+
+    def __post_init__(self) -> None:
+        if self.when_no_stable_speed not in WHEN_NO_STABLE_SPEED:
+            raise ValueError(f"when_no_stable_speed {self.when_no_stable_speed!r} is not one of "
+                             f"{', '.join(WHEN_NO_STABLE_SPEED)}")
 
     def reset(self) -> None:
         self.changes.clear()
@@ -254,6 +322,7 @@ class SuppressionPolicy:
         self._streak = 0
         self._hold_until_s = -math.inf
         self.exhausted = False
+        self.advice = None
 
     @property
     def holding(self) -> bool:
@@ -273,7 +342,7 @@ class SuppressionPolicy:
     def observe(self, t_s: float, rpm: float, alarm: bool,
                 chatter_frequency_hz: float | None = None,
                 chatter_index: float | None = None,
-                threshold: float | None = None) -> Decision | None:
+                threshold: float | None = None) -> Decision | Advice | None:
         if t_s < self._hold_until_s:
             self._streak = 0
             return None
@@ -283,10 +352,23 @@ class SuppressionPolicy:
         self._streak = 0
         self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
         decision = None
+        fallback_left = self.fallback is not None and not any(d.strategy == self.fallback.name
+                                                              for d in self.changes)
         if len(self.changes) < self.max_changes:
             decision = self._admissible(self.strategy.select(rpm, chatter_frequency_hz, self.banned))
-        if decision is None and self.fallback is not None and not any(
-                d.strategy == self.fallback.name for d in self.changes):
+            if (decision is not None and decision.expected_stable is False and self.when_no_stable_speed == "hold"
+                    and isinstance(self.strategy, LobeSelection)):
+                # a move the model knows will chatter: only the fallback, if the model says it will not
+                fb = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned)) \
+                    if fallback_left else None
+                if fb is None or fb.expected_stable is False:
+                    advice = self.strategy.advise(rpm, chatter_frequency_hz)
+                    if advice is not None:
+                        self.exhausted = True
+                        self.advice = replace(advice, chatter_index=chatter_index, threshold=threshold)
+                        return self.advice
+                decision = fb
+        if decision is None and fallback_left:
             decision = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned))
         if decision is None:
             self.exhausted = True
@@ -301,3 +383,22 @@ class SuppressionPolicy:
             # modulating: there is nothing further to select for this part
             self.exhausted = True
         return decision
+
+
+def reach(limits: SpindleLimits, rpm_programmed: float | None, max_speed_ratio: float) -> SpindleLimits:
+    """The spindle's envelope under the speed cap: never more than ``max_speed_ratio`` x the
+    programmed speed (the cutting speed the tool and material were programmed for)."""
+    if not rpm_programmed:
+        return limits
+    return replace(limits, max_rpm=min(limits.max_rpm, max_speed_ratio * rpm_programmed))
+
+
+def lobe_policy(lobes: StabilityLobes, cut: Cut, limits: SpindleLimits, rpm_programmed: float | None,
+                max_speed_ratio: float, rated_rpm: float, grid=None, settle_revs: float = 20.0,
+                when_no_stable_speed: str = "hold") -> SuppressionPolicy:
+    """One cut's policy as the daemon's suppression composes it for strategy "lobes": LobeSelection
+    within reach, the rated speed as the fallback (the benchmark's closed loop runs this too)."""
+    within = reach(limits, rpm_programmed, max_speed_ratio)
+    return SuppressionPolicy(LobeSelection(lobes, cut, within, grid=grid), within,
+                             fallback=RatedSpeed(rated_rpm, lobes, cut), settle_revs=settle_revs,
+                             when_no_stable_speed=when_no_stable_speed)

@@ -1,0 +1,120 @@
+"""Suppression holds the speed when the cut's model has no stable speed within
+reach: no command, a ``suppression_advice`` record naming the limit and the
+cure, the cut record saying so (the lobes are the refit tests' GIVEN model:
+its limit is 1.48-2.06 mm over 100-3250 r/min, so 2.2 mm has no stable speed
+within 1.3 x 2500 r/min and 1.3 mm has)."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from lathed.bus import Sample
+from lathed.config import ConfigError
+from lathed.control import RequestError
+from tests.test_stability_adopt import Harness
+
+
+@pytest.fixture
+def make(tmp_path):
+    made = []
+
+    def make(**extra):
+        h = Harness(tmp_path / str(len(made)), max_speed_ratio=1.3, **extra)
+        h.start()
+        made.append(h)
+        return h
+    yield make
+    for h in made:
+        h.store.close()
+
+
+async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True):
+    """A cut at ``depth_mm`` that chatters from entry: ``alarms`` alarm windows, then the exit."""
+    t = time.time()
+    await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+    await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+    if register:
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", depth_mm, "mm", t))
+    else:
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+    await an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t))
+    await an._on_chatter(Sample("chatter", "chatter_index", 3.5, "", t))
+    await an._on_chatter(Sample("chatter", "chatter_threshold", 1.0, "", t))
+    for _ in range(alarms):
+        t += 0.5
+        await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+        await an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
+    if not leave:
+        return
+    if register:
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.1))
+    else:
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.1))
+
+
+def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
+    h = make()
+    asyncio.run(_cut(h.an, 2.2))
+    assert h.sent == []                              # no speed command at all
+    assert h.events("suppression_action") == []
+    (a,) = h.events("suppression_advice")            # once per cut, not per alarm window
+    assert a["machine"] == "lathe" and a["trigger"] == "alarm" and a["model"] == "configured"
+    assert a["rpm"] == 2500.0 and a["depth_mm"] == pytest.approx(2.2) and a["depth_from"] == "register"
+    assert a["limit_mm"] == pytest.approx(h.an.predicted_unstable(2500.0, 2.2)[1])
+    assert a["limit_mm"] < a["best_limit_mm"] < 2.2 * 1.15
+    assert a["max_rpm"] <= 1.3 * 2500 and a["chatter_frequency_hz"] == 655.0 and a["chatter_index"] == 3.5
+    assert a["advice"].startswith("no stable speed within ") and " at 2.20 mm: " in a["advice"]
+    assert f"reduce the depth of cut below {a['limit_mm'] / 1.15:.2f} mm" in a["advice"]
+    (cut,) = h.events("cut")
+    assert cut["advice"] == a["advice"] and cut["outcome"] == "chatter" and cut["cured"] is False
+    st = h.an.status()
+    assert st["advisories"] == 1 and st["last_advice"]["advice"] == a["advice"] and st["actions"] == 0
+    assert "1 held with advice" in st["summary"] and st["when_no_stable_speed"] == "hold"
+    # a shallower cut on the same lathe: the lobes have a stable speed, and it moves
+    asyncio.run(_cut(h.an, 1.3, alarms=1))
+    assert len(h.sent) == 1 and h.events("suppression_action")[0]["expected_stable"] is True
+    assert len(h.events("suppression_advice")) == 1
+
+
+def test_move_keeps_the_old_behaviour(make):
+    h = make(when_no_stable_speed="move")
+    asyncio.run(_cut(h.an, 2.2))
+    assert h.sent and h.events("suppression_advice") == []
+    assert h.events("suppression_action")[0]["expected_stable"] is False
+
+
+def test_manual_mode_records_the_advice_and_suppress_now_says_the_speed_is_held(make):
+    h = make(mode="manual")
+
+    async def run():
+        await _cut(h.an, 2.2, alarms=1, leave=False)      # still cutting, still chattering
+        (a,) = h.events("suppression_advice")
+        assert a["mode"] == "manual" and h.an.pending is None and h.events("suppression_proposed") == []
+        with pytest.raises(RequestError, match="speed held: no stable speed within"):
+            await h.an._control({"action": "now"})
+    asyncio.run(run())
+    assert h.sent == []
+
+
+def test_predicted_at_cut_entry_holds_too(make):
+    h = make(avoid=True)
+    asyncio.run(_cut(h.an, 2.2, alarms=0))
+    (a,) = h.events("suppression_advice")
+    assert a["trigger"] == "predicted" and h.sent == []
+
+
+def test_without_a_depth_it_cannot_know_no_speed_is_stable_and_moves(make):
+    h = make()
+    asyncio.run(_cut(h.an, None, register=False))
+    assert h.sent and h.events("suppression_advice") == []
+    # the programmed depth is a depth: with it the lobes can say, and hold
+    h2 = make(depth_mm=2.2)
+    asyncio.run(_cut(h2.an, None, register=False))
+    assert h2.sent == [] and h2.events("suppression_advice")[0]["depth_from"] == "program"
+
+
+def test_when_no_stable_speed_is_checked(make):
+    with pytest.raises(ConfigError, match=r"when_no_stable_speed.*'stay' is not allowed; allowed: hold, move"):
+        make(when_no_stable_speed="stay")
