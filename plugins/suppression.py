@@ -19,7 +19,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
     avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
-    when_no_stable_speed = "hold" # lobes: no speed within reach stable at this depth -> hold | move
+    when_no_stable_speed = "hold" # lobes: every speed within reach chatters at this depth -> hold | move
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
@@ -29,27 +29,31 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
 
 Every action is recorded as ``suppression_action`` with its critical values
 (index and threshold, chatter frequency, speed before and after, strategy,
-whether the guard let it through).
-
-When the lobes (the cut's model: configured or adopted) call no speed within
-reach stable at the cut's depth, a move would only trade one chatter for
-another.  With ``when_no_stable_speed = "hold"`` (the default) the speed is
-kept, no command is sent, and ``suppression_advice`` is recorded once for the
-cut: the depth, the model's limit here and at the best speed within reach,
-and the cure (a cut below the limit / margin, or a stiffer set-up).  The
-chatter goes on, so the part is flagged as any chattering part is.  "move"
-keeps the paper's behaviour (the most stable speed, then the rated speed):
-for a model one suspects of being pessimistic, or to gather cuts at other
-speeds for a refit.  Holding needs the depth: with none known (no register,
-no spindle-load estimate yet, no ``depth_mm``) the lobes cannot say that no
-speed is stable, and suppression moves as before. ``lathectl suppress auto|manual|off``
+whether the guard let it through). ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
+
+When the lobes (the cut's model: configured or adopted) say that every speed
+within reach chatters at the cut's depth (b_lim below the depth at each), a
+move would only trade one chatter for another.  With ``when_no_stable_speed
+= "hold"`` (the default) the speed is kept, no command is sent, and
+``suppression_advice`` is recorded once for the cut: the depth, the model's
+limit here and at the best speed within reach, and the cure (a cut below the
+depth the lobe rule calls stable here, or a stiffer set-up).  Where some
+speed's limit is above the depth but not by the 1.15 margin, it still moves
+there (most such moves cure the cut).  The chatter goes on, so the part is
+flagged as any chattering part is.  "move" keeps the paper's behaviour (the
+most stable speed, then the rated speed): for a model one suspects of being
+pessimistic, or to gather cuts at other speeds for a refit.  Holding needs
+the depth: with none known (no register, no spindle-load estimate yet, no
+``depth_mm``) the lobes cannot say that every speed chatters, and
+suppression moves as before.
 
 The depth the lobes need comes from a depth_of_cut_mm register where the
 machine has one, else from the spindle load (spindle_load_pct: the cutting
 torque over the no-chip load, Kt * b * feed * D/2 = torque, solved for b;
-it needs kt, peak_torque_nm, diameter_mm and the feed register right).
+it needs kt, peak_torque_nm, diameter_mm and the feed register right),
+else the programmed ``depth_mm``.
 
 With ``avoid = true`` the lobes are also used before any alarm: when a cut
 starts at a depth the lobes call unstable at the programmed speed (the same

@@ -1,8 +1,8 @@
 """Suppression holds the speed when the cut's model has no stable speed within
 reach: no command, a ``suppression_advice`` record naming the limit and the
 cure, the cut record saying so (the lobes are the refit tests' GIVEN model:
-its limit is 1.48-2.06 mm over 100-3250 r/min, so 2.2 mm has no stable speed
-within 1.3 x 2500 r/min and 1.3 mm has)."""
+its b_lim is 1.48-2.06 mm over 100-3250 r/min, so at 2.2 mm every speed within
+1.3 x 2500 r/min chatters and at 1.3 mm none does)."""
 from __future__ import annotations
 
 import asyncio
@@ -62,11 +62,12 @@ def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
     (a,) = h.events("suppression_advice")            # once per cut, not per alarm window
     assert a["machine"] == "lathe" and a["trigger"] == "alarm" and a["model"] == "configured"
     assert a["rpm"] == 2500.0 and a["depth_mm"] == pytest.approx(2.2) and a["depth_from"] == "register"
-    assert a["limit_mm"] == pytest.approx(h.an.predicted_unstable(2500.0, 2.2)[1])
-    assert a["limit_mm"] < a["best_limit_mm"] < 2.2 * 1.15
+    assert a["limit_mm"] == pytest.approx(float(h.an.lobes.b_lim_at(2500.0)[0][0]) * 1e3, rel=1e-3)
+    assert a["limit_mm"] < a["best_limit_mm"] < 2.2
+    assert a["safe_depth_mm"] == pytest.approx(h.an.predicted_unstable(2500.0, 2.2)[1] / 1.15)
     assert a["max_rpm"] <= 1.3 * 2500 and a["chatter_frequency_hz"] == 655.0 and a["chatter_index"] == 3.5
     assert a["advice"].startswith("no stable speed within ") and " at 2.20 mm: " in a["advice"]
-    assert f"reduce the depth of cut below {a['limit_mm'] / 1.15:.2f} mm" in a["advice"]
+    assert f"reduce the depth of cut below {a['safe_depth_mm']:.2f} mm" in a["advice"]
     (cut,) = h.events("cut")
     assert cut["advice"] == a["advice"] and cut["outcome"] == "chatter" and cut["cured"] is False
     st = h.an.status()

@@ -15,9 +15,9 @@ Strategies (each has ``select(rpm_now, chatter_frequency_hz, avoid) -> Decision`
 * ``RatedSpeed`` - the paper's rule: drop to a configured rated speed.
 * ``VariationSelection`` - keep the speed, modulate it (speed_variation.py).
 
-When the lobes find no speed within reach that they call stable at the cut's
-depth, moving only trades one chatter for another (the benchmark's closed
-loop: every such move chattered again).  A policy set to hold
+When the lobes say every speed within reach chatters at the cut's depth,
+moving only trades one chatter for another (the benchmark's closed loop:
+such moves chattered again).  A policy set to hold
 (``when_no_stable_speed = "hold"``) then keeps the speed and returns an
 ``Advice``: the model's limit depth here and at the best speed within reach,
 i.e. what would cure it (a shallower cut, a stiffer set-up).
@@ -111,27 +111,27 @@ class Decision:
 
 @dataclass(frozen=True)
 class Advice:
-    """No move: the lobes call no speed within reach stable at this depth.  Limits
-    are the worst b_lim within +-band of a speed (the rule speeds are picked by)."""
+    """No move: the model says every speed within reach chatters at this depth (its
+    b_lim there is below the depth).  ``safe_depth_mm``: the depth the lobe rule would
+    call stable at ``rpm`` (the worst b_lim within +-band over the margin)."""
     rpm: float
     depth_mm: float
-    limit_mm: float               # the model's limit at ``rpm``
-    best_rpm: float               # the speed within reach with the highest limit
+    limit_mm: float               # the model's b_lim at ``rpm``
+    best_rpm: float               # the speed within reach with the highest b_lim
     best_limit_mm: float
+    safe_depth_mm: float
     min_rpm: float                # the reach: the spindle's range under the speed cap,
     max_rpm: float                # where the cut's torque is available
-    margin: float
     chatter_frequency_hz: float | None = None
     chatter_index: float | None = None
     threshold: float | None = None
 
     @property
     def advice(self) -> str:
-        cure = min(self.limit_mm, self.depth_mm) / self.margin
         return (f"no stable speed within {self.min_rpm:.0f}-{self.max_rpm:.0f} r/min at {self.depth_mm:.2f} mm: "
-                f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, "
-                f"{self.best_limit_mm:.2f} mm at best ({self.best_rpm:.0f} r/min); speed held: reduce the depth "
-                f"of cut below {cure:.2f} mm (limit / {self.margin:g} margin) or stiffen the set-up")
+                f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, at best "
+                f"{self.best_limit_mm:.2f} mm ({self.best_rpm:.0f} r/min); speed held: reduce the depth of cut "
+                f"below {self.safe_depth_mm:.2f} mm or stiffen the set-up")
 
     def record(self) -> dict:
         return {**asdict(self), "advice": self.advice}
@@ -228,15 +228,20 @@ class LobeSelection:
         return float(np.interp(rpm, n, worst)) * 1e3
 
     def advise(self, rpm_now: float, chatter_frequency_hz: float | None = None) -> Advice | None:
-        """What the model says when it has no stable speed within reach (None: nothing drivable)."""
+        """When the model says every speed within reach chatters at the cut's depth (b_lim
+        below it), what would cure it; None when a speed's b_lim is above the depth (if not by
+        the margin, a move there is the bet the margin leaves open) or nothing is drivable."""
         self.limit_mm(rpm_now)                 # the grid
-        n, _, worst = self.grid
+        n, b, _ = self.grid
         ok = self.cut.drivable(n, self.limits)
         if not ok.any():
             return None
-        i = int(np.flatnonzero(ok)[np.argmax(worst[ok])])
-        return Advice(rpm_now, self.cut.depth_m * 1e3, self.limit_mm(rpm_now), float(n[i]), float(worst[i] * 1e3),
-                      float(n[ok][0]), float(n[ok][-1]), self.margin, chatter_frequency_hz)
+        i = int(np.flatnonzero(ok)[np.argmax(b[ok])])
+        if b[i] > self.cut.depth_m:
+            return None
+        return Advice(rpm_now, self.cut.depth_m * 1e3, float(np.interp(rpm_now, n, b)) * 1e3, float(n[i]),
+                      float(b[i]) * 1e3, self.limit_mm(rpm_now) / self.margin, float(n[ok][0]), float(n[ok][-1]),
+                      chatter_frequency_hz)
 
 
 @dataclass
@@ -253,7 +258,7 @@ class RatedSpeed:
         if self.lobes is not None:
             b_mm = float(self.lobes.b_lim_at(self.rated_rpm)[0][0] * 1e3)
             if self.cut is not None:
-                stable = self.cut.depth_m * 1e3 < b_mm
+                stable = bool(self.cut.depth_m * 1e3 < b_mm)     # not numpy's bool: `is False` holds
         return Decision(self.name, rpm_now, self.rated_rpm, chatter_frequency_hz, b_mm, stable,
                         self.rated_rpm / rpm_now, "paper's rule: drop to the rated speed")
 
@@ -290,11 +295,14 @@ class SuppressionPolicy:
     5. At most ``max_changes`` changes per part; when the strategy has no
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
-    6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes call
-       no speed within reach stable, and the fallback is no better (the model
-       says it chatters too), the speed is kept and ``observe`` returns an
-       Advice, once: the policy is then exhausted for this part.  "move" takes
-       the most stable speed and then the fallback, as the paper's rule would.
+    6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes say
+       every speed within reach chatters at this depth (its limit within
+       +-band below the depth, LobeSelection.advise), and the fallback too,
+       the speed is kept and ``observe`` returns an Advice, once: the policy
+       is then exhausted for this part.  Where a speed's limit is above the
+       depth but not by the margin, it still moves there (the margin is for
+       model error; such moves cure most such cuts).  "move" takes the most
+       stable speed and then the fallback, as the paper's rule would.
     """
     strategy: Strategy
     limits: SpindleLimits
@@ -358,16 +366,17 @@ class SuppressionPolicy:
             decision = self._admissible(self.strategy.select(rpm, chatter_frequency_hz, self.banned))
             if (decision is not None and decision.expected_stable is False and self.when_no_stable_speed == "hold"
                     and isinstance(self.strategy, LobeSelection)):
-                # a move the model knows will chatter: only the fallback, if the model says it will not
+                advice = self.strategy.advise(rpm, chatter_frequency_hz)
                 fb = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned)) \
-                    if fallback_left else None
-                if fb is None or fb.expected_stable is False:
-                    advice = self.strategy.advise(rpm, chatter_frequency_hz)
-                    if advice is not None:
-                        self.exhausted = True
-                        self.advice = replace(advice, chatter_index=chatter_index, threshold=threshold)
-                        return self.advice
-                decision = fb
+                    if fallback_left and advice is not None else None
+                if fb is not None and fb.expected_stable is not False:
+                    decision = fb          # the model says the fallback will not chatter
+                elif advice is not None:
+                    # the model says every speed within reach chatters: a move would only trade chatter
+                    self.exhausted = True
+                    self.advice = replace(advice, chatter_index=chatter_index, threshold=threshold)
+                    return self.advice
+                # else a speed within reach is above the depth, not by the margin: the most stable one
         if decision is None and fallback_left:
             decision = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned))
         if decision is None:
