@@ -253,9 +253,12 @@ class SuppressionAnalyzer(Analyzer):
             self.cut.feed_mm_rev = s.value
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
+            changed = s.value > 0 and s.value != self.depth_mm
             self.depth_mm = s.value
             if s.value > 0:
                 self.cut.depth_mm, self.cut.depth_from = s.value, "register"
+            if changed:
+                self._depth_changed()      # the vibration may have seen the chip first
             await self._cut_seen("depth", s.value > 0, s.t)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             self._depth_from_load(s.value)
@@ -274,10 +277,21 @@ class SuppressionAnalyzer(Analyzer):
         if b_m * 1000 > 0.05 and self.in_cut and abs(b_m * 1000 - self.depth_mm) > 0.1 * self.depth_mm:
             self.depth_mm = b_m * 1000
             self.depth_from = "spindle load"
-            if self.policy is not None:
-                # this cut's policy (bans, budget) keeps going with the depth known now
-                p = self._policy()
-                self.policy.strategy, self.policy.when_no_stable_speed = p.strategy, p.when_no_stable_speed
+            self._depth_changed()
+
+    def _depth_changed(self) -> None:
+        """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the
+        lobes it began with) with that depth."""
+        p = self.policy
+        if p is None or not self.in_cut:
+            return
+        cut = self._cut()
+        for attr in ("strategy", "fallback"):
+            strategy = getattr(p, attr)
+            if getattr(strategy, "cut", None) is not None:
+                setattr(p, attr, replace(strategy, cut=cut))
+        if self.strategy_name == "lobes":
+            p.when_no_stable_speed = self.when_no_stable_speed
 
     async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
         """The machine's depth register or the chatter analyzer's cut state

@@ -30,11 +30,13 @@ def make(tmp_path):
         h.store.close()
 
 
-async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True):
+async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True, vibration_first=False):
     """A cut at ``depth_mm`` that chatters from entry: ``alarms`` alarm windows, then the exit."""
     t = time.time()
     await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
     await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+    if vibration_first:        # the chatter analyzer sees the chip before the depth register is read
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
     if register:
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", depth_mm, "mm", t))
     else:
@@ -79,6 +81,18 @@ def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
     assert len(h.events("suppression_advice")) == 1
 
 
+def test_the_depth_register_read_after_the_cut_began_is_the_policys_depth(make):
+    # the cut starts on the vibration's cut state, the register says 2.2 mm a poll later: the
+    # policy judges at 2.2 mm (it judged at 0.01 mm, called every speed stable and moved)
+    h = make()
+    asyncio.run(_cut(h.an, 2.2, vibration_first=True))
+    assert h.sent == [] and h.events("suppression_advice")[0]["depth_mm"] == pytest.approx(2.2)
+    h = make(when_no_stable_speed="move")
+    asyncio.run(_cut(h.an, 2.2, vibration_first=True, alarms=1))
+    (act,) = h.events("suppression_action")
+    assert act["expected_stable"] is False
+
+
 def test_move_keeps_the_old_behaviour(make):
     h = make(when_no_stable_speed="move")
     asyncio.run(_cut(h.an, 2.2))
@@ -119,3 +133,40 @@ def test_without_a_depth_it_cannot_know_no_speed_is_stable_and_moves(make):
 def test_when_no_stable_speed_is_checked(make):
     with pytest.raises(ConfigError, match=r"when_no_stable_speed.*'stay' is not allowed; allowed: hold, move"):
         make(when_no_stable_speed="stay")
+
+
+# -- in the running daemon -----------------------------------------------------------------
+
+def test_the_running_daemon_holds_and_shows_the_advice(tmp_path):
+    """4.5 mm at 1000 r/min on the simulated lathe (whose dynamics are the configured model's):
+    its limit is 2.4 mm there and at most 4.1 mm anywhere in 100-1300 r/min (750, the rated
+    speed, included), so every cut chatters and suppression holds."""
+    import json
+
+    from tests.conftest import DEPTH_REGISTER, Daemon, sim_config, wait_until
+    from tests.test_suppression_live import ANALYZERS, events, spindle_commands
+    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS, registers=DEPTH_REGISTER,
+                            simulator='program = ["1000,4.5,0.3,24"]\nload_s = 0.3\nretract_s = 0.2\n')
+    d = Daemon(cfg, paths["socket"])
+    try:
+        d.wait_ready()
+        a = wait_until(lambda: events(d, "suppression_advice"), timeout=90, interval=0.5,
+                       what="suppression_advice")[0]
+        p = a["payload"]
+        assert a["source"] == "suppress" and p["machine"] == "lathe" and p["trigger"] == "alarm"
+        assert p["depth_mm"] == pytest.approx(4.5) and p["depth_from"] == "register" and p["model"] == "configured"
+        assert p["rpm"] == pytest.approx(1000, rel=0.02) and p["best_limit_mm"] < 4.5 and p["max_rpm"] <= 1300
+        # (the reach is 1.3 x the speed the cut began at, which may still be ramping up to 1000)
+        assert p["advice"].startswith(f"no stable speed within 100-{p['max_rpm']:.0f} r/min at 4.50 mm: ")
+        # the speed stays: no command, no action
+        assert spindle_commands(d) == [] and events(d, "suppression_action") == []
+        text = d.ctl("suppress", "status").stdout
+        assert "held with advice; last: no stable speed within" in text, text
+        assert "held with advice" in d.ctl("status").stdout
+        assert "suppression_advice" in d.ctl("events", "--kind", "suppression_advice").stdout
+        rows = wait_until(lambda: [c for c in json.loads(d.ctl("cuts", "--json").stdout) if c["advice"]],
+                          timeout=60, interval=0.5, what="a held cut's record")
+        assert rows[0]["outcome"] == "chatter" and rows[0]["cured"] is False and rows[0]["actions"] == []
+        assert "speed held: no stable speed within reach" in d.ctl("cuts").stdout
+    finally:
+        d.stop()
