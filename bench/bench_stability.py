@@ -119,7 +119,7 @@ def run_program(model, true, program, rng, grid, when: str = "hold", boundary_si
     whose dynamics are ``true``: entered at its speed; while it chatters, the cut's policy
     (speed_selection.lobe_policy, the daemon's own composition: LobeSelection with the
     rated-speed fallback under the programmed speed x MAX_SPEED_RATIO, ``when`` no speed
-    within reach is called stable: hold and advise, or move) picks the next speed from
+    within reach chatters per the model: hold and advise, or move) picks the next speed from
     ``model``'s lobes.  A speed chatters when the depth is above the true limit there times
     exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds (rows of
     the refit's cuts, in order) and counts: cuts that chattered at entry, moves, moves to a
@@ -163,15 +163,16 @@ def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.
           "has not), the true dynamics differ by one effect as above. A cut program (speeds log-uniform "
           f"1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the "
           "daemon's suppression runs it (speed_selection.lobe_policy: lobes strategy, rated-speed fallback, at "
-          f"most {MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut; when no speed within reach is "
-          "called stable at the cut's depth, hold: keep the speed and advise, or move: the most stable speed, "
-          "then the rated one) on a lathe with the undeclared effect; the refit on the speeds of that run; the "
+          f"most {MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut; when the model says every speed "
+          "within reach chatters at the cut's depth (b_lim below it), hold: keep the speed and advise, or move: "
+          "the most stable speed, then the rated one) on a lathe with the undeclared effect; the refit on the speeds of that run; the "
           "same program again with the adopted model. Verdicts from the true lobes with the noise model above, "
           "not from the daemon on the simulator (a cut there takes seconds of real time; "
           "tests/test_stability_live.py runs the daemon loop itself). A re-chatter is a move by suppression to "
           "a speed that chatters again; a held cut chatters on at its speed to its end (the cost of holding), "
-          "as does a cut whose moves are spent.\n")
-    print("| undeclared effect | no stable speed in reach | refit added | chatter at entry before | after | "
+          "as does a cut whose moves are spent. Hold and move draw the verdicts' noise in a different order, "
+          "so counts no policy changes (chatter at entry) differ between their rows by that noise.\n")
+    print("| undeclared effect | every speed in reach chatters | refit added | chatter at entry before | after | "
           "moves before | after | re-chatters before | after | after / before | of them at a speed called "
           "stable before | after | held with advice before | after | cuts ended chattering before | after |")
     print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
