@@ -209,7 +209,7 @@ class SuppressionAnalyzer(Analyzer):
         # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
         self.policy_model = self.model_name
         if self.strategy_name == "lobes":
-            # with no depth known the lobes cannot say that no speed is stable: no hold
+            # with no depth known the lobes cannot say that every speed chatters: no hold
             hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
             return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
                                grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
@@ -614,7 +614,7 @@ class SuppressionAnalyzer(Analyzer):
                                         self.chat["index"], self.chat["threshold"])
                 if isinstance(d, Advice):
                     self._advise(d, trigger)
-                if d is None and self.policy.advice is not None or isinstance(d, Advice):
+                if isinstance(d, Advice) or (d is None and self.policy.advice is not None):
                     raise RequestError(f"speed held: {self.policy.advice.advice}")
                 if d is None:
                     raise RequestError("no admissible speed: every candidate is banned for this part or "

@@ -296,8 +296,8 @@ class SuppressionPolicy:
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
     6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes say
-       every speed within reach chatters at this depth (its limit within
-       +-band below the depth, LobeSelection.advise), and the fallback too,
+       every speed within reach chatters at this depth (its b_lim below the
+       depth, LobeSelection.advise), and the fallback too,
        the speed is kept and ``observe`` returns an Advice, once: the policy
        is then exhausted for this part.  Where a speed's limit is above the
        depth but not by the margin, it still moves there (the margin is for
