@@ -1,12 +1,14 @@
 """Stability refit: effect recovery per undeclared effect, and refit time.
 
     .venv/bin/python bench/bench_stability.py [--seeds N] [--cuts C] [--repeats R]
-        [--loop-seeds S] [--loop-cuts P] [--loop-depths LO HI] [--only-loop]
+        [--loop-seeds S] [--loop-cuts P] [--loop-depths LO HI] [--loop-policy hold|move|both] [--only-loop]
 
 First the closed loop: a cut program run as the daemon's suppression runs it,
 on the simulated lathe's model with one undeclared effect, before and after
 the refit on that run's cut speeds; re-chatters (moves by suppression to a
-speed that chatters again) counted before and after.  Then:
+speed that chatters again) counted before and after, and what holding (no
+move when no speed within reach is called stable) costs: the cuts held with
+advice and the cuts that ended chattering, beside the same with "move".  Then:
 
 The given model is the simulator's lathe (regen.DEFAULT_MODES, DEFAULT_KF);
 the cuts come from true dynamics that differ from it by one undeclared effect
@@ -32,13 +34,10 @@ import argparse
 import statistics
 import time
 
-from dataclasses import replace
-
 import numpy as np
 
 from lathed.analysis.cuts import Cuts
-from lathed.analysis.speed_selection import (Cut, LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
-                                             lobe_grid)
+from lathed.analysis.speed_selection import Advice, Cut, SpindleLimits, lobe_grid, lobe_policy
 from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
 from lathed.analysis.stability_refit import StabilityModel, refit
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
@@ -112,24 +111,26 @@ def bench_simulated(n_cuts: int) -> None:
 LIMITS = SpindleLimits(max_rpm=6000.0, min_rpm=300.0, accel_rpm_per_s=3000.0)
 MAX_SPEED_RATIO = 1.3      # etc/lathed.toml [analyzer.suppress]
 RATED_RPM = 750.0
+COUNTS = ("entered", "moves", "rechatter", "broken", "held", "ended_chattering")
 
 
-def run_program(model, true, program, rng, grid, boundary_sigma: float = 0.05):
+def run_program(model, true, program, rng, grid, when: str = "hold", boundary_sigma: float = 0.05):
     """Each cut of ``program`` (rpm, depth m) as the daemon's suppression runs it on a lathe
-    whose dynamics are ``true``: entered at its speed; while it chatters, the policy picks
-    the next speed from ``model``'s lobes (LobeSelection with the rated-speed fallback,
-    under the programmed speed x MAX_SPEED_RATIO, as plugins/suppression.py composes it).
-    A speed chatters when the depth is above the true limit there times
-    exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds
-    (rows of the refit's cuts, in order) and the count of moves to a speed that chattered
-    again, of moves, of cuts that chattered at entry, and of re-chatters at a speed the
-    model called stable (a promise broken, not a speed chosen for want of a stable one)."""
-    rows, rechatter, moves, entered, broken = [], 0, 0, 0, 0
+    whose dynamics are ``true``: entered at its speed; while it chatters, the cut's policy
+    (speed_selection.lobe_policy, the daemon's own composition: LobeSelection with the
+    rated-speed fallback under the programmed speed x MAX_SPEED_RATIO, ``when`` no speed
+    within reach chatters per the model: hold and advise, or move) picks the next speed from
+    ``model``'s lobes.  A speed chatters when the depth is above the true limit there times
+    exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds (rows of
+    the refit's cuts, in order) and counts: cuts that chattered at entry, moves, moves to a
+    speed that chattered again (re-chatters), re-chatters at a speed the model called stable
+    (a promise broken, not a speed chosen for want of a stable one), cuts held with advice,
+    and cuts that ended chattering (held, or the policy's moves spent)."""
+    rows = []
+    n = dict.fromkeys(COUNTS, 0)
     for rpm0, depth in program:
-        cut = Cut(depth, 0.25e-3, 0.03, 1.5e9)
-        limits = replace(LIMITS, max_rpm=min(LIMITS.max_rpm, MAX_SPEED_RATIO * rpm0))
-        policy = SuppressionPolicy(LobeSelection(model, cut, limits, grid=grid), limits,
-                                   fallback=RatedSpeed(RATED_RPM, model, cut), settle_revs=20.0)
+        policy = lobe_policy(model, Cut(depth, 0.25e-3, 0.03, 1.5e9), LIMITS, rpm0, MAX_SPEED_RATIO, RATED_RPM,
+                             grid=grid, settle_revs=20.0, when_no_stable_speed=when)
         rpm, t, moved, promised = rpm0, 0.0, False, False
         while True:
             b, f = true.limit(rpm)
@@ -137,58 +138,72 @@ def run_program(model, true, program, rng, grid, boundary_sigma: float = 0.05):
             rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
             if not chatter:
                 break
-            rechatter += moved
-            broken += moved and promised
-            entered += not moved
+            n["rechatter"] += moved
+            n["broken"] += moved and promised
+            n["entered"] += not moved
             t += 1e6                   # past any hold: each verdict is after the settle
             d = policy.observe(t, rpm, True, float(f[0]))
-            if d is None:
+            if d is None or isinstance(d, Advice):
+                n["held"] += isinstance(d, Advice)
+                n["ended_chattering"] += 1
                 break
             rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
-            moves += 1
+            n["moves"] += 1
     r = np.array(rows, dtype=object)
     cuts = Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
                             r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
-    return cuts, rechatter, moves, entered, broken
+    return cuts, n
 
 
-def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.6, 1.6)
-                      ) -> list[tuple[str, int, int]]:
+def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.6, 1.6),
+                      policies: tuple[str, ...] = ("hold", "move")) -> list[tuple[str, str, int, int]]:
     print(f"## Closed loop: re-chatters before and after the refit, {seeds} programs of {n_cuts} cuts per effect\n")
     print(f"The given model is the simulated lathe's (lathed.sim.lathe: 190 Hz workpiece mode, 620 Hz "
           "tool-post mode; its lobes have pockets within the spindle's range, which the recovery table's model "
           "has not), the true dynamics differ by one effect as above. A cut program (speeds log-uniform "
-          f"1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the daemon's suppression runs it (lobes strategy, rated-speed fallback, at most "
-          f"{MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut) on a lathe with the undeclared "
-          "effect; the refit on the speeds of that run; the same program again with the adopted model. "
-          "Verdicts from the true lobes with the noise model above, not from the daemon on the "
-          "simulator (a cut there takes seconds of real time; tests/test_stability_live.py runs the daemon "
-          "loop itself). A re-chatter is a move by suppression to a speed that chatters again.\n")
-    print("| undeclared effect | refit added | chatter at entry before | after | moves before | after | "
-          "re-chatters before | after | after / before | of them at a speed called stable before | after |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          f"1000-4500 r/min, depths {depths[0]:g}-{depths[1]:g}x the given model's critical depth) run as the "
+          "daemon's suppression runs it (speed_selection.lobe_policy: lobes strategy, rated-speed fallback, at "
+          f"most {MAX_SPEED_RATIO:g}x the programmed speed, three changes a cut; when the model says every speed "
+          "within reach chatters at the cut's depth (b_lim below it), hold: keep the speed and advise, or move: "
+          "the most stable speed, then the rated one) on a lathe with the undeclared effect; the refit on the speeds of that run; the "
+          "same program again with the adopted model. Verdicts from the true lobes with the noise model above, "
+          "not from the daemon on the simulator (a cut there takes seconds of real time; "
+          "tests/test_stability_live.py runs the daemon loop itself). A re-chatter is a move by suppression to "
+          "a speed that chatters again; a held cut chatters on at its speed to its end (the cost of holding), "
+          "as does a cut whose moves are spent. Hold and move draw the verdicts' noise in a different order, "
+          "so counts no policy changes (chatter at entry) differ between their rows by that noise.\n")
+    print("| undeclared effect | every speed in reach chatters | refit added | chatter at entry before | after | "
+          "moves before | after | re-chatters before | after | after / before | of them at a speed called "
+          "stable before | after | held with advice before | after | cuts ended chattering before | after |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     given = StabilityModel(LATHE_MODES, LATHE_KF)
     b_min = float(given.limit(np.geomspace(300, 6000, 2000))[0].min())
     grid0 = lobe_grid(given, LIMITS)
     out = []
     for eff in ("none", *UNDECLARED):
         true = true_dynamics(eff, given)
-        tot = np.zeros(8, int)
-        added = []
-        for s in range(seeds):
-            rng = np.random.default_rng(3000 + s)
-            program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
-                               b_min * rng.uniform(*depths, n_cuts)))
-            cuts, rc0, mv0, en0, bk0 = run_program(given, true, program, rng, grid0)
-            r = refit(given, cuts)
-            added.append("+".join(e.effect.name for e in r.effects) or "-")
-            grid1 = grid0 if not r.effects else lobe_grid(r.model, LIMITS)
-            _, rc1, mv1, en1, bk1 = run_program(r.model, true, program, rng, grid1)
-            tot += (en0, en1, mv0, mv1, rc0, rc1, bk0, bk1)
-        names = ", ".join(f"{n} ({added.count(n)})" for n in dict.fromkeys(added))
-        ratio = f"{tot[5] / tot[4]:.2f}" if tot[4] else "-"
-        print(f"| {eff} | {names} | {tot[0]} | {tot[1]} | {tot[2]} | {tot[3]} | {tot[4]} | {tot[5]} | {ratio} | {tot[6]} | {tot[7]} |")
-        out.append((eff, int(tot[4]), int(tot[5])))
+        for when in policies:
+            before, after = dict.fromkeys(COUNTS, 0), dict.fromkeys(COUNTS, 0)
+            added = []
+            for s in range(seeds):
+                rng = np.random.default_rng(3000 + s)
+                program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
+                                   b_min * rng.uniform(*depths, n_cuts)))
+                cuts, n0 = run_program(given, true, program, rng, grid0, when)
+                r = refit(given, cuts)
+                added.append("+".join(e.effect.name for e in r.effects) or "-")
+                grid1 = grid0 if not r.effects else lobe_grid(r.model, LIMITS)
+                _, n1 = run_program(r.model, true, program, rng, grid1, when)
+                for k in COUNTS:
+                    before[k] += n0[k]
+                    after[k] += n1[k]
+            names = ", ".join(f"{n} ({added.count(n)})" for n in dict.fromkeys(added))
+            rc0, rc1 = before["rechatter"], after["rechatter"]
+            ratio = f"{rc1 / rc0:.2f}" if rc0 else "-"
+            cells = [f"{before[k]} | {after[k]}" for k in ("entered", "moves")] + [f"{rc0} | {rc1} | {ratio}"] + \
+                [f"{before[k]} | {after[k]}" for k in ("broken", "held", "ended_chattering")]
+            print(f"| {eff} | {when} | {names} | " + " | ".join(cells) + " |")
+            out.append((eff, when, rc0, rc1))
     print()
     return out
 
@@ -220,9 +235,13 @@ def main() -> None:
     ap.add_argument("--only-loop", action="store_true", help="only the closed-loop table")
     ap.add_argument("--loop-depths", type=float, nargs=2, default=(0.6, 1.6), metavar=("LO", "HI"),
                     help="closed-loop depths as multiples of the given critical depth (default 0.6 1.6)")
+    ap.add_argument("--loop-policy", choices=("hold", "move", "both"), default="both",
+                    help="closed loop: when no speed within reach is called stable, hold (the daemon's default), "
+                         "move, or both rows (default)")
     a = ap.parse_args()
     if a.loop_seeds:
-        bench_closed_loop(a.loop_seeds, a.loop_cuts, tuple(a.loop_depths))
+        bench_closed_loop(a.loop_seeds, a.loop_cuts, tuple(a.loop_depths),
+                          ("hold", "move") if a.loop_policy == "both" else (a.loop_policy,))
     if a.only_loop:
         return
     bench_recovery(a.seeds, a.cuts)

@@ -19,6 +19,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
     avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
+    when_no_stable_speed = "hold" # lobes: every speed within reach chatters at this depth -> hold | move
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
@@ -32,10 +33,27 @@ whether the guard let it through). ``lathectl suppress auto|manual|off``
 changes the mode; ``lathectl suppress now`` acts on the present chatter
 (manual mode). Policy: see SuppressionPolicy (never oscillates).
 
+When the lobes (the cut's model: configured or adopted) say that every speed
+within reach chatters at the cut's depth (b_lim below the depth at each), a
+move would only trade one chatter for another.  With ``when_no_stable_speed
+= "hold"`` (the default) the speed is kept, no command is sent, and
+``suppression_advice`` is recorded once for the cut: the depth, the model's
+limit here and at the best speed within reach, and the cure (a cut below the
+depth the lobe rule calls stable here, or a stiffer set-up).  Where some
+speed's limit is above the depth but not by the 1.15 margin, it still moves
+there (most such moves cure the cut).  The chatter goes on, so the part is
+flagged as any chattering part is.  "move" keeps the paper's behaviour (the
+most stable speed, then the rated speed): for a model one suspects of being
+pessimistic, or to gather cuts at other speeds for a refit.  Holding needs
+the depth: with none known (no register, no spindle-load estimate yet, no
+``depth_mm``) the lobes cannot say that every speed chatters, and
+suppression moves as before.
+
 The depth the lobes need comes from a depth_of_cut_mm register where the
 machine has one, else from the spindle load (spindle_load_pct: the cutting
 torque over the no-chip load, Kt * b * feed * D/2 = torque, solved for b;
-it needs kt, peak_torque_nm, diameter_mm and the feed register right).
+it needs kt, peak_torque_nm, diameter_mm and the feed register right),
+else the programmed ``depth_mm``.
 
 With ``avoid = true`` the lobes are also used before any alarm: when a cut
 starts at a depth the lobes call unstable at the programmed speed (the same
@@ -77,8 +95,9 @@ from lathed import hookimpl
 from lathed.analysis import stability_files
 from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
-from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
-                                             SpindleLimits, SuppressionPolicy, VariationSelection, lobe_grid)
+from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
+                                             LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
+                                             VariationSelection, lobe_grid, lobe_policy, reach)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.analysis.stability_refit import StabilityModel, refit
 from lathed.analyzer import Analyzer
@@ -124,6 +143,7 @@ class SuppressionAnalyzer(Analyzer):
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
         self.avoid = section.getbool("avoid", False)
+        self.when_no_stable_speed = section.getstr("when_no_stable_speed", "hold", choices=WHEN_NO_STABLE_SPEED)
         try:
             self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
                                             section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
@@ -162,6 +182,8 @@ class SuppressionAnalyzer(Analyzer):
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
         self.actions = 0                       # a count: the records keep every action
         self.last_action: dict | None = None
+        self.advisories = 0
+        self.last_advice: dict | None = None
         self.pending: Decision | None = None
         self.pending_trigger = "alarm"
         self._ssv_task: asyncio.Task | None = None
@@ -175,23 +197,28 @@ class SuppressionAnalyzer(Analyzer):
         return [self.machine]
 
     # -- strategy ----------------------------------------------------------------
+    def _depth_known_mm(self) -> float | None:
+        """The cut's depth: the register or the spindle load's estimate, else the programmed depth_mm."""
+        return self.depth_mm if self.depth_mm > 0 else self.program_depth_mm
+
     def _cut(self) -> Cut:
-        return Cut(max(self.depth_mm, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
+        return Cut(max(self._depth_known_mm() or 0.0, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
 
     def _policy(self) -> SuppressionPolicy:
         cut = self._cut()
-        limits = self.limits
-        if self.rpm:
-            # the cutting speed the tool and material were programmed for bounds how far up we go
-            limits = replace(limits, max_rpm=min(limits.max_rpm, self.max_speed_ratio * self.rpm))
+        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
+        self.policy_model = self.model_name
+        if self.strategy_name == "lobes":
+            # with no depth known the lobes cannot say that every speed chatters: no hold
+            hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
+            return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
+                               grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
+        limits = reach(self.limits, self.rpm, self.max_speed_ratio)
         rated = RatedSpeed(self.rated_rpm, self.lobes, cut)
-        strategy = {"lobes": lambda: LobeSelection(self.lobes, cut, limits, grid=self.grid),
-                    "frequency": lambda: FrequencySelection(limits, cut),
+        strategy = {"frequency": lambda: FrequencySelection(limits, cut),
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
         fallback = None if self.strategy_name in ("rated", "variation") else rated
-        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
-        self.policy_model = self.model_name
         return SuppressionPolicy(strategy, limits, fallback=fallback, settle_revs=self.settle_revs)
 
     # -- running -----------------------------------------------------------------
@@ -232,9 +259,12 @@ class SuppressionAnalyzer(Analyzer):
             self.cut.feed_mm_rev = s.value
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
+            changed = s.value > 0 and s.value != self.depth_mm
             self.depth_mm = s.value
             if s.value > 0:
                 self.cut.depth_mm, self.cut.depth_from = s.value, "register"
+            if changed:
+                self._depth_changed()      # the vibration may have seen the chip first
             await self._cut_seen("depth", s.value > 0, s.t)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             self._depth_from_load(s.value)
@@ -253,9 +283,21 @@ class SuppressionAnalyzer(Analyzer):
         if b_m * 1000 > 0.05 and self.in_cut and abs(b_m * 1000 - self.depth_mm) > 0.1 * self.depth_mm:
             self.depth_mm = b_m * 1000
             self.depth_from = "spindle load"
-            if self.policy is not None:
-                # this cut's policy (bans, budget) keeps going with the depth known now
-                self.policy.strategy = self._policy().strategy
+            self._depth_changed()
+
+    def _depth_changed(self) -> None:
+        """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the
+        lobes it began with) with that depth."""
+        p = self.policy
+        if p is None or not self.in_cut:
+            return
+        cut = self._cut()
+        for attr in ("strategy", "fallback"):
+            strategy = getattr(p, attr)
+            if getattr(strategy, "cut", None) is not None:
+                setattr(p, attr, replace(strategy, cut=cut))
+        if self.strategy_name == "lobes":
+            p.when_no_stable_speed = self.when_no_stable_speed
 
     async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
         """The machine's depth register or the chatter analyzer's cut state
@@ -441,12 +483,19 @@ class SuppressionAnalyzer(Analyzer):
         d = self.policy.observe(time.monotonic(), self.rpm, True)
         if d is None:
             return
+        if isinstance(d, Advice):
+            await self._decided(d, "predicted")
+            return
         await self._decided(replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes "
                                               f"allow {b_mm:.2f} mm at {self.rpm:.0f} r/min; {d.reason}"),
                             "predicted")
 
-    async def _decided(self, d: Decision, trigger: str) -> None:
-        """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal."""
+    async def _decided(self, d: Decision | Advice, trigger: str) -> None:
+        """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal.
+        Advice (no stable speed within reach): recorded in either mode; nothing to act on."""
+        if isinstance(d, Advice):
+            self._advise(d, trigger)
+            return
         if self.mode == "auto":
             await self._act(d, trigger=trigger)
         else:
@@ -511,6 +560,19 @@ class SuppressionAnalyzer(Analyzer):
         self.ctx.record("suppression_action", payload)
         return payload
 
+    def _advise(self, a: Advice, trigger: str) -> dict:
+        """The speed is held: say why and what would cure the chatter (no command is sent)."""
+        payload = {**a.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger,
+                   "model": self.policy_model if self.policy is not None else self.model_name,
+                   "depth_from": self.depth_from if self.depth_mm > 0 else "program"}
+        self.cut.advised(a.advice)
+        self.advisories += 1
+        self.last_advice = payload
+        self.ctx.log.warning("suppression_advice", rpm=round(a.rpm), depth_mm=a.depth_mm,
+                             limit_mm=round(a.limit_mm, 3), advice=a.advice, trigger=trigger)
+        self.ctx.record("suppression_advice", payload)
+        return payload
+
     # -- spindle speed variation ---------------------------------------------------
     def _start_ssv(self, d: Decision) -> None:
         self._stop_ssv()
@@ -557,6 +619,10 @@ class SuppressionAnalyzer(Analyzer):
                     raise RequestError("the machine is not cutting (no spindle speed or depth of cut known)")
                 d = self.policy.observe(time.monotonic(), self.rpm, True, self.chat["frequency"],
                                         self.chat["index"], self.chat["threshold"])
+                if isinstance(d, Advice):
+                    self._advise(d, trigger)
+                if isinstance(d, Advice) or (d is None and self.policy.advice is not None):
+                    raise RequestError(f"speed held: {self.policy.advice.advice}")
                 if d is None:
                     raise RequestError("no admissible speed: every candidate is banned for this part or "
                                        "the policy is holding after a change")
@@ -583,12 +649,16 @@ class SuppressionAnalyzer(Analyzer):
                 "model": self.model_name, "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": self.actions, "last_action": self.last_action,
+                "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
+                "advisories": self.advisories, "last_advice": self.last_advice,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
-                           + f", {self.actions} action(s)"}
+                           + f", {self.actions} action(s)"
+                           + (f", {self.advisories} held with advice (no stable speed within reach)"
+                              if self.advisories else "")}
 
 
 @hookimpl

@@ -176,3 +176,71 @@ def test_closed_loop_on_the_simulator_restabilises_the_cut():
     tail = np.median(wav[-spr:])
     assert tail < VISIBLE_WAVINESS_M
     assert tail < 0.2 * wav.max(), (tail, wav.max())     # chatter had been well visible
+
+
+# -- no stable speed within reach: hold and advise, or move ------------------------------------
+
+def _reach_policy(depth_m, when, rated=750.0, rpm=2000.0):
+    from lathed.analysis.speed_selection import lobe_policy
+    return lobe_policy(LOBES, _cut(depth_m), LIMITS, rpm, 1.3, rated, when_no_stable_speed=when)
+
+
+def _grid():
+    sel = _reach_policy(1e-3, "hold").strategy
+    sel.limit_mm(2000.0)
+    n, b, worst = sel.grid
+    return n, b, worst, (n >= LIMITS.min_rpm) & (n <= 1.3 * 2000)
+
+
+def test_policy_holds_and_advises_when_the_model_says_every_speed_within_reach_chatters():
+    from lathed.analysis.speed_selection import Advice
+    n, b, worst, reach = _grid()
+    depth = 1.1 * float(b[reach].max())     # above the limit at every speed within reach, 750 r/min too
+    assert _cut(depth).drivable(n[reach], LIMITS).all()
+    # "move": the most stable speed, which the lobes themselves say will chatter
+    d = _reach_policy(depth, "move").observe(0.0, 2000.0, True, 260.0)
+    assert d.rpm_after != 2000.0 and d.expected_stable is False
+    # "hold": no move, the advice instead, once
+    p = _reach_policy(depth, "hold")
+    a = p.observe(0.0, 2000.0, True, 260.0, chatter_index=4.0, threshold=1.0)
+    assert isinstance(a, Advice) and p.changes == [] and p.advice is a and p.exhausted
+    assert a.rpm == 2000.0 and a.depth_mm == pytest.approx(depth * 1e3)
+    assert a.limit_mm == pytest.approx(float(LOBES.b_lim_at(2000.0)[0][0]) * 1e3, rel=1e-3)
+    assert a.best_limit_mm == pytest.approx(float(b[reach].max()) * 1e3)
+    assert a.best_rpm == pytest.approx(float(n[reach][np.argmax(b[reach])]))
+    assert a.safe_depth_mm == pytest.approx(float(np.interp(2000.0, n, worst)) * 1e3 / 1.15)
+    assert a.max_rpm <= 2600.0 and a.chatter_index == 4.0 and a.chatter_frequency_hz == 260.0
+    text = a.record()["advice"]
+    assert text.startswith(f"no stable speed within 100-{a.max_rpm:.0f} r/min at {depth * 1e3:.2f} mm: "
+                           f"the model's limit is {a.limit_mm:.2f} mm at 2000 r/min")
+    assert text.endswith(f"reduce the depth of cut below {a.safe_depth_mm:.2f} mm or stiffen the set-up")
+    assert p.observe(1e7, 2000.0, True, 260.0) is None       # said once; the speed stays
+    p.reset()
+    assert p.advice is None and isinstance(p.observe(0.0, 2000.0, True, 260.0), Advice)
+
+
+def test_policy_moves_as_before_when_a_speed_within_reach_is_above_the_depth():
+    n, b, worst, reach = _grid()
+    # stable with the margin near 2500 r/min; and above the limit there but not by the margin
+    for depth, stable in ((1.2 * LOBES.b_lim_min_m, True), (0.95 * float(b[reach].max()), False)):
+        assert bool(depth * 1.15 <= worst[reach].max()) is stable
+        d_hold = _reach_policy(depth, "hold").observe(0.0, 2000.0, True, 260.0)
+        d_move = _reach_policy(depth, "move").observe(0.0, 2000.0, True, 260.0)
+        assert d_hold == d_move and d_hold.expected_stable is stable and d_hold.rpm_after <= 2600.0
+
+
+def test_policy_holding_still_takes_a_fallback_the_model_calls_stable():
+    n, b, worst, reach = _grid()
+    # every speed within reach chatters; the rated speed, above the reach, does not
+    depth = 1.1 * float(b[reach].max())
+    above = np.linspace(2700, 6000, 500)
+    b_above = LOBES.b_lim_at(above)[0]
+    rated = float(above[np.argmax(b_above)])
+    assert float(b_above.max()) > depth
+    d = _reach_policy(depth, "hold", rated=rated).observe(0.0, 2000.0, True, 260.0)
+    assert d.strategy == "rated_speed" and d.rpm_after == rated and d.expected_stable is True
+
+
+def test_when_no_stable_speed_must_be_hold_or_move():
+    with pytest.raises(ValueError, match="when_no_stable_speed 'stay' is not one of hold, move"):
+        _reach_policy(1e-3, "stay")

@@ -85,7 +85,8 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     async def cut():
         await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t0))
         await an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t0))
-        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 2.2, "mm", t0 + 0.01))
+        # 1.3 mm: the lobes have speeds they call stable (at 2.2 they have none, and hold)
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.3, "mm", t0 + 0.01))
         t = t0 + 0.01
         for _ in range(10):                      # 2500 r/min for 1 s: 41.7 revolutions
             t += 0.1
@@ -104,7 +105,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     target = asyncio.run(cut())
     (rec,) = h.events("cut")
     assert rec["machine"] == "lathe" and (rec["tool"], rec["material"]) == ("T0101", "C45")
-    assert rec["depth_mm"] == 2.2 and rec["depth_from"] == "register" and rec["feed_mm_rev"] == 0.3
+    assert rec["depth_mm"] == 1.3 and rec["depth_from"] == "register" and rec["feed_mm_rev"] == 0.3
     assert rec["outcome"] == "chatter" and rec["cured"] is True and rec["alarms"] == 1
     assert rec["ended"] == "cut ended"
     assert rec["chatter_frequency_hz"] == 655.0
@@ -117,7 +118,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     assert rec["model"] == "configured"
     # the store's view and the CSV rows the refit reads
     (row,) = h.store.query("SELECT outcome, depth_mm, actions, cured FROM cuts")
-    assert row == {"outcome": "chatter", "depth_mm": 2.2, "actions": 1, "cured": 1}
+    assert row == {"outcome": "chatter", "depth_mm": 1.3, "actions": 1, "cured": 1}
     cuts, skipped = cut_rows([rec])
     assert list(cuts.rpm) == [2500.0, pytest.approx(target, abs=0.1)] and list(cuts.chatter) == [True, False]
     assert skipped == {}

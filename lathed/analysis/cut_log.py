@@ -101,6 +101,7 @@ class CutTracker:
         self.depth_mm: float | None = None
         self.depth_from: str | None = None
         self.feed_mm_rev: float | None = None
+        self.advice: str | None = None     # suppression held the speed: why, what would cure it
 
     @property
     def active(self) -> bool:
@@ -111,6 +112,7 @@ class CutTracker:
         self.stretches = [Stretch("entry", t, t, None)]
         self.actions, self.revs, self.alarms, self.first_alarm = [], 0.0, 0, None
         self.alarm = False
+        self.advice = None
         self._last = None if rpm is None else (t, rpm)
 
     def speed(self, t: float, rpm: float) -> None:
@@ -159,6 +161,11 @@ class CutTracker:
         self.stretches.append(Stretch(payload.get("trigger") or "alarm", t, judge_from_t,
                                       None if modulated else payload.get("rpm_after"), modulated))
 
+    def advised(self, text: str) -> None:
+        """Suppression held the speed (no stable speed within reach): the cut says so."""
+        if self.active:
+            self.advice = text
+
     def end(self, t: float) -> dict:
         """The cut's record; the tracker is then idle until the next start."""
         if self._last is not None:
@@ -187,6 +194,7 @@ class CutTracker:
                "chatter_frequency_hz": None if fa is None else _r(fa[2] or self.frequency_hz, 1),
                "alarms": self.alarms,
                "actions": self.actions,
+               "advice": self.advice,
                "cured": (last.outcome == "stable" and not self.alarm) if chattered and self.actions else
                         (False if chattered else None)}
         self.start_t = None

@@ -15,6 +15,13 @@ Strategies (each has ``select(rpm_now, chatter_frequency_hz, avoid) -> Decision`
 * ``RatedSpeed`` - the paper's rule: drop to a configured rated speed.
 * ``VariationSelection`` - keep the speed, modulate it (speed_variation.py).
 
+When the lobes say every speed within reach chatters at the cut's depth,
+moving only trades one chatter for another (the benchmark's closed loop:
+such moves chattered again).  A policy set to hold
+(``when_no_stable_speed = "hold"``) then keeps the speed and returns an
+``Advice``: the model's limit depth here and at the best speed within reach,
+i.e. what would cure it (a shallower cut, a stiffer set-up).
+
 Removal rate in turning is depth * feed * cutting speed, so at fixed depth,
 feed and diameter it scales with the spindle speed: the decision's
 ``removal_rate_ratio`` is rpm_after / rpm_before.
@@ -22,7 +29,7 @@ feed and diameter it scales with the spindle speed: the decision's
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -100,6 +107,37 @@ class Decision:
         d = asdict(self)
         d["variation"] = None if self.variation is None else asdict(self.variation)
         return d
+
+
+@dataclass(frozen=True)
+class Advice:
+    """No move: the model says every speed within reach chatters at this depth (its
+    b_lim there is below the depth).  ``safe_depth_mm``: the depth the lobe rule would
+    call stable at ``rpm`` (the worst b_lim within +-band over the margin)."""
+    rpm: float
+    depth_mm: float
+    limit_mm: float               # the model's b_lim at ``rpm``
+    best_rpm: float               # the speed within reach with the highest b_lim
+    best_limit_mm: float
+    safe_depth_mm: float
+    min_rpm: float                # the reach: the spindle's range under the speed cap,
+    max_rpm: float                # where the cut's torque is available
+    chatter_frequency_hz: float | None = None
+    chatter_index: float | None = None
+    threshold: float | None = None
+
+    @property
+    def advice(self) -> str:
+        return (f"no stable speed within {self.min_rpm:.0f}-{self.max_rpm:.0f} r/min at {self.depth_mm:.2f} mm: "
+                f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, at best "
+                f"{self.best_limit_mm:.2f} mm ({self.best_rpm:.0f} r/min); speed held: reduce the depth of cut "
+                f"below {self.safe_depth_mm:.2f} mm or stiffen the set-up")
+
+    def record(self) -> dict:
+        return {**asdict(self), "advice": self.advice}
+
+
+WHEN_NO_STABLE_SPEED = ("hold", "move")
 
 
 class Strategy(Protocol):
@@ -182,6 +220,29 @@ class LobeSelection:
         return Decision(self.name, rpm_now, float(n[i]), chatter_frequency_hz,
                         float(b[i] * 1e3), ok_stable, float(n[i]) / rpm_now, reason)
 
+    def limit_mm(self, rpm: float) -> float:
+        """The worst b_lim within +-band of ``rpm``, mm: the limit this rule judges a speed by."""
+        if self.grid is None:
+            self.grid = lobe_grid(self.lobes, self.limits, self.band, self.resolution)
+        n, _, worst = self.grid
+        return float(np.interp(rpm, n, worst)) * 1e3
+
+    def advise(self, rpm_now: float, chatter_frequency_hz: float | None = None) -> Advice | None:
+        """When the model says every speed within reach chatters at the cut's depth (b_lim
+        below it), what would cure it; None when a speed's b_lim is above the depth (if not by
+        the margin, a move there is the bet the margin leaves open) or nothing is drivable."""
+        self.limit_mm(rpm_now)                 # the grid
+        n, b, _ = self.grid
+        ok = self.cut.drivable(n, self.limits)
+        if not ok.any():
+            return None
+        i = int(np.flatnonzero(ok)[np.argmax(b[ok])])
+        if b[i] > self.cut.depth_m:
+            return None
+        return Advice(rpm_now, self.cut.depth_m * 1e3, float(np.interp(rpm_now, n, b)) * 1e3, float(n[i]),
+                      float(b[i]) * 1e3, self.limit_mm(rpm_now) / self.margin, float(n[ok][0]), float(n[ok][-1]),
+                      chatter_frequency_hz)
+
 
 @dataclass
 class RatedSpeed:
@@ -197,7 +258,7 @@ class RatedSpeed:
         if self.lobes is not None:
             b_mm = float(self.lobes.b_lim_at(self.rated_rpm)[0][0] * 1e3)
             if self.cut is not None:
-                stable = self.cut.depth_m * 1e3 < b_mm
+                stable = bool(self.cut.depth_m * 1e3 < b_mm)     # not numpy's bool: `is False` holds
         return Decision(self.name, rpm_now, self.rated_rpm, chatter_frequency_hz, b_mm, stable,
                         self.rated_rpm / rpm_now, "paper's rule: drop to the rated speed")
 
@@ -234,6 +295,14 @@ class SuppressionPolicy:
     5. At most ``max_changes`` changes per part; when the strategy has no
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
+    6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes say
+       every speed within reach chatters at this depth (its b_lim below the
+       depth, LobeSelection.advise), and the fallback too,
+       the speed is kept and ``observe`` returns an Advice, once: the policy
+       is then exhausted for this part.  Where a speed's limit is above the
+       depth but not by the margin, it still moves there (the margin is for
+       model error; such moves cure most such cuts).  "move" takes the most
+       stable speed and then the fallback, as the paper's rule would.
     """
     strategy: Strategy
     limits: SpindleLimits
@@ -242,11 +311,18 @@ class SuppressionPolicy:
     confirm: int = 1
     ban_band: float = 0.04
     max_changes: int = 3
+    when_no_stable_speed: str = "move"
     changes: list[Decision] = field(default_factory=list)
     banned: list[tuple[float, float]] = field(default_factory=list)
     _streak: int = 0
     _hold_until_s: float = -math.inf
     exhausted: bool = False
+    advice: Advice | None = None
+
+    def __post_init__(self) -> None:
+        if self.when_no_stable_speed not in WHEN_NO_STABLE_SPEED:
+            raise ValueError(f"when_no_stable_speed {self.when_no_stable_speed!r} is not one of "
+                             f"{', '.join(WHEN_NO_STABLE_SPEED)}")
 
     def reset(self) -> None:
         self.changes.clear()
@@ -254,6 +330,7 @@ class SuppressionPolicy:
         self._streak = 0
         self._hold_until_s = -math.inf
         self.exhausted = False
+        self.advice = None
 
     @property
     def holding(self) -> bool:
@@ -273,7 +350,7 @@ class SuppressionPolicy:
     def observe(self, t_s: float, rpm: float, alarm: bool,
                 chatter_frequency_hz: float | None = None,
                 chatter_index: float | None = None,
-                threshold: float | None = None) -> Decision | None:
+                threshold: float | None = None) -> Decision | Advice | None:
         if t_s < self._hold_until_s:
             self._streak = 0
             return None
@@ -283,10 +360,24 @@ class SuppressionPolicy:
         self._streak = 0
         self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
         decision = None
+        fallback_left = self.fallback is not None and not any(d.strategy == self.fallback.name
+                                                              for d in self.changes)
         if len(self.changes) < self.max_changes:
             decision = self._admissible(self.strategy.select(rpm, chatter_frequency_hz, self.banned))
-        if decision is None and self.fallback is not None and not any(
-                d.strategy == self.fallback.name for d in self.changes):
+            if (decision is not None and decision.expected_stable is False and self.when_no_stable_speed == "hold"
+                    and isinstance(self.strategy, LobeSelection)):
+                advice = self.strategy.advise(rpm, chatter_frequency_hz)
+                fb = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned)) \
+                    if fallback_left and advice is not None else None
+                if fb is not None and fb.expected_stable is not False:
+                    decision = fb          # the model says the fallback will not chatter
+                elif advice is not None:
+                    # the model says every speed within reach chatters: a move would only trade chatter
+                    self.exhausted = True
+                    self.advice = replace(advice, chatter_index=chatter_index, threshold=threshold)
+                    return self.advice
+                # else a speed within reach is above the depth, not by the margin: the most stable one
+        if decision is None and fallback_left:
             decision = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned))
         if decision is None:
             self.exhausted = True
@@ -301,3 +392,22 @@ class SuppressionPolicy:
             # modulating: there is nothing further to select for this part
             self.exhausted = True
         return decision
+
+
+def reach(limits: SpindleLimits, rpm_programmed: float | None, max_speed_ratio: float) -> SpindleLimits:
+    """The spindle's envelope under the speed cap: never more than ``max_speed_ratio`` x the
+    programmed speed (the cutting speed the tool and material were programmed for)."""
+    if not rpm_programmed:
+        return limits
+    return replace(limits, max_rpm=min(limits.max_rpm, max_speed_ratio * rpm_programmed))
+
+
+def lobe_policy(lobes: StabilityLobes, cut: Cut, limits: SpindleLimits, rpm_programmed: float | None,
+                max_speed_ratio: float, rated_rpm: float, grid=None, settle_revs: float = 20.0,
+                when_no_stable_speed: str = "hold") -> SuppressionPolicy:
+    """One cut's policy as the daemon's suppression composes it for strategy "lobes": LobeSelection
+    within reach, the rated speed as the fallback (the benchmark's closed loop runs this too)."""
+    within = reach(limits, rpm_programmed, max_speed_ratio)
+    return SuppressionPolicy(LobeSelection(lobes, cut, within, grid=grid), within,
+                             fallback=RatedSpeed(rated_rpm, lobes, cut), settle_revs=settle_revs,
+                             when_no_stable_speed=when_no_stable_speed)

@@ -76,6 +76,8 @@ def run_cuts(args) -> int:
             (f", first alarm at {p['first_alarm_s']:.2f} s (rev {_f(p.get('first_alarm_rev'), '.0f')}) "
              f"{_f(p.get('chatter_frequency_hz'), '.1f')} Hz")
         cured = {True: ", cured", False: ", not cured", None: ""}[p.get("cured")]
+        if p.get("advice"):
+            cured += " (speed held: no stable speed within reach)"
         print(f"{r['id']:>7} {t} {p['machine']:<10} {p.get('tool') or '-'}/{p.get('material') or '-'} "
               f"depth {_f(p.get('depth_mm'), '.3g')} mm ({p.get('depth_from') or 'unknown'}), "
               f"feed {_f(p.get('feed_mm_rev'), '.3g')}: {p.get('outcome') or 'too short to judge'}; "

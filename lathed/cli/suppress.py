@@ -20,6 +20,8 @@ def run(args: argparse.Namespace) -> int:
               + f", chatter alarm {'ON' if r['chatter_alarm'] else 'off'}, {r['actions']} action(s)"
               + (f"; last {last['rpm_before']:.0f} -> {last['rpm_after']:.0f} r/min"
                  + (" (predicted)" if last.get("trigger") == "predicted" else "") if last else ""))
+        if r.get("advisories"):
+            print(f"{r['advisories']} cut(s) held with advice; last: {r['last_advice']['advice']}")
     return 0
 
 

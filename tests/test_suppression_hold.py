@@ -1,0 +1,172 @@
+"""Suppression holds the speed when the cut's model has no stable speed within
+reach: no command, a ``suppression_advice`` record naming the limit and the
+cure, the cut record saying so (the lobes are the refit tests' GIVEN model:
+its b_lim is 1.48-2.06 mm over 100-3250 r/min, so at 2.2 mm every speed within
+1.3 x 2500 r/min chatters and at 1.3 mm none does)."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from lathed.bus import Sample
+from lathed.config import ConfigError
+from lathed.control import RequestError
+from tests.test_stability_adopt import Harness
+
+
+@pytest.fixture
+def make(tmp_path):
+    made = []
+
+    def make(**extra):
+        h = Harness(tmp_path / str(len(made)), max_speed_ratio=1.3, **extra)
+        h.start()
+        made.append(h)
+        return h
+    yield make
+    for h in made:
+        h.store.close()
+
+
+async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True, vibration_first=False):
+    """A cut at ``depth_mm`` that chatters from entry: ``alarms`` alarm windows, then the exit."""
+    t = time.time()
+    await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+    await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+    if vibration_first:        # the chatter analyzer sees the chip before the depth register is read
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+    if register:
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", depth_mm, "mm", t))
+    else:
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+    await an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t))
+    await an._on_chatter(Sample("chatter", "chatter_index", 3.5, "", t))
+    await an._on_chatter(Sample("chatter", "chatter_threshold", 1.0, "", t))
+    for _ in range(alarms):
+        t += 0.5
+        await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+        await an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
+    if not leave:
+        return
+    if register:
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.1))
+    else:
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.1))
+
+
+def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
+    h = make()
+    asyncio.run(_cut(h.an, 2.2))
+    assert h.sent == []                              # no speed command at all
+    assert h.events("suppression_action") == []
+    (a,) = h.events("suppression_advice")            # once per cut, not per alarm window
+    assert a["machine"] == "lathe" and a["trigger"] == "alarm" and a["model"] == "configured"
+    assert a["rpm"] == 2500.0 and a["depth_mm"] == pytest.approx(2.2) and a["depth_from"] == "register"
+    assert a["limit_mm"] == pytest.approx(float(h.an.lobes.b_lim_at(2500.0)[0][0]) * 1e3, rel=1e-3)
+    assert a["limit_mm"] < a["best_limit_mm"] < 2.2
+    assert a["safe_depth_mm"] == pytest.approx(h.an.predicted_unstable(2500.0, 2.2)[1] / 1.15)
+    assert a["max_rpm"] <= 1.3 * 2500 and a["chatter_frequency_hz"] == 655.0 and a["chatter_index"] == 3.5
+    assert a["advice"].startswith("no stable speed within ") and " at 2.20 mm: " in a["advice"]
+    assert f"reduce the depth of cut below {a['safe_depth_mm']:.2f} mm" in a["advice"]
+    (cut,) = h.events("cut")
+    assert cut["advice"] == a["advice"] and cut["outcome"] == "chatter" and cut["cured"] is False
+    st = h.an.status()
+    assert st["advisories"] == 1 and st["last_advice"]["advice"] == a["advice"] and st["actions"] == 0
+    assert "1 held with advice" in st["summary"] and st["when_no_stable_speed"] == "hold"
+    # a shallower cut on the same lathe: the lobes have a stable speed, and it moves
+    asyncio.run(_cut(h.an, 1.3, alarms=1))
+    assert len(h.sent) == 1 and h.events("suppression_action")[0]["expected_stable"] is True
+    assert len(h.events("suppression_advice")) == 1
+
+
+def test_the_depth_register_read_after_the_cut_began_is_the_policys_depth(make):
+    # the cut starts on the vibration's cut state, the register says 2.2 mm a poll later: the
+    # policy judges at 2.2 mm (it judged at 0.01 mm, called every speed stable and moved)
+    h = make()
+    asyncio.run(_cut(h.an, 2.2, vibration_first=True))
+    assert h.sent == [] and h.events("suppression_advice")[0]["depth_mm"] == pytest.approx(2.2)
+    h = make(when_no_stable_speed="move")
+    asyncio.run(_cut(h.an, 2.2, vibration_first=True, alarms=1))
+    (act,) = h.events("suppression_action")
+    assert act["expected_stable"] is False
+
+
+def test_move_keeps_the_old_behaviour(make):
+    h = make(when_no_stable_speed="move")
+    asyncio.run(_cut(h.an, 2.2))
+    assert h.sent and h.events("suppression_advice") == []
+    assert h.events("suppression_action")[0]["expected_stable"] is False
+
+
+def test_manual_mode_records_the_advice_and_suppress_now_says_the_speed_is_held(make):
+    h = make(mode="manual")
+
+    async def run():
+        await _cut(h.an, 2.2, alarms=1, leave=False)      # still cutting, still chattering
+        (a,) = h.events("suppression_advice")
+        assert a["mode"] == "manual" and h.an.pending is None and h.events("suppression_proposed") == []
+        with pytest.raises(RequestError, match="speed held: no stable speed within"):
+            await h.an._control({"action": "now"})
+    asyncio.run(run())
+    assert h.sent == []
+
+
+def test_predicted_at_cut_entry_holds_too(make):
+    h = make(avoid=True)
+    asyncio.run(_cut(h.an, 2.2, alarms=0))
+    (a,) = h.events("suppression_advice")
+    assert a["trigger"] == "predicted" and h.sent == []
+
+
+def test_without_a_depth_it_cannot_know_no_speed_is_stable_and_moves(make):
+    h = make()
+    asyncio.run(_cut(h.an, None, register=False))
+    assert h.sent and h.events("suppression_advice") == []
+    # the programmed depth is a depth: with it the lobes can say, and hold
+    h2 = make(depth_mm=2.2)
+    asyncio.run(_cut(h2.an, None, register=False))
+    assert h2.sent == [] and h2.events("suppression_advice")[0]["depth_from"] == "program"
+
+
+def test_when_no_stable_speed_is_checked(make):
+    with pytest.raises(ConfigError, match=r"when_no_stable_speed.*'stay' is not allowed; allowed: hold, move"):
+        make(when_no_stable_speed="stay")
+
+
+# -- in the running daemon -----------------------------------------------------------------
+
+def test_the_running_daemon_holds_and_shows_the_advice(tmp_path):
+    """4.5 mm at 1000 r/min on the simulated lathe (whose dynamics are the configured model's):
+    its limit is 2.4 mm there and at most 4.1 mm anywhere in 100-1300 r/min (750, the rated
+    speed, included), so every cut chatters and suppression holds."""
+    import json
+
+    from tests.conftest import DEPTH_REGISTER, Daemon, sim_config, wait_until
+    from tests.test_suppression_live import ANALYZERS, events, spindle_commands
+    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS, registers=DEPTH_REGISTER,
+                            simulator='program = ["1000,4.5,0.3,24"]\nload_s = 0.3\nretract_s = 0.2\n')
+    d = Daemon(cfg, paths["socket"])
+    try:
+        d.wait_ready()
+        a = wait_until(lambda: events(d, "suppression_advice"), timeout=90, interval=0.5,
+                       what="suppression_advice")[0]
+        p = a["payload"]
+        assert a["source"] == "suppress" and p["machine"] == "lathe" and p["trigger"] == "alarm"
+        assert p["depth_mm"] == pytest.approx(4.5) and p["depth_from"] == "register" and p["model"] == "configured"
+        assert p["rpm"] == pytest.approx(1000, rel=0.02) and p["best_limit_mm"] < 4.5 and p["max_rpm"] <= 1300
+        # (the reach is 1.3 x the speed the cut began at, which may still be ramping up to 1000)
+        assert p["advice"].startswith(f"no stable speed within 100-{p['max_rpm']:.0f} r/min at 4.50 mm: ")
+        # the speed stays: no command, no action
+        assert spindle_commands(d) == [] and events(d, "suppression_action") == []
+        text = d.ctl("suppress", "status").stdout
+        assert "held with advice; last: no stable speed within" in text, text
+        assert "held with advice" in d.ctl("status").stdout
+        assert "suppression_advice" in d.ctl("events", "--kind", "suppression_advice").stdout
+        rows = wait_until(lambda: [c for c in json.loads(d.ctl("cuts", "--json").stdout) if c["advice"]],
+                          timeout=60, interval=0.5, what="a held cut's record")
+        assert rows[0]["outcome"] == "chatter" and rows[0]["cured"] is False and rows[0]["actions"] == []
+        assert "speed held: no stable speed within reach" in d.ctl("cuts").stdout
+    finally:
+        d.stop()
