@@ -265,10 +265,8 @@ def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path)
         d = an._measurements()
         assert d.reference_c == ref
         assert d.t0_s == 0.0 and d.time_s[0] == 60.0          # hours since the cold start
-        # from the room's cold temperature, as the live prediction takes them (cold_reference)
-        above = cold["motor"] - cold["room"]
-        assert d.rise("t_motor_c")[0] == pytest.approx(above) and d.rise("t_motor_c")[-1] == pytest.approx(
-            above + 0.05 * (NEED - 1))
+        assert d.rise("t_motor_c")[0] == pytest.approx(0.0) and d.rise("t_motor_c")[-1] == pytest.approx(
+            0.05 * (NEED - 1))
         # the next morning: a cold start 1 °C warmer, and its own run
         warmer = {p: v + 1.0 for p, v in cold.items()}
         for k in range(5):
@@ -277,6 +275,6 @@ def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path)
         assert isinstance(d, ThermalRuns) and [len(r) for r in d.runs] == [NEED, 5]
         assert d.runs[1].reference_c == {f"t_{p}_c": v for p, v in warmer.items()}
         assert d.time_s[NEED] == 10.0                             # since that morning's start
-        assert d.rise("t_motor_c")[NEED] == pytest.approx(above)  # not the 1 °C between the mornings
+        assert d.rise("t_motor_c")[NEED] == pytest.approx(0.0)    # not the 1 °C between the mornings
     finally:
         store.close()
