@@ -241,39 +241,3 @@ def test_kept_held_out_scores_follow_a_changed_displacement_or_speed():
     assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
     d.rpm = np.repeat([4000.0, 0.0], 300)
     assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
-
-
-def _sim_data(schedule, seed):
-    from lathed.sim.thermal import generate_run
-    c = generate_run(schedule, seed=seed, dt_s=60.0, noise_um=0.3).columns
-    return ThermalData(c["time_s"], {k: v for k, v in c.items() if k.startswith("t_")}, c["displacement_um"],
-                       c["spindle_rpm"])
-
-
-def test_a_run_that_starts_at_speed_counts_the_heat_in_before_its_first_row():
-    """A row a minute: a run started at 4000 r/min has grown ~2.7 µm by its
-    first row. Rises from each sensor's own first reading call that zero and
-    the fit on a run started at rest predicted the whole run 2.5 µm off;
-    from the room's start temperature (a cold machine is at the room's) the
-    plain least-squares fit is good to the probe's 0.3 µm on it."""
-    from lathed.analysis.thermal import least_squares_stage
-    tr = _sim_data([(1800, 0), (3600, 2500), (1800, 0), (3600, 3500), (3600, 1000)], 3)
-    te = _sim_data([(3600, 4000), (1800, 1500), (3600, 3000), (1800, 0), (3600, 2000)], 4)
-    assert te.displacement_um[0] > 2.0             # grown before the first row
-    stage, _ = least_squares_stage(tr, te)
-    err = te.displacement_um - stage.model.predict(te)
-    assert abs(err.mean()) < 0.2 and stage.test_rmse_um < 0.45, (err.mean(), stage.test_rmse_um)
-
-
-def test_rises_count_from_the_rooms_start_temperature_in_the_fit_and_live():
-    m = ThermalModel([LinearTerm("t_fb_c")], np.array([2.0]), 0.0)
-    d = ThermalData([60.0, 120.0], {"t_fb_c": [21.0, 21.5], "t_room_c": [20.0, 20.0]},
-                    reference_c={"t_fb_c": 21.0, "t_room_c": 20.0})
-    assert m.predict(d) == pytest.approx([2.0, 3.0])          # 1 °C above the room at the first row
-    assert d.select(["t_fb_c"]).rise("t_fb_c") == pytest.approx([1.0, 1.5])   # the room's start kept
-    p = m.predictor()                                          # reference: the first reading, as in the fit
-    assert p.update({"fb": 21.0, "room": 20.0}, t_s=60.0) == pytest.approx(2.0)
-    assert p.update({"fb": 21.5, "room": 20.0}, t_s=120.0) == pytest.approx(3.0)
-    # no room sensor: each sensor's own start, as before
-    d2 = ThermalData([60.0, 120.0], {"t_fb_c": [21.0, 21.5]}, reference_c={"t_fb_c": 21.0})
-    assert m.predict(d2) == pytest.approx([0.0, 1.0])

@@ -106,26 +106,6 @@ def smooth_rows(t_s: np.ndarray, x: np.ndarray, span_s: float | None = None) -> 
     return best[1]
 
 
-def cold_reference(start_c: Mapping[str, float]) -> dict[str, float]:
-    """The temperatures the rises count from, given each sensor's temperature
-    at the start of a run from a cold start (``start_c``, any keys).
-
-    A cold machine is at the room's temperature, so with a room sensor every
-    sensor's rise counts from the room's temperature at the start. Its own
-    first reading would miss the heat already in by then: with a row a
-    minute, a run that starts at speed has warmed its front bearing by
-    0.6 °C and grown some 2 µm by its first row, an offset of the whole run
-    the fit puts in the intercept and the next run (started at rest, or at
-    another speed) does not share. What a sensor reads apart from the room on
-    a cold machine (its calibration, ±0.5 °C on a DS18B20) is the same on
-    every run: a constant the intercept takes, and growth since a touch-off
-    cancels it. Without a room sensor, each sensor's own start."""
-    amb = next((k for k in start_c if is_ambient(k)), None)
-    if amb is None:
-        return dict(start_c)
-    return {k: v if is_ambient(k) else start_c[amb] for k, v in start_c.items()}
-
-
 @dataclass
 class ThermalData:
     """One contiguous run: time stamps, temperatures per column, speed, and
@@ -134,7 +114,7 @@ class ThermalData:
     temps_c: dict[str, np.ndarray]
     displacement_um: np.ndarray | None = None
     rpm: np.ndarray | None = None
-    reference_c: dict[str, float] | None = None   # temperatures at the cold start (see cold_reference)
+    reference_c: dict[str, float] | None = None   # temperatures the rises start from
     t0_s: float | None = None                     # start of the run (drift clock)
 
     def __post_init__(self) -> None:
@@ -148,7 +128,6 @@ class ThermalData:
             raise ValueError("thermal data has no rows")
         if self.reference_c is None:
             self.reference_c = {k: _start_temp(self.time_s, v) for k, v in self.temps_c.items()}
-        self.cold_c = cold_reference(self.reference_c)
         if self.t0_s is None:
             self.t0_s = float(self.time_s[0])
 
@@ -160,7 +139,7 @@ class ThermalData:
         return list(self.temps_c)
 
     def rise(self, column: str) -> np.ndarray:
-        return self.temps_c[column] - self.cold_c[column]
+        return self.temps_c[column] - self.reference_c[column]
 
     def smooth_rise(self, column: str) -> np.ndarray:
         """The rise with the sensor noise smoothed out, for fitting only."""
@@ -180,9 +159,8 @@ class ThermalData:
 
     def select(self, columns: Sequence[str]) -> ThermalData:
         """The same rows with only ``columns`` of the temperatures."""
-        # every sensor's start kept (the room's too): the rises stay the run's
         out = ThermalData(self.time_s, {k: self.temps_c[k] for k in columns}, self.displacement_um, self.rpm,
-                          dict(self.reference_c), self.t0_s)
+                          {k: self.reference_c[k] for k in columns}, self.t0_s)
         out.__dict__["_smooth"] = self.__dict__.setdefault("_smooth", {})
         out.__dict__["_cols"] = self.__dict__.setdefault("_cols", {})
         return out
@@ -251,7 +229,7 @@ from lathed.analysis.thermal_terms import (  # noqa: F401  (re-exported: plugins
     AmbientLagTerm, Candidate, DriftCandidate, DriftTerm, HysteresisCandidate, HysteresisTerm, LagCandidate,
     LagTerm, LinearTerm, NonlinearCandidate, NonlinearTerm, PeriodicTerm, RateCandidate, RateTerm,
     SpeedCandidate, SpeedLagTerm, SpeedStepCandidate, SpeedStepTerm, SpeedTempTerm, SpeedTerm, Term,
-    builtin_candidates, is_ambient, lag_filter, play_operator)
+    builtin_candidates, lag_filter, play_operator)
 
 # -- least squares --------------------------------------------------------
 
@@ -487,8 +465,7 @@ class ThermalPredictor:
 
     Temperatures may be keyed ``front_bearing`` or ``t_front_bearing_c``.
     Rises are taken from ``reference_c`` (the cold-start temperatures), or
-    from the first reading when none is given, as in the fit
-    (``cold_reference``: from the room's when a room sensor was read); the drift clock runs from
+    from the first reading when none is given; the drift clock runs from
     ``t0_s``, or from the first update. Terms with memory (lag, rate,
     hysteresis) keep their state here, so call ``update`` in time order; they
     start settled at the first reading.
@@ -499,7 +476,6 @@ class ThermalPredictor:
         self.model = model
         self.reference_c = None if reference_c is None else {sensor_column(k): float(v)
                                                              for k, v in reference_c.items()}
-        self._cold: dict[str, float] | None = None
         self._streams = [t.stream() for t in model.terms]
         self._t0 = t0_s
         self.prediction_um: float | None = None
@@ -510,18 +486,16 @@ class ThermalPredictor:
         missing = [s for s in self.model.sensors if s not in temps]
         if missing:
             raise ValueError(f"no reading from {', '.join(missing)}: the thermal model needs it")
-        if self.reference_c is None:      # every sensor read, the room's too (see cold_reference)
-            self.reference_c = dict(temps)
-        if self._cold is None:
-            self._cold = cold_reference(self.reference_c)
+        if self.reference_c is None:
+            self.reference_c = {s: temps[s] for s in self.model.sensors}
         t = 0.0 if t_s is None else float(t_s)
         if self._t0 is None:
             self._t0 = t
-        unreferenced = [s for s in self.model.sensors if s not in self._cold]
+        unreferenced = [s for s in self.model.sensors if s not in self.reference_c]
         if unreferenced:
             raise ValueError(f"no reference temperature for {', '.join(unreferenced)}: "
                              f"the rises cannot be taken")
-        rises = {s: temps[s] - self._cold[s] for s in self.model.sensors}
+        rises = {s: temps[s] - self.reference_c[s] for s in self.model.sensors}
         vals: list[float] = []
         for term, f in zip(self.model.terms, self._streams):
             if f is None:      # drift, periodic: on the run's clock, from the cold start
@@ -738,7 +712,7 @@ def _usable_sensors(data: ThermalData, n_blocks: int, gap: int) -> tuple[list[st
     for s in data.sensors:
         x = data.rise(s)
         if np.ptp(x) == 0:
-            notes.append(f"{s} never changed ({data.temps_c[s][0]:.2f} °C): left out of the fit")
+            notes.append(f"{s} never changed ({x[0] + data.reference_c[s]:.2f} °C): left out of the fit")
             continue
         keep.append(s)
     if not keep:

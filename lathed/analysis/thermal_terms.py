@@ -469,7 +469,7 @@ _TAUS_S = tuple(float(v) for v in np.geomspace(300.0, 4 * 3600.0, 16))
 
 def _heated(data: ThermalData) -> list[str]:
     """Sensors on parts the spindle heats (not the room)."""
-    return [s for s in data.sensors if not is_ambient(s)]
+    return [s for s in data.sensors if "room" not in s]
 
 
 class LagCandidate:
@@ -564,13 +564,8 @@ def _refine_tau(tau_s: float, make) -> list:
     return [make(float(t)) for t in np.geomspace(tau_s / step, tau_s * step, 9) if t >= _TAUS_S[0]]
 
 
-def is_ambient(column: str) -> bool:
-    """A sensor reading the room (by its name), not a part the spindle heats."""
-    return "room" in column or "ambient" in column
-
-
 def _ambient(data: ThermalData) -> list[str]:
-    return [s for s in data.sensors if is_ambient(s)]
+    return [s for s in data.sensors if "room" in s or "ambient" in s]
 
 
 class SpeedLagCandidate:
