@@ -113,3 +113,26 @@ def test_generate_run_and_csv(tmp_path):
         rows = list(csv.reader(f))
     assert tuple(rows[0]) == CSV_COLUMNS and len(rows) == 201
     assert float(rows[-1][0]) == 1200.0
+
+
+def test_the_sensors_on_parts_further_out_start_cold_and_follow_each_heated_part():
+    """many_sensors' lagged copies: a part further out is at the room's
+    temperature at a cold start, not at the first reading of the part it
+    follows (a minute into a run at speed that reading has warmed), and the
+    copies follow the front bearing, the rear bearing and the motor in turn
+    (they all followed the front bearing)."""
+    from lathed.sim.thermal import many_sensors
+    run = generate_run([(3600.0, 4000.0), (3600.0, 0.0)], seed=2, dt_s=60.0)
+    heated = {k: run.columns[f"t_{k}_c"].copy() for k in ("front_bearing", "rear_bearing", "motor")}
+    c = many_sensors(run, 2).columns
+    room0 = c["t_room_c"][0]
+    assert heated["front_bearing"][0] - room0 > 0.3          # warmed by the first row
+    followed = set()
+    for i in (1, 4, 7, 10):                                   # the lagged copies
+        x = c[f"t_extra{i:02d}_c"]
+        if i in (4, 10):                                      # those without an oscillation of their own
+            assert abs(x[0] - room0) < 0.15, (i, x[0], room0)
+        # the part it follows is the one whose rise it matches best, late and scaled
+        r = {k: np.corrcoef(np.diff(x[:60]), np.diff(v[:60]))[0, 1] for k, v in heated.items()}
+        followed.add(max(r, key=r.get))
+    assert followed == {"front_bearing", "rear_bearing", "motor"}

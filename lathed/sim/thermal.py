@@ -337,21 +337,23 @@ def many_sensors(run: Run, seed: int, n_sensors: int = 16, osc_period_s: float =
     def reading(x: np.ndarray) -> np.ndarray:
         return np.round((x + rng.normal(0.0, p.sensor_noise_c, n)) / p.quantum_c) * p.quantum_c
 
-    c["t_motor_c"] = reading(c["t_motor_c"] + osc_amp_c * np.sin(2 * math.pi * t / osc_period_s))
+    # parts further out follow the heated bodies, not the coolant at the motor's sensor
     heated = [c[k] for k in TRUE_SENSORS[:3]]
+    c["t_motor_c"] = reading(c["t_motor_c"] + osc_amp_c * np.sin(2 * math.pi * t / osc_period_s))
     room = c["t_room_c"]
+    cold = float(room[0])     # a cold machine is at the room's temperature
     dt = float(np.median(np.diff(t)))
     for i in range(n_sensors - len(TRUE_SENSORS)):
         kind = i % 3
-        if kind == 0:      # a heated part further out: one sensor's rise, late and scaled
-            src = heated[i % 3]
+        if kind == 0:      # a heated part further out: one heated part's rise, late and scaled
+            src = heated[(i // 3) % 3]      # front bearing, rear bearing, motor in turn
             a = 1.0 - math.exp(-dt / rng.uniform(300.0, 3000.0))
             x = np.empty(n)
-            acc = float(src[0])
+            acc = cold                      # from the cold start, not from the heated part's first row
             for k, v in enumerate(src.tolist()):
                 acc += a * (v - acc)
                 x[k] = acc
-            x = src[0] + rng.uniform(0.3, 1.2) * (x - src[0])
+            x = cold + rng.uniform(0.3, 1.2) * (x - cold)
         elif kind == 1:    # near the room
             x = room + rng.normal(0.0, 0.05) + 0.3 * np.sin(2 * math.pi * t / rng.uniform(3600, 7200))
         else:              # wanders (a sensor on a cabinet)
