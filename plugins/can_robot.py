@@ -62,9 +62,9 @@ class ReadAhead:
         object.__setattr__(self, "_buf", bytearray())
 
     def read(self, size: int = 1) -> bytes:
-        if not self._buf:
-            # blocks as the port does for the first byte (its timeout), then takes what came with it
-            self._buf += self._port.read(max(size, self._port.in_waiting))
+        if len(self._buf) < size:
+            # blocks as the port does for the bytes asked (its timeout), and takes what came with them
+            self._buf += self._port.read(max(size - len(self._buf), self._port.in_waiting))
         out = bytes(self._buf[:size])
         del self._buf[:size]
         return out
@@ -132,7 +132,7 @@ class CanRobot(Driver):
             # returns the moment it arrives
             kw["timeout"] = 0.05
         bus = can.Bus(**kw)
-        if self.interface == "slcan":
+        if self.interface == "slcan" and hasattr(bus, "serialPortOrig"):   # python-can 4.x's name for its port
             bus.serialPortOrig = ReadAhead(bus.serialPortOrig)
         return bus
 
