@@ -222,10 +222,12 @@ class DS18B20Serial(Driver):
         self.ctx.log.warning("arduino_restarted", port=self.port)
 
     def _read(self) -> bytes:
-        """What has arrived, in one read (at least a byte; nothing after the port's timeout).
-        Not readline: pyserial's reads byte by byte, a select and a read per byte."""
+        """What has arrived (at least a byte; nothing after the port's timeout), in a
+        read or two: the first byte of a line, then the rest that came with it. Not
+        readline: pyserial's reads byte by byte, a select and a read per byte."""
         try:
-            return self.ser.read(max(1, self.ser.in_waiting))
+            data = self.ser.read(max(1, self.ser.in_waiting))
+            return data + self.ser.read(self.ser.in_waiting) if data else data
         except (serial.SerialException, OSError) as e:
             # a pty whose other end closed, or a USB adapter pulled, reads as EIO
             raise ConnectionError(f"{self.port} went away: {e} (USB cable pulled?)") from None

@@ -211,20 +211,24 @@ def test_lines_split_from_chunks_as_readline_cut_them():
     assert any(len(x) == MAX_LINE and not x.endswith(b"\n") for x in got)     # over-long lines were cut
 
 
-def test_the_port_is_read_in_one_call_per_arrival():
+def test_a_line_is_read_in_one_worker_call_in_a_read_or_two():
     class Port:
-        def __init__(self, data):
-            self.data, self.reads = data, 0
+        """A line arrives while the driver waits: its first byte wakes the read, the rest is waiting."""
+        def __init__(self, line):
+            self.line, self.waiting, self.reads = line, b"", 0
 
         @property
         def in_waiting(self):
-            return len(self.data)
+            return len(self.waiting)
 
         def read(self, n):
             self.reads += 1
-            out, self.data = self.data[:n], self.data[n:]
+            if self.line:
+                self.waiting, self.line = self.line, b""
+            out, self.waiting = self.waiting[:n], self.waiting[n:]
             return out
     d = sensor()
     d.ser = Port(line(1, 1000, room=20.0) + line(2, 2000, room=20.1))
-    assert split_lines(d._read())[0] == [line(1, 1000, room=20.0), line(2, 2000, room=20.1)]
-    assert d.ser.reads == 1
+    assert split_lines(d._read()) == ([line(1, 1000, room=20.0), line(2, 2000, room=20.1)], b"")
+    assert d.ser.reads == 2
+    assert d._read() == b"" and d.ser.reads == 3          # the port's timeout: nothing, one read
