@@ -124,7 +124,9 @@ class VibrationCutDetector:
         if nf == 0:
             return None
         frames = buf[:nf * self.frame].reshape(nf, self.frame)
-        rms = np.sqrt(np.mean((frames - frames.mean(axis=1, keepdims=True)) ** 2, axis=1))
+        # np.mean's sum and division without its Python wrapper (the same numbers, bit for bit)
+        dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / self.frame
+        rms = np.sqrt(np.add.reduce(dev * dev, axis=1) / self.frame)
         offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
         changed = None
         for i, r in enumerate(rms.tolist()):
