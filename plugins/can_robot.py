@@ -50,6 +50,40 @@ GRIPPER = {0: "open", 1: "closed", 2: "moving"}
 BATCH_S = 0.05    # frames are read in a worker thread in batches this long: one loop hop per batch
 
 
+class ReadAhead:
+    """A pyserial port whose ``read`` takes everything waiting in one system call.
+
+    python-can's slcan reader asks its port for one byte at a time (a select
+    and a read per byte: ~25 of each per frame, in a worker thread); handed
+    this wrapper, those bytes come from memory. Everything else is the port's."""
+
+    def __init__(self, port) -> None:
+        object.__setattr__(self, "_port", port)
+        object.__setattr__(self, "_buf", bytearray())
+
+    def read(self, size: int = 1) -> bytes:
+        if len(self._buf) < size:
+            # blocks as the port does for the bytes asked (its timeout), and takes what came with them
+            self._buf += self._port.read(max(size - len(self._buf), self._port.in_waiting))
+        out = bytes(self._buf[:size])
+        del self._buf[:size]
+        return out
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._buf) + self._port.in_waiting
+
+    def reset_input_buffer(self) -> None:
+        self._buf.clear()
+        self._port.reset_input_buffer()
+
+    def __getattr__(self, name: str):
+        return getattr(self._port, name)
+
+    def __setattr__(self, name: str, value) -> None:
+        setattr(self._port, name, value)
+
+
 class CanRobot(Driver):
     role = "machine"
     kind = "robot_arm"
@@ -97,7 +131,10 @@ class CanRobot(Driver):
             # thousand times a second while the bus is quiet; a byte still
             # returns the moment it arrives
             kw["timeout"] = 0.05
-        return can.Bus(**kw)
+        bus = can.Bus(**kw)
+        if self.interface == "slcan" and hasattr(bus, "serialPortOrig"):   # python-can 4.x's name for its port
+            bus.serialPortOrig = ReadAhead(bus.serialPortOrig)
+        return bus
 
     async def connect(self) -> None:
         try:

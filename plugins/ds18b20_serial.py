@@ -66,6 +66,24 @@ MIN_LINE = 10    # bytes of the shortest line, b"T,0,0*0000" less its end: bound
 NAME = re.compile(r"[A-Za-z0-9_]{1,24}")
 
 
+def split_lines(buf: bytes, limit: int = MAX_LINE) -> tuple[list[bytes], bytes]:
+    """The lines at the head of ``buf`` and the rest: each up to and with its newline,
+    or its first ``limit`` bytes if it runs longer (an over-long line is cut, as
+    readline(limit) cuts it, and its tail starts the next)."""
+    lines = []
+    start = 0
+    while True:
+        nl = buf.find(b"\n", start, start + limit)
+        if nl >= 0:
+            end = nl + 1
+        elif len(buf) - start >= limit:
+            end = start + limit
+        else:
+            return lines, buf[start:]
+        lines.append(buf[start:end])
+        start = end
+
+
 class DS18B20Serial(Driver):
     role = "sensor"
     kind = "temperature"
@@ -203,9 +221,13 @@ class DS18B20Serial(Driver):
         self.rejected["arduino_restarted"] += 1
         self.ctx.log.warning("arduino_restarted", port=self.port)
 
-    def _readline(self) -> bytes:
+    def _read(self) -> bytes:
+        """What has arrived (at least a byte; nothing after the port's timeout), in a
+        read or two: the first byte of a line, then the rest that came with it. Not
+        readline: pyserial's reads byte by byte, a select and a read per byte."""
         try:
-            return self.ser.readline(MAX_LINE - len(self._partial))
+            data = self.ser.read(max(1, self.ser.in_waiting))
+            return data + self.ser.read(self.ser.in_waiting) if data else data
         except (serial.SerialException, OSError) as e:
             # a pty whose other end closed, or a USB adapter pulled, reads as EIO
             raise ConnectionError(f"{self.port} went away: {e} (USB cable pulled?)") from None
@@ -213,11 +235,10 @@ class DS18B20Serial(Driver):
     async def run(self) -> None:
         last_valid = time.monotonic()
         while True:
-            self._partial += await asyncio.to_thread(self._readline)
+            # a read timeout can cut a line in two: the head waits in _partial for its end
+            lines, self._partial = split_lines(self._partial + await asyncio.to_thread(self._read))
             now = time.monotonic()
-            # a read timeout can cut a line in two: keep the head until its end comes
-            if self._partial.endswith(b"\n") or len(self._partial) >= MAX_LINE:
-                raw, self._partial = self._partial, b""
+            for raw in lines:
                 if self.handle_line(raw, time.time()):
                     last_valid = now
             if now - last_valid > self.stale_after:

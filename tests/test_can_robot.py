@@ -16,7 +16,7 @@ from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.sim.can_peer import CanPeer, robot_frames
 from lathed.sim.line import SimRobotArm
-from lathed_plugins.can_robot import CanRobot
+from lathed_plugins.can_robot import CanRobot, ReadAhead
 from tests.conftest import ROOT
 
 DBC = str(ROOT / "etc" / "robot_arm.dbc")
@@ -156,3 +156,43 @@ def test_slcan_on_a_pty_as_the_simulator_serves_it(tmp_path):
             await d.close()
             peer.close()
     asyncio.run(asyncio.wait_for(main(), 20))
+
+
+def test_slcan_bytes_come_from_one_read_per_arrival():
+    # python-can's slcan reader asks for one byte at a time: a select and a read each
+    class Port:
+        def __init__(self):
+            self.arrivals, self.reads, self.write_timeout, self.resets = [], 0, None, 0
+
+        @property
+        def in_waiting(self):
+            return len(self.arrivals[0]) if self.arrivals else 0
+
+        def read(self, size=1):
+            self.reads += 1
+            if not self.arrivals:
+                return b""                    # the port's timeout
+            head = self.arrivals[0]
+            out, rest = head[:size], head[size:]
+            self.arrivals[0:1] = [rest] if rest else []
+            return out
+
+        def reset_input_buffer(self):
+            self.resets += 1
+            self.arrivals.clear()
+
+    port = Port()
+    ra = ReadAhead(port)
+    port.arrivals = [b"t1018AABBCCDD00112233\r", b"t1021FF\r"]
+    assert ra.in_waiting == 22
+    got = []
+    while (b := ra.read(1)):
+        got.append(b)
+    assert b"".join(got) == b"t1018AABBCCDD00112233\rt1021FF\r" and all(len(b) == 1 for b in got)
+    assert port.reads == 3                     # one per arrival, and the timeout's empty one
+    port.arrivals = [b"t1021FF\r"]
+    assert ra.read(1) == b"t" and ra.in_waiting == 7
+    ra.reset_input_buffer()
+    assert ra.in_waiting == 0 and ra.read(1) == b"" and port.resets == 1
+    ra.write_timeout = 0.5                     # python-can sets it on its port before a send
+    assert port.write_timeout == 0.5 and ra.write_timeout == 0.5

@@ -44,12 +44,10 @@ def test_lathectl_starts_without_numpy_or_scipy():
 def test_names_kept_beside_the_parser_match_the_registries():
     from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS
     from lathed.cli import analyze_chatter, sim
-    from lathed.sim.lathe import MAX_DEPTH_MM
     from lathed.sim.thermal import EFFECTS
     assert analyze_chatter.BUILTIN_DETECTORS == tuple(sorted(DETECTORS))
     assert analyze_chatter.DEFAULT_DETECTOR == DEFAULT_DETECTOR
     assert sim.THERMAL_EFFECTS == EFFECTS
-    assert sim.DEPTH_MAX_MM == MAX_DEPTH_MM
 
 
 def test_events_are_read_from_the_database_while_the_daemon_is_down(tmp_path, capsys):

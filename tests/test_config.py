@@ -245,3 +245,14 @@ def test_default_config_puts_the_simulator_links_in_the_runtime_dir():
     assert sim.serial_link == str(settings.runtime_dir / "sim" / "ttyARDUINO")
     assert plan.drivers["temps"][1].port == sim.serial_link
     assert "{runtime_dir}" not in sim.grinder_link + sim.robot_link
+
+
+def test_checking_the_default_config_imports_neither_scipy_nor_the_simulator():
+    # a [simulator] table's program was checked with lathed.sim.lathe, whose physics pulls in
+    # scipy.linalg: 0.35 s of every start and ~15 MB of the daemon's memory, for a parser
+    code = ("import sys; from lathed.daemon import prepare; prepare(sys.argv[1], strict=True);"
+            "print(sorted(m for m in ('scipy', 'lathed.sim.lathe') if m in sys.modules))")
+    r = subprocess.run([str(BIN / "python"), "-c", code, str(ROOT / "etc" / "lathed.toml")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]", r.stdout

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lathed.analysis.cut_state import LoadCutDetector, VibrationCutDetector
+from lathed.analysis.cut_state import LoadCutDetector, SlidingQuantile, VibrationCutDetector
 from lathed.analysis.regen import Segment as S, simulate_cut
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 
@@ -57,3 +57,31 @@ def test_load_learns_the_spindles_no_chip_load():
     assert det.update(2.5, 1500) is False
     assert det.update(0.0, 0.0) is False           # spindle stopped
     assert det.update(20.0, 2500) is True
+
+
+@pytest.mark.parametrize("q,size", [(0.25, 50), (0.25, 4), (0.5, 7), (0.0, 5), (1.0, 5), (0.3, 1), (0.9, 13)])
+def test_sliding_quantile_is_numpys_quantile_bit_for_bit(q, size):
+    rng = np.random.default_rng(7)
+    # rms-like values, with ties (rounded) and a range of scales
+    values = np.round(rng.lognormal(0.0, 2.0, 600), 3) * 10.0 ** rng.integers(-6, 6, 600)
+    sq, window = SlidingQuantile(q, size), []
+    for i, v in enumerate(values):
+        sq.push(v)
+        window = (window + [float(v)])[-size:]
+        assert len(sq) == len(window)
+        assert sq.value() == float(np.quantile(window, q)), (i, window)
+        if i == 300:
+            sq.clear()
+            window = []
+            with pytest.raises(ValueError, match="no values"):
+                sq.value()
+
+
+def test_sliding_quantile_is_nan_while_a_nan_is_in_the_window_as_numpys_is():
+    sq, window = SlidingQuantile(0.25, 4), []
+    for v in [1.0, 2.0, float("nan"), 3.0, 4.0, 5.0, 6.0, 0.5]:
+        sq.push(v)
+        window = (window + [v])[-4:]
+        want = float(np.quantile(window, 0.25))
+        got = sq.value()
+        assert got == want or (np.isnan(got) and np.isnan(want)), (window, got, want)

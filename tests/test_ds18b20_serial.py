@@ -3,7 +3,9 @@ and a real pty that is closed and reopened."""
 from __future__ import annotations
 
 import asyncio
+import io
 import os
+import random
 import time
 
 import structlog
@@ -14,7 +16,7 @@ from lathed.driver import DriverContext
 from lathed.sim.serial_peer import SerialPeer
 from lathed.supervisor import Runner
 from lathed.wire import crc16, format_temperature_line, xor_checksum
-from lathed_plugins.ds18b20_serial import DS18B20Serial
+from lathed_plugins.ds18b20_serial import MAX_LINE, DS18B20Serial, split_lines
 
 
 def sensor(port="/dev/null", stale_after="1s") -> DS18B20Serial:
@@ -184,3 +186,49 @@ def test_pty_closed_and_reopened_with_garbage(tmp_path):
             await asyncio.gather(r.task, return_exceptions=True)
             peer.close()
     asyncio.run(asyncio.wait_for(main(), 30))
+
+
+def test_lines_split_from_chunks_as_readline_cut_them():
+    # the port is read in chunks of whatever has arrived, not byte by byte (pyserial's readline:
+    # a select and a read per byte); the lines must come out as readline(MAX_LINE - partial) gave them
+    rng = random.Random(5)
+    stream = b"".join(rng.choice([line(i, 1000 * i, room=20.5), b"\x02garbage" * rng.randint(1, 80) + b"\n",
+                                  b"x" * rng.choice([MAX_LINE - 1, MAX_LINE, MAX_LINE + 1, 3 * MAX_LINE]) + b"\n",
+                                  b"\n", b"no end"]) for i in range(300))
+    want, partial, f = [], b"", io.BytesIO(stream)
+    while chunk := f.readline(MAX_LINE - len(partial)):
+        partial += chunk
+        if partial.endswith(b"\n") or len(partial) >= MAX_LINE:
+            want.append(partial)
+            partial = b""
+    got, rest, i = [], b"", 0
+    while i < len(stream):
+        n = rng.choice([1, 2, 7, 100, 511, 512, 513, 4096])
+        lines, rest = split_lines(rest + stream[i:i + n])
+        got += lines
+        i += n
+    assert got == want and rest == partial
+    assert any(len(x) == MAX_LINE and not x.endswith(b"\n") for x in got)     # over-long lines were cut
+
+
+def test_a_line_is_read_in_one_worker_call_in_a_read_or_two():
+    class Port:
+        """A line arrives while the driver waits: its first byte wakes the read, the rest is waiting."""
+        def __init__(self, line):
+            self.line, self.waiting, self.reads = line, b"", 0
+
+        @property
+        def in_waiting(self):
+            return len(self.waiting)
+
+        def read(self, n):
+            self.reads += 1
+            if self.line:
+                self.waiting, self.line = self.line, b""
+            out, self.waiting = self.waiting[:n], self.waiting[n:]
+            return out
+    d = sensor()
+    d.ser = Port(line(1, 1000, room=20.0) + line(2, 2000, room=20.1))
+    assert split_lines(d._read()) == ([line(1, 1000, room=20.0), line(2, 2000, room=20.1)], b"")
+    assert d.ser.reads == 2
+    assert d._read() == b"" and d.ser.reads == 3          # the port's timeout: nothing, one read

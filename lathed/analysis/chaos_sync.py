@@ -81,7 +81,9 @@ class ChaosSyncDetector(RevolutionDetector):
 
     def _new_samples(self, start: int, end: int) -> None:
         # the GL derivative of the revolution difference, once per sample, state carried
-        d = np.nan_to_num(self._d[start:end])
+        d = self._d[start:end]
+        if not np.isfinite(d).all():     # NaN before a revolution of history; nan_to_num costs 20 us
+            d = np.nan_to_num(d)
         self._e[start:end], self._zi = fir(self._w, d, self._zi)
 
     def _error(self, start: int, end: int) -> np.ndarray:

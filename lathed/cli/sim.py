@@ -10,11 +10,11 @@ from pathlib import Path
 from lathed.cli import positive
 from lathed.client import DaemonUnavailable, RemoteError, default_socket
 from lathed.lathectl import _fmt_value, print_json
+from lathed.sim.program import MAX_DEPTH_MM   # no numpy: lathectl starts without it
 
 
 # lathed.sim.thermal.EFFECTS, named here so lathectl starts without numpy and scipy (a test keeps them equal)
 THERMAL_EFFECTS = ("lag", "rate", "speed", "nonlinear", "hysteresis", "drift")
-DEPTH_MAX_MM = 10.0   # lathed.sim.lathe.MAX_DEPTH_MM, the simulated lathe's (a test keeps them equal)
 
 
 def depth_value(text: str) -> float | None:
@@ -25,8 +25,8 @@ def depth_value(text: str) -> float | None:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is neither a depth in mm nor 'program'") from None
-    if not 0.0 <= v <= DEPTH_MAX_MM:
-        raise argparse.ArgumentTypeError(f"{text} mm is outside the depths the simulated lathe cuts (0..{DEPTH_MAX_MM:g} mm)")
+    if not 0.0 <= v <= MAX_DEPTH_MM:
+        raise argparse.ArgumentTypeError(f"{text} mm is outside the depths the simulated lathe cuts (0..{MAX_DEPTH_MM:g} mm)")
     return v
 
 

@@ -36,7 +36,8 @@ from pathlib import Path
 from lathed.analysis.process_damping import FlankWear
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
-from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, MAX_DEPTH_MM, RETRACT_S, SimLathe, parse_cut
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
+from lathed.sim.program import MAX_DEPTH_MM, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS

@@ -24,6 +24,7 @@ from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
 from lathed.analysis.process_damping import FlankWear
 from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, SimBlock
+from lathed.sim.program import Cut
 from lathed.sim.thermal import SpindleThermal
 
 # The simulated lathe's structure: a compliant workpiece mode at 190 Hz
@@ -38,16 +39,6 @@ LATHE_PEAK_TORQUE_NM = 35.8   # the spindle drive's rating: 100 % load
 IDLE_LOAD_PCT = 2.0           # bearings and seals at speed, no chip
 
 
-@dataclass(frozen=True)
-class Cut:
-    """One part of the program: a turning pass along the bar."""
-    rpm: float
-    depth_mm: float
-    feed_mm_rev: float = 0.3
-    length_mm: float = 40.0
-    diameter_mm: float = 30.0
-
-
 # The paper's three speeds; every third part is cut 3 mm deep (the paper's
 # depth, above the stability limit of DEFAULT_MODES), the others 1 mm.
 DEFAULT_PROGRAM = (
@@ -55,24 +46,6 @@ DEFAULT_PROGRAM = (
     Cut(2000, 1.0), Cut(1500, 3.0), Cut(2500, 1.0),
 )
 
-
-MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, override, config)
-
-
-def parse_cut(text: str) -> Cut:
-    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]``: one part of a cut program."""
-    try:
-        vals = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]] as numbers") from None
-    if not 2 <= len(vals) <= 4:
-        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]")
-    c = Cut(*vals)
-    if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
-            and 0 < c.length_mm <= 1000):
-        raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "
-                         "0..2 mm/rev, 0..1000 mm long")
-    return c
 
 class VisibleChatter:
     """regen.simulate_cut's "chatter is visible" rule, evaluated live block by block.

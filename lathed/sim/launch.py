@@ -13,7 +13,7 @@ from pathlib import Path
 import structlog
 
 from lathed.config import Section
-from lathed.sim.lathe import MAX_DEPTH_MM
+from lathed.sim.program import MAX_DEPTH_MM
 from lathed.sim.serial_peer import link_dir_problem
 
 log = structlog.get_logger("lathed.sim")
@@ -51,7 +51,7 @@ class SimulatorSettings:
         self.load_s = sec.getfloat("load_s", -1.0, minval=0.0, maxval=60.0)
         self.retract_s = sec.getfloat("retract_s", -1.0, minval=0.0, maxval=60.0)
         from lathed.analysis.modal import parse_mode
-        from lathed.sim.lathe import parse_cut
+        from lathed.sim.program import parse_cut
         for key, parse in (("modes", parse_mode), ("program", parse_cut)):
             for text in getattr(self, key):
                 try:

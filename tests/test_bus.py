@@ -1,0 +1,54 @@
+"""The sample bus: each subscriber's bounded FIFO (a deque and a waiter, not an asyncio.Queue)."""
+from __future__ import annotations
+
+import asyncio
+
+from lathed.bus import Bus, Sample
+
+
+def s(i: int, source: str = "lathe") -> Sample:
+    return Sample(source, "spindle_rpm", float(i), "r/min", float(i))
+
+
+def test_messages_come_in_order_to_every_subscriber_of_their_source():
+    async def main():
+        bus = Bus()
+        a, b, other = bus.subscribe("lathe"), bus.subscribe("lathe", "accel"), bus.subscribe("mill")
+        async def take(sub, n):
+            return [(await sub.get()).value for _ in range(n)]
+        got = asyncio.create_task(take(a, 3))
+        await asyncio.sleep(0)                  # a waits on an empty queue
+        for i in range(3):
+            bus.publish(s(i))
+        bus.publish(s(9, "accel"))
+        assert await got == [0.0, 1.0, 2.0]
+        assert await take(b, 4) == [0.0, 1.0, 2.0, 9.0]
+        assert other.dropped == 0 and not other._items
+    asyncio.run(main())
+
+
+def test_a_full_subscriber_counts_what_it_missed_and_keeps_the_oldest():
+    async def main():
+        bus = Bus()
+        sub = bus.subscribe("lathe", maxsize=3)
+        for i in range(5):
+            bus.publish(s(i))
+        assert sub.dropped == 2
+        assert [(await sub.get()).value for _ in range(3)] == [0.0, 1.0, 2.0]
+    asyncio.run(main())
+
+
+def test_a_cancelled_get_takes_nothing_and_unsubscribed_gets_nothing():
+    async def main():
+        bus = Bus()
+        sub = bus.subscribe("lathe")
+        waiting = asyncio.create_task(sub.get())
+        await asyncio.sleep(0)
+        waiting.cancel()
+        await asyncio.gather(waiting, return_exceptions=True)
+        bus.publish(s(1))
+        assert (await asyncio.wait_for(sub.get(), 1)).value == 1.0
+        bus.unsubscribe(sub)
+        bus.publish(s(2))
+        assert not sub._items
+    asyncio.run(main())
