@@ -184,6 +184,7 @@ class SuppressionAnalyzer(Analyzer):
         self.last_action: dict | None = None
         self.advisories = 0
         self.last_advice: dict | None = None
+        self.last_was_advice = False     # which of last_action / last_advice came last (for a screen)
         self.pending: Decision | None = None
         self.pending_trigger = "alarm"
         self._ssv_task: asyncio.Task | None = None
@@ -555,6 +556,7 @@ class SuppressionAnalyzer(Analyzer):
             self.cut.action(now, payload, now + max(0.0, hold))
         self.actions += 1
         self.last_action = payload
+        self.last_was_advice = False
         self.ctx.log.info("suppression_action", strategy=d.strategy, rpm_before=d.rpm_before,
                           rpm_after=d.rpm_after, sent=result["sent"], trigger=trigger)
         self.ctx.record("suppression_action", payload)
@@ -568,6 +570,7 @@ class SuppressionAnalyzer(Analyzer):
         self.cut.advised(a.advice)
         self.advisories += 1
         self.last_advice = payload
+        self.last_was_advice = True
         self.ctx.log.warning("suppression_advice", rpm=round(a.rpm), depth_mm=a.depth_mm,
                              limit_mm=round(a.limit_mm, 3), advice=a.advice, trigger=trigger)
         self.ctx.record("suppression_advice", payload)
@@ -651,6 +654,7 @@ class SuppressionAnalyzer(Analyzer):
                 "actions": self.actions, "last_action": self.last_action,
                 "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
                 "advisories": self.advisories, "last_advice": self.last_advice,
+                "last_was_advice": self.last_was_advice,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"

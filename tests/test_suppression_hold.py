@@ -74,6 +74,7 @@ def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
     assert cut["advice"] == a["advice"] and cut["outcome"] == "chatter" and cut["cured"] is False
     st = h.an.status()
     assert st["advisories"] == 1 and st["last_advice"]["advice"] == a["advice"] and st["actions"] == 0
+    assert st["last_was_advice"] is True
     assert "1 held with advice" in st["summary"] and st["when_no_stable_speed"] == "hold"
     # a shallower cut on the same lathe: the lobes have a stable speed, and it moves
     asyncio.run(_cut(h.an, 1.3, alarms=1))

@@ -4,6 +4,8 @@ grinder, robot arm, chatter, suppression, thermal, records). One daemon, one
 lathed-web and one browser for the module: the suite's time budget is tight."""
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import json
 import os
 import re
@@ -331,3 +333,37 @@ def test_a_restarted_daemon_shows_disconnected_then_comes_back(stack, browser, s
         assert [e for e in errors if "403" not in e and "502" not in e] == []
     finally:
         ctx.close()
+
+
+def test_pages_asking_the_same_cost_the_daemon_one_query(monkeypatch, tmp_path):
+    """Each page asks parts every 10 s and recommendations every minute: a crowd of
+    pages is one daemon query per period, and an operator's action shows at once."""
+    from lathed.web import app as webapp
+    calls = []
+
+    async def ask(sock, cmd, args):
+        calls.append((cmd, args))
+        await asyncio.sleep(0)           # in flight while the other pages ask
+        if cmd == "recommend":
+            raise RuntimeError("no experiments recorded")
+        return {"cmd": cmd, "n": len(calls)}
+    monkeypatch.setattr(webapp, "ask", ask)
+    a = webapp.App(Settings(None, None, None, str(tmp_path / "lathed.sock")))
+
+    async def main():
+        same = await asyncio.gather(*[a._shared("parts", {"limit": 200}, 5.0) for _ in range(5)])
+        assert len(calls) == 1 and all(r == same[0] for r in same)
+        await a._shared("parts", {"limit": 200}, 5.0)
+        assert len(calls) == 1                           # still fresh
+        await a._shared("parts", {"limit": 200, "abnormal": True}, 5.0)
+        assert len(calls) == 2                           # another question
+        for _ in range(2):                               # a refusal is not kept
+            with pytest.raises(RuntimeError, match="no experiments"):
+                await a._shared("recommend", {"all": True}, 30.0)
+        assert len(calls) == 4
+        a._answers.clear()                               # what an action does
+        await a._shared("parts", {"limit": 200}, 5.0)
+        assert len(calls) == 5
+    # a thread of its own: the browser tests' Playwright keeps an event loop in this one
+    with concurrent.futures.ThreadPoolExecutor(1) as ex:
+        ex.submit(asyncio.run, main()).result()

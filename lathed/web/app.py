@@ -24,6 +24,7 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import structlog
 from aiohttp import web
@@ -38,6 +39,10 @@ from lathed.web import accounts
 log = structlog.get_logger("lathed.web")
 STATIC = Path(__file__).parent / "static"
 BROWSER_QUEUE = 64     # messages waiting for one browser before it is dropped (it reconnects by itself)
+# How long one daemon answer serves every page asking the same (each page asks
+# parts every 10 s and recommendations every minute): a crowd of pages costs the
+# daemon one query, not one each. An action clears them.
+SHARED_ANSWER_S = {"parts": 5.0, "recommend": 30.0}
 
 
 class Settings:
@@ -97,6 +102,7 @@ class App:
         self.link = BrowserLink(settings.socket, settings.rate_hz)
         self.secret = secrets.token_bytes(32)
         self._verified: dict[tuple[str, bytes], float] = {}
+        self._answers: dict[str, tuple[float, asyncio.Future]] = {}
 
     def csrf(self, user: str) -> str:
         return hmac.new(self.secret, user.encode(), hashlib.sha256).hexdigest()
@@ -161,18 +167,32 @@ class App:
     async def api_get(self, request: web.Request) -> web.Response:
         what = request.match_info["what"]
         q = request.query
+        if what == "parts":
+            cmd, args = "parts", {"limit": 200, "abnormal": q.get("abnormal") == "1"}
+        elif what == "recommend":
+            cmd, args = "recommend", {"all": True}
+        else:
+            raise web.HTTPNotFound(text=f"no {what!r} here")
         try:
-            if what == "parts":
-                res = await ask(self.s.socket, "parts", {"limit": 200, "abnormal": q.get("abnormal") == "1"})
-            elif what == "recommend":
-                res = await ask(self.s.socket, "recommend", {"all": True})
-            else:
-                raise web.HTTPNotFound(text=f"no {what!r} here")
+            res = await self._shared(cmd, args, SHARED_ANSWER_S[what])
         except RuntimeError as e:   # the daemon's answer, e.g. no experiments recorded: shown as such
             return web.json_response({"error": str(e)})
         except (OSError, ValueError, TimeoutError) as e:
             return web.json_response({"error": f"the daemon is not reachable: {e}"}, status=502)
         return web.json_response({"result": res})
+
+    async def _shared(self, cmd: str, args: dict, keep_s: float) -> Any:
+        """The daemon's answer to (cmd, args), one request for every page that asks within
+        keep_s (those asking while it is on its way wait for the same one); a failure is
+        not kept."""
+        key = json.dumps([cmd, args], sort_keys=True)
+        now = time.monotonic()
+        hit = self._answers.get(key)
+        if hit is None or (hit[1].done() and (now - hit[0] >= keep_s or hit[1].cancelled()
+                                             or hit[1].exception() is not None)):
+            hit = (now, asyncio.ensure_future(ask(self.s.socket, cmd, args)))
+            self._answers[key] = hit
+        return await asyncio.shield(hit[1])
 
     async def action(self, request: web.Request) -> web.Response:
         user, role = request["user"], request["role"]
@@ -209,6 +229,7 @@ class App:
         except (OSError, ValueError, TimeoutError) as e:
             return web.json_response({"error": f"the daemon is not reachable: {e}"}, status=502)
         log.info("action", user=user, cmd=cmd, args=args)
+        self._answers.clear()     # an inspection or a refit shows at once, not after keep_s
         return web.json_response(res)
 
     def build(self) -> web.Application:
