@@ -213,7 +213,7 @@ def test_policy_holds_and_advises_when_the_model_says_every_speed_within_reach_c
     text = a.record()["advice"]
     assert text.startswith(f"no stable speed within 100-{a.max_rpm:.0f} r/min at {depth * 1e3:.2f} mm: "
                            f"the model's limit is {a.limit_mm:.2f} mm at 2000 r/min")
-    assert text.endswith(f"reduce the depth of cut below {a.safe_depth_mm:.2f} mm or stiffen the set-up")
+    assert text.endswith(f"reduce the depth of cut below {a.safe_depth_mm:.2f} mm (stable here with the lobes' margin) or stiffen the set-up")
     assert p.observe(1e7, 2000.0, True, 260.0) is None       # said once; the speed stays
     p.reset()
     assert p.advice is None and isinstance(p.observe(0.0, 2000.0, True, 260.0), Advice)

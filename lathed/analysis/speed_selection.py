@@ -131,7 +131,7 @@ class Advice:
         return (f"no stable speed within {self.min_rpm:.0f}-{self.max_rpm:.0f} r/min at {self.depth_mm:.2f} mm: "
                 f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, at best "
                 f"{self.best_limit_mm:.2f} mm ({self.best_rpm:.0f} r/min); speed held: reduce the depth of cut "
-                f"below {self.safe_depth_mm:.2f} mm or stiffen the set-up")
+                f"below {self.safe_depth_mm:.2f} mm (stable here with the lobes' margin) or stiffen the set-up")
 
     def record(self) -> dict:
         return {**asdict(self), "advice": self.advice}
