@@ -231,7 +231,7 @@ class LobeSelection:
         """When the model says every speed within reach chatters at the cut's depth (b_lim
         below it), what would cure it; None when a speed's b_lim is above the depth (if not by
         the margin, a move there is the bet the margin leaves open) or nothing is drivable."""
-        self.limit_mm(rpm_now)                 # the grid
+        robust_mm = self.limit_mm(rpm_now)     # builds the grid when not yet there
         n, b, _ = self.grid
         ok = self.cut.drivable(n, self.limits)
         if not ok.any():
@@ -240,7 +240,7 @@ class LobeSelection:
         if b[i] > self.cut.depth_m:
             return None
         return Advice(rpm_now, self.cut.depth_m * 1e3, float(np.interp(rpm_now, n, b)) * 1e3, float(n[i]),
-                      float(b[i]) * 1e3, self.limit_mm(rpm_now) / self.margin, float(n[ok][0]), float(n[ok][-1]),
+                      float(b[i]) * 1e3, robust_mm / self.margin, float(n[ok][0]), float(n[ok][-1]),
                       chatter_frequency_hz)
 
 
