@@ -198,3 +198,17 @@ def pytest_sessionfinish(session, exitstatus):
     # are reported by asyncio when collected: collect now, so the report comes
     # before pytest's summary line, not after it at interpreter exit.
     gc.collect()
+
+
+def shipped_config(tmp: Path) -> tuple[Path, Path]:
+    """etc/lathed.toml on free ports, with its state and sockets in ``tmp``."""
+    text = (ROOT / "etc" / "lathed.toml").read_text()
+    for port in ("15020", "15021", "15022"):
+        text = text.replace(port, str(free_port()))
+    text = text.replace('name = "sim-cell-1"', f'name = "web-test"\nstate_dir = "{tmp / "state"}"\n'
+                                                f'runtime_dir = "{tmp / "run"}"')
+    text = text.replace('dbc = "robot_arm.dbc"', f'dbc = "{ROOT / "etc" / "robot_arm.dbc"}"')
+    text = text.replace('plugin_dirs = ["plugins.d"]', f'plugin_dirs = ["{ROOT / "etc" / "plugins.d"}"]')
+    cfg = tmp / "lathed.toml"
+    cfg.write_text(text)
+    return cfg, tmp / "run" / "lathed.sock"

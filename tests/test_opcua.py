@@ -21,8 +21,7 @@ from lathed.config import ConfigError
 from lathed.opcua.app import Settings
 from lathed.opcua.space import NAMESPACE
 from lathed.web import accounts
-from tests.conftest import BIN, ROOT, Daemon, free_port, sim_call, wait_until
-from tests.test_web import shipped_config
+from tests.conftest import BIN, ROOT, Daemon, free_port, shipped_config, sim_call, wait_until
 
 CLIENT_URI = "urn:lathed:test-client"
 

@@ -10,7 +10,6 @@ import json
 import os
 import re
 import subprocess
-import time
 import urllib.request
 from pathlib import Path
 
@@ -19,25 +18,11 @@ import pytest
 from lathed.web import accounts
 from lathed.config import ConfigError
 from lathed.web.app import Settings
-from tests.conftest import BIN, ROOT, Daemon, free_port, sim_call, wait_until
+from tests.conftest import BIN, Daemon, free_port, shipped_config, sim_call, wait_until
 from tests.test_taguchi import phadke_trials
 
 CHROMIUM = "/usr/bin/chromium"
 
-
-
-def shipped_config(tmp: Path) -> tuple[Path, Path]:
-    """etc/lathed.toml on free ports, with its state and sockets in ``tmp``."""
-    text = (ROOT / "etc" / "lathed.toml").read_text()
-    for port in ("15020", "15021", "15022"):
-        text = text.replace(port, str(free_port()))
-    text = text.replace('name = "sim-cell-1"', f'name = "web-test"\nstate_dir = "{tmp / "state"}"\n'
-                                                f'runtime_dir = "{tmp / "run"}"')
-    text = text.replace('dbc = "robot_arm.dbc"', f'dbc = "{ROOT / "etc" / "robot_arm.dbc"}"')
-    text = text.replace('plugin_dirs = ["plugins.d"]', f'plugin_dirs = ["{ROOT / "etc" / "plugins.d"}"]')
-    cfg = tmp / "lathed.toml"
-    cfg.write_text(text)
-    return cfg, tmp / "run" / "lathed.sock"
 
 
 def web_config(tmp: Path, port: int, sock: Path) -> Path:
@@ -299,7 +284,7 @@ def test_a_chatter_alarm_shows_within_a_second_and_manual_mode_proposes(stack, b
         page.fill("#inspect input[name=ra_um]", "3.2")
         page.fill("#inspect input[name=diameter_error_um]", "-4")
         page.click("#inspect button")
-        page.wait_for_selector(f"#events tbody tr:has-text('part_inspected'):has-text('olga')", timeout=10_000)
+        page.wait_for_selector("#events tbody tr:has-text('part_inspected'):has-text('olga')", timeout=10_000)
         page.wait_for_selector("#parts tbody tr.abnormal:has-text('Ra 3.20')", timeout=10_000)
         page.screenshot(path=str(shots / "operator-view.png"), full_page=True)
         page.locator("#panel-records").screenshot(path=str(shots / "panel-records.png"))
