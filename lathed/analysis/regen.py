@@ -109,7 +109,13 @@ class Wander:
       correlation length ``noise_path_m`` (m of cutting path).  The chip's
       form and the edge's contact state persist over many chip curls and
       then change; a 1-sigma of 20 % of the fluctuating force, whose rms is
-      itself a few % of the static force (``process_noise``).
+      itself a few % of the static force (``process_noise``; Fodor, Sykora,
+      Bachrathy 2020, doi:10.1007/s00170-020-05877-8, measured 4-9 % of the
+      mean force in orthogonal cutting, the share varying with speed, chip
+      thickness and rake: a factor of two between conditions, so +-20 %
+      within one cut as the local conditions move is an assumption of the
+      same order, the least constrained of the three, and the one that
+      moves a detector's index most).
 
     Kf and depth enter the chip force only as their product Kf*b, so they
     move the cut's distance to the stability limit (near the limit, the
