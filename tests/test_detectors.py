@@ -19,7 +19,7 @@ def _run(det, x, rpm, block=4096):
 def test_registry_and_unknown_name():
     assert {"sync_residual", "spectral_ratio", "chaos_sync"} <= set(DETECTORS)
     assert DEFAULT_DETECTOR in DETECTORS
-    with pytest.raises(ValueError, match="allowed: chaos_sync, spectral_ratio, sync_residual"):
+    with pytest.raises(ValueError, match="allowed: chaos_sync, spectral_ratio, sync_cusum, sync_residual"):
         make_detector("nope", RATE)
 
 
@@ -102,7 +102,7 @@ TRAPS = {
 
 
 @pytest.mark.parametrize("trap", sorted(TRAPS))
-@pytest.mark.parametrize("name", ["sync_residual", "chaos_sync"])
+@pytest.mark.parametrize("name", ["sync_residual", "chaos_sync", "sync_cusum"])
 def test_no_alarm_on_traps(trap, name):
     segs, kw = TRAPS[trap]
     rec = simulate_cut(segs, trap, **{"seed": 3, **kw})
@@ -130,3 +130,41 @@ def test_a_rate_too_low_for_a_window_is_refused_at_configuration(name):
     """issue 18 D5: at 1 Hz a window held zero samples (ZeroDivisionError) or a hop of 0 never advanced."""
     with pytest.raises(ValueError, match=rf"sample rate 1 Hz is too low for the {name} detector"):
         make_detector(name, 1.0)
+
+
+def _mild_worn_flank(rpm: float, seed: int):
+    """bench_chatter's slow-growing mild chatter: a worn flank on a taper to 1.05 x the limit."""
+    from lathed.analysis.lobes import StabilityLobes
+    from lathed.analysis.process_damping import FlankWear
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+    b = float(StabilityLobes(DEFAULT_MODES, DEFAULT_KF).b_lim_at(rpm)[0][0]) * 1e3
+    return simulate_cut([Segment(1.0, rpm, round(0.9 * b, 2)), Segment(4.0, rpm, round(1.05 * b, 2), 0.5)],
+                        seed=seed, flank=FlankWear(), feed_mm_rev=0.3)
+
+
+@pytest.mark.parametrize("rpm,seed", [(2000.0, 1), (2500.0, 1), (4000.0, 2)])
+def test_sync_cusum_catches_mild_chatter_that_stays_below_the_threshold(rpm, seed):
+    # held mild by the flank's ploughing, the index stays below the threshold (chaos_sync
+    # misses the first two, and is 70 revolutions late on the third); the sum of its
+    # sustained rise does not
+    rec = _mild_worn_flank(rpm, seed)
+    assert rec.label == "chatter"
+    first = next((w.t_s for w in _run(make_detector("sync_cusum", RATE), rec.signal, rpm) if w.alarm), None)
+    assert first is not None and first >= rec.unstable_at_s
+    assert (first - rec.visible_at_s) * rpm / 60.0 < 25.0     # revolutions after visible
+
+
+@pytest.mark.parametrize("rpm,depth,seed", [(1000, 1.2, 1001), (2000, 1.4, 1006), (500, 1.0, 1000)])
+def test_sync_cusum_quiet_on_a_wandering_stable_cut(rpm, depth, seed):
+    # regen.Wander: the level of a real stable cut drifts +-20 % over tens of revolutions
+    rec = simulate_cut([Segment(6.0, rpm, depth)], seed=seed)
+    assert rec.label == "stable"
+    wins = _run(make_detector("sync_cusum", RATE), rec.signal, rpm)
+    assert wins and not any(w.alarm for w in wins)
+
+
+def test_cusum_ratio_between_one_and_the_threshold():
+    for bad in (0.5, 1.0, 2.0, 3.0):
+        with pytest.raises(ValueError, match="cusum_ratio"):
+            make_detector("sync_residual", RATE, cusum_ratio=bad, threshold=2.0)
+    assert make_detector("sync_residual", RATE, cusum_ratio=1.2).params["cusum_ratio"] == 1.2
