@@ -168,3 +168,4 @@ def test_cusum_ratio_between_one_and_the_threshold():
         with pytest.raises(ValueError, match="cusum_ratio"):
             make_detector("sync_residual", RATE, cusum_ratio=bad, threshold=2.0)
     assert make_detector("sync_residual", RATE, cusum_ratio=1.2).params["cusum_ratio"] == 1.2
+
