@@ -169,3 +169,14 @@ def test_cusum_ratio_between_one_and_the_threshold():
             make_detector("sync_residual", RATE, cusum_ratio=bad, threshold=2.0)
     assert make_detector("sync_residual", RATE, cusum_ratio=1.2).params["cusum_ratio"] == 1.2
 
+
+
+@pytest.mark.parametrize("rpm,seed", [(2500.0, 1), (4000.0, 2)])
+def test_mild_chatter_alarm_holds_while_the_chatter_does(rpm, seed):
+    # raised by the sum at an index of 1.2-1.6, the alarm clears below the CUSUM's
+    # allowance, not below the threshold's clear level (1.4): no on/off flapping
+    rec = _mild_worn_flank(rpm, seed)
+    wins = _run(make_detector("sync_cusum", RATE), rec.signal, rpm)
+    raised = [w for w in wins if w.raised_by]
+    assert raised and raised[0].raised_by == "sustained rise"
+    assert sum(a.alarm and not b.alarm for a, b in zip(wins, wins[1:])) == 0

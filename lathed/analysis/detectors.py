@@ -61,6 +61,8 @@ class Window:
     alarm: bool                         # alarm state after this window (hysteresis applied)
     chatter_frequency_hz: float | None = None   # only while alarm
     learning: bool = False              # window used to learn the baseline
+    raised_by: str | None = None        # on the window that raises the alarm: "threshold" or
+                                        # "sustained rise" (the CUSUM: index held above cusum_ratio)
 
 
 # name -> (default, min, max, meaning)
@@ -297,16 +299,25 @@ class RevolutionDetector:
             return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True)
         index = raw / self.baseline
         p = self.params
+        raised_by = None
         if not self.alarm:
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
-            if self._on >= p["on_windows"] or self._cusum_says(index, settling):
+            if self._on >= p["on_windows"]:
+                raised_by = "threshold"
+            elif self._cusum_says(index, settling):
+                raised_by = "sustained rise"
+            if raised_by:
                 self.alarm, self._off = True, 0
         else:
-            self._off = self._off + 1 if index < p["off_ratio"] * self.threshold else 0
+            # with a CUSUM, chatter held just above its allowance is still chatter
+            clear = p["off_ratio"] * self.threshold
+            if p["cusum_ratio"]:
+                clear = min(clear, p["cusum_ratio"])
+            self._off = self._off + 1 if index < clear else 0
             if self._off >= p["off_windows"]:
-                self.alarm, self._on = False, 0
+                self.alarm, self._on, self._cusum = False, 0, 0.0
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
-        return Window(t_s, index, self.threshold, self.alarm, freq)
+        return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
 
     def _cusum_says(self, index: float, settling: bool) -> bool:
         """Page's CUSUM on log(index): each window adds its log rise over the allowance
