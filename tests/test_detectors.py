@@ -180,3 +180,31 @@ def test_mild_chatter_alarm_holds_while_the_chatter_does(rpm, seed):
     raised = [w for w in wins if w.raised_by]
     assert raised and raised[0].raised_by == "sustained rise"
     assert sum(a.alarm and not b.alarm for a, b in zip(wins, wins[1:])) == 0
+
+
+class _Scripted(SyncResidualDetector):
+    """Windows whose raw measure is given: the alarm logic alone."""
+    name = "scripted"
+
+    def __init__(self, raws, **params):
+        self._raws = iter(raws)
+        super().__init__(RATE, **params)
+
+    def _measure(self, start, end, rpm):
+        return next(self._raws, 1.0)
+
+
+def _scripted_alarms(raws, **params):
+    det = _Scripted(raws, cusum_ratio=1.2, threshold=1.6, **params)
+    return [w for w in _run(det, np.random.default_rng(0).normal(size=60000), 6000) if w.raised_by]
+
+
+def test_cusum_sums_a_sustained_rise_but_not_one_spike():
+    learn = [1.0] * 4
+    # 1.3 x the baseline, below the threshold, held: each window adds log(1.3/1.2)
+    raised = _scripted_alarms(learn + [1.0] * 5 + [1.3] * 30)
+    assert [w.raised_by for w in raised] == ["sustained rise"]
+    # one window at 2.5 x: a chip striking, not chatter (counted as one threshold window)
+    assert _scripted_alarms(learn + [1.0] * 5 + [2.5] + [1.0] * 30) == []
+    # two at the threshold: the threshold rule raises it, as without a sum
+    assert [w.raised_by for w in _scripted_alarms(learn + [1.0] * 5 + [1.7, 1.7] + [1.0] * 30)] == ["threshold"]
