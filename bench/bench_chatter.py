@@ -1,14 +1,16 @@
 """Chatter detector benchmark on simulated labelled cuts.
 
     .venv/bin/python bench/bench_chatter.py [--quick] [--detectors a,b] [--json OUT]
-        [--seed-base N] [--with-reference] [--no-ablation] [--cases]
+        [--seed-base N] [--with-reference] [--no-ablation] [--cases] [--no-wander]
 
 Corpus: lathed.analysis.regen.simulate_cut with the default lathe structure
 (limit ~1.5-2.6 mm over 500-6000 r/min), stable cuts, chatter cuts, slow-growing
 chatter (a sharp tool 1.08 x above the limit, violent in the end; a worn flank
 on a taper to 1.05 x the limit, held mild by process damping as the paper's),
 and the shop-floor traps (flat/interrupted surface, cut entry and re-entry,
-speed change during a stable cut, strong runout).  Every detector learns its
+speed change during a stable cut, strong runout).  Stable cutting wanders as a real
+cut does (lathed.analysis.regen.Wander; --no-wander: the stationary cut of earlier
+versions, for comparison).  Every detector learns its
 baseline automatically at the start of each cut (no reference given).
 
 Real recordings: when ../shared/data/real/turning-chatter exists beside the
@@ -251,7 +253,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed-base", type=int, default=1000,
                     help="case i uses seed BASE+i (thresholds were set looking at base 100; "
                          "the default 1000 is a held-out draw)")
+    ap.add_argument("--no-wander", action="store_true",
+                    help="stationary stable cutting (the simulator before regen.Wander): for comparison")
     args = ap.parse_args(argv)
+    sim_kw = {"wander": None} if args.no_wander else {}
     names = [n.strip() for n in args.detectors.split(",") if n.strip()]
     # ablations of the paper's detector: what the fractional order contributes
     variants = [(n, {}) for n in names]
@@ -263,7 +268,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     recs = []
     for i, (nm, kind, segs, kw) in enumerate(corpus(2.0 if args.quick else 3.0)):
-        kw = {"seed": args.seed_base + i, **kw}
+        kw = {"seed": args.seed_base + i, **kw, **sim_kw}
         rec = simulate_cut(segs, nm, **kw)
         if kind == "chatter" and rec.label != "chatter":
             print(f"warning: {nm!r} was meant to chatter but never became visible", file=sys.stderr)
@@ -299,7 +304,8 @@ def main(argv=None) -> int:
     rows, results = [], {}
     refs = None
     if args.with_reference:
-        refs = [simulate_cut([S(1.0, float(r.rpm[0]), 1.0)], "reference", seed=args.seed_base + 5000 + i)
+        refs = [simulate_cut([S(1.0, float(r.rpm[0]), 1.0)], "reference", seed=args.seed_base + 5000 + i,
+                             **sim_kw)
                 for i, (r, _) in enumerate(recs)]
     for name, params in variants:
         params = dict(params)
@@ -321,7 +327,7 @@ def main(argv=None) -> int:
         rows.append(f"| {label}{' (default)' if default else ''} | {fa} | {miss} "
                     f"| {med:.1f} | {worst:.1f} | {tp:.0f}x | {'yes' if ok else 'no'} |")
 
-    print(f"Seeds {args.seed_base}+i. Corpus: {n_st} stable, {n_tr} trap, {n_ch} chatter cuts "
+    print(f"Seeds {args.seed_base}+i{', stationary stable cutting (--no-wander)' if args.no_wander else ''}. Corpus: {n_st} stable, {n_tr} trap, {n_ch} chatter cuts "
           f"({len(recs)} total, {sum(r.duration_s for r, _ in recs):.0f} s of 51.2 kS/s signal; "
           f"simulated in {sim_s:.1f} s)\n")
     print("| detector | false alarms | missed | median delay (rev) | worst delay (rev) "

@@ -234,9 +234,10 @@ class ChatterAnalyzer(Analyzer):
                 self.alarms += 1
                 self.alarm_started = t
                 self.ctx.log.warning("chatter_alarm", index=round(w.index, 3), threshold=w.threshold,
-                                     frequency_hz=w.chatter_frequency_hz, rpm=rpm)
+                                     raised_by=w.raised_by, frequency_hz=w.chatter_frequency_hz, rpm=rpm)
                 self.ctx.record("chatter_alarm", {
                     "machine": self.machine, "index": w.index, "threshold": w.threshold,
+                    "raised_by": w.raised_by,
                     "chatter_frequency_hz": w.chatter_frequency_hz, "rpm": rpm, "depth_mm": self.depth_mm,
                     "load_pct": self.load_pct, "cut_seen_by": self.cut_by,
                     "tool": self.tool, "material": self.material, "detector": self.detector_name,

@@ -19,7 +19,7 @@ def _run(det, x, rpm, block=4096):
 def test_registry_and_unknown_name():
     assert {"sync_residual", "spectral_ratio", "chaos_sync"} <= set(DETECTORS)
     assert DEFAULT_DETECTOR in DETECTORS
-    with pytest.raises(ValueError, match="allowed: chaos_sync, spectral_ratio, sync_residual"):
+    with pytest.raises(ValueError, match="allowed: chaos_sync, spectral_ratio, sync_cusum, sync_residual"):
         make_detector("nope", RATE)
 
 
@@ -102,7 +102,7 @@ TRAPS = {
 
 
 @pytest.mark.parametrize("trap", sorted(TRAPS))
-@pytest.mark.parametrize("name", ["sync_residual", "chaos_sync"])
+@pytest.mark.parametrize("name", ["sync_residual", "chaos_sync", "sync_cusum"])
 def test_no_alarm_on_traps(trap, name):
     segs, kw = TRAPS[trap]
     rec = simulate_cut(segs, trap, **{"seed": 3, **kw})
@@ -130,3 +130,81 @@ def test_a_rate_too_low_for_a_window_is_refused_at_configuration(name):
     """issue 18 D5: at 1 Hz a window held zero samples (ZeroDivisionError) or a hop of 0 never advanced."""
     with pytest.raises(ValueError, match=rf"sample rate 1 Hz is too low for the {name} detector"):
         make_detector(name, 1.0)
+
+
+def _mild_worn_flank(rpm: float, seed: int):
+    """bench_chatter's slow-growing mild chatter: a worn flank on a taper to 1.05 x the limit."""
+    from lathed.analysis.lobes import StabilityLobes
+    from lathed.analysis.process_damping import FlankWear
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+    b = float(StabilityLobes(DEFAULT_MODES, DEFAULT_KF).b_lim_at(rpm)[0][0]) * 1e3
+    return simulate_cut([Segment(1.0, rpm, round(0.9 * b, 2)), Segment(4.0, rpm, round(1.05 * b, 2), 0.5)],
+                        seed=seed, flank=FlankWear(), feed_mm_rev=0.3)
+
+
+@pytest.mark.parametrize("rpm,seed", [(2000.0, 1), (2500.0, 1), (4000.0, 2)])
+def test_sync_cusum_catches_mild_chatter_that_stays_below_the_threshold(rpm, seed):
+    # held mild by the flank's ploughing, the index stays below the threshold (chaos_sync
+    # misses the first two, and is 70 revolutions late on the third); the sum of its
+    # sustained rise does not
+    rec = _mild_worn_flank(rpm, seed)
+    assert rec.label == "chatter"
+    first = next((w.t_s for w in _run(make_detector("sync_cusum", RATE), rec.signal, rpm) if w.alarm), None)
+    assert first is not None and first >= rec.unstable_at_s
+    assert (first - rec.visible_at_s) * rpm / 60.0 < 25.0     # revolutions after visible
+
+
+@pytest.mark.parametrize("rpm,depth,seed", [(1000, 1.2, 1001), (2000, 1.4, 1006), (500, 1.0, 1000)])
+def test_sync_cusum_quiet_on_a_wandering_stable_cut(rpm, depth, seed):
+    # regen.Wander: the level of a real stable cut drifts +-20 % over tens of revolutions
+    rec = simulate_cut([Segment(6.0, rpm, depth)], seed=seed)
+    assert rec.label == "stable"
+    wins = _run(make_detector("sync_cusum", RATE), rec.signal, rpm)
+    assert wins and not any(w.alarm for w in wins)
+
+
+def test_cusum_ratio_between_one_and_the_threshold():
+    for bad in (0.5, 1.0, 2.0, 3.0):
+        with pytest.raises(ValueError, match="cusum_ratio"):
+            make_detector("sync_residual", RATE, cusum_ratio=bad, threshold=2.0)
+    assert make_detector("sync_residual", RATE, cusum_ratio=1.2).params["cusum_ratio"] == 1.2
+
+
+
+@pytest.mark.parametrize("rpm,seed", [(2500.0, 1), (4000.0, 2)])
+def test_mild_chatter_alarm_holds_while_the_chatter_does(rpm, seed):
+    # raised by the sum at an index of 1.2-1.6, the alarm clears below the CUSUM's
+    # allowance, not below the threshold's clear level (1.4): no on/off flapping
+    rec = _mild_worn_flank(rpm, seed)
+    wins = _run(make_detector("sync_cusum", RATE), rec.signal, rpm)
+    raised = [w for w in wins if w.raised_by]
+    assert raised and raised[0].raised_by == "sustained rise"
+    assert sum(a.alarm and not b.alarm for a, b in zip(wins, wins[1:])) == 0
+
+
+class _Scripted(SyncResidualDetector):
+    """Windows whose raw measure is given: the alarm logic alone."""
+    name = "scripted"
+
+    def __init__(self, raws, **params):
+        self._raws = iter(raws)
+        super().__init__(RATE, **params)
+
+    def _measure(self, start, end, rpm):
+        return next(self._raws, 1.0)
+
+
+def _scripted_alarms(raws, **params):
+    det = _Scripted(raws, cusum_ratio=1.2, threshold=1.6, **params)
+    return [w for w in _run(det, np.random.default_rng(0).normal(size=60000), 6000) if w.raised_by]
+
+
+def test_cusum_sums_a_sustained_rise_but_not_one_spike():
+    learn = [1.0] * 4
+    # 1.3 x the baseline, below the threshold, held: each window adds log(1.3/1.2)
+    raised = _scripted_alarms(learn + [1.0] * 5 + [1.3] * 30)
+    assert [w.raised_by for w in raised] == ["sustained rise"]
+    # one window at 2.5 x: a chip striking, not chatter (counted as one threshold window)
+    assert _scripted_alarms(learn + [1.0] * 5 + [2.5] + [1.0] * 30) == []
+    # two at the threshold: the threshold rule raises it, as without a sum
+    assert [w.raised_by for w in _scripted_alarms(learn + [1.0] * 5 + [1.7, 1.7] + [1.0] * 30)] == ["threshold"]

@@ -133,3 +133,40 @@ def test_bad_parameters():
     with pytest.raises(ValueError, match="at least one"):
         RegenerativeTurning(modes=())
     assert isinstance(DEFAULT_MODES[0], Mode)
+
+
+def _rev_rms(rec, revs=5):
+    """rms of the accelerometer over consecutive blocks of ``revs`` revolutions."""
+    n = int(revs * rec.rate_hz * 60.0 / float(rec.rpm[0]))
+    k = len(rec.signal) // n
+    # the first block holds the cut-entry transient
+    return np.sqrt(np.mean(rec.signal[:k * n].reshape(k, n) ** 2, axis=1))[1:]
+
+
+def test_stable_cut_wanders_like_a_real_one():
+    # A real stable cut's level drifts over tens of revolutions (hardness, depth,
+    # chip formation along the bar: regen.Wander); a stationary one stays within
+    # a few % of its mean.  Stable either way (effective depth below the limit).
+    segs = [Segment(6.0, 2000, 1.0)]
+    real = _rev_rms(simulate_cut(segs, seed=3))
+    still = _rev_rms(simulate_cut(segs, seed=3, wander=None))
+    assert still.std() / still.mean() < 0.06
+    assert real.std() / real.mean() > 0.09
+    again = simulate_cut(segs, seed=3)
+    assert np.array_equal(_rev_rms(again), real)       # reproducible from the seed
+    assert again.label == "stable" and again.unstable_at_s is None
+
+
+def test_wander_labels_use_the_effective_depth():
+    # Kf*b wander moves the cut's distance to the limit: a taper crossing the limit
+    # becomes unstable when its effective depth (depth x Kf*b scale) does
+    from lathed.analysis.regen import Wander
+    from lathed.analysis.lobes import StabilityLobes
+    b_lim = float(StabilityLobes(DEFAULT_MODES, DEFAULT_KF).b_lim_at(2000.0)[0][0]) * 1e3
+    segs = [Segment(0.3, 2000, 0.9 * b_lim), Segment(1.0, 2000, 1.1 * b_lim, 1.0)]
+    nominal = simulate_cut(segs, seed=4, wander=None).unstable_at_s
+    hard = Wander(kf_rel=0.05, depth_rel=0.0, noise_log=0.0, kf_path_m=1e6)
+    ats = [simulate_cut(segs, seed=s, wander=hard).unstable_at_s for s in range(4)]
+    assert any(abs(t - nominal) > 0.05 for t in ats)
+    with pytest.raises(ValueError, match="kf_rel"):
+        Wander(kf_rel=-0.1)

@@ -19,6 +19,12 @@ Each ``Mode`` takes the force projected by its directional factor ``u``
 (lathed.analysis.modal) and the accelerometer reads the summed modal
 acceleration along the normal, plus sensor noise.
 
+A real stable cut is not stationary (``wander``, a ``Wander``; on by default
+in ``simulate_cut``, off in ``RegenerativeTurning`` unless given): the bar's
+hardness and the stock's depth vary along the cut and the chip's formation
+changes, so the level of a stable cut's vibration drifts over tens of
+revolutions without repeating.  See ``Wander`` for the physics and sizes.
+
 Runout (``runout_um``) is modelled as spindle error motion the cut cannot
 remove: rho(theta) = r*(cos theta + 0.3 cos(2 theta + 0.7)), a synchronous
 chip-load modulation every revolution.  A flat (``flat_fraction``) takes the
@@ -76,6 +82,67 @@ DEFAULT_DIAMETER_MM = 30.0  # workpiece diameter: sets the cutting speed the fla
 _VEL_TAU_S = 0.01
 
 
+@dataclass(frozen=True)
+class Wander:
+    """Slow, non-repeating variation of a real stable cut (physics, not fitted to any recording).
+
+    Three independent stationary Gauss-Markov (Ornstein-Uhlenbeck) processes,
+    advanced with the material the tool has cut, so they follow the part, not
+    the clock (a slow spindle wanders slowly):
+
+    - ``kf_rel``: relative standard deviation of the cutting coefficient Kf
+      along the cutting path, correlation length ``kf_path_m`` (m of helical
+      path).  Bar stock of one grade varies by about +-10 HB around 200 HB
+      within a bar and its segregation bands (e.g. 1045 cold drawn:
+      170-210 HB across a lot); specific cutting pressure rises roughly as
+      HB^0.5-0.8, so a 1-sigma of about 2 %.
+    - ``depth_rel``: relative standard deviation of the actual depth of cut
+      along the axis, correlation length ``depth_axial_mm`` (mm of tool
+      travel): bar straightness (0.5-1 mm/m for cold-drawn bar) and the
+      part's deflection changing with the tool's axial position move the
+      depth by some um over a few mm of travel; 1 % of a 1 mm cut is 10 um.
+      Once-per-revolution ovality and runout repeat every revolution
+      (``runout_um``) and are not part of this.
+    - ``noise_log``: standard deviation of the log of the random cutting
+      force's intensity (the broadband part from chip segmentation, shear
+      localisation, built-up-edge growth and shedding, chip curl contact),
+      correlation length ``noise_path_m`` (m of cutting path).  The chip's
+      form and the edge's contact state persist over many chip curls and
+      then change; a 1-sigma of 20 % of the fluctuating force, whose rms is
+      itself a few % of the static force (``process_noise``; Fodor, Sykora,
+      Bachrathy 2020, doi:10.1007/s00170-020-05877-8, measured 4-9 % of the
+      mean force in orthogonal cutting, the share varying with speed, chip
+      thickness and rake: a factor of two between conditions, so +-20 %
+      within one cut as the local conditions move is an assumption of the
+      same order, the least constrained of the three, and the one that
+      moves a detector's index most).
+
+    Kf and depth enter the chip force only as their product Kf*b, so they
+    move the cut's distance to the stability limit (near the limit, the
+    regenerative amplification of the noise); the labels of ``simulate_cut``
+    use that effective depth.  Tool wear over a 3 s cut (about 0.3 % of a
+    15 min tool life) and the tool's warm-up (the force falls by a few %
+    over the first seconds: a fall, never a rise) are left out.
+    """
+    kf_rel: float = 0.02
+    kf_path_m: float = 1.0
+    depth_rel: float = 0.01
+    depth_axial_mm: float = 5.0
+    noise_log: float = 0.2
+    noise_path_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        for k in ("kf_rel", "depth_rel", "noise_log"):
+            if not 0.0 <= getattr(self, k) <= 0.5:
+                raise ValueError(f"wander {k} must be in [0, 0.5], got {getattr(self, k)}")
+        for k in ("kf_path_m", "depth_axial_mm", "noise_path_m"):
+            if not getattr(self, k) > 0:
+                raise ValueError(f"wander {k} must be > 0, got {getattr(self, k)}")
+
+
+DEFAULT_WANDER = Wander()
+
+
 @dataclass
 class SimBlock:
     accel: np.ndarray       # m/s^2 along the normal, with sensor noise
@@ -126,7 +193,7 @@ class RegenerativeTurning:
                  rate_hz: float = DEFAULT_RATE_HZ, noise_rms: float = DEFAULT_NOISE_RMS,
                  runout_um: float = 0.0, flat_fraction: float = 0.0, seed: int = 0,
                  process_noise: float = DEFAULT_PROCESS_NOISE, flank: FlankWear | None = None,
-                 diameter_mm: float = DEFAULT_DIAMETER_MM) -> None:
+                 diameter_mm: float = DEFAULT_DIAMETER_MM, wander: Wander | None = None) -> None:
         if not modes:
             raise ValueError("the simulator needs at least one structural mode")
         if not kf_n_per_m2 > 0:
@@ -150,6 +217,11 @@ class RegenerativeTurning:
         self.flank = flank
         self.diameter_mm = float(diameter_mm)
         self.rng = np.random.default_rng(seed)
+        # the wander has its own stream, so the cut's noise draws are the same with or without it
+        self.wander = wander
+        self._wrng = np.random.default_rng([seed, 1])
+        self._u = self._wrng.standard_normal(3)   # kf, depth, noise intensity: a random spot of the bar
+        self.g_scale = 1.0                        # Kf*b over its nominal value (last block)
 
         m = len(self.modes)
         a = np.zeros((2 * m, 2 * m))
@@ -272,17 +344,34 @@ class RegenerativeTurning:
             dia = self.diameter_mm if diameter_mm is None else float(diameter_mm)
             if not dia > 0:
                 raise ValueError(f"workpiece diameter must be > 0 mm, got {dia}")
-            self._run_cut(theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia)
+            noise = self.process_noise
+            if self.wander is not None:
+                g_scale, noise_scale = self._advance_wander(n * dth / (2 * np.pi), feed_mm_rev, dia)
+                # quantised to 0.1 % so the regimes stay cached (far below what moves a limit)
+                b_m = b_m * round(g_scale, 3)
+                noise *= noise_scale
+            self._run_cut(theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia, noise)
 
         self.theta = float(theta[-1]) if n else self.theta
         if self.noise_rms:
             acc += self.rng.normal(0.0, self.noise_rms, n)
         return SimBlock(acc, y, inc, h, theta)
 
+    def _advance_wander(self, revs: float, feed_mm_rev: float, dia: float) -> tuple[float, float]:
+        """Advance the wander over ``revs`` revolutions of cutting; (Kf*b scale, noise scale)."""
+        w = self.wander
+        path_m = revs * np.pi * dia * 1e-3
+        corr = np.exp(-np.array([path_m / w.kf_path_m, revs * feed_mm_rev / w.depth_axial_mm,
+                                 path_m / w.noise_path_m]))
+        self._u = corr * self._u + np.sqrt(1.0 - corr * corr) * self._wrng.standard_normal(3)
+        uk, ud, un = self._u
+        self.g_scale = max(0.5, 1.0 + w.kf_rel * uk) * max(0.5, 1.0 + w.depth_rel * ud)
+        return self.g_scale, float(np.exp(w.noise_log * un - 0.5 * w.noise_log ** 2))
+
     def _free_run(self, n: int) -> np.ndarray:
         return self._free.response(self._free.vinv @ self.x, None, n)
 
-    def _run_cut(self, theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia) -> None:
+    def _run_cut(self, theta, n, b_m, h0, spr, y, acc, h, inc, rpm, dia, noise) -> None:
         cut = self._cut_regime(b_m)
         free = self._free
         g = self.kf * b_m
@@ -309,8 +398,8 @@ class RegenerativeTurning:
             if cutting:
                 # force g*(w - y) - c_fl*y': the flank's mean force enters as chip
                 w = geo + f_dc / g
-                if self.process_noise:
-                    w = w + h0 * self.process_noise * self.rng.standard_normal(m)
+                if noise:
+                    w = w + h0 * noise * self.rng.standard_normal(m)
                 z = reg.response(z0, w, m)
             else:
                 z = reg.response(z0, None, m)
@@ -413,11 +502,14 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
                  runout_um: float = 0.0, flat_fraction: float = 0.0,
                  noise_rms: float = DEFAULT_NOISE_RMS, process_noise: float = DEFAULT_PROCESS_NOISE,
                  seed: int = 0, block: int = 512, flank: FlankWear | None = None,
-                 diameter_mm: float = DEFAULT_DIAMETER_MM) -> Recording:
+                 diameter_mm: float = DEFAULT_DIAMETER_MM,
+                 wander: Wander | None = DEFAULT_WANDER) -> Recording:
     """Simulate a cut made of ``Segment``s and label it.
 
-    ``unstable_at_s``: first instant the (depth, speed) pair lies above the
-    stability lobe limit.  ``visible_at_s``: chatter is *visible* from the
+    ``wander``: a real stable cut's slow variation (``Wander``; None: the
+    stationary cut of earlier versions).  ``unstable_at_s``: first instant the
+    (effective depth, speed) pair lies above the stability lobe limit (the
+    effective depth: the programmed one times the wander's Kf*b scale).  ``visible_at_s``: chatter is *visible* from the
     start of the first revolution (counted from the unstable instant) whose
     rms pass-to-pass surface difference (``wav_rev``) is at least
     VISIBLE_WAVINESS_M and does not shrink (by more than 10 %) over the next
@@ -428,9 +520,9 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     """
     segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
     sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,
-                              flat_fraction, seed, process_noise, flank, diameter_mm)
+                              flat_fraction, seed, process_noise, flank, diameter_mm, wander)
     lobes = StabilityLobes(modes, kf_n_per_m2)
-    acc, ys, inc, th, rpms, deps = [], [], [], [], [], []
+    acc, ys, inc, th, rpms, deps, effs = [], [], [], [], [], [], []
     prev_rpm, prev_depth = segs[0].rpm, segs[0].depth_mm
     for seg in segs:
         n_seg = int(round(seg.duration_s * rate_hz))
@@ -448,6 +540,7 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
             acc.append(out.accel); ys.append(out.y_m); inc.append(out.in_cut)
             th.append(out.theta_rad)
             rpms.append(np.full(k, rpm)); deps.append(np.full(k, depth))
+            effs.append(np.full(k, depth * sim.g_scale))
             done += k
         prev_rpm, prev_depth = seg.rpm, seg.depth_mm
     signal = np.concatenate(acc)
@@ -461,7 +554,7 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     uniq = np.unique(rpm_arr)
     blim = dict(zip(uniq, lobes.b_lim_at(uniq)[0]))
     lim = np.array([blim[r] for r in rpm_arr[::block]])
-    unstable = dep[::block] * 1e-3 > lim
+    unstable = np.concatenate(effs)[::block] * 1e-3 > lim
     unstable_at = float(np.flatnonzero(unstable)[0] * block / rate_hz) if unstable.any() else None
     visible_at = None
     if unstable_at is not None:
@@ -483,4 +576,4 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
                      unstable_at, visible_at,
                      {"feed_mm_rev": feed_mm_rev, "runout_um": runout_um,
                       "flat_fraction": flat_fraction, "seed": seed, "flank": flank,
-                      "diameter_mm": diameter_mm})
+                      "diameter_mm": diameter_mm, "wander": wander})

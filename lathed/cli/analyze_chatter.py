@@ -26,7 +26,7 @@ from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive, spindle_r
 
 # numpy and the detectors are imported when the command runs: lathectl's other
 # commands start without them (the names below are checked against the registry)
-BUILTIN_DETECTORS = ("chaos_sync", "spectral_ratio", "sync_residual")
+BUILTIN_DETECTORS = ("chaos_sync", "spectral_ratio", "sync_cusum", "sync_residual")
 DEFAULT_DETECTOR = "chaos_sync"
 
 BLOCK = 4096
