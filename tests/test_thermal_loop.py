@@ -236,8 +236,8 @@ def test_sixteen_sensors_of_which_four_carry_the_growth():
     assert a.final.test_rmse_um < a.least_squares.test_rmse_um       # all 16 as read: far worse
     kept = {k.sensor: k for k in a.sensors}
     assert len(kept) <= 8 and {"t_front_bearing_c", "t_rear_bearing_c"} <= set(kept)
-    # the motor's own 4.5-min oscillation is filtered, at fit and at prediction alike
-    assert kept["t_motor_c"].smooth_s > 0
+    # the motor's own 4.5-min oscillation is notched out, at fit and at prediction alike
+    assert kept["t_motor_c"].notch_s == pytest.approx(270.0, abs=3.0)
     m = a.model
     pred = m.predictor(reference_c=te.reference_c, t0_s=te.t0_s)
     live = [pred.update({k: te.temps_c[k][i] for k in m.sensors}, rpm=te.rpm[i], t_s=te.time_s[i])

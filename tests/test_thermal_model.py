@@ -241,3 +241,33 @@ def test_kept_held_out_scores_follow_a_changed_displacement_or_speed():
     assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
     d.rpm = np.repeat([4000.0, 0.0], 300)
     assert _heldout(d, terms, 5, 10) == pytest.approx(direct(), abs=1e-8)
+
+
+def test_a_notch_takes_a_sensors_own_oscillation_out_and_the_live_path_matches():
+    t = np.arange(0, 8 * 3600.0, 60.0)
+    slow = 5 * (1 - np.exp(-t / 3000))
+    temps = {"t_a_c": 20 + slow + 0.4 * np.sin(2 * np.pi * t / 270.0), "t_room_c": 20 + 0 * t}
+    d = ThermalData(t, temps)
+    notched = LinearTerm("t_a_c", notch_s=270.0).features(d)[:, 0]
+    late = t > 600
+    # the oscillation gone, the slow heat delayed by half a period only
+    assert np.abs(notched - np.interp(t - 135.0, t, slow))[late].max() < 0.02
+    m = ThermalModel([LinearTerm("t_a_c", notch_s=270.0)], np.array([2.0]), 0.0, rises_from="t_room_c")
+    saved = ThermalModel.from_dict(m.to_dict())
+    assert saved.terms[0].notch_s == 270.0 and saved.rises_from == "t_room_c"
+    assert saved.sensors == ["t_a_c", "t_room_c"]     # rises from the room: the live path waits for it
+    p = saved.predictor(t0_s=0.0)
+    live = [p.update({"a": temps["t_a_c"][k], "room": 20.0}, t_s=t[k]) for k in range(len(t))]
+    assert live == pytest.approx(saved.predict(d), abs=1e-8)
+
+
+def test_sparse_rows_take_every_rise_from_the_rooms_start():
+    t = np.arange(0, 8 * 3600.0, 60.0)
+    room = 20.0 + 0.2 * t / t[-1]
+    hot = room + 3.0 * (1 - np.exp(-(t + 60.0) / 1200.0))     # at speed from the start: warm by the first row
+    d = ThermalData(t, {"t_hot_c": hot, "t_room_c": room})
+    assert d.rises_from == "t_room_c"
+    assert d.reference_c["t_hot_c"] == d.reference_c["t_room_c"] == pytest.approx(20.0, abs=1e-6)
+    assert d.rise("t_hot_c")[0] == pytest.approx(3.0 * (1 - np.exp(-0.05)), abs=1e-6)
+    dense = ThermalData(t / 10.0, {"t_hot_c": hot, "t_room_c": room})     # 6 s apart: each from its own start
+    assert dense.rises_from is None and dense.reference_c["t_hot_c"] - dense.reference_c["t_room_c"] > 0.1

@@ -45,6 +45,11 @@ _REF_WINDOW_S = 300.0  # ... or the span of the quadratic fitted when they are d
 _REF_MIN_ROWS = 20
 # spans tried for the local quadratic that takes sensor noise out of the fit (see smooth_rows)
 _SMOOTH_SPANS_S = (120.0, 240.0, 480.0, 960.0, 1920.0)
+# Rows further apart than this: a run that starts at speed has warmed by its
+# first row, so rises are taken from the room's start temperature (a cold
+# machine is at the room's), fitted over the first ``_ROOM_REF_S``.
+ROOM_REF_MIN_DT_S = 15.0
+_ROOM_REF_S = 3600.0
 
 
 def sensor_column(key: str) -> str:
@@ -71,6 +76,29 @@ def _start_temp(t_s: np.ndarray, x: np.ndarray) -> float:
     if k < 3 or np.ptp(t_s[:k]) == 0:
         return float(x[0])
     return float(np.polyval(np.polyfit(t_s[:k] - t_s[0], x[:k], deg), 0.0))
+
+
+def room_column(columns: Sequence[str]) -> str | None:
+    """The column that reads the room (``t_room_c``, ``t_ambient_c``), if any."""
+    return next((k for k in columns if "room" in k or "ambient" in k), None)
+
+
+def _room_start(t_s: np.ndarray, x: np.ndarray) -> float:
+    """The room's temperature at the first row, from a line through its first
+    hour: one reading's error would go into every heated sensor's rise."""
+    k = int(np.searchsorted(t_s, t_s[0] + _ROOM_REF_S, side="right"))
+    if k < 3 or np.ptp(t_s[:k]) == 0:
+        return float(x[0])
+    return float(np.polyval(np.polyfit(t_s[:k] - t_s[0], x[:k], 1), 0.0))
+
+
+def rises_from_room(t_s: np.ndarray, columns: Sequence[str]) -> str | None:
+    """The room column rises are taken from for rows this far apart, or None
+    (each sensor from its own start)."""
+    room = room_column(columns)
+    if room is None or len(t_s) < 2 or float(np.median(np.diff(t_s))) <= ROOM_REF_MIN_DT_S:
+        return None
+    return room
 
 
 def _savgol_window(t_s: np.ndarray, span_s: float) -> int:
@@ -116,6 +144,7 @@ class ThermalData:
     rpm: np.ndarray | None = None
     reference_c: dict[str, float] | None = None   # temperatures the rises start from
     t0_s: float | None = None                     # start of the run (drift clock)
+    rises_from: str | None = None                 # the room column every rise starts from (see rises_from_room)
 
     def __post_init__(self) -> None:
         self.time_s = np.asarray(self.time_s, dtype=float)
@@ -127,7 +156,12 @@ class ThermalData:
         if len(self.time_s) == 0:
             raise ValueError("thermal data has no rows")
         if self.reference_c is None:
-            self.reference_c = {k: _start_temp(self.time_s, v) for k, v in self.temps_c.items()}
+            self.rises_from = rises_from_room(self.time_s, list(self.temps_c))
+            if self.rises_from is not None:
+                r0 = _room_start(self.time_s, self.temps_c[self.rises_from])
+                self.reference_c = {k: r0 for k in self.temps_c}
+            else:
+                self.reference_c = {k: _start_temp(self.time_s, v) for k, v in self.temps_c.items()}
         if self.t0_s is None:
             self.t0_s = float(self.time_s[0])
 
@@ -140,6 +174,22 @@ class ThermalData:
 
     def rise(self, column: str) -> np.ndarray:
         return self.temps_c[column] - self.reference_c[column]
+
+    def rises_as(self, rises_from: str | None) -> ThermalData:
+        """The same rows with rises taken as a model fitted with ``rises_from``
+        takes them: every sensor from the room's reference, or each from its
+        own start."""
+        if rises_from == self.rises_from:
+            return self
+        if rises_from is None:
+            ref = {k: _start_temp(self.time_s, v) for k, v in self.temps_c.items()}
+        elif rises_from in self.temps_c:
+            r0 = self.reference_c[rises_from] if self.rises_from is None else \
+                _room_start(self.time_s, self.temps_c[rises_from])
+            ref = {k: r0 for k in self.temps_c}
+        else:
+            raise ValueError(f"the thermal model takes its rises from {rises_from}, which the data lacks")
+        return ThermalData(self.time_s, self.temps_c, self.displacement_um, self.rpm, ref, self.t0_s, rises_from)
 
     def smooth_rise(self, column: str) -> np.ndarray:
         """The rise with the sensor noise smoothed out, for fitting only."""
@@ -160,7 +210,7 @@ class ThermalData:
     def select(self, columns: Sequence[str]) -> ThermalData:
         """The same rows with only ``columns`` of the temperatures."""
         out = ThermalData(self.time_s, {k: self.temps_c[k] for k in columns}, self.displacement_um, self.rpm,
-                          {k: self.reference_c[k] for k in columns}, self.t0_s)
+                          {k: self.reference_c[k] for k in columns}, self.t0_s, self.rises_from)
         out.__dict__["_smooth"] = self.__dict__.setdefault("_smooth", {})
         out.__dict__["_cols"] = self.__dict__.setdefault("_cols", {})
         return out
@@ -170,7 +220,7 @@ class ThermalData:
         return ThermalData(self.time_s[lo:hi], {k: v[lo:hi] for k, v in self.temps_c.items()},
                            None if self.displacement_um is None else self.displacement_um[lo:hi],
                            None if self.rpm is None else self.rpm[lo:hi],
-                           dict(self.reference_c), self.t0_s)
+                           dict(self.reference_c), self.t0_s, self.rises_from)
 
 
 class ThermalRuns:
@@ -195,6 +245,7 @@ class ThermalRuns:
                                 else cat([r.displacement_um for r in self.runs]))
         self.rpm = None if any(r.rpm is None for r in self.runs) else cat([r.rpm for r in self.runs])
         self.reference_c = self.runs[0].reference_c
+        self.rises_from = self.runs[0].rises_from
 
     def __len__(self) -> int:
         return len(self.time_s)
@@ -214,6 +265,9 @@ class ThermalRuns:
 
     def select(self, columns: Sequence[str]) -> ThermalRuns:
         return ThermalRuns([r.select(columns) for r in self.runs])
+
+    def rises_as(self, rises_from: str | None) -> ThermalRuns:
+        return self if rises_from == self.rises_from else ThermalRuns([r.rises_as(rises_from) for r in self.runs])
 
     def slice(self, lo: int, hi: int) -> ThermalRuns:
         out, start = [], 0
@@ -285,7 +339,7 @@ def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     predicted (raw, or through its ``smooth_s`` filter)."""
     if isinstance(data, ThermalRuns):
         return np.vstack([_fit_design(r, terms) for r in data.runs])
-    cols = [data.fit_rise(t.sensor)[:, None] if isinstance(t, LinearTerm) and not t.smooth_s
+    cols = [data.fit_rise(t.sensor)[:, None] if isinstance(t, LinearTerm) and not t.filtered
             else _cols(data, t) for t in terms]
     return np.hstack(cols) if cols else np.empty((len(data), 0))
 
@@ -374,6 +428,8 @@ class ThermalModel:
     intercept_um: float
     notes: list[str] = field(default_factory=list)
     source: str = "fit"
+    # the room column every rise is taken from (rows far apart, see rises_from_room), else None
+    rises_from: str | None = None
 
     @property
     def names(self) -> list[str]:
@@ -382,13 +438,14 @@ class ThermalModel:
     @property
     def sensors(self) -> list[str]:
         # a term may read more than its own sensor (a lag of T - ambient reads the room too)
-        return sorted({s for t in self.terms for s in getattr(t, "sensors", (t.sensor,)) if s})
+        return sorted({s for t in self.terms for s in getattr(t, "sensors", (t.sensor,)) if s}
+                      | ({self.rises_from} if self.rises_from else set()))
 
     def predict(self, data: ThermalData) -> np.ndarray:
         missing = [s for s in self.sensors if s not in data.temps_c]
         if missing:
             raise ValueError(f"the thermal model needs temperature column(s) {', '.join(missing)}")
-        return _design(data, self.terms) @ self.coef + self.intercept_um
+        return _design(data.rises_as(self.rises_from), self.terms) @ self.coef + self.intercept_um
 
     def predictor(self, reference_c: Mapping[str, float] | None = None,
                   t0_s: float | None = None) -> ThermalPredictor:
@@ -406,7 +463,8 @@ class ThermalModel:
             terms.append(d)
             i += k
         return {"format": 1, "source": self.source, "intercept_um": float(self.intercept_um),
-                "notes": list(self.notes), "terms": terms}
+                "notes": list(self.notes), "terms": terms,
+                **({"rises_from": self.rises_from} if self.rises_from else {})}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], candidates: Sequence[Candidate] = ()) -> ThermalModel:
@@ -416,7 +474,9 @@ class ThermalModel:
         for i, td in enumerate(d.get("terms", [])):
             eff = td.get("effect")
             if eff == "linear":
-                term: Term = LinearTerm(td["sensor"], float(td.get("params", {}).get("smooth_s", 0.0)))
+                p = td.get("params", {})
+                term: Term = LinearTerm(td["sensor"], float(p.get("smooth_s", 0.0)),
+                                        notch_s=float(p.get("notch_s", 0.0)))
             elif eff in makers:
                 term = makers[eff].make_term(td.get("sensor"), td.get("params", {}))
             else:
@@ -428,7 +488,7 @@ class ThermalModel:
             terms.append(term)
             coef += [float(c) for c in td["coef"]]
         return cls(terms, np.array(coef), float(d["intercept_um"]), list(d.get("notes", [])),
-                   str(d.get("source", "fit")))
+                   str(d.get("source", "fit")), d.get("rises_from") or None)
 
 
 def eq14_model(path: str | Path | None = None) -> ThermalModel:
@@ -465,7 +525,9 @@ class ThermalPredictor:
 
     Temperatures may be keyed ``front_bearing`` or ``t_front_bearing_c``.
     Rises are taken from ``reference_c`` (the cold-start temperatures), or
-    from the first reading when none is given; the drift clock runs from
+    from the first reading when none is given; for a model fitted with
+    ``rises_from`` (rows far apart), every rise from the room's reference, as
+    in the fit. The drift clock runs from
     ``t0_s``, or from the first update. Terms with memory (lag, rate,
     hysteresis) keep their state here, so call ``update`` in time order; they
     start settled at the first reading.
@@ -488,6 +550,9 @@ class ThermalPredictor:
             raise ValueError(f"no reading from {', '.join(missing)}: the thermal model needs it")
         if self.reference_c is None:
             self.reference_c = {s: temps[s] for s in self.model.sensors}
+        room = self.model.rises_from
+        if room is not None and room in self.reference_c:
+            self.reference_c = {s: self.reference_c[room] for s in self.model.sensors}
         t = 0.0 if t_s is None else float(t_s)
         if self._t0 is None:
             self._t0 = t
@@ -566,9 +631,10 @@ class SensorKept:
     smooth_s: float
     heldout_gain_um: float   # held-out error without it less with it
     span_um: float           # its weight times the span of its rise: growth it accounts for
+    notch_s: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
-        return {"sensor": self.sensor, "smooth_s": self.smooth_s,
+        return {"sensor": self.sensor, "smooth_s": self.smooth_s, "notch_s": self.notch_s,
                 "heldout_gain_um": round(self.heldout_gain_um, 4), "span_um": round(self.span_um, 3)}
 
 
@@ -605,19 +671,18 @@ class Analysis:
 _FILTER_MAX_PERIOD_S = 4 * 300.0
 
 
-def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[float]:
-    """Filters to try on a sensor (lag time constants, s; 0 = as read). Only
-    a sensor that oscillates on its own (a spectral line in its rise) gets
-    any: lags of a fraction of its period damp the oscillation and delay the
-    slow heat little. A plain sensor is not filtered: a lag there is a
-    physical effect, for the residual loop to find and name."""
+def _filters(data: ThermalData | ThermalRuns, sensor: str) -> list[LinearTerm]:
+    """The sensor's linear term as read, and, for a sensor that oscillates on
+    its own (a spectral line in its rise), one through a notch at that
+    period (``period_mean``). A plain sensor is not filtered: a lag there is
+    a physical effect, for the residual loop to find and name."""
     cache = data.__dict__.setdefault("_smooth", {})     # shared with select(): same rows, same rises
     if ("filters", sensor) not in cache:
         # Any line that stands out, however small beside the warm-up; only a
         # fast one: a slow swing (the room's) is heat the growth follows.
         period, _ = _line(data.time_s, data.rise(sensor), min_share=0.0)
-        cache[("filters", sensor)] = ([0.0] if period is None or period > _FILTER_MAX_PERIOD_S
-                                      else [0.0, *(period * f for f in (0.25, 0.5, 1.0))])
+        cache[("filters", sensor)] = ([LinearTerm(sensor)] if period is None or period > _FILTER_MAX_PERIOD_S
+                                      else [LinearTerm(sensor), LinearTerm(sensor, notch_s=round(period, 1))])
     return list(cache[("filters", sensor)])
 
 
@@ -652,7 +717,7 @@ class _HeldoutCache:
 
     def _make_keys(self, term: Term, fit: bool) -> list[str]:
         k = repr(term)
-        if fit and isinstance(term, LinearTerm) and not term.smooth_s:
+        if fit and isinstance(term, LinearTerm) and not term.filtered:
             k, F = "fit:" + k, self.data.fit_rise(term.sensor)[:, None]
         else:
             F = None
@@ -802,9 +867,9 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
         for i, s in enumerate(keep):
             grid = _filters(data, s)
             if len(grid) > 1:
-                start[i] = min((LinearTerm(s, float(round(sm, 1))) for sm in grid), key=lambda t: rmse(
+                start[i] = min(grid, key=lambda t: rmse(
                     _heldout(data, [*start[:i], t, *start[i + 1:], *fixed], n_blocks, gap)))
-    cands = [] if few else [LinearTerm(s, float(round(sm, 1))) for s in keep for sm in _filters(data, s)]
+    cands = [] if few else [t for s in keep for t in _filters(data, s)]
     scored: dict[tuple[str, ...], tuple[float, np.ndarray]] = {}
 
     def score(ts: Sequence[LinearTerm]) -> tuple[float, np.ndarray]:
@@ -895,7 +960,7 @@ def select_sensors(data: ThermalData | ThermalRuns, n_blocks: int = 5, gap: int 
         rest = [o for o in chosen if o is not t]
         without = rmse(_heldout(data, [*rest, *fixed], n_blocks, gap)) if rest or fixed else rmse(y - y.mean())
         kept.append(SensorKept(t.sensor, t.smooth_s, without - rmse(e_cur),
-                               float(abs(coef[i]) * np.ptp(_design(data, [t])))))
+                               float(abs(coef[i]) * np.ptp(_design(data, [t]))), t.notch_s))
     return chosen, notes, kept
 
 
@@ -912,7 +977,7 @@ def _stage(train: ThermalData, terms: list[Term], test: ThermalData | None,
     Xf = X if raw else _fit_design(train, terms)
     y = train.displacement_um
     coef, icpt = fit_coefficients(Xf, y)
-    model = ThermalModel(list(terms), coef, icpt, list(notes), source=source)
+    model = ThermalModel(list(terms), coef, icpt, list(notes), source=source, rises_from=train.rises_from)
     e_cv = heldout_errors(Xf, y, n_blocks, gap, X)
     fit_rmse = rmse(y - (X @ coef + icpt))
     test_rmse = rmse(test.displacement_um - model.predict(test)) if test is not None else rmse(e_cv)
@@ -1333,7 +1398,7 @@ def reference_test(train: ThermalData, test: ThermalData) -> tuple[ThermalData, 
         t2 = ThermalData(test.time_s, test.temps_c, test.displacement_um, test.rpm,
                          {k: train.reference_c[k] for k in test.temps_c if k in train.reference_c}
                          | {k: v for k, v in test.reference_c.items() if k not in train.reference_c},
-                         train.t0_s)
+                         train.t0_s, train.rises_from)
         return t2, (f"the test run continues the training run's clock (starts at {test.time_s[0]:g} s, "
                     f"the training run ends at {train.time_s[-1]:g} s): its rises are taken from the "
                     f"training run's cold start, not from its own first rows")
@@ -1343,12 +1408,15 @@ def reference_test(train: ThermalData, test: ThermalData) -> tuple[ThermalData, 
     for s in test.sensors:
         if s not in train.temps_c or s == amb or "room" in s or "ambient" in s:
             continue
-        above = test.reference_c[s] - train.reference_c[s]
+        # each sensor's own start (with rises from the room, the references say nothing of it)
+        def start(d, k):
+            return _start_temp(d.time_s, d.temps_c[k])
+        above = start(test, s) - start(train, s)
         if amb is not None:
-            above -= test.reference_c[amb] - train.reference_c[amb]
+            above -= start(test, amb) - start(train, amb)
         span = float(np.ptp(train.rise(s)))
         if above > max(WARM_START_SHARE * span, WARM_START_MIN_C):
-            warm.append(f"{s} starts at {test.reference_c[s]:.2f} °C, {above:.2f} °C "
+            warm.append(f"{s} starts at {start(test, s):.2f} °C, {above:.2f} °C "
                         f"{'further above the room than at' if amb else 'above'} the training run's cold start "
                         f"(it rose {span:.2f} °C in that run)")
     if warm:
