@@ -1160,6 +1160,10 @@ def analyze(train: ThermalData, test: ThermalData | None = None, *,
     makers = {c.name: c for c in cands}
     gap = min(gap_rows, len(train) // (4 * n_blocks))
     sensor_terms, notes, kept = select_sensors(train, n_blocks, gap, max_sensors, prune=False)
+    if train.rises_from is not None:
+        notes.insert(0, f"rows are over {ROOM_REF_MIN_DT_S:g} s apart: every rise is taken from the room's "
+                        f"temperature at the start ({train.rises_from}, a line through its first hour), not "
+                        f"from each sensor's first reading (a run that starts at speed has warmed by then)")
     base, e_cur = _stage(train, list(sensor_terms), test, n_blocks, gap, notes)
     # Candidates see every usable sensor, kept or not: a sensor whose linear
     # share adds nothing may still carry an effect (a lag of the front bearing).
