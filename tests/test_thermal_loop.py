@@ -280,3 +280,19 @@ def test_sensors_that_only_wander_do_not_enter(seed):
     d = ThermalData(r["time_s"], temps, r["displacement_um"], r["spindle_rpm"])
     chosen, _, _ = select_sensors(d, prune=False)
     assert {t.sensor for t in chosen} == {"t_front_bearing_c", "t_rear_bearing_c", "t_motor_c"}
+
+
+def test_a_warm_test_run_is_refused_with_rows_a_minute_apart_too():
+    """With rows a minute apart every rise starts at the room's temperature, so
+    the references no longer tell a warm start: the check reads each sensor's
+    own first rows."""
+    from lathed.analysis.thermal import reference_test
+    tr = data(generate_run(random_schedule(1, SHIFT_S), (), seed=1, dt_s=60.0))
+    te = data(generate_run(random_schedule(101, SHIFT_S), (), seed=101, dt_s=60.0))
+    assert tr.rises_from == te.rises_from == "t_room_c"
+    assert reference_test(tr, te) == (te, None)          # a cold start passes
+    half = len(te) // 2
+    warm = ThermalData(te.time_s[half:] - te.time_s[half], {k: v[half:] for k, v in te.temps_c.items()},
+                       te.displacement_um[half:], te.rpm[half:])
+    with pytest.raises(ValueError, match="does not start cold"):
+        reference_test(tr, warm)
