@@ -167,7 +167,8 @@ def run(args) -> int:
     if a.sensors:
         print("sensors: " + "; ".join(
             f"{k.sensor}{f' (smoothed {k.smooth_s:g} s)' if k.smooth_s else ''}"
-            f"{f' (its own {k.notch_s:g}-s oscillation notched out)' if k.notch_s else ''} carries {k.span_um:.1f} µm, "
+            f"{f' (its own {k.notch_s:g}-s oscillation notched out)' if k.notch_s else ''} "
+            f"carries {k.span_um:.1f} µm, "
             f"held-out error +{k.heldout_gain_um:.2f} µm without it" for k in a.sensors))
     for n in a.notes:
         print(f"lathectl: note: {n}", file=sys.stderr)
