@@ -336,7 +336,7 @@ def _fit_design(data: ThermalData, terms: Sequence[Term]) -> np.ndarray:
     raw readings: right for noise, wrong for a sensor that oscillates on its
     own, whose oscillation the fit would never see and the prediction would
     carry straight into the growth. Such a sensor is fitted as it is
-    predicted (raw, or through its ``smooth_s`` filter)."""
+    predicted (raw, or through its notch or lag)."""
     if isinstance(data, ThermalRuns):
         return np.vstack([_fit_design(r, terms) for r in data.runs])
     cols = [data.fit_rise(t.sensor)[:, None] if isinstance(t, LinearTerm) and not t.filtered
