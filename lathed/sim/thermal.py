@@ -321,14 +321,20 @@ TRUE_SENSORS = tuple(f"t_{k}_c" for k in SENSOR_KEYS)
 
 
 def many_sensors(run: Run, seed: int, n_sensors: int = 16, osc_period_s: float = 270.0,
-                 osc_amp_c: float = 0.4) -> Run:
+                 osc_amp_c: float = 0.4, rig_seed: int = 4242) -> Run:
     """The run's four sensors plus ``n_sensors - 4`` that carry no growth of
     their own, as on a spindle fitted with many: some read the heated parts
     late and scaled (a housing further out), some follow the room, some
     wander; several oscillate on their own at a few minutes' period. The
     motor's sensor oscillates too (coolant past it): in its reading only,
-    not in the growth. The growth stays the four sensors' bodies'."""
+    not in the growth. The growth stays the four sensors' bodies'.
+
+    The sensors are the rig's (``rig_seed``): where each sits (its lag, its
+    scale, its own oscillation) is the same on every run, as on a real
+    spindle from one shift to the next; the readings' noise, a wandering
+    sensor's walk and an oscillation's phase are the run's (``seed``)."""
     rng = np.random.default_rng(seed + 4242)
+    rig = np.random.default_rng(rig_seed)
     c = run.columns
     t = c["time_s"]
     p = ThermalParams()
@@ -347,18 +353,18 @@ def many_sensors(run: Run, seed: int, n_sensors: int = 16, osc_period_s: float =
         kind = i % 3
         if kind == 0:      # a heated part further out: one heated part's rise, late and scaled
             src = heated[(i // 3) % 3]      # front bearing, rear bearing, motor in turn
-            a = 1.0 - math.exp(-dt / rng.uniform(300.0, 3000.0))
+            a = 1.0 - math.exp(-dt / rig.uniform(300.0, 3000.0))
             x = np.empty(n)
             acc = cold                      # from the cold start, not from the heated part's first row
             for k, v in enumerate(src.tolist()):
                 acc += a * (v - acc)
                 x[k] = acc
-            x = cold + rng.uniform(0.3, 1.2) * (x - cold)
+            x = cold + rig.uniform(0.3, 1.2) * (x - cold)
         elif kind == 1:    # near the room
-            x = room + rng.normal(0.0, 0.05) + 0.3 * np.sin(2 * math.pi * t / rng.uniform(3600, 7200))
+            x = room + rig.normal(0.0, 0.05) + 0.3 * np.sin(2 * math.pi * t / rig.uniform(3600, 7200))
         else:              # wanders (a sensor on a cabinet)
             x = room[0] + np.cumsum(rng.normal(0.0, 0.01, n))
         if i % 2 == 0:     # its own oscillation
-            x = x + rng.uniform(0.1, 0.5) * np.sin(2 * math.pi * t / rng.uniform(180.0, 600.0) + rng.uniform(0, 6))
+            x = x + rig.uniform(0.1, 0.5) * np.sin(2 * math.pi * t / rig.uniform(180.0, 600.0) + rng.uniform(0, 6))
         c[f"t_extra{i + 1:02d}_c"] = reading(x)
     return run
