@@ -82,6 +82,9 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
     "cusum_ratio": (0.0, 0.0, 100.0, "0: off; else a cumulative sum of log(index / cusum_ratio) "
                     "also raises the alarm past on_windows x log(threshold / cusum_ratio): a "
                     "sustained rise below the threshold adds up (1 < cusum_ratio < threshold)"),
+    "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
+                   "1/jump_ratio x, the level one revolution earlier does not count towards "
+                   "the alarm (the tool entering or leaving the work, not chatter)"),
     "fmin_hz": (50.0, 0.0, 20000.0, "lower edge of the chatter band"),
     "fmax_hz": (5000.0, 10.0, 25600.0, "upper edge of the chatter band"),
 }
@@ -143,6 +146,7 @@ class RevolutionDetector:
         self._rpm: float | None = None
         self._since_idx = 0
         self._settle_until = 0
+        self._step_until = 0        # no alarm counted before this sample (a level step)
         self._learn: list[float] = []
         self.baseline = self._fixed_baseline
         self.alarm = False
@@ -304,6 +308,11 @@ class RevolutionDetector:
         settling = settling or self._windows <= p["learn_windows"]
         raised_by = None
         if not self.alarm:
+            # a step in the level within one revolution is the tool entering or leaving
+            # the work, not regenerative chatter (which grows over several revolutions):
+            # the windows whose revolution difference reaches back over it do not count
+            stepped = self._level_step(start, end, rpm)
+            settling = settling or stepped
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
@@ -321,6 +330,20 @@ class RevolutionDetector:
                 self.alarm, self._on, self._cusum = False, 0, 0.0
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
+
+    def _level_step(self, start: int, end: int, rpm: float) -> bool:
+        """True for a window whose median |x| is over jump_ratio x, or under 1/jump_ratio x,
+        that of the revolution before it, and for window_revs + 1 + settle_revs revolutions
+        after such a window (the step stays in the revolution difference window_revs + 1
+        revolutions; the structure's ring after the tool leaves, settle_revs more)."""
+        di = int(self.rate * 60.0 / rpm)
+        now = float(np.median(np.abs(self._x[start:end])))
+        before = float(np.median(np.abs(self._x[start - di:end - di])))
+        r = self.params["jump_ratio"]
+        if not before / r <= now <= before * r:
+            p = self.params
+            self._step_until = self._next_end + int((p["window_revs"] + 1.0 + p["settle_revs"]) * di)
+        return self._next_end < self._step_until
 
     def _cusum_says(self, index: float, settling: bool) -> bool:
         """Page's CUSUM on log(index): each window adds its log rise over the allowance
