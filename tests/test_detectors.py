@@ -242,11 +242,12 @@ def _stable_cut_to_its_end(name: str, rpm: float, **params) -> list:
     return wins
 
 
-@pytest.mark.parametrize("rpm", [1500.0, 2000.0, 2500.0])
+@pytest.mark.parametrize("rpm", [1500.0, 2000.0, 2500.0, 4000.0])
 @pytest.mark.parametrize("name", ["sync_residual", "sync_cusum", "chaos_sync"])
 def test_no_alarm_when_the_tool_leaves_the_work(name, rpm):
-    # the tool's release rings the structure at several times the cut's level, and the
-    # revolution difference of a decaying ring looks like lost synchronisation
+    # the tool's release rings the structure at 5-8 x the cut's level, and the revolution
+    # difference of a decaying ring looks like lost synchronisation for several revolutions
+    # (more of them at 4800 r/min: the ring lasts the same time)
     assert not any(w.alarm for w in _stable_cut_to_its_end(name, rpm))
 
 

@@ -333,16 +333,16 @@ class RevolutionDetector:
 
     def _level_step(self, start: int, end: int, rpm: float) -> bool:
         """True for a window whose median |x| is over jump_ratio x, or under 1/jump_ratio x,
-        that of the revolution before it, and for window_revs + 1 + settle_revs revolutions
-        after such a window (the step stays in the revolution difference window_revs + 1
-        revolutions; the structure's ring after the tool leaves, settle_revs more)."""
+        that of the revolution before it, and for window_revs + 1 revolutions after it (the
+        step stays that long in the revolution difference), held on while the level keeps
+        falling (the structure's ring after the tool's release; chatter grows)."""
         di = int(self.rate * 60.0 / rpm)
         now = float(np.median(np.abs(self._x[start:end])))
         before = float(np.median(np.abs(self._x[start - di:end - di])))
         r = self.params["jump_ratio"]
-        if not before / r <= now <= before * r:
-            p = self.params
-            self._step_until = self._next_end + int((p["window_revs"] + 1.0 + p["settle_revs"]) * di)
+        held = self._next_end < self._step_until
+        if not before / r <= now <= before * r or (held and now < before):
+            self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
         return self._next_end < self._step_until
 
     def _cusum_says(self, index: float, settling: bool) -> bool:
