@@ -310,7 +310,7 @@ class RevolutionDetector:
         if not self.alarm:
             # a step in the level within one revolution is the tool entering or leaving
             # the work, not regenerative chatter (which grows over several revolutions):
-            # the windows whose revolution difference reaches back over it do not count
+            # it, and the ring after it, do not count
             stepped = self._level_step(start, end, rpm)
             settling = settling or stepped
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
@@ -333,17 +333,20 @@ class RevolutionDetector:
 
     def _level_step(self, start: int, end: int, rpm: float) -> bool:
         """True for a window whose median |x| is over jump_ratio x, or under 1/jump_ratio x,
-        that of the revolution before it, and for window_revs + 1 revolutions after it (the
-        step stays that long in the revolution difference), held on while the level keeps
-        falling (the structure's ring after the tool's release; chatter grows)."""
+        that of the revolution before it, and, within window_revs + 1 revolutions of such a
+        window (the span whose revolution difference still sees the step), for every window
+        whose level is below the revolution before's: the structure's ring after the tool's
+        release decays for several revolutions and keeps that span open; chatter after a
+        step (a deeper pass) grows, and counts at once."""
         di = int(self.rate * 60.0 / rpm)
         now = float(np.median(np.abs(self._x[start:end])))
         before = float(np.median(np.abs(self._x[start - di:end - di])))
         r = self.params["jump_ratio"]
-        held = self._next_end < self._step_until
-        if not before / r <= now <= before * r or (held and now < before):
+        stepped = not before / r <= now <= before * r
+        ringing = self._next_end < self._step_until and now < before
+        if stepped or ringing:
             self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
-        return self._next_end < self._step_until
+        return stepped or ringing
 
     def _cusum_says(self, index: float, settling: bool) -> bool:
         """Page's CUSUM on log(index): each window adds its log rise over the allowance
