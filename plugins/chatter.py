@@ -5,7 +5,7 @@
     input = "accel"            # the vibration sensor instance
     machine = "lathe"          # whose speed (and cut state registers) frame the analysis
     cut_from = ["load", "vibration"]   # what says the tool is in the cut (see below)
-    detector = "chaos_sync"    # any built-in or plugin detector
+    detector = "sync_cusum"    # any built-in or plugin detector
     tool = "T0101"             # recorded with every chatter event
     material = "C45"
     [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.detectors)
