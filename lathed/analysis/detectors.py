@@ -15,7 +15,10 @@ which does not depend on the signal's gain.  The alarm turns on after
 ``off_windows`` consecutive windows below ``off_ratio * threshold``
 (hysteresis).  While the speed is changing and for ``settle_revs``
 revolutions after, no alarm is raised (the revolution-to-revolution
-comparison is not meaningful across a ramp).
+comparison is not meaningful across a ramp).  Nor does a window count whose
+level (median |x|) steps by more than ``jump_ratio`` against the revolution
+before, nor the falling ring after such a step: that is the tool entering or
+leaving the work, where regenerative chatter grows over several revolutions.
 
 Built-in detectors (``DETECTORS``):
   sync_residual      robust rms of x(theta) - x(theta - 2 pi): everything that
