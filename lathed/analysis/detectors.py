@@ -524,11 +524,13 @@ DETECTORS: dict[str, Factory] = {
 # Chosen from bench/bench_chatter.py on stable cutting that wanders as a real
 # cut does (regen.Wander): sync_cusum misses none of the 20 chatter cases
 # (chaos_sync misses 3 mild ones) and alarms on no stable or trap case
-# (chaos_sync on one trap), median delay 4.0 revolutions (chaos_sync 5.9);
-# on the real recordings it finds both chatter files and no stable one.  Its
-# false alarms in the closed loop came at the end of stable cuts whose
-# baseline was learned after a speed change at entry (the tool's release
-# rings the structure: jump_ratio).  See the README table.
+# (chaos_sync on one trap), median delay 3.6 revolutions (chaos_sync 5.9);
+# on the real recordings it finds both chatter files and no stable one; in
+# the closed loop (bench/bench_loop.py) it alarms 5.9-7.3 revolutions after
+# chatter is visible, chaos_sync 13.6-25.4.  Its false alarms in the closed
+# loop came at the end of stable cuts whose baseline was learned after a
+# speed change at entry (the tool's release rings the structure: jump_ratio).
+# See the README table.
 DEFAULT_DETECTOR = "sync_cusum"
 
 
