@@ -5,11 +5,13 @@
     input = "accel"            # the vibration sensor instance
     machine = "lathe"          # whose speed (and cut state registers) frame the analysis
     cut_from = ["load", "vibration"]   # what says the tool is in the cut (see below)
-    detector = "chaos_sync"    # any built-in or plugin detector
+    detector = "sync_cusum"    # any built-in or plugin detector
     tool = "T0101"             # recorded with every chatter event
     material = "C45"
     [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.detectors)
     threshold = 2.0
+    jump_ratio = 3.0           # a level step this large within a revolution (the tool
+                               # entering or leaving the work) does not count as chatter
 
 The detector runs only while the tool is in the cut (air cutting would
 otherwise make the entry look like chatter); it learns its baseline at the
@@ -28,6 +30,16 @@ each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
 (1/0); it records ``chatter_alarm`` and ``chatter_cleared`` events with the
 critical values.
+
+The cut ends when no source sees the chip: the polled spindle load sees the
+tool leave up to a poll late, so the detector still watches the tool's
+release, which rings the structure at several times the cut's level.
+``jump_ratio`` keeps such a level step (and the ring after it) from counting
+towards the alarm; regenerative chatter grows over several revolutions.
+
+A configuration reload takes threshold, on_windows, off_windows, off_ratio,
+settle_revs and jump_ratio at once, in the running cut; the window shapes
+and the band apply from the next cut.
 """
 from __future__ import annotations
 
@@ -51,7 +63,7 @@ ENTRY_REVS = 20.0
 
 # detector parameters a running cut takes at once on reload; the others (window
 # lengths, band) shape the windows and apply from the next cut
-LIVE_NOW = ("threshold", "on_windows", "off_windows", "off_ratio", "settle_revs")
+LIVE_NOW = ("threshold", "on_windows", "off_windows", "off_ratio", "settle_revs", "jump_ratio")
 
 
 class ChatterAnalyzer(Analyzer):

@@ -55,9 +55,11 @@ def test_reconfigure_keeps_the_cut_and_its_baseline():
         a.detector.process(rng.normal(size=2048), 2000.0)
     det, baseline = a.detector, a.detector.baseline
     assert baseline is not None
-    a.reconfigure(Section("f.toml", "analyzer.chatter", {"params": {"threshold": 3.5, "window_revs": 2.0}}))
+    a.reconfigure(Section("f.toml", "analyzer.chatter", {"params": {"threshold": 3.5, "window_revs": 2.0,
+                                                                    "jump_ratio": 5.0}}))
     assert a.detector is det and det.baseline == baseline        # the cut goes on, baseline kept
     assert det.threshold == 3.5 and det.params["threshold"] == 3.5
+    assert det.params["jump_ratio"] == 5.0                       # the level step's test too
     assert det.params["window_revs"] == 1.0 and a._rebuild       # windows change from the next cut
     a.ctx = SimpleNamespace(plugins=None, bus=SimpleNamespace(publish=lambda s: None),
                             log=SimpleNamespace(info=lambda *x, **k: None))

@@ -62,7 +62,10 @@ def test_suppression_modes_on_the_running_lathe(sim_daemon):
                      what="suppression_action")[0]["payload"]
     assert act["sent"] is True and act["refused"] is None and act["mode"] == "auto" and act["by"] == "suppress"
     assert act["strategy"] in ("sss_lobes", "rated_speed")     # rated: the configured fallback
-    assert act["chatter_index"] > act["threshold"] > 0
+    # over the threshold, or held above the CUSUM's allowance long enough (sync_cusum)
+    assert act["threshold"] > 0 and (act["chatter_index"] > act["threshold"] or (
+        act["chatter_index"] > 1.0
+        and "sustained rise" in {e["payload"]["raised_by"] for e in events(d, "chatter_alarm")}))
     assert act["chatter_frequency_hz"] > 0
     assert round(act["rpm_before"]) in (1500, 2000, 2500)
     assert 300 <= act["rpm_after"] <= 1.3 * act["rpm_before"] + 1 and act["rpm_after"] != act["rpm_before"]
@@ -202,10 +205,12 @@ def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_dae
     for p in parts:
         writes = [w["wall_t"] for w in p["speed_writes"] if "wall_t" in w]
         assert writes and writes[0] - p["cut_start_wall"] < 1.0, p
-    # and where the new speed is stable the chatter is gone before the detector would have seen
-    # it grow. (The lobes pick 3249 r/min for the 2500 r/min part, where the simulated lathe's
-    # own limit is 2.68 mm: that cut does chatter, and the detector, which learns its baseline
-    # afresh after a speed change at entry, rightly says so.)
+    # and no chatter alarm at a speed the lobes call stable for 3 mm (they pick about 1950 r/min
+    # for the 1500 r/min part, 2290 for the 2000 and 2500 r/min ones: limits 4.0 and 5.5 mm):
+    # the entry's chatter is gone before the detector, which learns its baseline afresh after a
+    # speed change at entry, would have seen it grow, and the tool's release at the cut's end is
+    # a level step, not chatter (jump_ratio). An alarm where the lobes allow less than 3 mm
+    # would be right, so it is not counted against the detector.
     from lathed.analysis.lobes import StabilityLobes
     from lathed.sim.lathe import LATHE_KF, LATHE_MODES
     lobes = StabilityLobes(LATHE_MODES, LATHE_KF)

@@ -15,7 +15,10 @@ which does not depend on the signal's gain.  The alarm turns on after
 ``off_windows`` consecutive windows below ``off_ratio * threshold``
 (hysteresis).  While the speed is changing and for ``settle_revs``
 revolutions after, no alarm is raised (the revolution-to-revolution
-comparison is not meaningful across a ramp).
+comparison is not meaningful across a ramp).  Nor does a window count whose
+level (median |x|) steps by more than ``jump_ratio`` against the revolution
+before, nor the falling ring after such a step: that is the tool entering or
+leaving the work, where regenerative chatter grows over several revolutions.
 
 Built-in detectors (``DETECTORS``):
   sync_residual      robust rms of x(theta) - x(theta - 2 pi): everything that
@@ -44,6 +47,7 @@ here: plugin detectors arrive as the ``extra`` dict.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -82,6 +86,9 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
     "cusum_ratio": (0.0, 0.0, 100.0, "0: off; else a cumulative sum of log(index / cusum_ratio) "
                     "also raises the alarm past on_windows x log(threshold / cusum_ratio): a "
                     "sustained rise below the threshold adds up (1 < cusum_ratio < threshold)"),
+    "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
+                   "1/jump_ratio x, the level one revolution earlier does not count towards "
+                   "the alarm (the tool entering or leaving the work, not chatter)"),
     "fmin_hz": (50.0, 0.0, 20000.0, "lower edge of the chatter band"),
     "fmax_hz": (5000.0, 10.0, 25600.0, "upper edge of the chatter band"),
 }
@@ -143,6 +150,8 @@ class RevolutionDetector:
         self._rpm: float | None = None
         self._since_idx = 0
         self._settle_until = 0
+        self._step_until = 0        # no alarm counted before this sample (a level step)
+        self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
         self._learn: list[float] = []
         self.baseline = self._fixed_baseline
         self.alarm = False
@@ -304,6 +313,11 @@ class RevolutionDetector:
         settling = settling or self._windows <= p["learn_windows"]
         raised_by = None
         if not self.alarm:
+            # a step in the level within one revolution is the tool entering or leaving
+            # the work, not regenerative chatter (which grows over several revolutions):
+            # it, and the ring after it, do not count
+            stepped = self._level_step(start, end, rpm)
+            settling = settling or stepped
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
@@ -321,6 +335,39 @@ class RevolutionDetector:
                 self.alarm, self._on, self._cusum = False, 0, 0.0
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
+
+    def _level_step(self, start: int, end: int, rpm: float) -> bool:
+        """True for a window whose median |x| is over jump_ratio x, or under 1/jump_ratio x,
+        that of the revolution before it, and, within window_revs + 1 revolutions of such a
+        window (the span whose revolution difference still sees the step), for every window
+        whose level is below the revolution before's: the structure's ring after the tool's
+        release decays for several revolutions and keeps that span open; chatter after a
+        step (a deeper pass) grows, and counts at once."""
+        di = int(self.rate * 60.0 / rpm)
+        now = self._level(start, end, self._next_end)
+        before = self._level(start - di, end - di, self._next_end - di)
+        r = self.params["jump_ratio"]
+        stepped = not before / r <= now <= before * r
+        ringing = self._next_end < self._step_until and now < before
+        if stepped or ringing:
+            self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
+        return stepped or ringing
+
+    def _level(self, start: int, end: int, at: int) -> float:
+        """Median |x| over buffer samples start..end, which end at sample ``at`` since reset.
+        A window's level is kept: the window a revolution later compares with it (two hops
+        of half a revolution), so each window costs one median, not two; a window ending
+        within 2 samples of ``at`` (the revolution rounded to whole hops) is the same."""
+        # the detector's cost per window was doubled by two full medians (5 ms CPU per
+        # second of signal at 2000 r/min, as much as the rest of sync_cusum)
+        for t, lv in self._levels:
+            if abs(t - at) <= 2:
+                return lv
+        # a few hundred samples tell a level to a few %, enough against a ratio of 1.5 or more
+        a = np.abs(self._x[start:end:max(1, (end - start) // 256)])
+        lv = float(np.partition(a, len(a) // 2)[len(a) // 2])
+        self._levels.append((at, lv))
+        return lv
 
     def _cusum_says(self, index: float, settling: bool) -> bool:
         """Page's CUSUM on log(index): each window adds its log rise over the allowance
@@ -474,14 +521,17 @@ DETECTORS: dict[str, Factory] = {
     "chaos_sync": _chaos,
 }
 
-# Chosen from bench/bench_chatter.py: chaos_sync and sync_residual both give
-# zero false alarms and no miss on the stationary corpus (four seed draws);
-# chaos_sync has the lower median delay.  sync_cusum does better on the
-# wandering corpus and the real recordings, but in the closed loop it alarms
-# after suppression's speed change at a chattering cut's entry (the surface
-# the entry's chatter left, cut at the new speed: tests/test_suppression_live.py),
-# so it is not the default yet.  See the README table.
-DEFAULT_DETECTOR = "chaos_sync"
+# Chosen from bench/bench_chatter.py on stable cutting that wanders as a real
+# cut does (regen.Wander): sync_cusum misses none of the 20 chatter cases
+# (chaos_sync misses 3 mild ones) and alarms on no stable or trap case
+# (chaos_sync on one trap), median delay 3.6 revolutions (chaos_sync 5.9);
+# on the real recordings it finds both chatter files and no stable one; in
+# the closed loop (bench/bench_loop.py) it alarms 5.9-7.3 revolutions after
+# chatter is visible, chaos_sync 13.6-25.4.  Its false alarms in the closed
+# loop came at the end of stable cuts whose baseline was learned after a
+# speed change at entry (the tool's release rings the structure: jump_ratio).
+# See the README table.
+DEFAULT_DETECTOR = "sync_cusum"
 
 
 def make_detector(name: str, rate_hz: float, extra: dict[str, Factory] | None = None, **params: Any):

@@ -27,7 +27,7 @@ from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive, spindle_r
 # numpy and the detectors are imported when the command runs: lathectl's other
 # commands start without them (the names below are checked against the registry)
 BUILTIN_DETECTORS = ("chaos_sync", "spectral_ratio", "sync_cusum", "sync_residual")
-DEFAULT_DETECTOR = "chaos_sync"
+DEFAULT_DETECTOR = "sync_cusum"
 
 BLOCK = 4096
 

@@ -143,11 +143,11 @@ class Simulator:
                 self.produced = due - BLOCK
             while self.produced + BLOCK <= due:
                 t0 = start + self.produced / rate
-                rpm = self.lathe.rpm
                 self._clock.append((self.lathe.n_samples / self.lathe.rate_hz, t0))
                 data = self.lathe.step(BLOCK)
                 self._stamp(self.lathe.record)
-                self.vibration.send(t0, rpm, data)
+                # the speed the block was cut at (read before the step, it lagged a ramp step)
+                self.vibration.send(t0, self.lathe.block_rpm, data)
                 self.produced += BLOCK
             if self.modbus.up:
                 self.modbus.block.update(self.lathe.registers())

@@ -189,6 +189,7 @@ class SimLathe:
         self.phase_t = 0.0
         self.y_mm = 0.0
         self.rpm = 0.0
+        self.block_rpm = 0.0                     # speed the last step's samples were cut at
         self.rpm_override: float | None = None   # written over Modbus; holds for the current part
         self.offset_x_um = 0.0
         self.part_count = 0
@@ -275,6 +276,9 @@ class SimLathe:
         was = self.phase
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
+        # the speed these samples are cut at: a vibration frame carries this one, not the
+        # speed before the step (one ramp step stale) nor the commanded one
+        self.block_rpm = self.rpm
         block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.part.diameter_mm)
         self._load(depth, block)
         self._watch(was, n, block)
