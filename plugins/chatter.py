@@ -55,6 +55,7 @@ from lathed.config import ConfigError, Section
 from lathed.display import packed, thin
 
 EYE_POINTS = 600   # chaos-eye points sent to a screen
+EYE_MIN_S = 0.5    # a display eye (detectors other than chaos_sync) is drawn at most this often
 
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
@@ -269,18 +270,24 @@ class ChatterAnalyzer(Analyzer):
 
     def live_view(self) -> dict | None:
         """The chaos eye for the operator view: the (phi1, phi2) points of the recent
-        windows, and those at the start of the cut (the baseline), thinned for plotting."""
+        windows, and those at the start of the cut (the baseline), thinned for plotting.
+        A detector other than chaos_sync has it drawn from its revolution difference
+        when asked, at most every EYE_MIN_S (it costs the daemon only while a screen
+        watches)."""
         det = self.detector
-        if det is None or not hasattr(det, "eye_points"):
+        if det is None or not hasattr(det, "eye_views"):
             return None
-        if self._eye_view is not None and self._eye_view[0] == (id(det), self.windows):
-            return self._eye_view[1]     # no new window since: the same points
-        p1, p2 = det.eye_points()
-        base = det.eye_baseline
-        out = {"eye_phi1": packed(thin(p1, EYE_POINTS)), "eye_phi2": packed(thin(p2, EYE_POINTS))}
+        key = (id(det), self.windows)
+        now = time.monotonic()
+        if self._eye_view is not None and (self._eye_view[0] == key or (
+                not hasattr(det, "eye_points") and now - self._eye_view[2] < EYE_MIN_S)):
+            return self._eye_view[1]     # no new window since (or too soon): the same points
+        (p1, p2), base = det.eye_views()
+        out = {"eye_phi1": packed(thin(p1, EYE_POINTS)), "eye_phi2": packed(thin(p2, EYE_POINTS)),
+               "eye_from": "chaos_sync" if hasattr(det, "eye_points") else "revolution difference"}
         if base is not None:
             out.update(base_phi1=packed(thin(base[0], EYE_POINTS)), base_phi2=packed(thin(base[1], EYE_POINTS)))
-        self._eye_view = ((id(det), self.windows), out)
+        self._eye_view = (key, out, now)
         return out
 
     def status(self) -> dict:

@@ -254,3 +254,21 @@ def test_no_alarm_when_the_tool_leaves_the_work(name, rpm):
 def test_without_jump_ratio_the_tool_leaving_raises_the_alarm():
     # the test above can fail: with the step not recognised, sync_residual cries chatter
     assert any(w.alarm for w in _stable_cut_to_its_end("sync_residual", 2000.0, jump_ratio=1000))
+
+
+@pytest.mark.parametrize("name", sorted(DETECTORS))
+def test_every_detector_draws_the_chaos_eye(name):
+    """The operator's chaos eye (the paper's graph) whatever the detector: the
+    recent points against the cut's first window stay about its size in a stable
+    cut and grow far past it in chatter."""
+    from lathed.analysis.chaos_sync import eye_radius
+    rec = simulate_cut([Segment(0.6, 1500, 1.0), Segment(0.8, 1500, 3.0)], seed=21)
+    det, sizes = make_detector(name, RATE), {}
+    assert det.eye_views()[1] is None            # nothing cut yet: no baseline to draw
+    for i in range(0, len(rec.signal), 512):
+        det.process(rec.signal[i:i + 512], 1500)
+        for t in (0.5, 1.35):                    # stable; chattering
+            if abs((i + 512) / RATE - t) < 0.005:
+                (p1, p2), base = det.eye_views()
+                sizes[t] = eye_radius(p1, p2) / eye_radius(*base)
+    assert sizes[0.5] < 2.0 and sizes[1.35] > 20.0, sizes

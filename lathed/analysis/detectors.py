@@ -55,6 +55,9 @@ import numpy as np
 
 MIN_WINDOW_SAMPLES = 16
 _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
+EYE_REVS = 4      # revolutions of a display eye (eye_views)
+EYE_MEMORY = 64   # its GL filter's memory, samples
+EYE_MAX_SAMPLES = 16384   # at most this many samples filtered per view (a slow spindle's 4 revolutions)
 
 
 @dataclass
@@ -159,6 +162,7 @@ class RevolutionDetector:
         self._off = 0
         self._cusum = 0.0
         self._windows = 0           # windows since reset
+        self._eye_base: np.ndarray | None = None   # the cut's first counted window's d, for the eye
         self._reset_extra()
 
     def _reset_extra(self) -> None:
@@ -298,6 +302,9 @@ class RevolutionDetector:
             self._collect.append(raw)
             return Window(t_s, float("nan"), self.threshold, False, None, True)
         self._windows += 1
+        if self._eye_base is None and not settling:
+            lead = int(EYE_MEMORY)
+            self._eye_base = self._d[max(start - lead, 0):end].copy()
         if self.baseline is None:
             if not settling:
                 self._learn.append(raw)
@@ -391,6 +398,22 @@ class RevolutionDetector:
 
     def _on_learned(self) -> None:
         pass
+
+    # -- the chaos eye, for display -------------------------------------------------
+    def eye_views(self) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray] | None]:
+        """The paper's chaos eye drawn from this detector's revolution difference
+        (the last EYE_REVS revolutions, and the cut's first counted window as the
+        baseline, both scaled by that window's error): for the operator's screen only,
+        computed when asked; the alarm is this detector's own.  chaos_sync draws
+        its own eye from its windows."""
+        from lathed.analysis.chaos_sync import eye_of_difference
+        empty = (np.empty(0), np.empty(0))
+        if self._eye_base is None or self._rpm is None or self._n == 0:
+            return empty, None
+        b1, b2, sigma = eye_of_difference(self._eye_base, memory=EYE_MEMORY)
+        n = min(self._n, int(EYE_REVS * self.rate * 60.0 / self._rpm) + EYE_MEMORY, EYE_MAX_SAMPLES)
+        p1, p2, _ = eye_of_difference(self._d[self._n - n:self._n], sigma, memory=EYE_MEMORY)
+        return (p1, p2), (b1, b2)
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
         raise NotImplementedError

@@ -202,6 +202,7 @@ function drawVibration() {
   if (ch) {
     const k = ch.name + "/chatter_index", th = ch.name + "/chatter_threshold";
     chart("index", [{ label: "index" }, { label: "threshold", stroke: "#f85149", dash: [6, 4] }]).setData(joined([k, th]));
+    if (ch.detector) $("#index-title").textContent = ch.detector;
     const b = $("#chatter-state"); b.textContent = ch.cut_state || ch.state;
     b.className = "badge " + (ch.cut_state === "chatter" ? "bad" : ch.cut_state === "watching" ? "ok" : "warn");
     $("#chatter-f").textContent = ch.chatter_frequency_hz ? fmt(ch.chatter_frequency_hz, 0) + " Hz" : "-";
@@ -225,6 +226,7 @@ function drawEye(view) {
   dots(view.eye_phi1, view.eye_phi2, "#58a6ff");
   if (view.base_phi1) dots(view.base_phi1, view.base_phi2, "rgba(240,136,62,.8)");   // on top: it is the small one
   g.fillStyle = "#8b95a3"; g.fillText("orange: start of cut (baseline)", 6, h - 20); g.fillText("blue: now", 6, h - 6);
+  if (view.eye_from && view.eye_from !== "chaos_sync") g.fillText("drawn from the revolution difference (the alarm is the detector's)", 6, h - 34);
 }
 
 function drawThermal() {
