@@ -50,6 +50,8 @@ EVENT_POLL_S = 0.2       # new events are read from the store this often (while 
 EVENT_BATCH = 1000
 EVENT_PAGES = 10         # pages read per poll at most (a burst is delivered over several polls)
 VIEW_MIN_S = 0.05        # a vibration or analyzer view is computed at most this often, for everyone
+SPECTRUM_MIN_S = 0.5     # a vibration spectrum (an FFT, most of a view's cost) at most this often;
+                         # the envelope follows every frame
 MAX_RATE_HZ = 20.0
 
 
@@ -67,9 +69,10 @@ class PushHub:
         self.subscribers: set[Subscription] = set()
         self.dropped = 0
         self.last_drop: str | None = None
-        self._rings: dict[str, tuple[Ring, asyncio.Task, set]] = {}
+        self._rings: dict[str, tuple[Ring, Callable, set]] = {}   # sensor -> (ring, its bus tap, watchers)
         self._cache: dict[str, tuple[float, Any]] = {}
         self._vib: dict[str, tuple[float, int, dict | None]] = {}   # sensor -> (when, blocks, view)
+        self._spec: dict[str, tuple[float, float, dict]] = {}       # sensor -> (when, rate, spectrum)
         self._json: dict[tuple[str, str], tuple[Any, str]] = {}      # (section, name) -> (view, its JSON)
         self._parts: dict[tuple[str, str, str], tuple[Any, str]] = {}  # ... and each of its values
         self._poller: asyncio.Task | None = None
@@ -147,9 +150,10 @@ class PushHub:
             if entry:
                 entry[2].discard(sub)
                 if not entry[2]:
-                    entry[1].cancel()
+                    self.bus.untap(name, entry[1])
                     del self._rings[name]
                     self._vib.pop(name, None)
+                    self._spec.pop(name, None)
                     self._json.pop(("vibration", name), None)
         if self._poller and not any(s.events for s in self.subscribers):
             self._poller.cancel()
@@ -164,18 +168,13 @@ class PushHub:
     def _watch(self, name: str, sub: "Subscription") -> None:
         if name not in self._rings:
             ring = Ring()
-            bsub = self.bus.subscribe(name, maxsize=64)
-            self._rings[name] = (ring, asyncio.create_task(self._fill(ring, bsub)), set())
-        self._rings[name][2].add(sub)
 
-    async def _fill(self, ring: Ring, bsub) -> None:
-        try:
-            while True:
-                msg = await bsub.get()
-                if isinstance(msg, Block):
-                    ring.add(msg.data, msg.rate_hz, msg.t0)
-        finally:
-            self.bus.unsubscribe(bsub)
+            def tap(msg, add=ring.add) -> None:   # in the bus's publish: a reference kept, no copy
+                if type(msg) is Block:
+                    add(msg.data, msg.rate_hz, msg.t0)
+            self.bus.tap(name, tap)
+            self._rings[name] = (ring, tap, set())
+        self._rings[name][2].add(sub)
 
     def _cached(self, key: str, every: float, fn: Callable[[], Any]) -> Any:
         now = time.monotonic()
@@ -193,7 +192,14 @@ class PushHub:
         now = time.monotonic()
         hit = self._vib.get(name)
         if hit is None or hit[1] != ring.blocks and now - hit[0] >= VIEW_MIN_S:
-            hit = self._vib[name] = (now, ring.blocks, ring.view())
+            spec = self._spec.get(name)
+            if spec is not None and (now - spec[0] >= SPECTRUM_MIN_S or spec[1] != ring.rate_hz):
+                spec = None
+            view = ring.view(None if spec is None else spec[2])
+            if view is not None and spec is None:
+                # the same objects until the next one: a frame carries only keys that changed
+                self._spec[name] = (now, ring.rate_hz, {k: view[k] for k in ("spec_f", "spec_a")})
+            hit = self._vib[name] = (now, ring.blocks, view)
         return hit[2]
 
     def view(self, name: str) -> dict | None:
