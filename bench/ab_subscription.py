@@ -89,6 +89,7 @@ class Reader:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--base", default="main", help="git revision to compare with")
+    ap.add_argument("--this", default=None, help="git revision for the other side (default: the working tree)")
     ap.add_argument("--cycles", type=int, default=8)
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--warmup", type=float, default=15.0)
@@ -96,14 +97,17 @@ def main() -> int:
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="ab-sub-") as d:
         d = Path(d)
-        base_src = d / "src"
-        base_src.mkdir()
-        rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", a.base], capture_output=True,
-                             text=True, check=True).stdout.strip()
-        subprocess.run(f"git -C {ROOT} archive {rev} | tar -x -C {base_src}", shell=True, check=True)
-        (base_src / "lathed_plugins").symlink_to("plugins")    # as the editable install maps it
+        def extract(rev: str, to: Path) -> str:
+            rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", rev], capture_output=True,
+                                 text=True, check=True).stdout.strip()
+            to.mkdir()
+            subprocess.run(f"git -C {ROOT} archive {rev} | tar -x -C {to}", shell=True, check=True)
+            (to / "lathed_plugins").symlink_to("plugins")    # as the editable install maps it
+            return rev
+        rev = extract(a.base, d / "src-base")
+        this_rev = extract(a.this, d / "src-this") if a.this else "working tree"
         sides = {}
-        for name, src in (("base", str(base_src)), ("this", "-")):
+        for name, src in (("base", str(d / "src-base")), ("this", str(d / "src-this") if a.this else "-")):
             (d / name).mkdir()
             sides[name] = start(src, d / name)
         rows: dict[str, list] = {n: [] for n in sides}
@@ -134,7 +138,7 @@ def main() -> int:
             for p, _ in sides.values():
                 p.wait(20)
     print(f"\nDaemon CPU (% of a core), {a.cycles} interleaved cycles of {a.seconds:g} s without and with one "
-          f"subscriber (lathed-web's request, rate 4/s); base = {a.base} ({rev}), this = the working tree\n")
+          f"subscriber (lathed-web's request, rate 4/s); base = {a.base} ({rev}), this = {a.this or "-"} ({this_rev})\n")
     print("| daemon | no subscriber | subscribed | cost (with - without), median (range) | with / without |")
     print("|---|---|---|---|---|")
     for n, rs in rows.items():
