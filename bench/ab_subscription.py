@@ -138,7 +138,7 @@ def main() -> int:
             for p, _ in sides.values():
                 p.wait(20)
     print(f"\nDaemon CPU (% of a core), {a.cycles} interleaved cycles of {a.seconds:g} s without and with one "
-          f"subscriber (lathed-web's request, rate 4/s); base = {a.base} ({rev}), this = {a.this or "-"} ({this_rev})\n")
+          f"subscriber (lathed-web's request, rate 4/s); base = {a.base} ({rev}), this = {a.this or '-'} ({this_rev})\n")
     print("| daemon | no subscriber | subscribed | cost (with - without), median (range) | with / without |")
     print("|---|---|---|---|---|")
     for n, rs in rows.items():
