@@ -20,10 +20,12 @@ since the last frame (a spectrum's frequencies, an envelope's times, a lobe
 chart are sent again only when they move; a key gone from the view comes as
 null): merge it into the last one. A view that is null replaces it.
 
-A subscriber costs the daemon a bounded amount: at most QUEUE_FRAMES frames
-wait for it, and a write must drain within the control request timeout. A
-client that falls behind either bound is dropped (counted in status), never
-waited for: the daemon's loop only ever puts frames in a queue.
+A subscriber costs the daemon a bounded amount: one task that makes a frame
+each period and writes it; a write the client does not take must drain within
+the control request timeout, and no frame is made meanwhile (the next one
+carries what changed), so what waits for it is what the socket's buffer holds.
+A client that does not drain in time is dropped (counted in status), never
+waited for by anything else: the daemon's loop goes on.
 """
 from __future__ import annotations
 
@@ -43,7 +45,6 @@ from lathed.viewdelta import changed_keys
 
 log = structlog.get_logger("lathed.push")
 
-QUEUE_FRAMES = 32        # frames waiting for one subscriber before it is dropped
 HEARTBEAT_S = 1.0        # an empty frame after this long without one
 STATES_EVERY_S = 1.0     # machine/analyzer status at most this often
 EVENT_POLL_S = 0.2       # new events are read from the store this often (while someone wants them)
@@ -316,7 +317,6 @@ class Subscription(Stream):
         self.vibration, self.views, self.states, self.events = vibration, views, states, events
         self.kinds, self.sources = kinds, sources
         self.period = 1.0 / rate_hz
-        self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_FRAMES)
         self.last_event_id = 0
         self._events: list[dict] = []
         self._sent: dict[tuple[str, str], float] = {}
@@ -376,46 +376,34 @@ class Subscription(Stream):
         f["t"] = time.time()
         return f
 
-    async def _produce(self) -> str:
-        while True:
-            await asyncio.sleep(self.period)
-            f = self.frame()
-            if f is None:
-                continue
-            try:
-                self.queue.put_nowait(f)
-            except asyncio.QueueFull:
-                return f"the client fell {QUEUE_FRAMES} frames behind (not reading)"
-
-    async def _write(self, writer: asyncio.StreamWriter, write_timeout: float) -> str:
-        while True:
-            f = await self.queue.get()
-            writer.write(self.hub.encode_frame(f))
-            try:
-                async with asyncio.timeout(write_timeout):
-                    await writer.drain()
-            except TimeoutError:
-                return f"the client read nothing for {write_timeout:g} s"
-
     async def run(self, writer: asyncio.StreamWriter, write_timeout: float) -> str | None:
-        tasks = [asyncio.create_task(self._produce()), asyncio.create_task(self._write(writer, write_timeout))]
+        """One task: a frame each period, written at once. While the client does not take
+        it the task waits for the write to drain (at most ``write_timeout``) and makes no
+        frame: what changed meanwhile comes in the next one, coalesced, so nothing piles up
+        but what the transport holds (its high-water mark, and the frame that crossed it)."""
+        transport = writer.transport
         try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-            t = done.pop()
-            if t.exception() is not None:
-                if isinstance(t.exception(), ConnectionError):
-                    return None
-                log.error("subscription_failed", error=repr(t.exception()))
-                return f"internal error: {t.exception()!r}"
-            reason = t.result()
-            self.hub.drop(self, reason)
-            return reason
+            while True:
+                await asyncio.sleep(self.period)
+                f = self.frame()
+                if f is None:
+                    continue
+                writer.write(self.hub.encode_frame(f))
+                if transport.get_write_buffer_size() > transport.get_write_buffer_limits()[1]:
+                    try:
+                        async with asyncio.timeout(write_timeout):
+                            await writer.drain()
+                    except TimeoutError:
+                        reason = f"the client read nothing for {write_timeout:g} s"
+                        self.hub.drop(self, reason)
+                        return reason
+        except ConnectionError:
+            return None
+        except Exception as e:   # a bug ends this subscription, said; not the daemon
+            log.error("subscription_failed", error=repr(e))
+            return f"internal error: {e!r}"
         finally:
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
             self.close()
 
     def close(self) -> None:
         self.hub.remove(self)
-        self.queue = asyncio.Queue()   # the frames it did not take are freed now
