@@ -98,11 +98,18 @@ def unpacked(v: dict | list) -> np.ndarray:
 
 def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
     """Min and max of x per column, with each column's time from the window's start (s)."""
-    cols = min(columns, len(x))
-    edges = np.linspace(0, len(x), cols + 1).astype(int)
-    lo = np.minimum.reduceat(x, edges[:-1])
-    hi = np.maximum.reduceat(x, edges[:-1])
-    return {"env_t": packed(edges[:-1] / rate_hz), "env_min": packed(lo), "env_max": packed(hi)}
+    starts, env_t = _columns(len(x), rate_hz, columns)
+    return {"env_t": env_t, "env_min": packed(np.minimum.reduceat(x, starts)),
+            "env_max": packed(np.maximum.reduceat(x, starts))}
+
+
+@lru_cache(maxsize=8)
+def _columns(n: int, rate_hz: float, columns: int) -> tuple[np.ndarray, dict]:
+    """Where each envelope column starts, and their times packed: the same for every view of a
+    full window, made once (and the same object each time: a frame leaves it out, unchanged)."""
+    starts = np.linspace(0, n, min(columns, n) + 1).astype(int)[:-1]
+    starts.flags.writeable = False
+    return starts, packed(starts / rate_hz)
 
 
 def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bins: int = SPECTRUM_BINS) -> dict:
@@ -110,16 +117,22 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
     ``bins`` points each holding the largest line it covers (a peak is never averaged away)."""
     n = len(x)
     w, gain = _hann(n)
-    mag = np.abs(np.fft.rfft((x - x.mean()) * w)) * gain
-    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
-    keep = f <= max_hz
-    mag, f = mag[keep], f[keep]
-    group = max(1, int(np.ceil(len(mag) / bins)))
-    m = len(mag) // group * group
+    m, group, spec_f = _bins(n, rate_hz, max_hz, bins)
     if m == 0:
-        return {"spec_f": packed(np.empty(0)), "spec_a": packed(np.empty(0))}
-    peaks = mag[:m].reshape(-1, group).max(axis=1)
-    return {"spec_f": packed(f[:m].reshape(-1, group)[:, 0]), "spec_a": packed(peaks)}
+        return {"spec_f": spec_f, "spec_a": packed(np.empty(0))}
+    mag = np.abs(np.fft.rfft((x - x.mean()) * w)[:m])
+    return {"spec_f": spec_f, "spec_a": packed(mag.reshape(-1, group).max(axis=1) * gain)}
+
+
+@lru_cache(maxsize=8)
+def _bins(n: int, rate_hz: float, max_hz: float, bins: int) -> tuple[int, int, dict]:
+    """(lines kept, lines per point, the points' frequencies packed) of an n-point spectrum up to
+    max_hz: made once per window length and rate, as the Hann window."""
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
+    f = f[f <= max_hz]
+    group = max(1, int(np.ceil(len(f) / bins)))
+    m = len(f) // group * group
+    return m, group, packed(f[:m].reshape(-1, group)[:, 0])
 
 
 @lru_cache(maxsize=4)
