@@ -319,8 +319,8 @@ class Subscription(Stream):
         self.period = 1.0 / rate_hz
         self.last_event_id = 0
         self._events: list[dict] = []
-        self._sent: dict[tuple[str, str], float] = {}
-        self._match: dict[tuple[str, str], bool] = {}    # bus key -> asked for (the patterns do not change)
+        self._sent: dict[tuple[str, str], float] = {}     # bus key -> t of the sample sent last
+        self._match: dict[tuple[str, str], str | None] = {}   # bus key -> its name if asked for (patterns do not change)
         self._sent_vib: dict[str, dict | None] = {}
         self._sent_view: dict[str, dict | None] = {}
         self._states_at = time.monotonic()
@@ -335,16 +335,18 @@ class Subscription(Stream):
 
     def changed_samples(self) -> dict[str, list]:
         out = {}
-        for key, s in list(self.hub.bus.latest.items()):
-            if self._sent.get(key) == s.t:
+        sent, match = self._sent, self._match
+        for key, s in self.hub.bus.latest.items():   # (no await in this loop: the dict stays as it is)
+            if sent.get(key) == s.t:
                 continue
-            wanted = self._match.get(key)
-            if wanted is None:
-                wanted = self._match[key] = any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq)
-                                                for ps, pq in self.patterns)
-            if wanted:
-                out[f"{key[0]}/{key[1]}"] = [s.t, s.value, s.unit]
-                self._sent[key] = s.t
+            name = match.get(key, False)
+            if name is False:
+                wanted = any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq)
+                             for ps, pq in self.patterns)
+                name = match[key] = f"{key[0]}/{key[1]}" if wanted else None
+            if name is not None:
+                out[name] = [s.t, s.value, s.unit]
+                sent[key] = s.t
         return out
 
     def frame(self) -> dict | None:
