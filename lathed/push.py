@@ -18,7 +18,9 @@ period sends the latest value, not a backlog. Events are never coalesced.
 A vibration or analyzer view in a frame carries only its keys that changed
 since the last frame (a spectrum's frequencies, an envelope's times, a lobe
 chart are sent again only when they move; a key gone from the view comes as
-null): merge it into the last one. A view that is null replaces it.
+null): merge it into the last one. A view that is null replaces it. A
+vibration envelope is new each frame, its spectrum at most every
+SPECTRUM_MIN_S (the FFT was most of a view's cost).
 
 A subscriber costs the daemon a bounded amount: one task that makes a frame
 each period and writes it; a write the client does not take must drain within

@@ -133,12 +133,12 @@ def test_a_subscriber_that_never_reads_is_dropped_and_the_loop_does_not_wait(liv
     s.connect(str(live.socket))
     s.sendall(json.dumps({"cmd": "subscribe", "args": {"vibration": ["accel"], "samples": ["*/*"],
                                                        "rate_hz": 20}}).encode() + b"\n")
-    # it never reads: the daemon gives it up within its bounds (32 frames queued, 5 s to drain)
+    # it never reads: the daemon gives it up within its bound (5 s for a write to drain)
     try:
         ctl = wait_until(lambda: (c := live.status()["daemon"]["control"])["dropped"] >= 1 and c, timeout=30,
                          interval=0.5, what="the silent subscriber dropped")
         assert ctl["subscribers"] == 0
-        assert "fell 32 frames behind" in ctl["last_drop"] or "read nothing" in ctl["last_drop"]
+        assert "read nothing for 5 s" in ctl["last_drop"]
         lag = live.status()["daemon"]["loop_lag_ms"]
         # a loop that waited on the silent client would lag by the 5 s drain bound; this
         # allows for the CPU contention of a shared test machine, not for waiting
