@@ -3,15 +3,24 @@
 Publishing never blocks a driver. Each subscriber has its own bounded queue;
 when an analyzer falls behind, what it missed is counted and shown in status
 (never silently dropped).
+
+A tap is the other way to listen: a plain function the bus calls with each
+message of a source as it is published, for work too small to deserve a task
+and a queue (the push hub's rings: a reference kept per block). A tap must
+return at once; one that raises is logged, removed and counted
+(``tap_failures``), and publishing goes on.
 """
 from __future__ import annotations
 
 import asyncio
 from collections import defaultdict, deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
+import structlog
+
+log = structlog.get_logger("lathed.bus")
 
 
 @dataclass(frozen=True)
@@ -37,6 +46,7 @@ class Block:
 
 
 Message = Sample | Block
+Tap = Callable[[Message], None]
 
 
 class Subscription:
@@ -77,6 +87,9 @@ class Bus:
         self._subs: dict[str, list[Subscription]] = defaultdict(list)
         self.latest: dict[tuple[str, str], Sample] = {}
         self.published = 0
+        self._taps: dict[str, list[Tap]] = {}
+        self.tap_failures = 0
+        self.last_tap_failure: str | None = None
 
     def subscribe(self, *sources: str, maxsize: int = 1024) -> Subscription:
         sub = Subscription(frozenset(sources), maxsize)
@@ -89,12 +102,41 @@ class Bus:
             if sub in self._subs.get(s, []):
                 self._subs[s].remove(sub)
 
+    def tap(self, source: str, fn: Tap) -> None:
+        """Call ``fn(msg)`` with each message ``source`` publishes, in publish."""
+        self._taps.setdefault(source, []).append(fn)
+
+    def untap(self, source: str, fn: Tap) -> None:
+        taps = self._taps.get(source)
+        if taps and fn in taps:
+            taps.remove(fn)
+            if not taps:
+                del self._taps[source]
+
     def publish(self, msg: Message) -> None:
         self.published += 1
         if isinstance(msg, Sample):
             self.latest[(msg.source, msg.quantity)] = msg
         for sub in self._subs.get(msg.source, ()):
             sub.put(msg)
+        taps = self._taps.get(msg.source)
+        if taps:
+            failed = None
+            for fn in taps:
+                try:
+                    fn(msg)
+                except Exception as e:   # a listener's bug is its own: the driver keeps publishing
+                    failed = (failed or []) + [(fn, e)]
+            for fn, e in failed or ():
+                self.untap(msg.source, fn)
+                self.tap_failures += 1
+                self.last_tap_failure = f"{msg.source}: {getattr(fn, '__qualname__', fn)}: {type(e).__name__}: {e}"
+                log.error("bus_tap_failed", source=msg.source, tap=getattr(fn, "__qualname__", repr(fn)),
+                          error=f"{type(e).__name__}: {e}", removed=True)
+
+    def stats(self) -> dict:
+        return {"published": self.published, "taps": sum(map(len, self._taps.values())),
+                "tap_failures": self.tap_failures, "last_tap_failure": self.last_tap_failure}
 
     def forget(self, source: str, quantity: str) -> None:
         """A quantity its source no longer has (a sensor taken off the line)."""

@@ -308,7 +308,7 @@ class Daemon:
     def status(self) -> dict:
         return {"daemon": {"state": self.status_state(), "uptime_s": round(time.monotonic() - self.started, 3),
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
-                           "loop_lag_ms": self.loop_lag.summary(),
+                           "loop_lag_ms": self.loop_lag.summary(), "bus": self.bus.stats(),
                            "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
                                                                 "last_prune": self.last_prune},
                            "simulator": None if self.sim_process is None else

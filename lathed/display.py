@@ -8,6 +8,7 @@ once per frame period for all subscribers together.
 from __future__ import annotations
 
 import base64
+from collections import deque
 from functools import lru_cache
 
 import numpy as np
@@ -19,45 +20,53 @@ SPECTRUM_BINS = 400
 
 
 class Ring:
-    """The last ``size`` samples of a stream. A circular buffer: adding a block copies
-    only the block (it arrives tens of times a second); the window is put in order
-    only when a view is drawn (a few times a second, and only while someone watches)."""
+    """The last ``size`` samples of a stream, as the blocks that hold them: adding a block
+    keeps a reference to it (it arrives tens of times a second; the bus's blocks are never
+    written after they are published), and the window is joined only when a view is drawn
+    (a few times a second, and only while someone watches)."""
 
     def __init__(self, size: int = WINDOW):
-        self.buf = np.zeros(size)
-        self.end = 0           # where the next sample goes
-        self.filled = 0
+        self.size = size
+        self._blocks: deque[np.ndarray] = deque()
+        self._held = 0         # samples in _blocks (up to a block more than size)
         self.rate_hz = 0.0
         self.t_end = 0.0       # time just after the last sample
         self.blocks = 0
 
+    @property
+    def filled(self) -> int:
+        return min(self.size, self._held)
+
     def add(self, data: np.ndarray, rate_hz: float, t0: float) -> None:
         if rate_hz != self.rate_hz:   # a new rate: the old samples are another signal
-            self.filled, self.rate_hz = 0, rate_hz
-        size = len(self.buf)
-        self.t_end = t0 + len(data) / rate_hz
-        data = np.asarray(data, dtype=float)[-size:]
+            self._blocks.clear()
+            self._held, self.rate_hz = 0, rate_hz
         n = len(data)
-        first = min(n, size - self.end)
-        self.buf[self.end:self.end + first] = data[:first]
-        self.buf[:n - first] = data[first:]
-        self.end = (self.end + n) % size
-        self.filled = min(size, self.filled + n)
+        self.t_end = t0 + n / rate_hz
         self.blocks += 1
+        if not n:
+            return
+        blocks = self._blocks
+        blocks.append(data)
+        self._held += n
+        while self._held - len(blocks[0]) >= self.size:   # the oldest block is wholly out of the window
+            self._held -= len(blocks.popleft())
 
     def window(self) -> np.ndarray:
-        """The samples held, oldest first."""
-        start = self.end - self.filled
-        if start >= 0:
-            return self.buf[start:self.end]
-        return np.concatenate((self.buf[start:], self.buf[:self.end]))
+        """The samples held, oldest first (float)."""
+        if not self._blocks:
+            return np.zeros(0)
+        x = np.concatenate(self._blocks) if len(self._blocks) > 1 else self._blocks[0]
+        return np.asarray(x[-self.size:], dtype=float)
 
-    def view(self) -> dict | None:
+    def view(self, spec: dict | None = None) -> dict | None:
+        """Envelope and spectrum of the window; ``spec``: a spectrum of this rate to show
+        instead of computing one (its FFT is most of a view's cost)."""
         if self.filled < 64:
             return None
         x = self.window()
         return {"t_end": self.t_end, "rate_hz": self.rate_hz, **envelope(x, self.rate_hz),
-                **spectrum(x, self.rate_hz)}
+                **(spec if spec is not None else spectrum(x, self.rate_hz))}
 
 
 def packed(a: np.ndarray) -> dict:
@@ -89,11 +98,18 @@ def unpacked(v: dict | list) -> np.ndarray:
 
 def envelope(x: np.ndarray, rate_hz: float, columns: int = COLUMNS) -> dict:
     """Min and max of x per column, with each column's time from the window's start (s)."""
-    cols = min(columns, len(x))
-    edges = np.linspace(0, len(x), cols + 1).astype(int)
-    lo = np.minimum.reduceat(x, edges[:-1])
-    hi = np.maximum.reduceat(x, edges[:-1])
-    return {"env_t": packed(edges[:-1] / rate_hz), "env_min": packed(lo), "env_max": packed(hi)}
+    starts, env_t = _columns(len(x), rate_hz, columns)
+    return {"env_t": env_t, "env_min": packed(np.minimum.reduceat(x, starts)),
+            "env_max": packed(np.maximum.reduceat(x, starts))}
+
+
+@lru_cache(maxsize=8)
+def _columns(n: int, rate_hz: float, columns: int) -> tuple[np.ndarray, dict]:
+    """Where each envelope column starts, and their times packed: the same for every view of a
+    full window, made once (and the same object each time: a frame leaves it out, unchanged)."""
+    starts = np.linspace(0, n, min(columns, n) + 1).astype(int)[:-1]
+    starts.flags.writeable = False
+    return starts, packed(starts / rate_hz)
 
 
 def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bins: int = SPECTRUM_BINS) -> dict:
@@ -101,16 +117,22 @@ def spectrum(x: np.ndarray, rate_hz: float, max_hz: float = SPECTRUM_MAX_HZ, bin
     ``bins`` points each holding the largest line it covers (a peak is never averaged away)."""
     n = len(x)
     w, gain = _hann(n)
-    mag = np.abs(np.fft.rfft((x - x.mean()) * w)) * gain
-    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
-    keep = f <= max_hz
-    mag, f = mag[keep], f[keep]
-    group = max(1, int(np.ceil(len(mag) / bins)))
-    m = len(mag) // group * group
+    m, group, spec_f = _bins(n, rate_hz, max_hz, bins)
     if m == 0:
-        return {"spec_f": packed(np.empty(0)), "spec_a": packed(np.empty(0))}
-    peaks = mag[:m].reshape(-1, group).max(axis=1)
-    return {"spec_f": packed(f[:m].reshape(-1, group)[:, 0]), "spec_a": packed(peaks)}
+        return {"spec_f": spec_f, "spec_a": packed(np.empty(0))}
+    mag = np.abs(np.fft.rfft((x - x.mean()) * w)[:m])
+    return {"spec_f": spec_f, "spec_a": packed(mag.reshape(-1, group).max(axis=1) * gain)}
+
+
+@lru_cache(maxsize=8)
+def _bins(n: int, rate_hz: float, max_hz: float, bins: int) -> tuple[int, int, dict]:
+    """(lines kept, lines per point, the points' frequencies packed) of an n-point spectrum up to
+    max_hz: made once per window length and rate, as the Hann window."""
+    f = np.fft.rfftfreq(n, 1.0 / rate_hz)
+    f = f[f <= max_hz]
+    group = max(1, int(np.ceil(len(f) / bins)))
+    m = len(f) // group * group
+    return m, group, packed(f[:m].reshape(-1, group)[:, 0])
 
 
 @lru_cache(maxsize=4)

@@ -18,12 +18,16 @@ period sends the latest value, not a backlog. Events are never coalesced.
 A vibration or analyzer view in a frame carries only its keys that changed
 since the last frame (a spectrum's frequencies, an envelope's times, a lobe
 chart are sent again only when they move; a key gone from the view comes as
-null): merge it into the last one. A view that is null replaces it.
+null): merge it into the last one. A view that is null replaces it. A
+vibration envelope is new each frame, its spectrum at most every
+SPECTRUM_MIN_S (the FFT was most of a view's cost).
 
-A subscriber costs the daemon a bounded amount: at most QUEUE_FRAMES frames
-wait for it, and a write must drain within the control request timeout. A
-client that falls behind either bound is dropped (counted in status), never
-waited for: the daemon's loop only ever puts frames in a queue.
+A subscriber costs the daemon a bounded amount: one task that makes a frame
+each period and writes it; a write the client does not take must drain within
+the control request timeout, and no frame is made meanwhile (the next one
+carries what changed), so what waits for it is what the socket's buffer holds.
+A client that does not drain in time is dropped (counted in status), never
+waited for by anything else: the daemon's loop goes on.
 """
 from __future__ import annotations
 
@@ -43,13 +47,14 @@ from lathed.viewdelta import changed_keys
 
 log = structlog.get_logger("lathed.push")
 
-QUEUE_FRAMES = 32        # frames waiting for one subscriber before it is dropped
 HEARTBEAT_S = 1.0        # an empty frame after this long without one
 STATES_EVERY_S = 1.0     # machine/analyzer status at most this often
 EVENT_POLL_S = 0.2       # new events are read from the store this often (while someone wants them)
 EVENT_BATCH = 1000
 EVENT_PAGES = 10         # pages read per poll at most (a burst is delivered over several polls)
 VIEW_MIN_S = 0.05        # a vibration or analyzer view is computed at most this often, for everyone
+SPECTRUM_MIN_S = 0.5     # a vibration spectrum (an FFT, most of a view's cost) at most this often;
+                         # the envelope follows every frame
 MAX_RATE_HZ = 20.0
 
 
@@ -67,9 +72,10 @@ class PushHub:
         self.subscribers: set[Subscription] = set()
         self.dropped = 0
         self.last_drop: str | None = None
-        self._rings: dict[str, tuple[Ring, asyncio.Task, set]] = {}
+        self._rings: dict[str, tuple[Ring, Callable, set]] = {}   # sensor -> (ring, its bus tap, watchers)
         self._cache: dict[str, tuple[float, Any]] = {}
         self._vib: dict[str, tuple[float, int, dict | None]] = {}   # sensor -> (when, blocks, view)
+        self._spec: dict[str, tuple[float, float, dict]] = {}       # sensor -> (when, rate, spectrum)
         self._json: dict[tuple[str, str], tuple[Any, str]] = {}      # (section, name) -> (view, its JSON)
         self._parts: dict[tuple[str, str, str], tuple[Any, str]] = {}  # ... and each of its values
         self._poller: asyncio.Task | None = None
@@ -147,9 +153,10 @@ class PushHub:
             if entry:
                 entry[2].discard(sub)
                 if not entry[2]:
-                    entry[1].cancel()
+                    self.bus.untap(name, entry[1])
                     del self._rings[name]
                     self._vib.pop(name, None)
+                    self._spec.pop(name, None)
                     self._json.pop(("vibration", name), None)
         if self._poller and not any(s.events for s in self.subscribers):
             self._poller.cancel()
@@ -164,18 +171,13 @@ class PushHub:
     def _watch(self, name: str, sub: "Subscription") -> None:
         if name not in self._rings:
             ring = Ring()
-            bsub = self.bus.subscribe(name, maxsize=64)
-            self._rings[name] = (ring, asyncio.create_task(self._fill(ring, bsub)), set())
-        self._rings[name][2].add(sub)
 
-    async def _fill(self, ring: Ring, bsub) -> None:
-        try:
-            while True:
-                msg = await bsub.get()
-                if isinstance(msg, Block):
-                    ring.add(msg.data, msg.rate_hz, msg.t0)
-        finally:
-            self.bus.unsubscribe(bsub)
+            def tap(msg, add=ring.add) -> None:   # in the bus's publish: a reference kept, no copy
+                if type(msg) is Block:
+                    add(msg.data, msg.rate_hz, msg.t0)
+            self.bus.tap(name, tap)
+            self._rings[name] = (ring, tap, set())
+        self._rings[name][2].add(sub)
 
     def _cached(self, key: str, every: float, fn: Callable[[], Any]) -> Any:
         now = time.monotonic()
@@ -193,7 +195,14 @@ class PushHub:
         now = time.monotonic()
         hit = self._vib.get(name)
         if hit is None or hit[1] != ring.blocks and now - hit[0] >= VIEW_MIN_S:
-            hit = self._vib[name] = (now, ring.blocks, ring.view())
+            spec = self._spec.get(name)
+            if spec is not None and (now - spec[0] >= SPECTRUM_MIN_S or spec[1] != ring.rate_hz):
+                spec = None
+            view = ring.view(None if spec is None else spec[2])
+            if view is not None and spec is None:
+                # the same objects until the next one: a frame carries only keys that changed
+                self._spec[name] = (now, ring.rate_hz, {k: view[k] for k in ("spec_f", "spec_a")})
+            hit = self._vib[name] = (now, ring.blocks, view)
         return hit[2]
 
     def view(self, name: str) -> dict | None:
@@ -310,11 +319,10 @@ class Subscription(Stream):
         self.vibration, self.views, self.states, self.events = vibration, views, states, events
         self.kinds, self.sources = kinds, sources
         self.period = 1.0 / rate_hz
-        self.queue: asyncio.Queue = asyncio.Queue(maxsize=QUEUE_FRAMES)
         self.last_event_id = 0
         self._events: list[dict] = []
-        self._sent: dict[tuple[str, str], float] = {}
-        self._match: dict[tuple[str, str], bool] = {}    # bus key -> asked for (the patterns do not change)
+        self._sent: dict[tuple[str, str], float] = {}     # bus key -> t of the sample sent last
+        self._match: dict[tuple[str, str], str | None] = {}   # bus key -> its name if asked for (patterns do not change)
         self._sent_vib: dict[str, dict | None] = {}
         self._sent_view: dict[str, dict | None] = {}
         self._states_at = time.monotonic()
@@ -329,16 +337,18 @@ class Subscription(Stream):
 
     def changed_samples(self) -> dict[str, list]:
         out = {}
-        for key, s in list(self.hub.bus.latest.items()):
-            if self._sent.get(key) == s.t:
+        sent, match = self._sent, self._match
+        for key, s in self.hub.bus.latest.items():   # (no await in this loop: the dict stays as it is)
+            if sent.get(key) == s.t:
                 continue
-            wanted = self._match.get(key)
-            if wanted is None:
-                wanted = self._match[key] = any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq)
-                                                for ps, pq in self.patterns)
-            if wanted:
-                out[f"{key[0]}/{key[1]}"] = [s.t, s.value, s.unit]
-                self._sent[key] = s.t
+            name = match.get(key, False)
+            if name is False:
+                wanted = any(fnmatch.fnmatchcase(key[0], ps) and fnmatch.fnmatchcase(key[1], pq)
+                             for ps, pq in self.patterns)
+                name = match[key] = f"{key[0]}/{key[1]}" if wanted else None
+            if name is not None:
+                out[name] = [s.t, s.value, s.unit]
+                sent[key] = s.t
         return out
 
     def frame(self) -> dict | None:
@@ -370,46 +380,34 @@ class Subscription(Stream):
         f["t"] = time.time()
         return f
 
-    async def _produce(self) -> str:
-        while True:
-            await asyncio.sleep(self.period)
-            f = self.frame()
-            if f is None:
-                continue
-            try:
-                self.queue.put_nowait(f)
-            except asyncio.QueueFull:
-                return f"the client fell {QUEUE_FRAMES} frames behind (not reading)"
-
-    async def _write(self, writer: asyncio.StreamWriter, write_timeout: float) -> str:
-        while True:
-            f = await self.queue.get()
-            writer.write(self.hub.encode_frame(f))
-            try:
-                async with asyncio.timeout(write_timeout):
-                    await writer.drain()
-            except TimeoutError:
-                return f"the client read nothing for {write_timeout:g} s"
-
     async def run(self, writer: asyncio.StreamWriter, write_timeout: float) -> str | None:
-        tasks = [asyncio.create_task(self._produce()), asyncio.create_task(self._write(writer, write_timeout))]
+        """One task: a frame each period, written at once. While the client does not take
+        it the task waits for the write to drain (at most ``write_timeout``) and makes no
+        frame: what changed meanwhile comes in the next one, coalesced, so nothing piles up
+        but what the transport holds (its high-water mark, and the frame that crossed it)."""
+        transport = writer.transport
         try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
-            t = done.pop()
-            if t.exception() is not None:
-                if isinstance(t.exception(), ConnectionError):
-                    return None
-                log.error("subscription_failed", error=repr(t.exception()))
-                return f"internal error: {t.exception()!r}"
-            reason = t.result()
-            self.hub.drop(self, reason)
-            return reason
+            while True:
+                await asyncio.sleep(self.period)
+                f = self.frame()
+                if f is None:
+                    continue
+                writer.write(self.hub.encode_frame(f))
+                if transport.get_write_buffer_size() > transport.get_write_buffer_limits()[1]:
+                    try:
+                        async with asyncio.timeout(write_timeout):
+                            await writer.drain()
+                    except TimeoutError:
+                        reason = f"the client read nothing for {write_timeout:g} s"
+                        self.hub.drop(self, reason)
+                        return reason
+        except ConnectionError:
+            return None
+        except Exception as e:   # a bug ends this subscription, said; not the daemon
+            log.error("subscription_failed", error=repr(e))
+            return f"internal error: {e!r}"
         finally:
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
             self.close()
 
     def close(self) -> None:
         self.hub.remove(self)
-        self.queue = asyncio.Queue()   # the frames it did not take are freed now

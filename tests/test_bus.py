@@ -52,3 +52,27 @@ def test_a_cancelled_get_takes_nothing_and_unsubscribed_gets_nothing():
         bus.publish(s(2))
         assert not sub._items
     asyncio.run(main())
+
+
+def test_a_tap_sees_its_sources_messages_in_publish_and_a_raising_tap_is_removed_and_counted():
+    bus = Bus()
+    seen, other = [], []
+    calls = {"bad": 0}
+
+    def bad(msg):
+        calls["bad"] += 1
+        raise ValueError("broken listener")
+    bus.tap("lathe", bad)
+    bus.tap("lathe", seen.append)
+    bus.tap("mill", other.append)
+    sub = bus.subscribe("lathe")
+    for i in range(3):
+        bus.publish(s(i))                       # the raising tap neither stops publishing nor the next tap
+    assert [m.value for m in seen] == [0.0, 1.0, 2.0] and not other
+    assert calls["bad"] == 1 and len(sub._items) == 3
+    st = bus.stats()
+    assert st["tap_failures"] == 1 and st["taps"] == 2
+    assert "lathe" in st["last_tap_failure"] and "ValueError: broken listener" in st["last_tap_failure"]
+    bus.untap("lathe", seen.append)
+    bus.publish(s(3))
+    assert len(seen) == 3 and bus.stats()["taps"] == 1

@@ -62,3 +62,11 @@ def test_packed_arrays_are_float32_exact_and_smaller_than_json():
     assert np.array_equal(back[np.isfinite(a)], a[np.isfinite(a)].astype(np.float32)) and np.isnan(back[7])
     assert len(json.dumps(p)) < len(json.dumps(rounded(a)))
     assert unpacked([1.0, 2.0]).tolist() == [1.0, 2.0] and unpacked(packed(np.empty(0))).size == 0
+
+
+def test_ring_holds_no_more_blocks_than_its_window_needs():
+    r = Ring(size=1000)
+    for i in range(500):
+        r.add(np.full(300, float(i)), RATE, float(i))
+    assert len(r._blocks) == 4 and r.filled == 1000       # 1000 samples span 4 blocks of 300
+    assert (r.window() == np.repeat([496.0, 497, 498, 499], [100, 300, 300, 300])).all()
