@@ -106,7 +106,18 @@ def until(cond, timeout: float, what: str) -> None:
         time.sleep(0.1)
 
 
-def run(cycles: int, seconds: float, warmup: float, browsers: int = BROWSERS) -> dict:
+def chromium_at(nice: int, tmp: Path) -> str:
+    """Chromium started at ``nice`` (its renderers inherit it): a kiosk page on the
+    machine PC run as the units run lathed-web (Nice=10), not at the daemon's own level."""
+    if not nice:
+        return CHROMIUM
+    wrapper = tmp / "chromium-nice"
+    wrapper.write_text(f'#!/bin/sh\nexec nice -n {int(nice)} {CHROMIUM} "$@"\n')
+    wrapper.chmod(0o755)
+    return str(wrapper)
+
+
+def run(cycles: int, seconds: float, warmup: float, browsers: int = BROWSERS, browser_nice: int = 0) -> dict:
     from playwright.sync_api import sync_playwright
     with tempfile.TemporaryDirectory(prefix="bench-web-") as d:
         tmp = Path(d)
@@ -120,7 +131,7 @@ def run(cycles: int, seconds: float, warmup: float, browsers: int = BROWSERS) ->
         try:
             time.sleep(warmup)
             with sync_playwright() as p:
-                browser = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+                browser = p.chromium.launch(executable_path=chromium_at(browser_nice, tmp), args=["--no-sandbox"])
                 pages = []
                 for _ in range(browsers):
                     page = browser.new_page(viewport={"width": 1600, "height": 1300})
@@ -165,9 +176,12 @@ def main() -> int:
     ap.add_argument("--warmup", type=float, default=20.0)
     ap.add_argument("--browsers", type=int, default=BROWSERS,
                     help="pages open (0: the daemon's cost of lathed-web's subscription alone)")
+    ap.add_argument("--browser-nice", type=int, default=0, choices=range(0, 20), metavar="0..19",
+                    help="start Chromium at this nice (default 0: the browsers compete with the daemon "
+                         "as any process would; 10: as lathed-web's unit runs)")
     ap.add_argument("--json", help="also write the results here")
     a = ap.parse_args()
-    r = run(a.cycles, a.seconds, a.warmup, a.browsers)
+    r = run(a.cycles, a.seconds, a.warmup, a.browsers, a.browser_nice)
     if a.json:
         Path(a.json).write_text(json.dumps(r, indent=2))
     n, w = r["none"], r["web"]
@@ -183,7 +197,7 @@ def main() -> int:
     acts = sum(x["actions"] for x in n), sum(x["actions"] for x in w)
     print(f"Operator view cost: default config on the simulator, {DEPTH_MM:g} mm cuts; {a.cycles} interleaved "
           f"cycles of {a.seconds:.0f} s without and {a.seconds:.0f} s with lathed-web and {a.browsers} Chromium "
-          f"pages on it; medians over the cycles\n")
+          f"pages on it{f' (Chromium at nice {a.browser_nice})' if a.browser_nice else ''}; medians over the cycles\n")
     print(f"| measure | no clients | lathed-web + {a.browsers} browsers | ratio with / without, median (range) "
           "(bar: <= 1.10) |")
     print("|---|---|---|---|")
