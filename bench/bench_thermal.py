@@ -146,7 +146,18 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
         ok = bool(per) and abs(per[0] - 1200.0) < 24.0 and fall >= 0.6
         return ok, f"{100 * fall:.0f} % fall"
     if case == "speed steps":
-        return "speed_step" in names and fall >= 0.6, f"{100 * fall:.0f} % fall"
+        detail = f"{100 * fall:.0f} % fall"
+        # a speed the training run never ran: where between its neighbours the switch sits is not in the data
+        unseen = ~np.isin(np.round(te.rpm), np.unique(np.round(tr.rpm)))
+        if unseen.any():
+            seen = ~unseen
+            e0 = te.displacement_um - a.baseline.model.predict(te)
+            e1 = te.displacement_um - a.final.model.predict(te)
+            f_seen = 1 - np.sqrt(np.mean(e1[seen] ** 2) / np.mean(e0[seen] ** 2))
+            detail += (f"; {100 * unseen.mean():.0f} % of the test rows at a speed the training run never ran "
+                       f"({', '.join(f'{v:g}' for v in np.unique(np.round(te.rpm[unseen])))} r/min), "
+                       f"{100 * f_seen:.0f} % fall on the others")
+        return "speed_step" in names and fall >= 0.6, detail
     if case == "none":
         return not names, "nothing added" if not names else "added"
     true4 = list(TRUE_SENSORS)

@@ -225,6 +225,22 @@ def test_growth_steps_at_speed_changes_become_a_speed_step_term():
     assert len(a.residual.steps_h) >= 3
 
 
+def test_a_switch_at_one_speed_is_one_step_not_a_column_per_level():
+    # Seed 6 (rows 6 s apart, as in the bench): with a column per speed level,
+    # levels run in one held-out block only made the step term lose the
+    # held-out test, and speed x temperature stood in (4 % fall on the test run).
+    from lathed.sim.thermal import add_speed_steps
+
+    def run(seed):
+        return data(add_speed_steps(generate_run(random_schedule(seed, SHIFT_S), (), seed=seed, noise_um=0.5)))
+    tr, te = run(6), run(106)
+    a = analyze(tr, te)
+    steps = [e.term for e in a.effects if e.term.effect == "speed_step"]
+    assert steps and steps[0].above_rpm is not None and 2500 <= steps[0].above_rpm <= 3000, a.notes
+    assert 1 - a.final.test_rmse_um / a.baseline.test_rmse_um >= 0.6, (a.baseline.test_rmse_um,
+                                                                        a.final.test_rmse_um)
+
+
 def test_a_trend_is_not_a_period():
     from lathed.analysis.thermal import residual_structure
     t = np.arange(3000) * 6.0
