@@ -18,7 +18,9 @@ without any effect end 0.555-0.567 µm, just over the bar.
 
 (3) The second pass (issue 13), over N pairs each: a lag and a speed effect
 together (both must be named, test error down >= 90 %; probe noise 0.2 µm so
-that a 90 % fall is reachable), a 20-min cycle outside the library (a periodic
+that a 90 % fall is reachable; "bar reachable" also asks that the truth's own
+terms, fitted on the training run, reach it on the test run: the sensors'
+1/16 °C steps times the weights add ~0.12 µm to every prediction), a 20-min cycle outside the library (a periodic
 term at 20 min, >= 60 %), growth steps at speed changes (a speed-step term,
 >= 60 %), clean data (nothing added), and 16 sensors of which 4 carry the
 growth, one true sensor oscillating on its own (the selected model within
@@ -35,10 +37,10 @@ import time
 
 import numpy as np
 
-from lathed.analysis.thermal import (LinearTerm, ThermalData, _design, _stage, analyze, baseline_terms,
-                                     fit_coefficients)
-from lathed.sim.thermal import (EFFECTS, TRUE_SENSORS, add_periodic, add_speed_steps, generate_run,
-                                many_sensors, random_schedule)
+from lathed.analysis.thermal import (LagTerm, LinearTerm, SpeedTerm, ThermalData, _design, _stage, analyze,
+                                     baseline_terms, fit_coefficients)
+from lathed.sim.thermal import (EFFECTS, TRUE_SENSORS, ThermalParams, add_periodic, add_speed_steps,
+                                generate_run, many_sensors, random_schedule)
 
 NOISE_UM = 0.5
 
@@ -140,13 +142,24 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
     b, f = a.baseline.test_rmse_um, a.final.test_rmse_um
     fall = 1 - f / b
     if case == "lag+speed":
-        return "lag" in names and "speed" in names and fall >= 0.9, f"{100 * fall:.0f} % fall"
+        return "lag" in names and "speed" in names and fall >= 0.9, f"{100 * fall:.1f} % fall"
     if case == "periodic 20 min":
         per = [e.term.params["period_s"] for e in a.effects if e.term.effect == "periodic"]
         ok = bool(per) and abs(per[0] - 1200.0) < 24.0 and fall >= 0.6
         return ok, f"{100 * fall:.0f} % fall"
     if case == "speed steps":
-        return "speed_step" in names and fall >= 0.6, f"{100 * fall:.0f} % fall"
+        detail = f"{100 * fall:.0f} % fall"
+        # a speed the training run never ran: where between its neighbours the switch sits is not in the data
+        unseen = ~np.isin(np.round(te.rpm), np.unique(np.round(tr.rpm)))
+        if unseen.any():
+            seen = ~unseen
+            e0 = te.displacement_um - a.baseline.model.predict(te)
+            e1 = te.displacement_um - a.final.model.predict(te)
+            f_seen = 1 - np.sqrt(np.mean(e1[seen] ** 2) / np.mean(e0[seen] ** 2))
+            detail += (f"; {100 * unseen.mean():.0f} % of the test rows at a speed the training run never ran "
+                       f"({', '.join(f'{v:g}' for v in np.unique(np.round(te.rpm[unseen])))} r/min), "
+                       f"{100 * f_seen:.0f} % fall on the others")
+        return "speed_step" in names and fall >= 0.6, detail
     if case == "none":
         return not names, "nothing added" if not names else "added"
     true4 = list(TRUE_SENSORS)
@@ -157,6 +170,18 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
     return ratio <= 1.10, (f"{ratio:.2f}x least squares on the 4 true ({ls4.test_rmse_um:.2f} µm); offset / sd "
                            f"{e.mean():+.2f} / {e.std():.2f} µm, on the 4 true {e4.mean():+.2f} / {e4.std():.2f}; "
                            f"growth by the first row {tr.displacement_um[0]:.1f} / {te.displacement_um[0]:.1f} µm")
+
+
+def _true_lag_speed(tr: ThermalData, te: ThermalData) -> float:
+    """Test error of the simulated truth's own terms fitted on ``tr``: the four
+    sensors, the shaft (a lag of the front bearing's rise and of the room's, at
+    the shaft's time constant) and speed squared."""
+    p = ThermalParams()
+    tau = p.c_shaft / (p.g_fb_shaft + p.g_shaft_room)
+    terms = [LinearTerm(k) for k in TRUE_SENSORS] + [LagTerm("t_front_bearing_c", tau), LagTerm("t_room_c", tau),
+                                                     SpeedTerm("n2")]
+    st, _ = _stage(tr, terms, te, 5, 10, [])
+    return st.test_rmse_um
 
 
 def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] | None = None) -> None:
@@ -189,7 +214,16 @@ def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] 
             not_worse_cv += a.final.heldout_rmse_um <= a.least_squares.heldout_rmse_um * 1.0001
             # even a perfect model leaves the probe's noise: a fall of `need` needs
             # the baseline's test error at noise / (1 - need) or more
-            reachable += need is None or a.baseline.test_rmse_um >= noise / (1 - need)
+            can = need is None or a.baseline.test_rmse_um >= noise / (1 - need)
+            if case == "lag+speed":
+                # ... and the sensors' 1/16 °C steps and noise, times the weights, and
+                # weights fitted on one shift: the true model's own terms, fitted on
+                # the training run, are what any fit can reach on the test run
+                t_true = _true_lag_speed(tr, te)
+                can = can and 1 - t_true / a.baseline.test_rmse_um >= need
+                detail += f"; the true terms fitted on this training run: {t_true:.2f} µm " \
+                          f"({100 * (1 - t_true / a.baseline.test_rmse_um):.1f} % fall)"
+            reachable += can
             before.append(a.baseline.test_rmse_um)
             after.append(a.final.test_rmse_um)
             lsq.append(a.least_squares.test_rmse_um)

@@ -89,12 +89,12 @@ def _model_with_every_term():
     terms = [LinearTerm("t_a_c"), LinearTerm("t_b_c"), LagTerm("t_a_c", 900.0), RateTerm("t_b_c", 120.0),
              SpeedTerm("n+n2"), NonlinearTerm("t_a_c"), HysteresisTerm("t_b_c", 0.5), DriftTerm(0.3),
              # the second pass's: a filtered sensor, lag of speed, speed x T, lag of T - ambient,
-             # a second time constant on one sensor, a periodic term, speed steps
+             # a second time constant on one sensor, a periodic term, speed steps (per level, one switch)
              LinearTerm("t_b_c", 90.0), SpeedLagTerm(600.0, "n2"), SpeedTempTerm("t_a_c"),
              AmbientLagTerm("t_a_c", "t_b_c", 1200.0), LagTerm("t_a_c", 4000.0), PeriodicTerm(1200.0),
-             SpeedStepTerm((0.0, 1500.0, 3000.0, 4000.0))]
+             SpeedStepTerm((0.0, 1500.0, 3000.0, 4000.0)), SpeedStepTerm(above_rpm=2250.0)]
     coef = np.array([1.0, -2.0, 3.0, 4.0, 0.5, -0.25, 0.1, 2.0, 1.5,
-                     0.7, -0.3, 0.2, 1.1, -0.6, 0.8, -0.4, 0.9, -1.2, 2.5])
+                     0.7, -0.3, 0.2, 1.1, -0.6, 0.8, -0.4, 0.9, -1.2, 2.5, 1.7])
     return ThermalModel(terms, coef, 7.0)
 
 

@@ -487,22 +487,33 @@ class SpeedStepTerm:
     """One offset per speed level seen in the fit (the lowest is the zero):
     growth that steps when the speed changes and holds while it holds, by an
     amount no smooth function of speed gives (a preload switch, a resonance).
-    A speed not among ``levels`` takes the nearest level's offset."""
-    levels: tuple[float, ...]
+    A speed not among ``levels`` takes the nearest level's offset. With
+    ``above_rpm``, one offset above that speed instead (one switch): a column
+    per level leaves levels run in only one held-out block, which the
+    held-out test cannot judge, so it refused the steps a switch makes."""
+    levels: tuple[float, ...] = ()
     effect: str = "speed_step"
     sensor: None = None
+    above_rpm: float | None = None
 
     @property
     def params(self) -> dict[str, Any]:
+        if self.above_rpm is not None:
+            return {"above_rpm": float(self.above_rpm)}
         return {"levels_rpm": [float(v) for v in self.levels]}
 
     @property
     def names(self) -> tuple[str, ...]:
+        if self.above_rpm is not None:
+            return (f"step(speed>={self.above_rpm:g} r/min)",)
         return tuple(f"step(speed={v:g} r/min)" for v in self.levels[1:])
 
     def at(self, rpm) -> np.ndarray:
+        rpm = np.asarray(rpm, dtype=float)
+        if self.above_rpm is not None:
+            return (rpm >= self.above_rpm).astype(float)[:, None]
         lv = np.asarray(self.levels, dtype=float)
-        k = np.argmin(np.abs(np.asarray(rpm, dtype=float)[:, None] - lv[None, :]), axis=1)
+        k = np.argmin(np.abs(rpm[:, None] - lv[None, :]), axis=1)
         return (k[:, None] == np.arange(1, len(lv))[None, :]).astype(float)
 
     def features(self, data: ThermalData) -> np.ndarray:
@@ -698,9 +709,13 @@ class SpeedStepCandidate:
         levels = np.unique(np.round(data.rpm, 0))
         if not 2 <= len(levels) <= self.max_levels:
             return []
-        return [SpeedStepTerm(tuple(float(v) for v in levels))]
+        # a column per level, and one switch between each two neighbouring levels
+        return [SpeedStepTerm(tuple(float(v) for v in levels)),
+                *(SpeedStepTerm(above_rpm=float(v)) for v in (levels[:-1] + levels[1:]) / 2)]
 
     def make_term(self, sensor, params):
+        if "above_rpm" in params:
+            return SpeedStepTerm(above_rpm=float(params["above_rpm"]))
         return SpeedStepTerm(tuple(float(v) for v in params["levels_rpm"]))
 
 
