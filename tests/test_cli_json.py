@@ -212,3 +212,16 @@ def test_export_reads_every_row_from_the_database_while_the_daemon_is_down(db, t
     lines = csv_out.read_text().splitlines()
     assert lines[0].startswith("id,uuid,machine_id,") and [ln.split(",")[1] for ln in lines[1:]] == ["part-1",
                                                                                                      "part-2"]
+
+
+def test_sim_started_by_a_daemon_that_stops_at_once_exits_without_a_traceback(tmp_path):
+    """A daemon stopped while its simulator starts (systemctl stop right after start) closes
+    the pipe the simulator's READY line goes to: the simulator printed a BrokenPipeError
+    traceback into the daemon's log."""
+    proc = subprocess.Popen([sys.executable, "-m", "lathed.sim", "--modbus-port", str(free_port()),
+                             "--vibration-port", str(free_port()), "--serial-link", str(tmp_path / "tty"),
+                             "--control", str(tmp_path / "sim.sock")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc.stdout.close()             # the reader is gone before READY
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and "Traceback" not in err, err

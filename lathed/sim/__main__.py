@@ -108,7 +108,14 @@ class Simulator:
             ready["grinder"] = self.args.grinder_link
         if self.robot_peer:
             ready["robot"] = self.args.robot_link
-        print("READY " + json.dumps(ready), flush=True)
+        try:
+            print("READY " + json.dumps(ready), flush=True)
+        except BrokenPipeError:
+            # the daemon that started us stopped before reading this line: nothing to
+            # simulate for, and no traceback in its log (stdout to /dev/null, so the
+            # interpreter's own flush at exit does not fail again)
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            self._stop.set()
         parent = os.getppid()
         tasks = [asyncio.create_task(self._vibration_loop()), asyncio.create_task(self._serial_loop())]
         if self.mill or self.grinder or self.robot:
