@@ -277,14 +277,14 @@ class ChatterAnalyzer(Analyzer):
         det = self.detector
         if det is None or not hasattr(det, "eye_views"):
             return None
-        key = (id(det), self.windows)
+        key, own = (id(det), self.windows), getattr(det, "OWN_EYE", False)
         now = time.monotonic()
         if self._eye_view is not None and (self._eye_view[0] == key or (
-                not hasattr(det, "eye_points") and now - self._eye_view[2] < EYE_MIN_S)):
+                not own and now - self._eye_view[2] < EYE_MIN_S)):
             return self._eye_view[1]     # no new window since (or too soon): the same points
         (p1, p2), base = det.eye_views()
         out = {"eye_phi1": packed(thin(p1, EYE_POINTS)), "eye_phi2": packed(thin(p2, EYE_POINTS)),
-               "eye_from": "chaos_sync" if hasattr(det, "eye_points") else "revolution difference"}
+               "eye_from": det.name if own else "revolution difference"}
         if base is not None:
             out.update(base_phi1=packed(thin(base[0], EYE_POINTS)), base_phi2=packed(thin(base[1], EYE_POINTS)))
         self._eye_view = (key, out, now)

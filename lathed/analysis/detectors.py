@@ -102,6 +102,7 @@ class RevolutionDetector:
 
     name = "base"
     PARAMS: dict[str, tuple[float, float, float, str]] = {}
+    OWN_EYE = False   # True: the detector computes the chaos eye itself (chaos_sync)
 
     def __init__(self, rate_hz: float, **params: Any) -> None:
         if not rate_hz > 0:
@@ -162,7 +163,8 @@ class RevolutionDetector:
         self._off = 0
         self._cusum = 0.0
         self._windows = 0           # windows since reset
-        self._eye_base: np.ndarray | None = None   # the cut's first counted window's d, for the eye
+        self._eye_base_d: np.ndarray | None = None   # the cut's first counted window's d, for the eye
+        self._eye_base: tuple[np.ndarray, np.ndarray, float] | None = None   # its eye, made once
         self._reset_extra()
 
     def _reset_extra(self) -> None:
@@ -302,9 +304,8 @@ class RevolutionDetector:
             self._collect.append(raw)
             return Window(t_s, float("nan"), self.threshold, False, None, True)
         self._windows += 1
-        if self._eye_base is None and not settling:
-            lead = int(EYE_MEMORY)
-            self._eye_base = self._d[max(start - lead, 0):end].copy()
+        if self._eye_base_d is None and not settling and not self.OWN_EYE:
+            self._eye_base_d = self._d[max(start - EYE_MEMORY, 0):end].copy()
         if self.baseline is None:
             if not settling:
                 self._learn.append(raw)
@@ -407,10 +408,11 @@ class RevolutionDetector:
         computed when asked; the alarm is this detector's own.  chaos_sync draws
         its own eye from its windows."""
         from lathed.analysis.chaos_sync import eye_of_difference
-        empty = (np.empty(0), np.empty(0))
-        if self._eye_base is None or self._rpm is None or self._n == 0:
-            return empty, None
-        b1, b2, sigma = eye_of_difference(self._eye_base, memory=EYE_MEMORY)
+        if self._eye_base_d is None or self._rpm is None or self._n == 0:
+            return (np.empty(0), np.empty(0)), None
+        if self._eye_base is None:     # the baseline's scale and points, once per cut
+            self._eye_base = eye_of_difference(self._eye_base_d, memory=EYE_MEMORY)
+        b1, b2, sigma = self._eye_base
         n = min(self._n, int(EYE_REVS * self.rate * 60.0 / self._rpm) + EYE_MEMORY, EYE_MAX_SAMPLES)
         p1, p2, _ = eye_of_difference(self._d[self._n - n:self._n], sigma, memory=EYE_MEMORY)
         return (p1, p2), (b1, b2)

@@ -538,9 +538,17 @@ class ThermalPredictor:
         self.model = model
         self.reference_c = None if reference_c is None else {sensor_column(k): float(v)
                                                              for k, v in reference_c.items()}
+        if self.reference_c is not None:
+            self._room_reference()
         self._streams = [t.stream() for t in model.terms]
         self._t0 = t0_s
         self.prediction_um: float | None = None
+
+    def _room_reference(self) -> None:
+        """A model fitted with ``rises_from`` takes every rise from the room's reference, as the fit did."""
+        room = self.model.rises_from
+        if room is not None and room in self.reference_c:
+            self.reference_c = {s: self.reference_c[room] for s in self.model.sensors}
 
     def update(self, temps_c: Mapping[str, float], rpm: float | None = None,
                t_s: float | None = None) -> float:
@@ -550,9 +558,7 @@ class ThermalPredictor:
             raise ValueError(f"no reading from {', '.join(missing)}: the thermal model needs it")
         if self.reference_c is None:
             self.reference_c = {s: temps[s] for s in self.model.sensors}
-        room = self.model.rises_from
-        if room is not None and room in self.reference_c:
-            self.reference_c = {s: self.reference_c[room] for s in self.model.sensors}
+            self._room_reference()
         t = 0.0 if t_s is None else float(t_s)
         if self._t0 is None:
             self._t0 = t

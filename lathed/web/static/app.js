@@ -226,7 +226,7 @@ function drawEye(view) {
   dots(view.eye_phi1, view.eye_phi2, "#58a6ff");
   if (view.base_phi1) dots(view.base_phi1, view.base_phi2, "rgba(240,136,62,.8)");   // on top: it is the small one
   g.fillStyle = "#8b95a3"; g.fillText("orange: start of cut (baseline)", 6, h - 20); g.fillText("blue: now", 6, h - 6);
-  if (view.eye_from && view.eye_from !== "chaos_sync") g.fillText("drawn from the revolution difference (the alarm is the detector's)", 6, h - 34);
+  if (view.eye_from === "revolution difference") g.fillText("drawn from the revolution difference (the alarm is the detector's)", 6, h - 34);
 }
 
 function drawThermal() {
