@@ -274,16 +274,29 @@ def test_no_alarm_on_a_shoulder(seed):
     assert not any(w.alarm for w in _shoulder(DEFAULT_DETECTOR, seed))
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (session note 24): learned from steady cutting, "
-                   "without the entry's ring to lift it, sync_cusum's baseline leaves its allowance "
-                   "(1.2) inside the stable cut's own wander (regen.Wander, +-20 %)")
+def _mid_cut(rpm: float, seed: int, **params) -> list:
+    """A stable 10 s cut seen from its second second on, as a recording sees a cut (the
+    baseline learned from steady cutting, without the entry's ring to lift it)."""
+    rec = simulate_cut([Segment(11.0, rpm, 1.0)], seed=seed)
+    assert rec.label == "stable"
+    skip = int(rec.rate_hz)
+    return _run(make_detector(DEFAULT_DETECTOR, RATE, **params), rec.signal[skip:], rpm)
+
+
+@pytest.mark.parametrize("rpm, seed", [(770.0, 9020), (1000.0, 9031), (1000.0, 9032)])
+def test_the_baseline_follows_a_stable_cuts_wander(rpm, seed):
+    # learned in a few revolutions, the baseline knows nothing of the cut's wander, and the
+    # CUSUM sums it into an alarm; raised to the calm windows' upper range, it does not
+    assert any(w.alarm for w in _mid_cut(rpm, seed, follow_quantile=0))
+    assert not any(w.alarm for w in _mid_cut(rpm, seed))
+
+
+@pytest.mark.xfail(strict=True, reason="known defect (session note 24): a wander in the first "
+                   "revolutions, before the baseline has seen 8 calm windows, or above their 0.9 "
+                   "quantile, still alarms (5 of 24 in bench_chatter.py's mid-cut table)")
 @pytest.mark.parametrize("seed", [9040, 9041])
 def test_no_alarm_on_a_long_stable_cut_learned_mid_cut(seed):
-    # as a recording sees a cut (bench_chatter.py's mid-cut table, 2000 r/min row)
-    rec = simulate_cut([Segment(11.0, 2000, 1.0)], seed=seed)
-    skip = int(rec.rate_hz)
-    assert rec.label == "stable"
-    assert not any(w.alarm for w in _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal[skip:], 2000.0))
+    assert not any(w.alarm for w in _mid_cut(2000.0, seed))
 
 
 @pytest.mark.parametrize("name", sorted(DETECTORS))
