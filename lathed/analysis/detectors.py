@@ -170,6 +170,7 @@ class RevolutionDetector:
         self._learned_baseline = self.baseline
         q = self.params["follow_quantile"]
         self._calm = SlidingQuantile(q, FOLLOW_WINDOWS) if q and self.params["cusum_ratio"] else None
+        self._chattered = False     # the cut has alarmed: its calm windows since are chatter's tail
         self.alarm = False
         self._on = 0
         self._off = 0
@@ -354,7 +355,10 @@ class RevolutionDetector:
             self._off = self._off + 1 if index < clear else 0
             if self._off >= p["off_windows"]:
                 self.alarm, self._on, self._cusum = False, 0, 0.0
-        if self._calm is not None and not self.alarm and not settling and 0 < index < p["cusum_ratio"]:
+        if self.alarm:
+            self._chattered = True
+        elif (self._calm is not None and not self._chattered and not settling
+              and 0 < index < p["cusum_ratio"]):
             self._follow(raw)
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
@@ -364,7 +368,9 @@ class RevolutionDetector:
         follow_quantile of the last FOLLOW_WINDOWS such windows.  Learned in the first
         revolutions, the baseline knows nothing of the cut's wander (+-20 % over tens of
         revolutions), and the allowance would sit inside it; where the entry's ring set it
-        high, it stays (only ever raised), so chatter from entry is not learned away."""
+        high, it stays (only ever raised), so chatter from entry is not learned away.  Not
+        after the cut's first alarm: the windows below the allowance then are the chatter's
+        decaying tail at the new speed, and following them would hide its return."""
         self._calm.push(raw)
         if len(self._calm) >= 2 * self.params["learn_windows"]:
             self.baseline = max(self._learned_baseline, self._calm.value())
