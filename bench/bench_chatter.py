@@ -410,8 +410,8 @@ def main(argv=None) -> int:
           "lathed.analysis.surface; the paper's mild chatter: 3.6 -> 4.5 um, x1.25):\n")
     print("\n".join(surface_table(recs, 2.0 if args.quick else 3.0)))
     print("\nStable depth changes within one cut, not in the corpus above (cuts that alarmed, of 5 "
-          "seeds; a draw that chattered is left out): a false alarm on every shoulder that "
-          "deepens the cut by more than about 1.5 x is a known defect:\n")
+          "seeds; a draw that chattered is left out): most shoulders that deepen the cut "
+          "by 1.5 x or more raise a false alarm, a known defect:\n")
     print("\n".join(shoulder_table(names, 2.0 if args.quick else 3.0, args.seed_base, sim_kw)))
     print("\nLong stable cuts with the baseline learned mid-cut (10 s seen from its second second "
           "on, as a recording or a baseline re-learned after a speed change sees a cut: no entry "
