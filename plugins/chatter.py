@@ -37,6 +37,11 @@ release, which rings the structure at several times the cut's level.
 ``jump_ratio`` keeps such a level step (and the ring after it) from counting
 towards the alarm; regenerative chatter grows over several revolutions.
 
+Every spindle-load reading taken while cutting is passed to the detector as
+the cutting load (above the spindle's no-chip load); with ``load_scaled = 1``
+the index is read at the load the baseline was learned at, so a deeper stable
+pass in the same cut (a shoulder) is not chatter.
+
 A configuration reload takes threshold, on_windows, off_windows, off_ratio,
 settle_revs and jump_ratio at once, in the running cut; the window shapes
 and the band apply from the next cut.
@@ -162,6 +167,10 @@ class ChatterAnalyzer(Analyzer):
             self.load_pct = s.value
             if "load" in self.seen:
                 self._source("load", self.load_cut.update(s.value, self.rpm), s.t)
+            set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
+            if self.cutting and set_load is not None:
+                # the static cutting force, for load_scaled (the detector ignores it otherwise)
+                set_load(self.load_cut.cutting_load(s.value, self.rpm))
 
     def _source(self, name: str, on: bool, t: float) -> None:
         """One source's verdict; the cut is on while any source sees the chip."""

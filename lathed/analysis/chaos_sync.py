@@ -66,6 +66,7 @@ def eye_radius(phi1: np.ndarray, phi2: np.ndarray) -> float:
 class ChaosSyncDetector(RevolutionDetector):
     name = "chaos_sync"
     OWN_EYE = True
+    RAW_POWER = 2.0   # the eye's radius is bilinear in the error
     PARAMS = {
         "a": (10.0, 0.01, 1000.0, "Lorenz a (the paper prints 28; chaotic set is 10)"),
         "b": (28.0, 0.01, 1000.0, "Lorenz b (the paper prints 10; chaotic set is 28)"),

@@ -167,6 +167,12 @@ class LoadCutDetector:
     def _band(rpm: float | None) -> int:
         return -1 if not rpm or rpm <= 0 else int(round(math.log(rpm) / math.log(1.1)))
 
+    def cutting_load(self, load_pct: float, rpm: float | None) -> float | None:
+        """The load the chip takes (above the no-chip load at this speed band), or None
+        under the margin: a measure of the static cutting force (chatter barely moves it)."""
+        extra = load_pct - self._idle.get(self._band(rpm), self.idle_default)
+        return extra if extra >= self.margin else None
+
     def update(self, load_pct: float, rpm: float | None) -> bool:
         band = self._band(rpm)
         idle = self._idle.get(band, self.idle_default)

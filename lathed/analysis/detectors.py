@@ -59,6 +59,8 @@ from lathed.analysis.cut_state import SlidingQuantile
 
 MIN_WINDOW_SAMPLES = 16
 _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
+LOAD_STEP = 1.3       # load_scaled: a level rising this much within a revolution waits for the load
+LOAD_WAIT_S = 0.3     # ... for at most this long (a 100 ms poll and its jitter; a load that stops coming)
 FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
 EYE_REVS = 4      # revolutions of a display eye (eye_views)
 EYE_MEMORY = 64   # its GL filter's memory, samples
@@ -98,6 +100,10 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
                         "quantile of the cut's last 256 windows below the allowance, once there are "
                         "2 x learn_windows of them: the sustained-rise test learns how far the stable "
                         "cut wanders (never below the learned baseline)"),
+    "load_scaled": (0.0, 0.0, 1.0, "1: the index is divided by the cutting load's ratio to its value "
+                    "when the baseline was set (set_load: the spindle load above its no-chip load), so "
+                    "a deeper stable pass in the same cut (a shoulder) is not chatter; an upward level "
+                    "step then waits for the next load reading (0: off)"),
     "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
                    "1/jump_ratio x, the level one revolution earlier does not count towards "
                    "the alarm (the tool entering or leaving the work, not chatter)"),
@@ -112,6 +118,7 @@ class RevolutionDetector:
     name = "base"
     PARAMS: dict[str, tuple[float, float, float, str]] = {}
     OWN_EYE = False   # True: the detector computes the chaos eye itself (chaos_sync)
+    RAW_POWER = 1.0   # the raw measure grows as the vibration's amplitude to this power (load_scaled)
 
     def __init__(self, rate_hz: float, **params: Any) -> None:
         if not rate_hz > 0:
@@ -171,6 +178,11 @@ class RevolutionDetector:
         q = self.params["follow_quantile"]
         self._calm = SlidingQuantile(q, FOLLOW_WINDOWS) if q and self.params["cusum_ratio"] else None
         self._chattered = False     # the cut has alarmed: its calm windows since are chatter's tail
+        self._load: float | None = None       # the cutting load now (set_load), and the sample it came at
+        self._load_at = -1
+        self._load_ref: float | None = None   # the load the baseline stands for
+        self._load_wait: int | None = None    # a level step waits for a load reading after this sample
+        self._load_waited = 0                 # no new wait before this sample (growth, not a new depth)
         self.alarm = False
         self._on = 0
         self._off = 0
@@ -192,6 +204,13 @@ class RevolutionDetector:
         if not raw > 0:
             raise ValueError(f"baseline must be > 0, got {raw}")
         self._fixed_baseline = self.baseline = float(raw)
+
+    def set_load(self, load: float | None) -> None:
+        """The cutting load now (the spindle load above its no-chip load, in any unit: only
+        ratios count); used with ``load_scaled``.  None or <= 0 (no chip by the load, a
+        light cut under the register's margin) is ignored: the last reading stands."""
+        if load is not None and load > 0:
+            self._load, self._load_at = float(load), self._total
 
     def learn_reference(self, signal: np.ndarray, rpm: float, block: int = 4096) -> float:
         """Learn the baseline from a recording of a stable cut at ``rpm``; it is
@@ -317,6 +336,12 @@ class RevolutionDetector:
             self._collect.append(raw)
             return Window(t_s, float("nan"), self.threshold, False, None, True)
         self._windows += 1
+        if self.params["load_scaled"] and self._load is not None:
+            # the residual of a stable cut scales with the cutting force: the index is read
+            # at the load the baseline was learned at (the first reading of the cut)
+            if self._load_ref is None:
+                self._load_ref = self._load
+            raw /= (self._load / self._load_ref) ** self.RAW_POWER
         if self._eye_base_d is None and not settling and not self.OWN_EYE:
             self._eye_base_d = self._d[max(start - EYE_MEMORY, 0):end].copy()
         if self.baseline is None:
@@ -339,7 +364,7 @@ class RevolutionDetector:
             # the work, not regenerative chatter (which grows over several revolutions):
             # it, and the ring after it, do not count
             stepped = self._level_step(start, end, rpm)
-            settling = settling or stepped
+            settling = settling or stepped or self._waiting_for_load(start, end, rpm)
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
@@ -391,6 +416,30 @@ class RevolutionDetector:
         if stepped or ringing:
             self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
         return stepped or ringing
+
+    def _waiting_for_load(self, start: int, end: int, rpm: float) -> bool:
+        """With load_scaled, a level that rises by LOAD_STEP within a revolution may be a
+        deeper pass whose load the polled register has not shown yet: the window does not
+        count until a load reading newer than the step has come (at most LOAD_WAIT_S).
+        A rise soon after such a wait is growth, not a new depth, and does not wait."""
+        if not self.params["load_scaled"] or self._load_ref is None:
+            return False
+        if self._load_wait is not None:
+            if self._load_at > self._load_wait or self._next_end > self._load_wait + LOAD_WAIT_S * self.rate:
+                self._load_wait = None
+                self._load_waited = self._next_end + int((self.params["window_revs"] + 1.0)
+                                                         * self.rate * 60.0 / rpm)
+                return False
+            return True
+        if self._next_end < self._load_waited:
+            return False
+        di = int(self.rate * 60.0 / rpm)
+        now = self._level(start, end, self._next_end)
+        before = self._level(start - di, end - di, self._next_end - di)
+        if now > LOAD_STEP * before:
+            self._load_wait = self._next_end - (end - start)   # the step is within this window
+            return True
+        return False
 
     def _level(self, start: int, end: int, at: int) -> float:
         """Median |x| over buffer samples start..end, which end at sample ``at`` since reset.
@@ -526,6 +575,7 @@ class SpectralRatioDetector(RevolutionDetector):
     between the harmonics."""
 
     name = "spectral_ratio"
+    RAW_POWER = 0.0   # a peak over the band's own median: the level cancels
     PARAMS = {
         "window_revs": (4.0, 2.0, 16.0, "window length in revolutions (>= 2 to resolve harmonics)"),
         "hop_revs": (1.0, 0.1, 4.0, "hop between windows in revolutions"),
