@@ -25,7 +25,7 @@ many cuts became visible and how many alarms the detector raised; a cut
 meets the target when it never became visible or was written within 3 rev
 + 20 ms of becoming visible.
 
-    .venv/bin/python bench/bench_loop.py [--cuts 12] [--timeout 210] [--avoid]
+    .venv/bin/python bench/bench_loop.py [--cuts 12] [--timeout 210] [--avoid] [--load-scaled]
 """
 from __future__ import annotations
 
@@ -101,6 +101,8 @@ def main() -> int:
     ap.add_argument("--cuts", type=int, default=12, help="chattering cuts to time")
     ap.add_argument("--timeout", type=float, default=210.0, help="give up after this many seconds")
     ap.add_argument("--avoid", action="store_true", help="suppression acts on the lobes' prediction at cut entry")
+    ap.add_argument("--load-scaled", action="store_true",
+                    help="the detector reads its index at the polled spindle load (load_scaled = 1)")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -108,6 +110,9 @@ def main() -> int:
         text = cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1)
         if a.avoid:
             text = text.replace("[analyzer.suppress]", "[analyzer.suppress]\navoid = true", 1)
+        if a.load_scaled:
+            text = text.replace("[analyzer.suppress]", "[analyzer.chatter.params]\nload_scaled = 1\n\n"
+                                "[analyzer.suppress]", 1)
         cfg.write_text(text)
         t_start = time.monotonic()
         proc = start(cfg, tmp)
