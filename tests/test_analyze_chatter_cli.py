@@ -199,3 +199,40 @@ def test_float_wav_in_physical_units_is_not_clipped_and_nan_is_not_a_clip(tmp_pa
     x = np.clip(np.sin(np.arange(RATE) * 0.05) * 30.0, -20.0, 20.0).astype(np.float32)
     wavfile.write(p, RATE, x)
     assert read_signal(p).clipped > 0
+
+
+def test_params_lists_a_detectors_options_without_a_file(capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", "--params"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0
+    assert out.startswith("sync_cusum options") and "follow_quantile  0.9" in out and "threshold" in out
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", "--params", "chaos_sync"])
+    assert e.value.code == 0 and "follow_quantile  0 " in capsys.readouterr().out
+
+
+def test_param_reaches_the_detector(files, capsys):
+    d, _, _ = files
+    argv = [str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"]
+    code, out, _ = _cli(argv, capsys)
+    assert code == 0 and json.loads(out)["verdict"] == "chatter"
+    # a threshold no window reaches and no CUSUM: the same recording shows no onset
+    code, out, _ = _cli(argv + ["--param", "threshold=1000", "--param", "cusum_ratio=0"], capsys)
+    assert code == 0 and json.loads(out)["verdict"] == "unknown"
+
+
+@pytest.mark.parametrize("param, msg", [
+    ("threshold=0.5", "threshold = 0.5 is outside [1.05, 1000] (--param)"),
+    ("nope=1", "unknown parameter(s) nope"),
+])
+def test_a_bad_param_is_one_usage_line(files, capsys, param, msg):
+    d, _, _ = files
+    code, out, err = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000", "--param", param], capsys)
+    assert code == 2 and msg in err and err.count("\n") == 1 and out == ""
+
+
+def test_param_not_key_value_is_refused_by_the_parser(capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["chatter", "x.wav", "--rpm", "2000", "--param", "threshold"])
+    assert e.value.code == 2 and "is not KEY=NUMBER" in capsys.readouterr().err

@@ -1,7 +1,8 @@
 """``lathectl analyze chatter``: run a chatter detector over a recording.
 
     lathectl analyze chatter FILE --rpm N [--rate HZ] [--channel K] [--var NAME]
-        [--reference REF] [--detector NAME] [--json] [--plot OUT.png]
+        [--reference REF] [--detector NAME] [--param KEY=VALUE ...] [--json] [--plot OUT.png]
+    lathectl analyze chatter --params [NAME]     (a detector's options, then exit)
 
 FILE is WAV, CSV (time_s and value columns, or one column with --rate) or a
 MATLAB .mat (--var names the variable: samples, or time and value columns).
@@ -42,6 +43,32 @@ def _channel(text: str) -> int:
     return v
 
 
+def _param(text: str) -> tuple[str, float]:
+    key, eq, value = text.partition("=")
+    try:
+        if not eq or not key.strip():
+            raise ValueError
+        return key.strip(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not KEY=NUMBER (e.g. threshold=2)") from None
+
+
+class _ListParams(argparse.Action):
+    """--params [NAME]: print a built-in detector's options (default, range, meaning) and exit,
+    as --help does: FILE and --rpm are not needed."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from lathed.analysis.detectors import describe_params
+        try:
+            spec = describe_params(values)
+        except ValueError as e:
+            parser.exit(2, f"lathectl: {e} (--params)\n")
+        print(f"{values} options ([analyzer.chatter.params] in lathed.toml, or --param KEY=VALUE):")
+        for key, (default, lo, hi, meaning) in sorted(spec.items()):
+            print(f"  {key:<16} {default:<8g} [{lo:g}, {hi:g}]  {meaning}")
+        parser.exit(0)
+
+
 def register_analyze(sub) -> None:
     p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV, CSV or .mat)",
                        description="Run a chatter detector over a recorded accelerometer signal. "
@@ -59,6 +86,10 @@ def register_analyze(sub) -> None:
                    "to learn the baseline from")
     p.add_argument("--detector", default=DEFAULT_DETECTOR, metavar="NAME",
                    help=f"one of {', '.join(BUILTIN_DETECTORS)} or a plugin's (default {DEFAULT_DETECTOR})")
+    p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector option, as in [analyzer.chatter.params] (repeat for more)")
+    p.add_argument("--params", action=_ListParams, nargs="?", const=DEFAULT_DETECTOR, metavar="NAME",
+                   help=f"list a built-in detector's options and exit (default {DEFAULT_DETECTOR})")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="OUT.png", help="write chaos eye and index over time")
     p.set_defaults(func=run)
@@ -96,10 +127,14 @@ def run(args, extra_detectors: dict | None = None) -> int:
         _err(f"sample rate {sig.rate_hz:g} Hz is outside the {VIB_RATE_MIN:g}..{VIB_RATE_MAX:g} Hz of an "
              f"accelerometer recording ({args.file})")
         return EX_DATAERR
+    params = dict(getattr(args, "param", None) or [])
     try:
-        det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors)
+        det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors, **params)
     except ValueError as e:
         known = args.detector in DETECTORS or args.detector in (extra_detectors or {})
+        if known and params and "sample rate" not in str(e):
+            _err(f"{e} (--param)")
+            return 2
         _err(f"{e} ({args.file if known else '--detector'})")
         return EX_DATAERR if known else 2
     try:
