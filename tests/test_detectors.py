@@ -299,6 +299,22 @@ def test_no_alarm_on_a_long_stable_cut_learned_mid_cut(seed):
     assert not any(w.alarm for w in _mid_cut(2000.0, seed))
 
 
+@pytest.mark.parametrize("rpm", [1000.0, 2000.0])
+@pytest.mark.parametrize("what", ["mains 120 Hz at 3 x the cut's level", "gain rising 30 %"])
+def test_a_mains_line_or_a_slow_gain_change_is_not_chatter(rpm, what):
+    # the real data's README: a mains line (120 Hz and harmonics there, 100 Hz elsewhere)
+    # or a slow change of gain must not raise an alarm
+    rec = simulate_cut([Segment(4.0, rpm, 1.0)], seed=301)
+    x, t = rec.signal, np.arange(len(rec.signal)) / RATE
+    if what.startswith("mains"):
+        a = 3 * np.median(np.abs(x[len(x) // 2:])) / 0.67
+        x = x + a * (np.sin(2 * np.pi * 120 * t) + 0.5 * np.sin(2 * np.pi * 240 * t + 1)
+                     + 0.3 * np.sin(2 * np.pi * 360 * t + 2))
+    else:
+        x = x * (1 + 0.3 * t / t[-1])
+    assert not any(w.alarm for w in _run(make_detector(DEFAULT_DETECTOR, RATE), x, rpm))
+
+
 @pytest.mark.parametrize("name", sorted(DETECTORS))
 def test_every_detector_draws_the_chaos_eye(name):
     """The operator's chaos eye (the paper's graph) whatever the detector: the
