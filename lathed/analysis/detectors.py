@@ -407,9 +407,7 @@ class RevolutionDetector:
         whose level is below the revolution before's: the structure's ring after the tool's
         release decays for several revolutions and keeps that span open; chatter after a
         step (a deeper pass) grows, and counts at once."""
-        di = int(self.rate * 60.0 / rpm)
-        now = self._level(start, end, self._next_end)
-        before = self._level(start - di, end - di, self._next_end - di)
+        di, now, before = self._level_pair(start, end, rpm)
         r = self.params["jump_ratio"]
         stepped = not before / r <= now <= before * r
         ringing = self._next_end < self._step_until and now < before
@@ -433,13 +431,17 @@ class RevolutionDetector:
             return True
         if self._next_end < self._load_waited:
             return False
-        di = int(self.rate * 60.0 / rpm)
-        now = self._level(start, end, self._next_end)
-        before = self._level(start - di, end - di, self._next_end - di)
+        _, now, before = self._level_pair(start, end, rpm)
         if now > LOAD_STEP * before:
             self._load_wait = self._next_end - (end - start)   # the step is within this window
             return True
         return False
+
+    def _level_pair(self, start: int, end: int, rpm: float) -> tuple[int, float, float]:
+        """(samples a revolution, this window's level, the level a revolution earlier)."""
+        di = int(self.rate * 60.0 / rpm)
+        return (di, self._level(start, end, self._next_end),
+                self._level(start - di, end - di, self._next_end - di))
 
     def _level(self, start: int, end: int, at: int) -> float:
         """Median |x| over buffer samples start..end, which end at sample ``at`` since reset.

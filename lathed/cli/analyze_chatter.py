@@ -132,7 +132,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
         det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors, **params)
     except ValueError as e:
         known = args.detector in DETECTORS or args.detector in (extra_detectors or {})
-        if known and params and "sample rate" not in str(e):
+        if known and any(k in str(e) for k in params):     # the message names the bad option
             _err(f"{e} (--param)")
             return 2
         _err(f"{e} ({args.file if known else '--detector'})")
