@@ -217,8 +217,9 @@ def test_param_reaches_the_detector(files, capsys):
     argv = [str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"]
     code, out, _ = _cli(argv, capsys)
     assert code == 0 and json.loads(out)["verdict"] == "chatter"
-    # a threshold no window reaches and no CUSUM: the same recording shows no onset
-    code, out, _ = _cli(argv + ["--param", "threshold=1000", "--param", "cusum_ratio=0"], capsys)
+    # a threshold no window reaches, no CUSUM and no growth test: the same recording shows no onset
+    code, out, _ = _cli(argv + ["--param", "threshold=1000", "--param", "cusum_ratio=0",
+                                "--param", "growth_ratio=0"], capsys)
     assert code == 0 and json.loads(out)["verdict"] == "unknown"
 
 

@@ -62,6 +62,7 @@ _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
 LOAD_STEP = 1.3       # load_scaled: a level rising this much within a revolution waits for the load
 LOAD_WAIT_S = 0.3     # ... for at most this long (a 100 ms poll and its jitter; a load that stops coming)
 FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
+GROWTH_TAIL = 0.3      # growth: a window's second half at least this x its first half's level (a release's: the air's noise, 0.2 x)
 EYE_REVS = 4      # revolutions of a display eye (eye_views)
 EYE_MEMORY = 64   # its GL filter's memory, samples
 EYE_MAX_SAMPLES = 16384   # at most this many samples filtered per view (a slow spindle's 4 revolutions)
@@ -104,6 +105,12 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
                     "when the baseline was set (set_load: the spindle load above its no-chip load), so "
                     "a deeper stable pass in the same cut (a shoulder) is not chatter; an upward level "
                     "step then waits for the next load reading (0: off)"),
+    "growth_ratio": (0.0, 0.0, 100.0, "0: off; else on_windows windows in a row whose raw measure is this many "
+                     "times the lowest of the growth_revs revolutions before raise the alarm (raised_by "
+                     "'growth'): chatter growing, whatever the baseline; a window whose second half is "
+                     "quieter than its first (the ring of the tool's release) does not count"),
+    "growth_revs": (4.0, 1.0, 64.0, "revolutions the growth test looks back over (counted once a cut, a "
+                    "speed change or a level step has that many behind it)"),
     "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
                    "1/jump_ratio x, the level one revolution earlier does not count towards "
                    "the alarm (the tool entering or leaving the work, not chatter)"),
@@ -188,6 +195,10 @@ class RevolutionDetector:
         self._off = 0
         self._cusum = 0.0
         self._windows = 0           # windows since reset
+        self._recent: deque[tuple[int, float]] = deque()   # (window end, raw) for the growth test
+        self._grown = 0             # windows in a row that passed the growth test
+        self._low = 0.0             # the lowest raw measure the growth test looked back at
+        self._hold_raw = 0.0        # an alarm raised by growth holds while raw is above this
         self._eye_base_d: np.ndarray | None = None   # the cut's first counted window's d, for the eye
         self._eye_base: tuple[np.ndarray, np.ndarray, float] | None = None   # its eye, made once
         self._reset_extra()
@@ -366,18 +377,28 @@ class RevolutionDetector:
             stepped = self._level_step(start, end, rpm)
             settling = settling or stepped or self._waiting_for_load(start, end, rpm)
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
+            grew = self._growth(start, end, rpm, raw, settling)
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
+            elif grew:
+                raised_by = "growth"
             elif self._cusum_says(index, settling):
                 raised_by = "sustained rise"
             if raised_by:
                 self.alarm, self._off = True, 0
+                # an alarm raised by growth holds while the measure stays well above where the
+                # growth started (the index may still be below the clear level when the
+                # baseline was learned over the entry's ring)
+                self._hold_raw = p["off_ratio"] * p["growth_ratio"] * self._low if raised_by == "growth" else 0.0
+                self._recent.clear()     # growth is looked for afresh once the alarm clears
+                self._grown = 0
         else:
             # with a CUSUM, chatter held just above its allowance is still chatter
             clear = p["off_ratio"] * self.threshold
             if p["cusum_ratio"]:
                 clear = min(clear, p["cusum_ratio"])
-            self._off = self._off + 1 if index < clear else 0
+            self._off = self._off + 1 if (index < clear and raw <= self._hold_raw if self._hold_raw
+                                          else index < clear) else 0
             if self._off >= p["off_windows"]:
                 self.alarm, self._on, self._cusum = False, 0, 0.0
         if self.alarm:
@@ -387,6 +408,41 @@ class RevolutionDetector:
             self._follow(raw)
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
+
+    def _growth(self, start: int, end: int, rpm: float, raw: float, settling: bool) -> bool:
+        """growth_ratio: on_windows windows in a row whose raw measure is growth_ratio x the
+        lowest of the growth_revs revolutions before.  Regenerative chatter grows by that
+        within a few revolutions whatever the baseline (one learned over the entry's ring sits
+        2-5 x above the steady level); a stable cut's wander moves it by less than 2 x.  The
+        look-back restarts at every settling window (entry, speed change, level step), and
+        counts once it spans growth_revs revolutions.  The tool's release rings the structure
+        and lifts the revolution difference as chatter does, but the ring decays within the
+        window: a window whose second half is quieter than GROWTH_TAIL x its first does not count."""
+        r = self.params["growth_ratio"]
+        if not r:
+            return False
+        if settling:
+            self._recent.clear()
+            self._grown = 0
+            return False
+        spr = self.rate * 60.0 / rpm
+        span = int(self.params["growth_revs"] * spr)
+        while self._recent and self._recent[0][0] < self._next_end - span:
+            self._recent.popleft()
+        full = bool(self._recent) and self._recent[0][0] <= self._next_end - span + int(self.params["hop_revs"] * spr)
+        low = min(v for _, v in self._recent) if full else None
+        self._low = low or 0.0
+        self._recent.append((self._next_end, raw))
+        grows = low is not None and raw > r * low and self._tail(start, end) >= GROWTH_TAIL
+        self._grown = self._grown + 1 if grows else 0
+        return self._grown >= self.params["on_windows"]
+
+    def _tail(self, start: int, end: int) -> float:
+        """The window's second half's level over its first half's (median |x|, a few hundred
+        samples): a ring decaying within the window reads well below 1, growth above."""
+        mid, step = (start + end) // 2, max(1, (end - start) // 256)
+        first = float(np.median(np.abs(self._x[start:mid:step])))
+        return float(np.median(np.abs(self._x[mid:end:step]))) / first if first > 0 else math.inf
 
     def _follow(self, raw: float) -> None:
         """A window below the CUSUM's allowance is the stable cut's own: the baseline rises to
@@ -569,6 +625,9 @@ class SyncCusumDetector(SyncResidualDetector):
         "follow_quantile": (0.9, 0.0, 0.99, "0: off; else the baseline rises to this quantile of the cut's "
                             "last 256 windows below the allowance (once there are 2 x learn_windows): "
                             "the CUSUM learns how far the stable cut wanders"),
+        "growth_ratio": (2.5, 0.0, 100.0, "0: off; else on_windows windows in a row whose raw measure is this "
+                         "many times the lowest of the growth_revs revolutions before raise the alarm: "
+                         "chatter growing, whatever the baseline"),
     }
 
 
