@@ -62,7 +62,7 @@ _HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
 LOAD_STEP = 1.3       # load_scaled: a level rising this much within a revolution waits for the load
 LOAD_WAIT_S = 0.3     # ... for at most this long (a 100 ms poll and its jitter; a load that stops coming)
 FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
-GROWTH_TAIL = 0.3      # growth: a window's second half at least this x its first half's level (a release's: the air's noise, 0.2 x)
+GROWTH_TAIL = 0.3      # growth: a window's second half at least this x its first's level (a release's: 0.2 x)
 EYE_REVS = 4      # revolutions of a display eye (eye_views)
 EYE_MEMORY = 64   # its GL filter's memory, samples
 EYE_MAX_SAMPLES = 16384   # at most this many samples filtered per view (a slow spindle's 4 revolutions)
@@ -389,7 +389,8 @@ class RevolutionDetector:
                 # an alarm raised by growth holds while the measure stays well above where the
                 # growth started (the index may still be below the clear level when the
                 # baseline was learned over the entry's ring)
-                self._hold_raw = p["off_ratio"] * p["growth_ratio"] * self._low if raised_by == "growth" else 0.0
+                grew_from = self._low if raised_by == "growth" else 0.0
+                self._hold_raw = p["off_ratio"] * p["growth_ratio"] * grew_from
                 self._recent.clear()     # growth is looked for afresh once the alarm clears
                 self._grown = 0
         else:
@@ -418,7 +419,8 @@ class RevolutionDetector:
         counts once it spans growth_revs revolutions.  The tool's release rings the structure
         and lifts the revolution difference as chatter does, but the ring decays within the
         window: a window whose second half is quieter than GROWTH_TAIL x its first does not count."""
-        r = self.params["growth_ratio"]
+        p = self.params
+        r = p["growth_ratio"]
         if not r:
             return False
         if settling:
@@ -426,16 +428,17 @@ class RevolutionDetector:
             self._grown = 0
             return False
         spr = self.rate * 60.0 / rpm
-        span = int(self.params["growth_revs"] * spr)
+        span = int(p["growth_revs"] * spr)
         while self._recent and self._recent[0][0] < self._next_end - span:
             self._recent.popleft()
-        full = bool(self._recent) and self._recent[0][0] <= self._next_end - span + int(self.params["hop_revs"] * spr)
+        # counted once the look-back spans growth_revs (to within a hop) of counted windows
+        full = bool(self._recent) and self._recent[0][0] <= self._next_end - span + p["hop_revs"] * spr
         low = min(v for _, v in self._recent) if full else None
         self._low = low or 0.0
         self._recent.append((self._next_end, raw))
         grows = low is not None and raw > r * low and self._tail(start, end) >= GROWTH_TAIL
         self._grown = self._grown + 1 if grows else 0
-        return self._grown >= self.params["on_windows"]
+        return self._grown >= p["on_windows"]
 
     def _tail(self, start: int, end: int) -> float:
         """The window's second half's level over its first half's (median |x|, a few hundred
