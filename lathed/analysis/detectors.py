@@ -638,6 +638,8 @@ class SyncCusumDetector(SyncResidualDetector):
         "growth_ratio": (2.5, 0.0, 100.0, "0: off; else on_windows windows in a row whose raw measure is this "
                          "many times the lowest of the growth_revs revolutions before raise the alarm: "
                          "chatter growing, whatever the baseline"),
+        "min_hop_s": (0.005, 0.001, 1.0, "hop never shorter than this (above 3000 r/min the hop stays half a "
+                      "revolution down to 6000: growth is seen as soon as at lower speeds)"),
     }
 
 
