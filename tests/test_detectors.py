@@ -257,6 +257,21 @@ def test_the_tool_leaving_is_not_growth_for_the_ring_decays_within_the_window(mo
     assert [w.raised_by for w in wins if w.raised_by] == alarms
 
 
+@pytest.mark.parametrize("rule, revs", [(True, 2.0), (False, 2.5)])
+def test_chatter_rising_through_a_deeper_pass_counts_once_clear_of_the_step(monkeypatch, rule, revs):
+    # bench_chatter's abrupt onset (1 -> 3 mm at 1500 r/min, seed 1016): the windows whose
+    # revolution difference spans the step do not count, but the index and the level keep
+    # rising through them; counting that alarms half a revolution sooner (the tool's release
+    # rings down instead: test_no_alarm_when_the_tool_leaves_the_work)
+    from lathed.analysis.detectors import RevolutionDetector
+    if not rule:
+        monkeypatch.setattr(RevolutionDetector, "_rising_from_step", lambda self, *a: False)
+    rec = simulate_cut([Segment(1.5, 1500, 1.0), Segment(1.5, 1500, 3.0)], seed=1016)
+    assert rec.label == "chatter"
+    first = next(w.t_s for w in _run(make_detector("sync_cusum", RATE), rec.signal, 1500.0) if w.alarm)
+    assert (first - rec.visible_at_s) * 1500 / 60.0 == pytest.approx(revs, abs=0.01)
+
+
 def _stable_cut_to_its_end(name: str, rpm: float, **params) -> list:
     """A stable 1 mm pass on the simulated lathe whose speed is raised 20 % early in the cut,
     as suppression's avoid does: the detector is reset then (the daemon's rule at entry),

@@ -197,6 +197,7 @@ class RevolutionDetector:
         self._windows = 0           # windows since reset
         self._recent: deque[tuple[int, float]] = deque()   # (window end, raw) for the growth test
         self._grown = 0             # windows in a row that passed the growth test
+        self._rising: list[tuple[float, float]] = []   # (index, level) of windows rising from a level step
         self._low = 0.0             # the lowest raw measure the growth test looked back at
         self._hold_raw = 0.0        # an alarm raised by growth holds while raw is above this
         self._eye_base_d: np.ndarray | None = None   # the cut's first counted window's d, for the eye
@@ -375,8 +376,11 @@ class RevolutionDetector:
             # the work, not regenerative chatter (which grows over several revolutions):
             # it, and the ring after it, do not count
             stepped = self._level_step(start, end, rpm)
-            settling = settling or stepped or self._waiting_for_load(start, end, rpm)
+            other = settling or self._waiting_for_load(start, end, rpm)
+            settling = other or stepped
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
+            if self._rising_from_step(start, end, index, stepped, other) and not stepped:
+                self._on = max(self._on, p["on_windows"])
             grew = self._growth(start, end, rpm, raw, settling)
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
@@ -409,6 +413,23 @@ class RevolutionDetector:
             self._follow(raw)
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
+
+    def _rising_from_step(self, start: int, end: int, index: float, stepped: bool, other: bool) -> bool:
+        """A level step's windows do not count (their revolution difference spans the step),
+        but chatter that starts with a deeper pass keeps rising through them: when a window
+        at a step is over the threshold and each window after it is higher in index and in
+        level (median |x|), the on_windows-th after it counts for the threshold rule, once
+        its revolution difference is clear of the step.  A shoulder holds its level; the tool's
+        entry or release rings down within two windows."""
+        level = self._level(start, end, self._next_end)    # kept from _level_step: no new median
+        chain = self._rising
+        if other or index <= self.threshold:
+            chain.clear()
+        elif chain and (index <= chain[-1][0] or level <= chain[-1][1]):
+            chain[:] = [(index, level)] if stepped else []
+        elif chain or stepped:
+            chain.append((index, level))
+        return len(chain) > self.params["on_windows"]
 
     def _growth(self, start: int, end: int, rpm: float, raw: float, settling: bool) -> bool:
         """growth_ratio: on_windows windows in a row whose raw measure is growth_ratio x the
