@@ -643,7 +643,8 @@ class SyncCusumDetector(SyncResidualDetector):
     threshold saw it; the growth test (growth_ratio 2.5 over 4 revolutions)
     sees it at 2.5 x whatever the baseline: corpus median 3.6 -> 2.2
     revolutions, no new false alarm or miss (seed bases 100-4000; 5000 and
-    6000, drawn after: 3.4 -> 3.0 and 2.5 -> 2.5)."""
+    6000, drawn after: 3.4 -> 3.0 and 2.5 -> 2.5); with the rising step
+    (RevolutionDetector._rising_from_step) 2.0."""
 
     name = "sync_cusum"
     PARAMS = {
@@ -735,7 +736,7 @@ DETECTORS: dict[str, Factory] = {
 # Chosen from bench/bench_chatter.py on stable cutting that wanders as a real
 # cut does (regen.Wander): sync_cusum misses none of the 20 chatter cases
 # (chaos_sync misses 3 mild ones) and alarms on no stable or trap case
-# (chaos_sync on one trap), median delay 2.2 revolutions (chaos_sync 5.9);
+# (chaos_sync on one trap), median delay 2.0 revolutions (chaos_sync 5.9);
 # on the real recordings it finds both chatter files and no stable one; in
 # the closed loop (bench/bench_loop.py) it alarms 5.9-7.3 revolutions after
 # chatter is visible, chaos_sync 13.6-25.4.  Its false alarms in the closed
