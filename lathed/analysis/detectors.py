@@ -402,8 +402,8 @@ class RevolutionDetector:
             clear = p["off_ratio"] * self.threshold
             if p["cusum_ratio"]:
                 clear = min(clear, p["cusum_ratio"])
-            self._off = self._off + 1 if (index < clear and raw <= self._hold_raw if self._hold_raw
-                                          else index < clear) else 0
+            held = self._hold_raw and raw > self._hold_raw    # a growth alarm's measure still up
+            self._off = self._off + 1 if (index < clear and not held) else 0
             if self._off >= p["off_windows"]:
                 self.alarm, self._on, self._cusum = False, 0, 0.0
         if self.alarm:
