@@ -237,3 +237,22 @@ def test_param_not_key_value_is_refused_by_the_parser(capsys):
     with pytest.raises(SystemExit) as e:
         _parser().parse_args(["chatter", "x.wav", "--rpm", "2000", "--param", "threshold"])
     assert e.value.code == 2 and "is not KEY=NUMBER" in capsys.readouterr().err
+
+
+def test_alarm_spans_say_when_each_alarm_was_raised_and_cleared(files, capsys):
+    """An alarm that clears and comes back is two spans, not one from the first alarm on
+    (the plot shaded everything after the first alarm)."""
+    from lathed.analysis.detectors import Window
+    wins = [Window(t, 1.0, 2.0, a) for t, a in [(1, False), (2, True), (3, True), (4, False), (5, True)]]
+    assert analyze_chatter._alarm_spans(wins) == [(2, 4), (5, None)]
+    assert analyze_chatter._alarm_spans(wins[:1]) == []
+    d, _, _ = files
+    code, out, _ = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"], capsys)
+    obj = json.loads(out)
+    on = [w["t_s"] for w in obj["windows"] if w["alarm"]]
+    assert obj["alarm_spans_s"] and obj["alarm_spans_s"][0][0] == obj["first_alarm_s"] == on[0]
+    inside = [w["t_s"] for w in obj["windows"]
+              if any(a <= w["t_s"] < (b if b is not None else float("inf")) for a, b in obj["alarm_spans_s"])]
+    assert inside == on
+    code, out, _ = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000"], capsys)
+    assert "alarm on " in out

@@ -163,6 +163,8 @@ def run(args, extra_detectors: dict | None = None) -> int:
     out = {
         "verdict": "chatter" if alarms else ("stable" if ref is not None else "unknown"),
         "first_alarm_s": round(alarms[0].t_s, 6) if alarms else None,
+        # each alarm: raised, cleared (window ends; null: still on at the recording's end)
+        "alarm_spans_s": [[round(a, 6), None if b is None else round(b, 6)] for a, b in _alarm_spans(wins)],
         "chatter_frequency_hz": round(float(np.median(freqs)), 2) if freqs else None,
         "detector": det.name,
         "windows": [{"t_s": round(w.t_s, 6), "index": None if not math.isfinite(w.index) else
@@ -199,9 +201,25 @@ def run(args, extra_detectors: dict | None = None) -> int:
             f = out["chatter_frequency_hz"]
             print(f"first alarm at {out['first_alarm_s']:.4f} s"
                   + (f", chatter frequency {f:.1f} Hz" if f else ""))
+            print("alarm on " + ", ".join(f"{a:.3f}-{b:.3f} s" if b is not None else f"{a:.3f} s to the end"
+                                          for a, b in out["alarm_spans_s"]))
         for n in sig.notes + caveat:
             print(f"note: {n}")
     return 0
+
+
+def _alarm_spans(wins) -> list[tuple[float, float | None]]:
+    """(raised, cleared) window times of each alarm; cleared None: still on at the end."""
+    spans, t0 = [], None
+    for w in wins:
+        if w.alarm and t0 is None:
+            t0 = w.t_s
+        elif not w.alarm and t0 is not None:
+            spans.append((t0, w.t_s))
+            t0 = None
+    if t0 is not None:
+        spans.append((t0, None))
+    return spans
 
 
 def _plot(args, sig, det, wins) -> int:
@@ -231,9 +249,8 @@ def _plot(args, sig, det, wins) -> int:
     a2.semilogy(t, [w.index if math.isfinite(w.index) and w.index > 0 else np.nan for w in wins],
                 label="index")
     a2.axhline(det.threshold, color="k", ls="--", lw=0.8, label="threshold")
-    on = [w.t_s for w in wins if w.alarm]
-    if on:
-        a2.axvspan(on[0], t[-1], color="tab:red", alpha=0.1, label="alarm")
+    for k, (t0, t1) in enumerate(_alarm_spans(wins)):   # each alarm from raised to cleared
+        a2.axvspan(t0, t[-1] if t1 is None else t1, color="tab:red", alpha=0.1, label="alarm" if k == 0 else None)
     a2.set_xlabel("time (s)")
     a2.set_ylabel(f"{det.name} index")
     a2.legend(fontsize=8)
