@@ -55,6 +55,9 @@ class PartTracker:
     A part starts when the program runs and ends when the part counter
     steps (finished) or the program stops first (aborted, kept only if it
     cut). The part in progress when tracking began is marked ``partial``.
+    The cut is seen by the depth register where the machine has one, else by
+    the chatter analyzer's cut state (``cutting``: spindle load or vibration):
+    the part's speed and feed are those when its first cut began.
     """
 
     def __init__(self, machine: str, chatter: str | None = None, thermal: str | None = None,
@@ -72,11 +75,13 @@ class PartTracker:
         self.feed: float | None = None
         self.part: Part | None = None
         self._partial = True
+        self._cut = False             # the part in progress has cut
 
     def _open(self, t: float) -> None:
         self.part = Part(self.machine, start_t=t, program=self.program, tool=self.tool,
                          material=self.material, chatter_threshold=self.threshold,
                          compensation_um=self.compensation)
+        self._cut = False
         if self._partial:
             self.part.outcome = "partial"
             self._partial = False
@@ -90,7 +95,7 @@ class PartTracker:
         p.end_t = t
         if outcome is not None:
             p.outcome = outcome
-        if p.outcome == "aborted" and not p.depth_mm:
+        if p.outcome == "aborted" and not self._cut:
             return None          # the program stopped before anything was cut
         if (p.max_chatter_index is not None and p.chatter_threshold is not None
                 and p.max_chatter_index >= p.chatter_threshold and not p.chatter_alarms):
@@ -150,14 +155,20 @@ class PartTracker:
         elif q == "feed_mm_rev":
             self.feed = v
         elif q == "depth_of_cut_mm" and self.part is not None and v > 0:
-            p = self.part
-            if p.rpm is None:
-                p.rpm, p.feed_mm_rev = self.rpm, self.feed
-            p.depth_mm = max(p.depth_mm or 0.0, v)
+            self._cutting(self.part)
+            self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
+
+    def _cutting(self, p: Part) -> None:
+        if not self._cut:
+            self._cut = True
+            p.rpm, p.feed_mm_rev = self.rpm, self.feed
 
     def _chatter(self, q: str, v: float) -> None:
         p = self.part
-        if q == "chatter_index":
+        if q == "cutting":
+            if p is not None and v >= 0.5:
+                self._cutting(p)
+        elif q == "chatter_index":
             if p is not None:
                 p.max_chatter_index = v if p.max_chatter_index is None else max(p.max_chatter_index, v)
         elif q == "chatter_threshold":

@@ -85,6 +85,35 @@ def test_program_stop_aborts_a_part_that_cut_and_drops_one_that_did_not():
     assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("aborted", None), ("finished", 5)]
 
 
+def vibration_cut(f: Feed, rpm: float, index: float, alarm: float = 0.0) -> None:
+    """A cut on a machine with no depth register: the chatter analyzer's cut state says it."""
+    f.lathe(spindle_rpm=rpm, feed_mm_rev=0.3)
+    f.done += f.tr.feed_sample("chatter", "cutting", 1.0, f.t)
+    for _ in range(3):
+        f.lathe(spindle_rpm=rpm)
+        f.chatter(index, alarm)
+    f.chatter(0.1, 0.0)
+    f.done += f.tr.feed_sample("chatter", "cutting", 0.0, f.t)
+
+
+def test_without_a_depth_register_the_cut_state_gives_speed_and_feed_and_an_aborted_part_that_cut_is_kept():
+    f = Feed(tracker())
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    vibration_cut(f, 2500, 2.7, alarm=1.0)
+    f.lathe(spindle_rpm=2292)                # suppression moved it: the part keeps its entry speed
+    f.lathe(program_state=0)                 # operator stopped mid-part: it cut, so it is kept
+    f.lathe(program_state=1)
+    f.lathe(program_state=0)                 # stopped again before cutting: nothing to keep
+    f.lathe(program_state=1)
+    vibration_cut(f, 1500, 0.2)
+    f.lathe(part_count=5)
+    assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("aborted", None), ("finished", 5)]
+    _, aborted, done = f.done
+    assert (aborted.rpm, aborted.feed_mm_rev, aborted.depth_mm) == (2500, 0.3, None) and aborted.abnormal
+    assert (done.rpm, done.feed_mm_rev) == (1500, 0.3) and not done.abnormal
+
+
 def test_machine_alarm_during_a_part_flags_it():
     f = Feed(tracker())
     f.lathe(part_count=0, program_state=1)
