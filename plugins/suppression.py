@@ -70,9 +70,10 @@ the set-up, depth and feed, each speed it turned at with its verdict, the
 first alarm (time, revolution, chatter frequency), the actions and whether
 the cut ended cured.  ``lathectl cuts`` lists them, ``--csv`` exports them
 for ``lathectl analyze stability``.  The depth is the machine's
-depth_of_cut_mm register, else the programmed ``depth_mm``, else unknown
-(null): such cuts are recorded but the refit cannot use them (it says how
-many it left out).
+depth_of_cut_mm register, else the deepest the spindle load showed during
+the cut (``depth_from = "spindle load"``), else the programmed ``depth_mm``,
+else unknown (null): such cuts are recorded but the refit cannot use them
+(it says how many it left out).
 
 ``lathectl stability refit`` refits the modal model on this machine's
 recorded cuts (lathed.analysis.stability_refit) and adopts the result only
@@ -285,6 +286,11 @@ class SuppressionAnalyzer(Analyzer):
             self.depth_mm = b_m * 1000
             self.depth_from = "spindle load"
             self._depth_changed()
+        if (b_m * 1000 > 0.05 and self.in_cut and self.cut.active
+                and (self.cut.depth_from != "spindle load" or b_m * 1000 > self.cut.depth_mm)):
+            # the cut's record (the refit's evidence): the deepest the load showed, over a
+            # programmed depth_mm; the tool's entry and exit pass through lower loads
+            self.cut.depth_mm, self.cut.depth_from = round(b_m * 1000, 3), "spindle load"
 
     def _depth_changed(self) -> None:
         """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the

@@ -167,6 +167,31 @@ def test_without_a_depth_the_cut_is_recorded_and_the_refit_says_it_left_it_out(h
     assert cuts is None and list(skipped.values()) == [1] and "no depth" in next(iter(skipped))
 
 
+def test_without_a_depth_register_the_spindle_load_gives_the_cut_its_depth(h):
+    """A real CNC reports the spindle load, not the depth: the record takes the deepest the load
+    showed (Kt b feed D/2 = torque over the no-chip load), so the refit can use the cut."""
+    an = h.start()
+    torque = 1.5e9 * 0.3e-3 * 2.0e-3 * 0.015             # kt, feed, 2 mm, D/2 (the defaults): 13.5 N m
+    loaded = 5.0 + 100 * torque / 35.8                    # % of the peak torque over a 5 % no-chip load
+
+    async def cut():
+        t = time.time()
+        await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+        await an._on_machine(Sample("lathe", "spindle_rpm", 2000.0, "r/min", t))
+        await an._on_machine(Sample("lathe", "spindle_load_pct", 5.0, "%", t))     # turning, no chip
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+        for load in [5.0 + 0.5 * (loaded - 5.0)] + [loaded] * 20 + [5.0 + 0.2 * (loaded - 5.0)]:
+            t += 0.1                                      # the entry's ramp, the cut, the exit's fall
+            await an._on_machine(Sample("lathe", "spindle_rpm", 2000.0, "r/min", t))
+            await an._on_machine(Sample("lathe", "spindle_load_pct", load, "%", t))
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t))
+    asyncio.run(cut())
+    (rec,) = h.events("cut")
+    assert rec["depth_mm"] == pytest.approx(2.0, abs=1e-3) and rec["depth_from"] == "spindle load"
+    cuts, skipped = cut_rows([rec])
+    assert list(cuts.depth_mm) == [pytest.approx(2.0, abs=1e-3)] and skipped == {}
+
+
 def refit(h, an=None, **args):
     return asyncio.run((an or h.an)._stability({"action": "refit", **args}))
 
