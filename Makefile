@@ -40,6 +40,7 @@ bench-suppression: $(STAMP)
 bench-loop: $(STAMP)
 	$(BIN)/python bench/bench_loop.py
 	$(BIN)/python bench/bench_loop.py --avoid
+	$(BIN)/python bench/bench_loop.py --remember
 bench-thermal: $(STAMP)
 	$(BIN)/python bench/bench_thermal.py
 bench-store: $(STAMP)

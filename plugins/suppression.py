@@ -19,6 +19,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
     avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
+    remember = true              # give a pass entering at a speed it chattered at the speed that cured it
     when_no_stable_speed = "hold" # lobes: every speed within reach chatters at this depth -> hold | move
     ssv = "sine"                 # variation: sine | triangle | square
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
@@ -65,6 +66,18 @@ detector that learns its baseline on that cut sees it only once it has
 grown; the model sees it before. Off by default: it trusts the modal model
 (a tap test) to move speeds no alarm has asked for.
 
+With ``remember = true`` (any strategy) the cures are remembered
+(lathed.analysis.cures): when a pass chattered at the speed it entered at
+and suppression cured it at another, the next pass entering within 2 % of
+that speed, at least 0.9 x as deep, with the configured tool and material,
+is moved to the cure as soon as its depth is measured (the depth register,
+else the spindle load's estimate: a programmed depth_mm is not evidence),
+through the same policy and guard, recorded with ``trigger =
+"remembered"``.  A cure that chatters anyway is dropped and the one found
+after it remembered.  The memory is rebuilt from the store's cut records at
+start; ``lathectl suppress forget`` (operator) clears it, for a new tool or
+set-up, and the clearing is recorded so a restart does not bring it back.
+
 Every cut (entry to exit) leaves a ``cut`` record (lathed.analysis.cut_log):
 the set-up, depth and feed, each speed it turned at with its verdict, the
 first alarm (time, revolution, chatter frequency), the actions and whether
@@ -94,6 +107,7 @@ import numpy as np
 
 from lathed import hookimpl
 from lathed.analysis import stability_files
+from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
 from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
@@ -144,6 +158,7 @@ class SuppressionAnalyzer(Analyzer):
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
         self.avoid = section.getbool("avoid", False)
+        self.remember = section.getbool("remember", True)
         self.when_no_stable_speed = section.getstr("when_no_stable_speed", "hold", choices=WHEN_NO_STABLE_SPEED)
         try:
             self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
@@ -168,6 +183,9 @@ class SuppressionAnalyzer(Analyzer):
         self._refitting = False
         self.last_refit: dict | None = None
         self.cut = CutTracker(self.machine, self.tool, self.material)
+        self.memory = CureMemory(self.tool, self.material)
+        self._memory_loaded = False
+        self._recalled = False                 # the pass in the cut has been given its cure
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
@@ -232,6 +250,9 @@ class SuppressionAnalyzer(Analyzer):
             await asyncio.to_thread(self._load_adopted)
         if self.lobes is not None and self.grid is None:
             self.grid = await asyncio.to_thread(lobe_grid, self.lobes, self.limits)
+        if self.remember and not self._memory_loaded:
+            self._memory_loaded = True
+            await asyncio.to_thread(self._load_memory)
         sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
         ended = "analyzer failed"     # the supervisor restarts it; the cut so far is kept
         try:
@@ -273,6 +294,8 @@ class SuppressionAnalyzer(Analyzer):
             if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
                 self._avoided.add("load")
                 await self._avoid()
+            if self.remember and self.in_cut:
+                await self._recall()
 
     def _depth_from_load(self, load_pct: float) -> None:
         """Without a depth register the lobes need the depth: the cutting torque the
@@ -320,11 +343,14 @@ class SuppressionAnalyzer(Analyzer):
         if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
             await self._avoid()
+        if self.remember and self.in_cut:
+            await self._recall()
         if was and not self.in_cut:
             self._cut_ended(time.time() if t is None else t)
             if self.depth_from == "spindle load":
                 self.depth_mm = 0.0
             self._avoided.clear()
+            self._recalled = False
             self._stop_ssv()
 
     # -- cut records -----------------------------------------------------------------
@@ -345,6 +371,48 @@ class SuppressionAnalyzer(Analyzer):
         rec["model"] = self.model_name
         self.cuts_recorded += 1
         self.ctx.record("cut", rec)
+        if self.remember:
+            what = self.memory.learn(rec)
+            if what:
+                self.ctx.log.info(f"cure_{what}", rpm_entry=rec.get("rpm_start"), rpm_end=rec.get("rpm_end"))
+
+    # -- remembered cures ------------------------------------------------------------
+    def _load_memory(self) -> None:
+        """The cures this machine's cut records teach, since the last ``suppress forget``."""
+        rows = self.ctx.store.query("SELECT kind, payload FROM events WHERE source = ? AND kind IN "
+                                    "('cut', 'suppression_cures_forgotten') ORDER BY id", (self.name,))
+        for r in rows:
+            p = json.loads(r["payload"])
+            if p.get("machine") != self.machine:
+                continue
+            if r["kind"] == "cut":
+                self.memory.learn(p)
+            else:
+                self.memory.clear()
+        if self.memory.cures:
+            self.ctx.log.info("cures_remembered", cures=len(self.memory.cures))
+
+    async def _recall(self) -> None:
+        """The pass entering now: its remembered cure, once its depth is measured."""
+        if (self._recalled or self.mode == "off" or self.policy is None or self.rpm is None
+                or self.depth_from not in ("register", "spindle load") or not self.depth_mm > 0):
+            return
+        cure = self.memory.find(self.rpm, self.depth_mm)
+        if cure is None:
+            return          # none, or this pass is shallower than the one that chattered: wait
+        self._recalled = True
+        d = Decision(REMEMBERED, self.rpm, cure.rpm, None, None, None, cure.rpm / self.rpm,
+                     f"remembered: a pass entering at {cure.rpm_entry:.0f} r/min"
+                     + (f", {cure.depth_mm:g} mm deep," if cure.depth_mm else "")
+                     + f" chattered there and was cured at {cure.rpm:.0f} r/min")
+        drivable = bool(self._cut().drivable(np.array([cure.rpm]), self.limits)[0])
+        taken = self.policy.take(time.monotonic(), self.rpm, d) if drivable else None
+        if taken is None:
+            self.ctx.log.info("cure_not_admissible", rpm=self.rpm, cure=cure.rpm,
+                              why="beyond the spindle's torque at this depth" if not drivable else
+                              "outside the speed cap, banned this part, or a change already holding")
+            return
+        await self._decided(taken, REMEMBERED)
 
     # -- the stability model: adopted refits ---------------------------------------------
     @property
@@ -606,7 +674,7 @@ class SuppressionAnalyzer(Analyzer):
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:
         a = Args("suppress", args)
-        action = a.getstr("action", "status", choices=(*MODES, "now", "status"))
+        action = a.getstr("action", "status", choices=(*MODES, "now", "forget", "status"))
         by = a.getstr("by", "operator")
         a.check_unused()
         if action != "status":
@@ -617,6 +685,10 @@ class SuppressionAnalyzer(Analyzer):
                                                  "by": by})
             if action == "off":
                 self._stop_ssv()
+            return self.status()
+        if action == "forget":
+            n = self.memory.clear()
+            self.ctx.record("suppression_cures_forgotten", {"machine": self.machine, "cures": n, "by": by})
             return self.status()
         if action == "now":
             d, trigger = self.pending, self.pending_trigger
@@ -663,8 +735,10 @@ class SuppressionAnalyzer(Analyzer):
                 "last_was_advice": self.last_was_advice,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
                 "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
+                "remember": self.remember, "cures": [c.to_json() for c in self.memory.cures],
                 "summary": f"mode {self.mode}, strategy {self.strategy_name}"
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
+                           + (f", remembers {len(self.memory.cures)} cure(s)" if self.remember else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
                            + f", {self.actions} action(s)"
                            + (f", {self.advisories} held with advice (no stable speed within reach)"

@@ -28,7 +28,11 @@ SIMULATOR = (f'modes = {json.dumps([f"{TRUE_FN:g},0.03,7.5e7,0", MODES[1]])}\n'
 
 @pytest.fixture
 def shifted(tmp_path):
-    cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + default_table("suppress"),
+    # without remembered cures: each pass then explores speeds from its entry on, the evidence
+    # the refit needs (with them a pass goes straight to the speed that cured it before)
+    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    assert "remember = false" in suppress
+    cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + suppress,
                             simulator=SIMULATOR, registers=DEPTH_REGISTER)
     d = Daemon(cfg, paths["socket"])
     d.paths = paths

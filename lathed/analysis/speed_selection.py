@@ -347,6 +347,20 @@ class SuppressionPolicy:
             return None
         return d
 
+    def take(self, t_s: float, rpm: float, decision: Decision) -> Decision | None:
+        """A decision made from evidence other than this part's alarms (a remembered cure),
+        under the same rules: within the envelope, never a banned speed, within the budget,
+        then the speed left is banned and the hold begins.  None when it is not admissible."""
+        if (t_s < self._hold_until_s or self.exhausted or len(self.changes) >= self.max_changes
+                or not self.limits.min_rpm <= decision.rpm_after <= self.limits.max_rpm
+                or self._admissible(decision) is None):
+            return None
+        self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
+        self.changes.append(decision)
+        self._hold_until_s = (t_s + ramp_time_s(rpm, decision.rpm_after, self.limits.accel_rpm_per_s)
+                              + self.settle_revs * 60 / decision.rpm_after)
+        return decision
+
     def observe(self, t_s: float, rpm: float, alarm: bool,
                 chatter_frequency_hz: float | None = None,
                 chatter_index: float | None = None,

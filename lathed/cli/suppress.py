@@ -1,4 +1,4 @@
-"""lathectl suppress auto|manual|off|now|status: the chatter suppression switch."""
+"""lathectl suppress auto|manual|off|now|forget|status: the chatter suppression switch."""
 from __future__ import annotations
 
 import argparse
@@ -19,15 +19,24 @@ def run(args: argparse.Namespace) -> int:
               + (", avoids predicted chatter at cut entry" if r.get("avoid") else "")
               + f", chatter alarm {'ON' if r['chatter_alarm'] else 'off'}, {r['actions']} action(s)"
               + (f"; last {last['rpm_before']:.0f} -> {last['rpm_after']:.0f} r/min"
-                 + (" (predicted)" if last.get("trigger") == "predicted" else "") if last else ""))
+                 + (f" ({last['trigger']})" if last.get("trigger") in ("predicted", "remembered") else "")
+                 if last else ""))
+        if r.get("remember"):
+            cures = r.get("cures") or []
+            print(f"{len(cures)} remembered cure(s)" + (": " if cures else "")
+                  + ", ".join(f"{c['rpm_entry']:.0f} -> {c['rpm']:.0f} r/min"
+                              + (f" (chattered {c['depth_mm']:g} mm deep)" if c.get("depth_mm") else "")
+                              for c in cures))
         if r.get("advisories"):
             print(f"{r['advisories']} cut(s) held with advice; last: {r['last_advice']['advice']}")
     return 0
 
 
 def register(sub) -> None:
-    p = sub.add_parser("suppress", help="chatter suppression: auto | manual | off, or act now")
-    p.add_argument("action", choices=("auto", "manual", "off", "now", "status"), nargs="?", default="status")
+    p = sub.add_parser("suppress", help="chatter suppression: auto | manual | off, act now, or forget the "
+                                        "remembered cures (a new tool or set-up)")
+    p.add_argument("action", choices=("auto", "manual", "off", "now", "forget", "status"), nargs="?",
+                   default="status")
     p.add_argument("--analyzer", help="which suppression analyzer (when there are several)")
     p.add_argument("--by", default="operator", help="who acts, for the record")
     p.add_argument("--json", action="store_true")
