@@ -168,7 +168,7 @@ class PartTracker:
         if q == "cutting":
             if p is not None and v >= 0.5:
                 self._cutting(p)
-        elif q == "chatter_index":
+        elif q == "chatter_index_judged":    # not the tool's entry or exit, nor a speed change
             if p is not None:
                 p.max_chatter_index = v if p.max_chatter_index is None else max(p.max_chatter_index, v)
         elif q == "chatter_threshold":

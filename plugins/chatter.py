@@ -28,8 +28,10 @@ The cut starts when the first source sees the chip and ends when none does.
 The cut state is published as ``cutting`` (1/0) and shown in the status.  For
 each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
-(1/0); it records ``chatter_alarm`` and ``chatter_cleared`` events with the
-critical values.
+(1/0), and a window late ``chatter_index_judged``, the index of the windows
+the detector judged (lathed.analysis.detectors.JudgedIndex: a part's record
+keeps their highest); it records ``chatter_alarm`` and ``chatter_cleared``
+events with the critical values.
 
 The cut ends when no source sees the chip: the polled spindle load sees the
 tool leave up to a poll late, so the detector still watches the tool's
@@ -53,7 +55,7 @@ import time
 
 from lathed import hookimpl
 from lathed.analysis.cut_state import SOURCES, LoadCutDetector, VibrationCutDetector
-from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, make_detector
+from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, JudgedIndex, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
@@ -110,6 +112,7 @@ class ChatterAnalyzer(Analyzer):
         self.load_pct: float | None = None
         self.state = "idle"
         self.last = None
+        self._judged = JudgedIndex()
         self.alarms = 0
         self.windows = 0
         self._eye_view = None   # (detector, windows) -> the last view, reused until a new window
@@ -181,6 +184,7 @@ class ChatterAnalyzer(Analyzer):
                 self.detector, self._rebuild = None, False
             if self.detector is not None:
                 self.detector.reset()     # a new cut: learn its baseline afresh
+            self._judged.reset()
             self.state = "learning"
             self.cut_by = name
             self._cut_rpm = None
@@ -246,6 +250,9 @@ class ChatterAnalyzer(Analyzer):
             pub = self.ctx.bus.publish
             if not math.isnan(w.index):
                 pub(Sample(self.name, "chatter_index", w.index, "", t))
+            judged = self._judged.push(w, t)      # what a part's record keeps as its highest
+            if judged is not None:
+                pub(Sample(self.name, "chatter_index_judged", judged[0], "", judged[1]))
             pub(Sample(self.name, "chatter_threshold", w.threshold, "", t))
             if w.chatter_frequency_hz is not None:
                 pub(Sample(self.name, "chatter_frequency_hz", w.chatter_frequency_hz, "Hz", t))

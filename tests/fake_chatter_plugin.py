@@ -28,6 +28,7 @@ class FakeChatter(Analyzer):
             pub = self.ctx.bus.publish
             pub(Sample(self.name, "chatter_threshold", 1.0, "", now))
             pub(Sample(self.name, "chatter_index", 3.0 if chatter else 0.2, "", now))
+            pub(Sample(self.name, "chatter_index_judged", 3.0 if chatter else 0.2, "", now))
             pub(Sample(self.name, "chatter_frequency_hz", 312.0, "Hz", now))
             if chatter != bool(alarm):
                 alarm = 1.0 if chatter else 0.0

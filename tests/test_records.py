@@ -22,7 +22,7 @@ class Feed:
             self.done += self.tr.feed_sample("lathe", q, v, self.t)
 
     def chatter(self, index, alarm, threshold=1.0, hz=312.0):
-        for q, v in (("chatter_threshold", threshold), ("chatter_index", index),
+        for q, v in (("chatter_threshold", threshold), ("chatter_index", index), ("chatter_index_judged", index),
                      ("chatter_frequency_hz", hz), ("chatter_alarm", alarm)):
             self.done += self.tr.feed_sample("chatter", q, v, self.t)
 
@@ -69,6 +69,19 @@ def test_index_over_threshold_without_alarm_is_abnormal_too():
     partial, p = f.done
     assert partial.outcome == "partial" and not partial.abnormal
     assert p.abnormal and "reached the threshold" in p.row()["reason"]
+
+
+def test_an_index_the_detector_did_not_judge_does_not_flag_the_part():
+    """The ring of the tool leaving the work lifts the index of a window the detector does not
+    count (a level step): not the part's vibration, so not its highest index."""
+    f = Feed(tracker())
+    f.lathe(part_count=0, program_state=1)
+    f.lathe(part_count=1)
+    f.cut(3.0, 2292, 0.8)
+    f.done += f.tr.feed_sample("chatter", "chatter_index", 4.2, f.t)     # the release: not judged
+    f.lathe(part_count=2)
+    p = f.done[-1]
+    assert p.max_chatter_index == 0.8 and not p.abnormal
 
 
 def test_program_stop_aborts_a_part_that_cut_and_drops_one_that_did_not():

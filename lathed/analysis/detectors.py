@@ -78,6 +78,8 @@ class Window:
     learning: bool = False              # window used to learn the baseline
     raised_by: str | None = None        # on the window that raises the alarm: "threshold" or
                                         # "sustained rise" (the CUSUM: index held above cusum_ratio)
+    judged: bool = True                 # False: the index was not judged (learning, a speed change,
+                                        # the tool entering or leaving the work, waiting for the load)
 
 
 # name -> (default, min, max, meaning)
@@ -346,7 +348,7 @@ class RevolutionDetector:
         settling = self._next_end < self._settle_until
         if self._collect is not None:
             self._collect.append(raw)
-            return Window(t_s, float("nan"), self.threshold, False, None, True)
+            return Window(t_s, float("nan"), self.threshold, False, None, True, judged=False)
         self._windows += 1
         if self.params["load_scaled"] and self._load is not None:
             # the residual of a stable cut scales with the cutting force: the index is read
@@ -364,7 +366,8 @@ class RevolutionDetector:
                 self._on_learned()
                 self._learned_baseline = self.baseline
             med = float(np.median(self._learn)) if self._learn else float("nan")
-            return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True)
+            return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True,
+                          judged=False)
         index = raw / self.baseline
         p = self.params
         # a reference baseline skips the learning windows, not the entry's ring: the
@@ -412,7 +415,8 @@ class RevolutionDetector:
               and 0 < index < p["cusum_ratio"]):
             self._follow(raw)
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
-        return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by)
+        return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by,
+                      judged=self.alarm or not settling)
 
     def _rising_from_step(self, start: int, end: int, index: float, stepped: bool, other: bool) -> bool:
         """A level step's windows do not count (their revolution difference spans the step),
@@ -586,6 +590,25 @@ class RevolutionDetector:
         """Strongest peak of the non-synchronous part, refined by a parabola."""
         d = self._d[start:end]
         return spectral_peak_hz(d, self.rate, self.params["fmin_hz"], self.params["fmax_hz"])
+
+
+class JudgedIndex:
+    """The index of the windows a detector judged (``Window.judged``), one window late: the
+    window where the tool leaves the work is judged before the next one shows the level step,
+    so a judged window followed by one not judged is dropped.  What a part's record keeps."""
+
+    def __init__(self) -> None:
+        self._held: tuple[float, float] | None = None
+
+    def reset(self) -> None:
+        self._held = None
+
+    def push(self, w: Window, t: float) -> tuple[float, float] | None:
+        """This window; returns the (index, t) of the one before it if that one stands."""
+        judged = getattr(w, "judged", True) and not math.isnan(w.index)   # a plugin's may lack it
+        out = self._held if judged else None
+        self._held = (w.index, t) if judged else None
+        return out
 
 
 def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> float | None:
