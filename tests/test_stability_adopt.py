@@ -126,7 +126,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
 
 def test_a_cut_the_daemon_stops_in_is_recorded_up_to_the_stop(h):
     an = h.start()
-    an._models_loaded = True
+    an._models_loaded = an._memory_loaded = True     # run() then reads the bus at once, no thread hop
 
     async def main():
         t = time.time()
