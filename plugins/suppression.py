@@ -74,8 +74,8 @@ is moved to the cure as soon as its depth is measured (the depth register,
 else the spindle load's estimate: a programmed depth_mm is not evidence),
 through the same policy and guard, recorded with ``trigger =
 "remembered"``.  A cure that chatters anyway is dropped and the one found
-after it remembered.  The memory is rebuilt from the store's cut records at
-start; ``lathectl suppress forget`` (operator) clears it, for a new tool or
+after it remembered.  The memory is rebuilt from the store's newest cut
+records at start; ``lathectl suppress forget`` (operator) clears it, for a new tool or
 set-up, and the clearing is recorded so a restart does not bring it back.
 
 Every cut (entry to exit) leaves a ``cut`` record (lathed.analysis.cut_log):
@@ -131,6 +131,7 @@ MODES = ("auto", "manual", "off")
 STRATEGIES = ("lobes", "frequency", "rated", "variation")
 SSV_STEP_S = 0.05     # speed commands while modulating
 MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
+MEMORY_RECORDS = 5000     # cut records the remembered cures are rebuilt from at start: the newest
 
 
 class SuppressionAnalyzer(Analyzer):
@@ -379,9 +380,12 @@ class SuppressionAnalyzer(Analyzer):
     # -- remembered cures ------------------------------------------------------------
     def _load_memory(self) -> None:
         """The cures this machine's cut records teach, since the last ``suppress forget``."""
+        # the newest records only: a cure older than them has been superseded or gone stale, and
+        # the analyzer reads the bus once this is done
         rows = self.ctx.store.query("SELECT kind, payload FROM events WHERE source = ? AND kind IN "
-                                    "('cut', 'suppression_cures_forgotten') ORDER BY id", (self.name,))
-        for r in rows:
+                                    "('cut', 'suppression_cures_forgotten') ORDER BY id DESC LIMIT ?",
+                                    (self.name, MEMORY_RECORDS))
+        for r in reversed(rows):
             p = json.loads(r["payload"])
             if p.get("machine") != self.machine:
                 continue
