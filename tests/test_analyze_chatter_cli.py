@@ -256,3 +256,10 @@ def test_alarm_spans_say_when_each_alarm_was_raised_and_cleared(files, capsys):
     assert inside == on
     code, out, _ = _cli([str(d / "chatter_f32.wav"), "--rpm", "2000"], capsys)
     assert "alarm on " in out
+
+
+def test_a_csv_of_only_comments_after_its_header_is_one_line(tmp_path, capsys):
+    p = tmp_path / "comments.csv"
+    p.write_text("time_s,a\n# exported by the logger\n#\n")
+    code, _, err = _cli([str(p), "--rpm", "1000"], capsys)
+    assert code == 65 and err.count("\n") == 1 and "no data rows" in err and "Warning" not in err

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import struct
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -221,11 +222,15 @@ def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Sign
         raise RecordingError(f"{src}: CSV has a header but no data rows")
     want = [col] if t_col is None else [t_col, col]
     try:
-        arr = np.loadtxt(io.StringIO("\n".join(body)), delimiter=None if delim == " " else delim,
-                         usecols=want, ndmin=2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)     # rows that are all comments: said below
+            arr = np.loadtxt(io.StringIO("\n".join(body)), delimiter=None if delim == " " else delim,
+                             usecols=want, ndmin=2)
     except (ValueError, IndexError):
         _locate_csv_error(body, body_start, delim, want, names, src)
         raise RecordingError(f"{src}: CSV could not be parsed") from None
+    if arr.size == 0:
+        raise RecordingError(f"{src}: CSV has a header but no data rows (only # comments after it)")
     x = arr[:, -1].astype(float)
     notes: list[str] = []
     if t_col is not None:
