@@ -213,7 +213,12 @@ function drawVibration() {
   document.querySelectorAll(".switch button[data-mode]").forEach((bt) => bt.classList.toggle("on", !!sup && sup.mode === bt.dataset.mode));
   if (sup && sup.pending) note("#suppress-note", `proposed (manual mode): ${fmt(sup.pending.rpm_before, 0)} → ${fmt(sup.pending.rpm_after, 0)} r/min: press "suppress now"`);
   else if (sup && sup.last_was_advice && sup.last_advice) note("#suppress-note", `${sup.last_advice.advice} (${sup.advisories} held with advice in all)`);
-  else if (sup && sup.last_action) note("#suppress-note", `last action: ${fmt(sup.last_action.rpm_before, 0)} → ${fmt(sup.last_action.rpm_after, 0)} r/min (${sup.last_action.by || sup.last_action.trigger || ""}), ${sup.actions} in all`);
+  else if (sup && sup.last_action) {
+    // why it moved (an alarm, the lobes' prediction, a remembered cure) and who, when not itself
+    const a = sup.last_action, why = [a.trigger, a.by && a.by !== sup.name ? `by ${a.by}` : ""].filter(Boolean).join(", ");
+    const cures = sup.remember ? `; ${(sup.cures || []).length} remembered cure(s)` : "";
+    note("#suppress-note", `last action: ${fmt(a.rpm_before, 0)} → ${fmt(a.rpm_after, 0)} r/min (${why}), ${sup.actions} in all${cures}`);
+  }
 }
 
 function drawEye(view) {
