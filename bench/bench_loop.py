@@ -34,7 +34,6 @@ next ones entering at that speed are given the cure (``trigger =
 from __future__ import annotations
 
 import argparse
-from collections import Counter
 import os
 import signal
 import socket
@@ -43,6 +42,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -229,10 +229,10 @@ def report_entry(parts: dict, alarms: list[dict], acts: list[dict], cuts: int, o
         total_ok += ok
         entry_ok = sum(1 for r in rows if r[1] is not None and r[1] - r[0] <= 3 * 60.0 / rpm + 0.020)
         total_entry += entry_ok
-        trig = ", ".join(f"{t} {n}" for t, n in sorted(Counter(r[5] for r in rows if r[5]).items())) or "-"
+        triggers = ", ".join(f"{t} {n}" for t, n in sorted(Counter(r[5] for r in rows if r[5]).items())) or "-"
         print(f"| {rpm:.0f} | {len(rows)} ({sum(r[1] is None for r in rows)} no write) | {fmt(sw)} | "
               f"{fmt(revs, 1)} | {sum(r[2] is not None for r in rows)} | {fmt(vw)} | {ok}/{len(rows)} | "
-              f"{sum(r[3] for r in rows)} | {trig} | {entry_ok}/{len(rows)} |")
+              f"{sum(r[3] for r in rows)} | {triggers} | {entry_ok}/{len(rows)} |")
     print(f"\nwithin target: {total_ok}/{len(finished)} cuts; {total_entry}/{len(finished)} from entry")
     return 0
 
