@@ -94,6 +94,24 @@ def run(seeds: int, pipeline_s: float) -> list[str]:
     return rows
 
 
+def theory(pipeline_s: float) -> list[str]:
+    """The rightmost characteristic root at each depth (StabilityLobes.growth): how fast the
+    chatter mode grows or decays, per revolution and from the first regenerating revolution
+    (the first revolution cuts a fresh surface) to the deadline."""
+    lobes = StabilityLobes(LATHE_MODES, LATHE_KF)
+    rows = []
+    for rpm in SPEEDS:
+        lim = float(lobes.b_lim_at(rpm)[0][0])
+        rev = 60.0 / rpm
+        span = 3 * rev + 0.020 - pipeline_s - rev
+        cells = []
+        for depth in (0.9 * lim, 1.1 * lim, LOOP_DEPTH_MM * 1e-3):
+            sigma, _ = lobes.growth(rpm, depth)
+            cells.append(f"{sigma:+.1f} | {np.exp(sigma * rev):.3f} | {np.exp(sigma * span):.2f}")
+        rows.append(f"| {rpm:g} | {lim * 1e3:.2f} | " + " | ".join(cells) + " |")
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=8, help="draws of each depth (default 8)")
@@ -110,6 +128,13 @@ def main(argv=None) -> int:
           "at the deadline | unstable cuts there | above the envelope by the deadline | ... by 10 % |")
     print("|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
+    print("\nLinear theory (the rightmost root of the characteristic equation, StabilityLobes.growth): "
+          "sigma 1/s, the chatter mode's amplitude ratio per revolution, and from the first "
+          "regenerating revolution to the deadline\n")
+    print("| speed r/min | limit mm | 0.9 x limit: sigma | per rev | by the deadline | 1.1 x limit: sigma "
+          f"| per rev | by the deadline | {LOOP_DEPTH_MM:g} mm: sigma | per rev | by the deadline |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(theory(args.pipeline_ms / 1e3)))
     return 0
 
 

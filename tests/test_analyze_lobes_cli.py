@@ -88,3 +88,21 @@ def test_through_lathectl():
     assert proc.returncode == 0, proc.stderr
     doc = json.loads(proc.stdout)
     assert doc["b_lim_mm_at_rpm"] >= doc["b_lim_min_mm"] > 0
+
+
+def test_depth_gives_how_fast_chatter_grows(capsys):
+    # the live lathe's structure: 3 mm at 2000 r/min is above its 2.54 mm limit, 2 mm below
+    argv = ["lobes", "--mode", "190,0.03,7.5e7", "--mode", "620,0.035,4e8,30", "--kf", "2e9", "--rpm", "2000"]
+    code, out, err = _run(argv + ["--depth", "3", "--json"], capsys)
+    assert code == 0, err
+    g = json.loads(out)["growth_at_depth"]
+    assert g["sigma_per_s"] > 0 and 1.0 < g["per_rev"] < 1.2 and 180 < g["frequency_hz"] < 210
+    code, out, err = _run(argv + ["--depth", "2"], capsys)
+    assert code == 0 and "stable, a disturbance at" in out and "halves in" in out, out
+    code, out, err = _run(argv + ["--depth", "3"], capsys)
+    assert "unstable, chatter at" in out and "doubles in" in out, out
+
+
+def test_depth_without_rpm_is_one_line(capsys):
+    code, out, err = _run(["lobes", "--mode", "250,0.03,2e7", "--kf", "1e9", "--depth", "1"], capsys)
+    assert code == 64 and err.strip() == "lathectl: --depth needs --rpm (the growth is at one speed)"

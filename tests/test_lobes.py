@@ -95,3 +95,46 @@ def test_time_domain_agrees_with_lobes(rpm):
         growth[factor] = np.std(y[-w:]) / early
     assert growth[0.95] < 0.6, growth
     assert growth[1.05] > 1.5, growth
+
+
+@pytest.mark.parametrize("structure", ["default", "live lathe"])
+@pytest.mark.parametrize("rpm", [700.0, 2000.0, 4500.0])
+def test_the_growth_rate_crosses_zero_at_the_limit(structure, rpm):
+    """The rightmost characteristic root: decaying below b_lim, growing above, on the
+    limit at b_lim, with the chatter frequency the lobes give there."""
+    from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
+    from lathed.sim.lathe import LATHE_KF, LATHE_MODES
+    modes, kf = (DEFAULT_MODES, DEFAULT_KF) if structure == "default" else (LATHE_MODES, LATHE_KF)
+    lobes = StabilityLobes(modes, kf)
+    b, f = (float(v[0]) for v in lobes.b_lim_at(rpm))
+    below, above = lobes.growth(rpm, 0.9 * b)[0], lobes.growth(rpm, 1.1 * b)[0]
+    sigma, f_at = lobes.growth(rpm, b)
+    assert below < 0 < above
+    assert abs(sigma) < 0.05 * min(-below, above)
+    assert f_at == pytest.approx(f, rel=0.01)
+
+
+def test_the_growth_rate_needs_a_speed_and_a_depth():
+    lobes = StabilityLobes([Mode(300, 0.04, 3e7)], 1e9)
+    with pytest.raises(ValueError, match="speed and a depth"):
+        lobes.growth(0.0, 1e-3)
+
+
+@pytest.mark.parametrize("rpm", [1500.0, 2000.0])
+def test_the_simulated_lathe_grows_chatter_as_the_theory_says(rpm):
+    """The live lathe's 3 mm cut: the chatter band's envelope (a revolution's mean) grows
+    at the rightmost root's rate, to within 15 %, over 0.1-0.5 s (before it saturates)."""
+    from scipy.signal import butter, hilbert, sosfiltfilt
+
+    from lathed.analysis.regen import Segment, simulate_cut
+    from lathed.sim.lathe import LATHE_KF, LATHE_MODES
+    sigma, f = StabilityLobes(LATHE_MODES, LATHE_KF).growth(rpm, 3e-3)
+    rec = simulate_cut([Segment(0.6, rpm, 3.0)], seed=1, modes=LATHE_MODES, kf_n_per_m2=LATHE_KF)
+    sos = butter(4, [f - 15, f + 15], btype="band", fs=rec.rate_hz, output="sos")
+    env = np.abs(hilbert(sosfiltfilt(sos, rec.signal)))
+    n = int(rec.rate_hz * 60 / rpm)
+    revs = env[:len(env) // n * n].reshape(-1, n).mean(axis=1)
+    t = (np.arange(len(revs)) + 0.5) * 60 / rpm
+    sel = (t > 0.1) & (t < 0.5)
+    fitted = np.polyfit(t[sel], np.log(revs[sel]), 1)[0]
+    assert fitted == pytest.approx(sigma, rel=0.15), (fitted, sigma)

@@ -15,6 +15,7 @@ no asyncio, so the daemon, the CLI and the benches share it.
 """
 from __future__ import annotations
 
+import cmath
 import math
 from dataclasses import dataclass
 
@@ -154,6 +155,49 @@ class StabilityLobes:
                     best_b[idx] = b_here[better]
                     best_f[idx] = f_here[better]
         return best_b, best_f
+
+    def growth(self, rpm: float, depth_m: float) -> tuple[float, float]:
+        """The rightmost root s = sigma + i*2*pi*f of the characteristic equation
+        1 + Kf*b*(1 - exp(-sT))*G(s) = 0 at this speed and depth: (sigma in 1/s, f in Hz).
+        Chatter's amplitude grows as exp(sigma*t), by exp(sigma*60/rpm) a revolution;
+        sigma crosses 0 at b_lim.  Newton's method from a grid a third of the spindle
+        frequency apart over each mode's band (the roots near a mode are about one
+        spindle frequency apart)."""
+        if not rpm > 0 or not depth_m > 0:
+            raise ValueError(f"growth needs a speed and a depth > 0, got {rpm} r/min, {depth_m} m")
+        T = 60.0 / rpm
+        m = [(md.u, md.mass_kg, 2 * md.zeta * md.wn * md.mass_kg, md.k_n_per_m) for md in self.modes]
+        g = self.kf * depth_m
+
+        def f_df(s: complex) -> tuple[complex, complex]:
+            den = [mm * s * s + c * s + k for _, mm, c, k in m]
+            phi = sum(u / d for (u, *_), d in zip(m, den))
+            dphi = -sum(u * (2 * mm * s + c) / d**2 for (u, mm, c, _), d in zip(m, den))
+            e = cmath.exp(-s * T)
+            return 1 + g * (1 - e) * phi, g * (T * e * phi + (1 - e) * dphi)
+
+        best: complex | None = None
+        step = rpm / 60.0 / 3.0
+        for md in self.modes:
+            for f0 in np.arange(0.7 * md.fn_hz, 1.5 * md.fn_hz, min(step, 0.02 * md.fn_hz)):
+                s = complex(-md.zeta * md.wn, 2 * math.pi * f0)
+                for _ in range(50):
+                    # a step far into either half-plane is no root we want (exp(-sT) overflows)
+                    if not (abs(s.real) * T < 50 and abs(s.real) < 10 * md.wn):
+                        s = complex(math.nan, 0.0)
+                        break
+                    f, df = f_df(s)
+                    if df == 0:
+                        break
+                    ds = f / df
+                    s -= ds
+                    if abs(ds) < 1e-9 * abs(s):
+                        break
+                if s.imag > 0 and abs(f_df(s)[0]) < 1e-6 and (best is None or s.real > best.real):
+                    best = s
+        if best is None:
+            raise ArithmeticError(f"no characteristic root found at {rpm:g} r/min, {depth_m * 1e3:g} mm")
+        return float(best.real), float(best.imag / (2 * math.pi))
 
     def is_stable(self, rpm: np.ndarray | float, depth_m: float, margin: float = 1.0) -> np.ndarray:
         """True where ``depth_m * margin`` is below the limiting depth."""

@@ -33,6 +33,8 @@ def register_analyze(sub) -> None:
     p.add_argument("--kf", type=positive, required=True, metavar="N_PER_M2",
                    help="cutting-force coefficient along the chip-thickness direction")
     p.add_argument("--rpm", type=spindle_rpm, help="also report the limiting depth at this speed")
+    p.add_argument("--depth", type=positive, metavar="MM",
+                   help="with --rpm: how fast chatter grows (or a disturbance dies out) at this depth of cut")
     p.add_argument("--range", dest="rpm_range", type=_range, default=(500.0, 6000.0),
                    metavar="MIN:MAX", help="spindle speed range in r/min (default 500:6000)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -56,6 +58,9 @@ def run(args) -> int:
 
     from lathed.analysis.lobes import StabilityLobes
 
+    if args.depth is not None and args.rpm is None:
+        print("lathectl: --depth needs --rpm (the growth is at one speed)", file=sys.stderr)
+        return 64
     try:
         lobes = StabilityLobes(args.modes, args.kf)
     except ValueError as e:
@@ -72,6 +77,11 @@ def run(args) -> int:
         b, fc = lobes.b_lim_at(args.rpm)
         out["b_lim_mm_at_rpm"] = _mm(b[0])
         out["chatter_frequency_hz_at_rpm"] = None if np.isnan(fc[0]) else round(float(fc[0]), 3)
+    if args.depth is not None:
+        sigma, f_root = lobes.growth(args.rpm, args.depth * 1e-3)
+        out["growth_at_depth"] = {"depth_mm": args.depth, "sigma_per_s": round(sigma, 4),
+                                  "per_rev": round(math.exp(sigma * 60.0 / args.rpm), 5),
+                                  "frequency_hz": round(f_root, 3)}
     out["lobes"] = [{"k": p.k,
                      "rpm": [round(float(x), 3) for x in _thin(p.rpm)],
                      "b_lim_mm": [round(float(x) * 1e3, 6) for x in _thin(p.b_lim_m)]}
@@ -93,8 +103,21 @@ def run(args) -> int:
             b = out["b_lim_mm_at_rpm"]
             print(f"b_lim at {args.rpm:g} r/min      "
                   + ("above the plotted range" if b is None else f"{b:.4f} mm"))
+        if args.depth is not None:
+            print(_growth_line(out["growth_at_depth"], args.rpm))
         print(f"lobes in {lo:g}:{hi:g} r/min   {len(pieces)}")
     return 0
+
+
+def _growth_line(g: dict, rpm: float) -> str:
+    """Chatter's amplitude a revolution later, and how many revolutions to double or halve."""
+    per_rev, head = g["per_rev"], f"at {g['depth_mm']:g} mm, {rpm:g} r/min"
+    revs = math.log(2) / abs(math.log(per_rev)) if per_rev != 1 else math.inf
+    if per_rev > 1:
+        return (f"{head}: unstable, chatter at {g['frequency_hz']:.1f} Hz grows x{per_rev:.3f} "
+                f"a revolution (doubles in {revs:.1f} revolutions)")
+    return (f"{head}: stable, a disturbance at {g['frequency_hz']:.1f} Hz dies out x{per_rev:.3f} "
+            f"a revolution (halves in {revs:.1f} revolutions)")
 
 
 def _plot(pieces, lobes, args, path: str) -> None:
