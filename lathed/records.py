@@ -57,12 +57,15 @@ class PartTracker:
     cut). The part in progress when tracking began is marked ``partial``.
     The cut is seen by the depth register where the machine has one, else by
     the chatter analyzer's cut state (``cutting``: spindle load or vibration):
-    the part's speed and feed are those when its first cut began.
+    the part's speed and feed are those when its first cut began.  Its depth is
+    the deepest the register showed, else the deepest the suppression
+    analyzer's spindle-load estimate showed (``depth_est_mm``).
     """
 
     def __init__(self, machine: str, chatter: str | None = None, thermal: str | None = None,
-                 tool: str | None = None, material: str | None = None):
-        self.machine, self.chatter, self.thermal = machine, chatter, thermal
+                 tool: str | None = None, material: str | None = None, suppress: str | None = None):
+        self.machine, self.chatter, self.thermal, self.suppress = machine, chatter, thermal, suppress
+        self._depth_register = False  # the machine reports depth_of_cut_mm: estimates are not used
         self.tool, self.material = tool, material
         self.count: int | None = None
         self.state = RUNNING          # assumed running until the machine says otherwise
@@ -115,6 +118,9 @@ class PartTracker:
             self._machine(quantity, value, t, done)
         elif source == self.chatter:
             self._chatter(quantity, value)
+        elif (source == self.suppress and quantity == "depth_est_mm" and self.part is not None
+              and not self._depth_register and value > 0):
+            self.part.depth_mm = max(self.part.depth_mm or 0.0, value)
         elif source == self.thermal and quantity == "compensation_um":
             self.compensation = value
             if self.part is not None:
@@ -154,9 +160,11 @@ class PartTracker:
             self.rpm = v
         elif q == "feed_mm_rev":
             self.feed = v
-        elif q == "depth_of_cut_mm" and self.part is not None and v > 0:
-            self._cutting(self.part)
-            self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
+        elif q == "depth_of_cut_mm":
+            self._depth_register = True
+            if self.part is not None and v > 0:
+                self._cutting(self.part)
+                self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
 
     def _cutting(self, p: Part) -> None:
         if not self._cut:

@@ -5,6 +5,7 @@
     machine = "lathe"        # the lathe whose parts are tracked
     chatter = "chatter"      # chatter analyzer instance (its samples flag parts)
     thermal = "thermal"      # thermal analyzer instance (compensation applied)
+    suppress = "suppress"    # suppression analyzer instance (depth estimated from the spindle load)
     tool = "T0101"           # tool holder in use, for records and recommendations
     material = "C45"
 
@@ -36,10 +37,11 @@ class Records(Analyzer):
         self.machine = section.getstr("machine", "lathe")
         self.chatter = section.getstr("chatter", "chatter")
         self.thermal = section.getstr("thermal", "thermal")
+        self.suppress = section.getstr("suppress", "suppress")
         self.tool = section.getstr("tool", "")
         self.material = section.getstr("material", "")
         self.tracker = records.PartTracker(self.machine, self.chatter, self.thermal,
-                                           self.tool or None, self.material or None)
+                                           self.tool or None, self.material or None, self.suppress)
         self.parts_written = 0
         self.abnormal_written = 0
         self._registered = False
@@ -52,7 +54,7 @@ class Records(Analyzer):
             for cmd in ("parts", "inspect", "experiment_add", "experiments", "recommend", "export"):
                 self.ctx.register_control(cmd, getattr(self, f"_cmd_{cmd}"))
             self._registered = True
-        sub = self.ctx.bus.subscribe(self.machine, self.chatter, self.thermal)
+        sub = self.ctx.bus.subscribe(self.machine, self.chatter, self.thermal, self.suppress)
         try:
             while True:
                 msg = await sub.get()

@@ -84,7 +84,8 @@ first alarm (time, revolution, chatter frequency), the actions and whether
 the cut ended cured.  ``lathectl cuts`` lists them, ``--csv`` exports them
 for ``lathectl analyze stability``.  The depth is the machine's
 depth_of_cut_mm register, else the deepest the spindle load showed during
-the cut (``depth_from = "spindle load"``), else the programmed ``depth_mm``,
+the cut (``depth_from = "spindle load"``; the estimate is also published as
+``depth_est_mm``, which the parts' records take), else the programmed ``depth_mm``,
 else unknown (null): such cuts are recorded but the refit cannot use them
 (it says how many it left out).
 
@@ -291,18 +292,22 @@ class SuppressionAnalyzer(Analyzer):
                 self._depth_changed()      # the vibration may have seen the chip first
             await self._cut_seen("depth", s.value > 0, s.t)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
-            self._depth_from_load(s.value)
+            est = self._depth_from_load(s.value)
+            if est is not None:
+                # the parts' records take it (lathed.records.PartTracker): a real CNC has no depth register
+                self.ctx.bus.publish(Sample(self.name, "depth_est_mm", est, "mm", s.t))
             if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
                 self._avoided.add("load")
                 await self._avoid()
             if self.remember and self.in_cut:
                 await self._recall()
 
-    def _depth_from_load(self, load_pct: float) -> None:
+    def _depth_from_load(self, load_pct: float) -> float | None:
         """Without a depth register the lobes need the depth: the cutting torque the
-        drive reports over the spindle's no-chip load, Kt b h r = T, solved for b."""
+        drive reports over the spindle's no-chip load, Kt b h r = T, solved for b.
+        Returns the estimate in mm while cutting (None otherwise)."""
         if self.rpm is None or self.rpm <= 0:
-            return
+            return None
         self.idle_load_pct = load_pct if self.idle_load_pct is None else min(self.idle_load_pct, load_pct)
         torque = (load_pct - self.idle_load_pct) / 100.0 * self.limits.peak_torque_nm
         b_m = torque / (self.kt * self.feed_mm / 1000 * self.diameter_m / 2)
@@ -315,6 +320,7 @@ class SuppressionAnalyzer(Analyzer):
             # the cut's record (the refit's evidence): the deepest the load showed, over a
             # programmed depth_mm; the tool's entry and exit pass through lower loads
             self.cut.depth_mm, self.cut.depth_from = round(b_m * 1000, 3), "spindle load"
+        return round(b_m * 1000, 3) if b_m * 1000 > 0.05 and self.in_cut else None
 
     def _depth_changed(self) -> None:
         """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the

@@ -127,6 +127,23 @@ def test_without_a_depth_register_the_cut_state_gives_speed_and_feed_and_an_abor
     assert (done.rpm, done.feed_mm_rev) == (1500, 0.3) and not done.abnormal
 
 
+def test_without_a_depth_register_the_part_takes_the_deepest_spindle_load_estimate():
+    f = Feed(PartTracker("lathe", "chatter", "thermal", "T0101", "C45", suppress="suppress"))
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    for est in (1.2, 2.9, 3.05, 0.6):                     # entry, cut, exit
+        f.done += f.tr.feed_sample("suppress", "depth_est_mm", est, f.t)
+        vibration_cut(f, 1500, 0.2)
+    f.lathe(part_count=5)
+    assert f.done[-1].depth_mm == 3.05
+    # a machine that reports the depth: the register's is the part's, not an estimate
+    f.lathe(depth_of_cut_mm=0.0)
+    f.done += f.tr.feed_sample("suppress", "depth_est_mm", 2.7, f.t)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=6)
+    assert f.done[-1].depth_mm == 1.0
+
+
 def test_machine_alarm_during_a_part_flags_it():
     f = Feed(tracker())
     f.lathe(part_count=0, program_state=1)

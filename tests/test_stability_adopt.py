@@ -171,6 +171,7 @@ def test_without_a_depth_register_the_spindle_load_gives_the_cut_its_depth(h):
     """A real CNC reports the spindle load, not the depth: the record takes the deepest the load
     showed (Kt b feed D/2 = torque over the no-chip load), so the refit can use the cut."""
     an = h.start()
+    published = an.ctx.bus.subscribe(an.name)            # the estimate, for the parts' records
     torque = 1.5e9 * 0.3e-3 * 2.0e-3 * 0.015             # kt, feed, 2 mm, D/2 (the defaults): 13.5 N m
     loaded = 5.0 + 100 * torque / 35.8                    # % of the peak torque over a 5 % no-chip load
 
@@ -188,6 +189,8 @@ def test_without_a_depth_register_the_spindle_load_gives_the_cut_its_depth(h):
     asyncio.run(cut())
     (rec,) = h.events("cut")
     assert rec["depth_mm"] == pytest.approx(2.0, abs=1e-3) and rec["depth_from"] == "spindle load"
+    est = [m.value for m in published._items if getattr(m, "quantity", None) == "depth_est_mm"]
+    assert len(est) == 22 and max(est) == pytest.approx(2.0, abs=1e-3)   # every load reading in the cut
     cuts, skipped = cut_rows([rec])
     assert list(cuts.depth_mm) == [pytest.approx(2.0, abs=1e-3)] and skipped == {}
 
