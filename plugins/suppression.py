@@ -69,7 +69,8 @@ grown; the model sees it before. Off by default: it trusts the modal model
 With ``remember = true`` (any strategy) the cures are remembered
 (lathed.analysis.cures): when a pass chattered at the speed it entered at
 and suppression cured it at another, the next pass entering within 2 % of
-that speed, at least 0.9 x as deep, with the configured tool and material,
+that speed, at least 0.9 x as deep, with the configured tool and material
+and the same tool number where the machine reports one (``tool_number``),
 is moved to the cure as soon as its depth is measured (the depth register,
 else the spindle load's estimate: a programmed depth_mm is not evidence),
 through the same policy and guard, recorded with ``trigger =
@@ -282,6 +283,8 @@ class SuppressionAnalyzer(Analyzer):
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
             self.cut.feed_mm_rev = s.value
+        elif s.quantity == "tool_number":
+            self.cut.tool_number = int(s.value)    # a tool change between passes: its own cures
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
             changed = s.value > 0 and s.value != self.depth_mm
@@ -407,7 +410,7 @@ class SuppressionAnalyzer(Analyzer):
         if (self._recalled or self.mode == "off" or self.policy is None or self.rpm is None
                 or self.depth_from not in ("register", "spindle load") or not self.depth_mm > 0):
             return
-        cure = self.memory.find(self.rpm, self.depth_mm)
+        cure = self.memory.find(self.rpm, self.depth_mm, self.cut.tool_number)
         if cure is None:
             return          # none, or this pass is shallower than the one that chattered: wait
         self._recalled = True

@@ -89,7 +89,8 @@ def test_the_next_pass_gets_the_cure_at_entry_and_a_restart_keeps_it_until_forgo
     assert h.events("cut")[-1]["speeds"][1]["trigger"] == "remembered"
     assert cut(h, an, 0.5) == []                               # a shallower pass: not the same evidence
     assert an.status()["cures"] == [{"rpm_entry": 2500.0, "rpm": round(cured.value, 3), "depth_mm": 1.3,
-                                     "t": pytest.approx(h.events("cut")[-1]["end_t"], abs=60)}]
+                                     "t": pytest.approx(h.events("cut")[-1]["end_t"], abs=60),
+                                     "tool_number": None}]
     # a restart rebuilds the memory from the store's cut records
     an2 = h.start(h.make(remember=True))
     asyncio.run(asyncio.to_thread(an2._load_memory))
@@ -100,6 +101,26 @@ def test_the_next_pass_gets_the_cure_at_entry_and_a_restart_keeps_it_until_forgo
     an3 = h.start(h.make(remember=True))
     an3._load_memory()
     assert an3.memory.cures == [] and cut(h, an3, 1.3) == []
+
+
+def test_a_cure_is_the_tool_number_s_where_the_machine_reports_one(h):
+    """A turret holds several tools: a cure learned with tool 1 is not tool 2's, and a cure
+    learned before the machine reported its tool is no tool's."""
+    an = h.start()
+
+    async def tool(n):
+        await an._on_machine(Sample("lathe", "tool_number", float(n), "", time.time()))
+    asyncio.run(tool(1))
+    (cured,) = cut(h, an, 1.3, alarm=True)
+    assert h.events("cut")[-1]["tool_number"] == 1
+    asyncio.run(tool(2))
+    assert cut(h, an, 1.3) == []                               # another tool: nothing given
+    asyncio.run(tool(1))
+    (given,) = cut(h, an, 1.3)
+    assert given.value == cured.value
+    m = CureMemory("T0101", "C45")
+    m.learn(rec(CURED))                                        # an older record: no tool number
+    assert m.find(2500.0, 3.0, 1) is None and m.find(2500.0, 3.0).rpm == 2292.0
 
 
 def test_without_remember_nothing_is_given(tmp_path):

@@ -101,6 +101,7 @@ class CutTracker:
         self.depth_mm: float | None = None
         self.depth_from: str | None = None
         self.feed_mm_rev: float | None = None
+        self.tool_number: int | None = None   # the machine's tool register (set by the owner)
         self.advice: str | None = None     # suppression held the speed: why, what would cure it
 
     @property
@@ -182,6 +183,7 @@ class CutTracker:
             outcome = None          # too short to judge
         fa = self.first_alarm
         rec = {"machine": self.machine, "tool": self.tool, "material": self.material,
+               "tool_number": self.tool_number,
                "start_t": round(st, 3), "end_t": round(t, 3), "duration_s": round(t - st, 3),
                "revs": round(self.revs, 1),
                "rpm_start": _r(stretches[0].rpm, 1), "rpm_end": _r(self._last[1] if self._last else None, 1),

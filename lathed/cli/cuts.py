@@ -78,7 +78,8 @@ def run_cuts(args) -> int:
         cured = {True: ", cured", False: ", not cured", None: ""}[p.get("cured")]
         if p.get("advice"):
             cured += " (speed held: no stable speed within reach)"
-        print(f"{r['id']:>7} {t} {p['machine']:<10} {p.get('tool') or '-'}/{p.get('material') or '-'} "
+        tn = "" if p.get("tool_number") is None else f" tool {p['tool_number']}"
+        print(f"{r['id']:>7} {t} {p['machine']:<10} {p.get('tool') or '-'}/{p.get('material') or '-'}{tn} "
               f"depth {_f(p.get('depth_mm'), '.3g')} mm ({p.get('depth_from') or 'unknown'}), "
               f"feed {_f(p.get('feed_mm_rev'), '.3g')}: {p.get('outcome') or 'too short to judge'}; "
               f"r/min {speeds}{alarm}{cured}")

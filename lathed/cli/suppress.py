@@ -26,6 +26,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(cures)} remembered cure(s)" + (": " if cures else "")
                   + ", ".join(f"{c['rpm_entry']:.0f} -> {c['rpm']:.0f} r/min"
                               + (f" (chattered {c['depth_mm']:g} mm deep)" if c.get("depth_mm") else "")
+                              + (f" with tool {c['tool_number']}" if c.get("tool_number") is not None else "")
                               for c in cures))
         if r.get("advisories"):
             print(f"{r['advisories']} cut(s) held with advice; last: {r['last_advice']['advice']}")
