@@ -106,3 +106,9 @@ def test_depth_gives_how_fast_chatter_grows(capsys):
 def test_depth_without_rpm_is_one_line(capsys):
     code, out, err = _run(["lobes", "--mode", "250,0.03,2e7", "--kf", "1e9", "--depth", "1"], capsys)
     assert code == 64 and err.strip() == "lathectl: --depth needs --rpm (the growth is at one speed)"
+
+
+def test_a_depth_beyond_a_turning_cut_is_refused(capsys):
+    with pytest.raises(SystemExit) as e:
+        _parser().parse_args(["lobes", "--mode", "250,0.03,2e7", "--kf", "1e9", "--rpm", "1000", "--depth", "150"])
+    assert e.value.code == 2 and "a turning cut is at most 100 mm deep" in capsys.readouterr().err

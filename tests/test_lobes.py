@@ -98,7 +98,7 @@ def test_time_domain_agrees_with_lobes(rpm):
 
 
 @pytest.mark.parametrize("structure", ["default", "live lathe"])
-@pytest.mark.parametrize("rpm", [700.0, 2000.0, 4500.0])
+@pytest.mark.parametrize("rpm", [40.0, 700.0, 2000.0, 4500.0])
 def test_the_growth_rate_crosses_zero_at_the_limit(structure, rpm):
     """The rightmost characteristic root: decaying below b_lim, growing above, on the
     limit at b_lim, with the chatter frequency the lobes give there."""
@@ -112,6 +112,15 @@ def test_the_growth_rate_crosses_zero_at_the_limit(structure, rpm):
     assert below < 0 < above
     assert abs(sigma) < 0.05 * min(-below, above)
     assert f_at == pytest.approx(f, rel=0.01)
+
+
+def test_a_shallow_cut_decays_as_the_structure_does():
+    """A cut 1 um deep barely touches the modes: the rightmost root is the weakest-damped
+    mode's own pole (found from its first-order shift, outside a grid start's basin)."""
+    mode = Mode(300, 0.04, 3e7)
+    sigma, f = StabilityLobes([mode], 1e9).growth(2000.0, 1e-9)
+    assert sigma == pytest.approx(-mode.zeta * mode.wn, rel=1e-3)
+    assert f == pytest.approx(mode.fn_hz * math.sqrt(1 - mode.zeta**2), rel=1e-3)
 
 
 def test_the_growth_rate_needs_a_speed_and_a_depth():

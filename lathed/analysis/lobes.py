@@ -169,31 +169,45 @@ class StabilityLobes:
         m = [(md.u, md.mass_kg, 2 * md.zeta * md.wn * md.mass_kg, md.k_n_per_m) for md in self.modes]
         g = self.kf * depth_m
 
-        def f_df(s: complex) -> tuple[complex, complex]:
+        def f_df(s: complex) -> tuple[complex, complex, float]:
+            """F, F' and the size of F's regenerative term (F's own scale near a pole)."""
             den = [mm * s * s + c * s + k for _, mm, c, k in m]
             phi = sum(u / d for (u, *_), d in zip(m, den))
             dphi = -sum(u * (2 * mm * s + c) / d**2 for (u, mm, c, _), d in zip(m, den))
             e = cmath.exp(-s * T)
-            return 1 + g * (1 - e) * phi, g * (T * e * phi + (1 - e) * dphi)
+            loop = g * (1 - e) * phi
+            return 1 + loop, g * (T * e * phi + (1 - e) * dphi), abs(loop)
 
         best: complex | None = None
-        step = rpm / 60.0 / 3.0
         for md in self.modes:
-            for f0 in np.arange(0.7 * md.fn_hz, 1.5 * md.fn_hz, min(step, 0.02 * md.fn_hz)):
-                s = complex(-md.zeta * md.wn, 2 * math.pi * f0)
+            # a third of the spindle frequency apart, but at most 400 starts a mode (slow spindles)
+            step = min(max(rpm / 60.0 / 3.0, 0.002 * md.fn_hz), 0.02 * md.fn_hz)
+            # and the mode's pole moved by a shallow cut (first order: Phi ~ R / (s - p)), where
+            # a grid start would fall outside Newton's narrow basin
+            wd = md.wn * math.sqrt(1 - md.zeta**2)
+            p = complex(-md.zeta * md.wn, wd)
+            near = ([p - g * (1 - cmath.exp(-p * T)) * md.u / (md.mass_kg * 2j * wd)]
+                    if -p.real * T < 600 else [])
+            # a slow spindle's roots crowd the axis (within a few 1/T): start there, not at the pole's
+            sigma0 = -min(md.zeta * md.wn, 3.0 / T)
+            for s in [*near, *(complex(sigma0, 2 * math.pi * f0)
+                              for f0 in np.arange(0.7 * md.fn_hz, 1.5 * md.fn_hz, step))]:
                 for _ in range(50):
-                    # a step far into either half-plane is no root we want (exp(-sT) overflows)
-                    if not (abs(s.real) * T < 50 and abs(s.real) < 10 * md.wn):
+                    # far into the left half-plane exp(-sT) overflows: no root we want there
+                    if not (-s.real * T < 600 and abs(s.real) < 10 * md.wn):
                         s = complex(math.nan, 0.0)
                         break
-                    f, df = f_df(s)
+                    f, df, _ = f_df(s)
                     if df == 0:
                         break
                     ds = f / df
                     s -= ds
                     if abs(ds) < 1e-9 * abs(s):
                         break
-                if s.imag > 0 and abs(f_df(s)[0]) < 1e-6 and (best is None or s.real > best.real):
+                if not s.imag > 0 or not -s.real * T < 600:
+                    continue
+                f, _, scale = f_df(s)
+                if abs(f) < 1e-6 * (1 + scale) and (best is None or s.real > best.real):
                     best = s
         if best is None:
             raise ArithmeticError(f"no characteristic root found at {rpm:g} r/min, {depth_m * 1e3:g} mm")

@@ -10,6 +10,7 @@ from lathed.cli import EX_CANTCREAT, mode, positive, spindle_rpm
 
 # JSON stays readable: each lobe is thinned to at most this many points.
 MAX_POINTS_PER_LOBE = 400
+MAX_DEPTH_MM = 100.0   # --depth: beyond it the number is a typo, not a cut
 
 
 def _range(text: str) -> tuple[float, float]:
@@ -20,6 +21,13 @@ def _range(text: str) -> tuple[float, float]:
     if not lo < hi:
         raise argparse.ArgumentTypeError(f"range {text!r}: MIN must be below MAX")
     return lo, hi
+
+
+def _depth(text: str) -> float:
+    d = positive(text)
+    if d > MAX_DEPTH_MM:
+        raise argparse.ArgumentTypeError(f"depth {text} mm: a turning cut is at most {MAX_DEPTH_MM:g} mm deep")
+    return d
 
 
 def register_analyze(sub) -> None:
@@ -33,7 +41,7 @@ def register_analyze(sub) -> None:
     p.add_argument("--kf", type=positive, required=True, metavar="N_PER_M2",
                    help="cutting-force coefficient along the chip-thickness direction")
     p.add_argument("--rpm", type=spindle_rpm, help="also report the limiting depth at this speed")
-    p.add_argument("--depth", type=positive, metavar="MM",
+    p.add_argument("--depth", type=_depth, metavar="MM",
                    help="with --rpm: how fast chatter grows (or a disturbance dies out) at this depth of cut")
     p.add_argument("--range", dest="rpm_range", type=_range, default=(500.0, 6000.0),
                    metavar="MIN:MAX", help="spindle speed range in r/min (default 500:6000)")
@@ -78,7 +86,12 @@ def run(args) -> int:
         out["b_lim_mm_at_rpm"] = _mm(b[0])
         out["chatter_frequency_hz_at_rpm"] = None if np.isnan(fc[0]) else round(float(fc[0]), 3)
     if args.depth is not None:
-        sigma, f_root = lobes.growth(args.rpm, args.depth * 1e-3)
+        try:
+            sigma, f_root = lobes.growth(args.rpm, args.depth * 1e-3)
+        except ArithmeticError as e:
+            print(f"lathectl: {e}: the spindle is too slow for the model to say how fast chatter grows "
+                  f"(--rpm/--depth)", file=sys.stderr)
+            return 65
         out["growth_at_depth"] = {"depth_mm": args.depth, "sigma_per_s": round(sigma, 4),
                                   "per_rev": round(math.exp(sigma * 60.0 / args.rpm), 5),
                                   "frequency_hz": round(f_root, 3)}
