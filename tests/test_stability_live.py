@@ -62,7 +62,7 @@ def test_the_refit_names_the_shifted_mode_and_suppression_uses_it(shifted, tmp_p
     assert chattered and all(r["first_alarm_s"] > 0 and r["chatter_frequency_hz"] > 0 for r in chattered)
     assert any(r["actions"] for r in chattered)
     text = d.ctl("cuts", "--machine", "lathe").stdout
-    assert "T0101/C45 depth 3 mm (register)" in text and "r/min" in text
+    assert "T0101/C45 tool 1 depth 3 mm (register)" in text and "r/min" in text
     assert d.ctl("cuts", "--machine", "mill").stdout.strip() == "(no cuts)"
 
     # the export is what `lathectl analyze stability` reads
