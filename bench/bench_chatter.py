@@ -402,7 +402,7 @@ def main(argv=None) -> int:
                          "meets_targets": ok, "worn_flank": [(n, d) for n, d in cases if "worn flank" in n]}
         default = name == DEFAULT_DETECTOR and not params and not use_ref
         rows.append(f"| {label}{' (default)' if default else ''} | {fa} | {miss} "
-                    f"| {med:.1f} | {worst:.1f} | {tp:.0f}x | {'yes' if ok else 'no'} |")
+                    f"| {med:.3f} | {worst:.1f} | {tp:.0f}x | {'yes' if ok else 'no'} |")
 
     print(f"Seeds {args.seed_base}+i{', stationary stable cutting (--no-wander)' if args.no_wander else ''}. Corpus: {n_st} stable, {n_tr} trap, {n_ch} chatter cuts "
           f"({len(recs)} total, {sum(r.duration_s for r, _ in recs):.0f} s of 51.2 kS/s signal; "

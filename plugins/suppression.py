@@ -237,7 +237,7 @@ class SuppressionAnalyzer(Analyzer):
             return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
                                grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
         limits = reach(self.limits, self.rpm, self.max_speed_ratio)
-        rated = RatedSpeed(self.rated_rpm, self.lobes, cut)
+        rated = RatedSpeed(self.rated_rpm, self.lobes, cut, limits=limits)
         strategy = {"frequency": lambda: FrequencySelection(limits, cut),
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()

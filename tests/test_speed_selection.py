@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
-from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed,
+from lathed.analysis.speed_selection import (Cut, Decision, FrequencySelection, LobeSelection, RatedSpeed, reach,
                                              SpindleLimits, SuppressionPolicy, VariationSelection)
 from lathed.analysis.speed_variation import SpeedVariation
 
@@ -94,6 +94,17 @@ def test_policy_acts_on_alarm_then_holds_for_ramp_and_settling():
     assert p.observe(hold - 1e-3, 5000, alarm=True, chatter_frequency_hz=250) is None
     d2 = p.observe(hold + 1e-3, 5000, alarm=True, chatter_frequency_hz=250)
     assert d2 is not None and d2.rpm_after < 5000
+
+
+def test_a_rated_speed_beyond_the_speed_cap_or_the_spindle_s_torque_is_not_commanded():
+    """The fallback's speed is the operator's number (rated_rpm): the policy holds it to the
+    envelope as it does every strategy's, and the spindle must have the torque there."""
+    capped = reach(LIMITS, 1500.0, 1.3)                       # at most 1950 r/min
+    p = SuppressionPolicy(FrequencySelection(capped), capped, fallback=RatedSpeed(3000))
+    assert p.observe(0.0, 1500, alarm=True, chatter_frequency_hz=None) is None and p.exhausted
+    heavy = _cut(3e-3, kt=2.2e9)                # 30 N m: 36 available at 750 r/min, 18 at 3000
+    assert RatedSpeed(3000, LOBES, heavy, limits=LIMITS).select(2500, 260.0) is None
+    assert RatedSpeed(750, LOBES, heavy, limits=LIMITS).select(2500, 260.0) is not None
 
 
 def test_policy_needs_consecutive_alarms_when_confirm_is_set():
@@ -229,16 +240,19 @@ def test_policy_moves_as_before_when_a_speed_within_reach_is_above_the_depth():
         assert d_hold == d_move and d_hold.expected_stable is stable and d_hold.rpm_after <= 2600.0
 
 
-def test_policy_holding_still_takes_a_fallback_the_model_calls_stable():
+def test_holding_does_not_take_a_rated_speed_above_the_speed_cap():
+    """Every speed within reach chatters; a rated speed above the reach would not, but the
+    cap (max_speed_ratio x the programmed speed, for the tool's life) holds for the paper's
+    rule too: the speed is held with advice."""
+    from lathed.analysis.speed_selection import Advice
     n, b, worst, reach = _grid()
-    # every speed within reach chatters; the rated speed, above the reach, does not
     depth = 1.1 * float(b[reach].max())
     above = np.linspace(2700, 6000, 500)
     b_above = LOBES.b_lim_at(above)[0]
     rated = float(above[np.argmax(b_above)])
     assert float(b_above.max()) > depth
     d = _reach_policy(depth, "hold", rated=rated).observe(0.0, 2000.0, True, 260.0)
-    assert d.strategy == "rated_speed" and d.rpm_after == rated and d.expected_stable is True
+    assert isinstance(d, Advice)
 
 
 def test_when_no_stable_speed_must_be_hold_or_move():

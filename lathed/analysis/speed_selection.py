@@ -250,9 +250,12 @@ class RatedSpeed:
     lobes: StabilityLobes | None = None
     cut: Cut | None = None
     name: str = "rated_speed"
+    limits: SpindleLimits | None = None   # with the cut: no rated speed the spindle cannot drive it at
 
     def select(self, rpm_now, chatter_frequency_hz, avoid=()):
         if not _allowed(np.array([self.rated_rpm]), avoid)[0]:
+            return None
+        if self.cut is not None and self.limits is not None and not self.cut.drivable(self.rated_rpm, self.limits):
             return None
         b_mm = stable = None
         if self.lobes is not None:
@@ -340,10 +343,13 @@ class SuppressionPolicy:
         return self._hold_until_s
 
     def _admissible(self, d: Decision | None) -> Decision | None:
-        # enforced here, not trusted to the strategy: a banned target is refused
+        # enforced here, not trusted to the strategy: a banned target, or one outside the
+        # envelope (the speed cap; a rated_rpm configured beyond it), is refused
         if d is None or d.variation is not None:
             return d
         if not _allowed(np.array([d.rpm_after]), self.banned)[0]:
+            return None
+        if not self.limits.min_rpm <= d.rpm_after <= self.limits.max_rpm:
             return None
         return d
 
@@ -352,7 +358,6 @@ class SuppressionPolicy:
         under the same rules: within the envelope, never a banned speed, within the budget,
         then the speed left is banned and the hold begins.  None when it is not admissible."""
         if (t_s < self._hold_until_s or self.exhausted or len(self.changes) >= self.max_changes
-                or not self.limits.min_rpm <= decision.rpm_after <= self.limits.max_rpm
                 or self._admissible(decision) is None):
             return None
         self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
@@ -423,5 +428,5 @@ def lobe_policy(lobes: StabilityLobes, cut: Cut, limits: SpindleLimits, rpm_prog
     within reach, the rated speed as the fallback (the benchmark's closed loop runs this too)."""
     within = reach(limits, rpm_programmed, max_speed_ratio)
     return SuppressionPolicy(LobeSelection(lobes, cut, within, grid=grid), within,
-                             fallback=RatedSpeed(rated_rpm, lobes, cut), settle_revs=settle_revs,
+                             fallback=RatedSpeed(rated_rpm, lobes, cut, limits=within), settle_revs=settle_revs,
                              when_no_stable_speed=when_no_stable_speed)
