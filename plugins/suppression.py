@@ -170,6 +170,10 @@ class SuppressionAnalyzer(Analyzer):
                                             self.limits.accel_rpm_per_s)
         except ValueError as e:
             raise section.error("ssv", str(e)) from None
+        if self.strategy_name == "variation" and self.variation.amplitude_ratio > self.max_speed_ratio - 1:
+            # its swing would pass the speed cap at every alarm: refused there, so refuse it here
+            raise section.error("ssv_amplitude", f"{self.variation.amplitude_ratio:g} swings the speed above "
+                                f"max_speed_ratio = {self.max_speed_ratio:g} x the programmed speed")
         if self.strategy_name == "lobes" and not modes:
             raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
         if self.avoid and self.strategy_name != "lobes":

@@ -107,6 +107,15 @@ def test_a_rated_speed_beyond_the_speed_cap_or_the_spindle_s_torque_is_not_comma
     assert RatedSpeed(750, LOBES, heavy, limits=LIMITS).select(2500, 260.0) is not None
 
 
+def test_a_speed_variation_swinging_outside_the_envelope_is_not_started():
+    sv = SpeedVariation("sine", 0.2, 1.0, 1e6)
+    capped = reach(LIMITS, 1500.0, 1.1)                       # at most 1650 r/min: 1800 would pass it
+    p = SuppressionPolicy(VariationSelection(sv), capped)
+    assert p.observe(0.0, 1500, alarm=True) is None and p.exhausted
+    d = SuppressionPolicy(VariationSelection(sv), reach(LIMITS, 1500.0, 1.3)).observe(0.0, 1500, alarm=True)
+    assert d is not None and d.variation is sv
+
+
 def test_policy_needs_consecutive_alarms_when_confirm_is_set():
     p = _policy(confirm=3)
     for t, alarm in enumerate([True, True, False, True, True]):

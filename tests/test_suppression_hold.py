@@ -136,6 +136,13 @@ def test_when_no_stable_speed_is_checked(make):
         make(when_no_stable_speed="stay")
 
 
+def test_a_speed_variation_that_would_swing_past_the_speed_cap_is_a_config_error(make):
+    with pytest.raises(ConfigError, match=r"^t.toml: \[analyzer.suppress\] ssv_amplitude: 0.4 swings the speed "
+                       r"above max_speed_ratio = 1.3 x the programmed speed$"):
+        make(strategy="variation", ssv_amplitude=0.4)
+    make(strategy="variation", ssv_amplitude=0.3)
+
+
 # -- in the running daemon -----------------------------------------------------------------
 
 def test_the_running_daemon_holds_and_shows_the_advice(tmp_path):

@@ -345,8 +345,12 @@ class SuppressionPolicy:
     def _admissible(self, d: Decision | None) -> Decision | None:
         # enforced here, not trusted to the strategy: a banned target, or one outside the
         # envelope (the speed cap; a rated_rpm configured beyond it), is refused
-        if d is None or d.variation is not None:
+        if d is None:
             return d
+        if d.variation is not None:     # the modulation's whole swing
+            a = d.variation.achieved_amplitude_ratio(d.rpm_before)
+            ok = self.limits.min_rpm <= d.rpm_before * (1 - a) and d.rpm_before * (1 + a) <= self.limits.max_rpm
+            return d if ok else None
         if not _allowed(np.array([d.rpm_after]), self.banned)[0]:
             return None
         if not self.limits.min_rpm <= d.rpm_after <= self.limits.max_rpm:
