@@ -193,6 +193,7 @@ class SuppressionAnalyzer(Analyzer):
         self.memory = CureMemory(self.tool, self.material)
         self._memory_loaded = False
         self._recalled = False                 # the pass in the cut has been given its cure
+        self._told_exhausted: SuppressionPolicy | None = None   # the cut's policy said it had no speed left
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
@@ -616,8 +617,23 @@ class SuppressionAnalyzer(Analyzer):
         d = self.policy.observe(time.monotonic(), self.rpm, alarm, self.chat["frequency"] if alarm else None,
                                 self.chat["index"], self.chat["threshold"])
         if d is None:
+            p = self.policy
+            if (alarm and p.exhausted and self._told_exhausted is not p and p.advice is None
+                    and not any(c.variation is not None for c in p.changes)):   # advised, or modulating
+                self._exhausted()
             return
         await self._decided(d, "alarm")
+
+    def _exhausted(self) -> None:
+        """Chatter goes on and suppression has no speed left to try in this cut: said once."""
+        p = self._told_exhausted = self.policy
+        why = (f"{len(p.changes)} speed changes in this cut, the most it makes ({p.max_changes} chosen, "
+               f"then the rated speed)" if len(p.changes) >= p.max_changes else
+               f"no speed within {p.limits.min_rpm:.0f}-{p.limits.max_rpm:.0f} r/min that the strategy or "
+               f"the rated speed would take (left or banned, beyond the speed cap or the spindle's torque)")
+        self.ctx.record("suppression_exhausted", {"machine": self.machine, "rpm": self.rpm, "reason": why,
+                                                  "changes": len(p.changes)})
+        self.ctx.log.warning("suppression_exhausted", machine=self.machine, rpm=self.rpm, reason=why)
 
     async def _act(self, d: Decision, by: str | None = None, trigger: str = "alarm") -> dict:
         source = by or self.name

@@ -101,6 +101,20 @@ def test_move_keeps_the_old_behaviour(make):
     assert h.events("suppression_action")[0]["expected_stable"] is False
 
 
+def test_chatter_suppression_cannot_cure_is_said_once_with_the_reason(make):
+    # the paper's rule with a rated speed above the speed cap (2500 x 1.3): nothing to send
+    h = make(strategy="rated", rated_rpm=4000.0)
+    asyncio.run(_cut(h.an, 2.2, alarms=4))
+    assert h.sent == []
+    (ex,) = h.events("suppression_exhausted")
+    assert ex["rpm"] == 2500.0 and ex["changes"] == 0
+    assert ex["reason"].startswith("no speed within 100-3250 r/min that the strategy or the rated speed would take")
+    # held with advice: the advice is what it says, not this
+    h = make()
+    asyncio.run(_cut(h.an, 2.2, alarms=4))
+    assert h.events("suppression_advice") and h.events("suppression_exhausted") == []
+
+
 def test_manual_mode_records_the_advice_and_suppress_now_says_the_speed_is_held(make):
     h = make(mode="manual")
 
