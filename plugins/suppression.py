@@ -115,7 +115,7 @@ from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
                                              LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
                                              VariationSelection, lobe_grid, lobe_policy, reach)
-from lathed.analysis.speed_variation import KINDS, SpeedVariation
+from lathed.analysis.speed_variation import KINDS, SpeedVariation, ramp_time_s
 from lathed.analysis.stability_refit import StabilityModel, refit
 from lathed.analyzer import Analyzer
 from lathed.args import Args
@@ -134,6 +134,8 @@ STRATEGIES = ("lobes", "frequency", "rated", "variation")
 SSV_STEP_S = 0.05     # speed commands while modulating
 MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
 MEMORY_RECORDS = 5000     # cut records the remembered cures are rebuilt from at start: the newest
+FOLLOW_SLACK_S = 1.0      # a commanded speed not reached within the ramp and this: the CNC did not follow
+FOLLOW_BAND = 0.02        # ... to within this share of it
 
 
 class SuppressionAnalyzer(Analyzer):
@@ -194,6 +196,8 @@ class SuppressionAnalyzer(Analyzer):
         self._memory_loaded = False
         self._recalled = False                 # the pass in the cut has been given its cure
         self._told_exhausted: SuppressionPolicy | None = None   # the cut's policy said it had no speed left
+        self._follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
+        self._follow_told = False              # ... and the cut's spindle was said not to follow
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
@@ -285,6 +289,8 @@ class SuppressionAnalyzer(Analyzer):
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
             self.cut.speed(s.t, s.value)
+            if self._follow is not None:
+                self._followed(s.value, s.t)
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
             self.cut.feed_mm_rev = s.value
@@ -361,6 +367,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.remember and self.in_cut:
             await self._recall()
         if was and not self.in_cut:
+            self._follow, self._follow_told = None, False    # the program sets the next pass's speed
             self._cut_ended(time.time() if t is None else t)
             if self.depth_from == "spindle load":
                 self.depth_mm = 0.0
@@ -624,6 +631,20 @@ class SuppressionAnalyzer(Analyzer):
             return
         await self._decided(d, "alarm")
 
+    def _followed(self, rpm: float, t: float) -> None:
+        """Did the spindle reach the speed sent?  A write the control accepted but does not obey
+        (an override or speed clamp on the control, a program that sets S again) is said once a cut:
+        suppression's evidence assumes the new speed."""
+        target, sent_t, by = self._follow
+        if abs(rpm - target) <= FOLLOW_BAND * target:
+            self._follow = None
+        elif t > by:
+            self._follow, self._follow_told = None, True
+            self.ctx.record("spindle_not_following", {"machine": self.machine, "sent_rpm": round(target, 1),
+                                                      "rpm": rpm, "after_s": round(t - sent_t, 2)})
+            self.ctx.log.warning("spindle_not_following", machine=self.machine, sent_rpm=round(target, 1),
+                                 rpm=rpm, after_s=round(t - sent_t, 2))
+
     def _exhausted(self) -> None:
         """Chatter goes on and suppression has no speed left to try in this cut: said once."""
         p = self._told_exhausted = self.policy
@@ -651,6 +672,10 @@ class SuppressionAnalyzer(Analyzer):
                 # refused by the guard: never ask for that speed again this part
                 band = self.policy.ban_band
                 self.policy.banned.append((d.rpm_after * (1 - band), d.rpm_after * (1 + band)))
+            if result["sent"] and self.rpm is not None and not self._follow_told:
+                now = time.time()
+                self._follow = (float(d.rpm_after), now, now + FOLLOW_SLACK_S
+                                + ramp_time_s(self.rpm, d.rpm_after, self.limits.accel_rpm_per_s))
             if result["sent"] and self.alarm_wall_t is not None and trigger == "alarm":
                 # from the first alarm window's sample time to the write's return
                 self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))

@@ -115,6 +115,23 @@ def test_chatter_suppression_cannot_cure_is_said_once_with_the_reason(make):
     assert h.events("suppression_advice") and h.events("suppression_exhausted") == []
 
 
+def test_a_speed_the_spindle_does_not_reach_is_said_once(make):
+    """The control accepted the write but the spindle stays (an override or clamp on the
+    control): suppression's later decisions assume the new speed, so the operator is told."""
+    h = make(when_no_stable_speed="move")
+    asyncio.run(_cut(h.an, 1.3, alarms=5))               # the harness's spindle never moves
+    (nf,) = h.events("spindle_not_following")
+    assert nf["sent_rpm"] == pytest.approx(h.sent[0].value, abs=0.1) and nf["rpm"] == 2500.0
+    assert nf["after_s"] > 1.0
+    h = make(when_no_stable_speed="move")
+
+    async def follows():
+        await _cut(h.an, 1.3, alarms=1, leave=False)
+        await h.an._on_machine(Sample("lathe", "spindle_rpm", h.sent[0].value, "r/min", time.time() + 5))
+    asyncio.run(follows())
+    assert h.sent and h.events("spindle_not_following") == []
+
+
 def test_manual_mode_records_the_advice_and_suppress_now_says_the_speed_is_held(make):
     h = make(mode="manual")
 
