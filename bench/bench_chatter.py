@@ -91,7 +91,14 @@ def corpus(duration: float = 3.0):
          [S(d / 2, 2000, 1.0), S(d / 2, 2000, 2.5)], {"flat_fraction": 0.10}),
         ("chatter with runout 40 um 1000 r/min 1->2.2 mm", "chatter",
          [S(d / 2, 1000, 1.0), S(d / 2, 1000, 2.2)], {"runout_um": 40.0}),
-    ] + mild_cases(d) + worn_flank_cases(d)
+    ] + mild_cases(d) + worn_flank_cases(d) + [
+        # constant surface speed (G96): the speed follows the diameter (last, so the cases
+        # above keep their seeds)
+        ("trap constant surface speed 1000->2000 r/min", "trap",
+         [S(d / 3, 1000, 1.0), S(2 * d / 3, 2000, 1.0, 2 * d / 3)], {}),
+        ("chatter under constant surface speed 1500->1800 r/min 1->2.6 mm", "chatter",
+         [S(d / 3, 1500, 1.0), S(2 * d / 3, 1800, 2.6, 2 * d / 3)], {}),
+    ]
 
 
 def _b_lim_mm(rpm: float) -> float:

@@ -402,3 +402,33 @@ def test_every_detector_draws_the_chaos_eye(name):
                 (p1, p2), base = det.eye_views()
                 sizes[t] = eye_radius(p1, p2) / eye_radius(*base)
     assert sizes[0.5] < 2.0 and sizes[1.35] > 20.0, sizes
+
+
+def test_chatter_under_constant_surface_speed_is_caught():
+    """G96: the speed follows the diameter, a slow drift (here 0.2-0.3 % a revolution), not
+    a drive's ramp: the windows are judged, and chatter growing in them is caught (it was
+    waited out as a speed change, and never alarmed)."""
+    rec = simulate_cut([Segment(1.0, 1500, 1.0), Segment(2.0, 1800, 2.6, 2.0)], seed=1)
+    assert rec.label == "chatter"
+    wins = _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal, rec.rpm)
+    first = next(w.t_s for w in wins if w.alarm)
+    assert rec.unstable_at_s < first < rec.visible_at_s + 5 * 60 / 1800
+
+
+@pytest.mark.parametrize("n0, n1", [(1000.0, 2000.0), (2000.0, 1200.0), (3000.0, 4000.0)])   # 0.3-2 % a rev
+def test_a_stable_cut_under_constant_surface_speed_does_not_alarm(n0, n1):
+    rec = simulate_cut([Segment(1.0, n0, 1.0), Segment(3.0, n1, 1.0, 3.0)], seed=11)
+    assert rec.label == "stable"
+    wins = _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal, rec.rpm)
+    assert not any(w.alarm for w in wins) and sum(w.judged for w in wins) > 0.6 * len(wins)
+
+
+@pytest.mark.parametrize("block", [64, 512])
+def test_a_drive_ramp_is_waited_out_whatever_the_block_size(block):
+    """A speed change at the drive's acceleration (2000 r/min/s: 3-4 % a revolution) is
+    waited out over the ramp and settle_revs after it, with blocks of any size (a speed
+    compared block to block moved by less than the old 0.2 % gate in small blocks)."""
+    rec = simulate_cut([Segment(1.5, 2000, 1.2), Segment(1.5, 2600, 1.2, 0.3)], seed=5)
+    wins = _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal, rec.rpm, block=block)
+    during = [w for w in wins if 1.5 + 0.5 * 60 / 2000 <= w.t_s <= 1.8 + 60 / 2600]
+    assert during and not any(w.judged for w in during)

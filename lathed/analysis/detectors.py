@@ -13,9 +13,11 @@ from a reference recording (``learn_reference``), and reports
 which does not depend on the signal's gain.  The alarm turns on after
 ``on_windows`` consecutive windows above ``threshold`` and off after
 ``off_windows`` consecutive windows below ``off_ratio * threshold``
-(hysteresis).  While the speed is changing and for ``settle_revs``
-revolutions after, no alarm is raised (the revolution-to-revolution
-comparison is not meaningful across a ramp).  Nor does a window count whose
+(hysteresis).  While the speed ramps (by more than ``ramp_per_rev`` over a
+revolution: a drive's acceleration) and for ``settle_revs`` revolutions
+after, no alarm is raised (the revolution-to-revolution comparison is not
+meaningful across a ramp); a slower drift, such as constant surface speed
+(G96) following the diameter, is followed in angle and judged.  Nor does a window count whose
 level (median |x|) steps by more than ``jump_ratio`` against the revolution
 before, nor the falling ring after such a step: that is the tool entering or
 leaving the work, where regenerative chatter grows over several revolutions.
@@ -96,6 +98,9 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
     "off_windows": (4, 1, 1000, "consecutive windows below off_ratio*threshold to clear it"),
     "off_ratio": (0.7, 0.1, 1.0, "hysteresis: clear level as a fraction of threshold"),
     "settle_revs": (2.0, 0.0, 50.0, "no new alarm this many revolutions after a speed change"),
+    "ramp_per_rev": (0.01, 0.0, 1.0, "a speed change counts (settle_revs) when the speed moved by more than this "
+                     "share over the last revolution: a drive's ramp (2-8 % a revolution), not a slow drift "
+                     "such as constant surface speed (G96), under which chatter is still judged"),
     "cusum_ratio": (0.0, 0.0, 100.0, "0: off; else a cumulative sum of log(index / cusum_ratio) "
                     "also raises the alarm past on_windows x log(threshold / cusum_ratio): a "
                     "sustained rise below the threshold adds up (1 < cusum_ratio < threshold)"),
@@ -179,6 +184,7 @@ class RevolutionDetector:
         self._rpm: float | None = None
         self._since_idx = 0
         self._settle_until = 0
+        self._speeds: deque[tuple[int, float]] = deque()   # (sample since reset, r/min) of recent blocks
         self._step_until = 0        # no alarm counted before this sample (a level step)
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
         self._learn: list[float] = []
@@ -284,9 +290,9 @@ class RevolutionDetector:
             raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
         x = np.asarray(block, dtype=float).ravel()
         spr = self.rate * 60.0 / rpm
-        if self._rpm is not None and abs(rpm - self._rpm) > 0.002 * self._rpm:
-            # the block is at the new speed from its first sample
-            self._settle_until = self._total + int(self.params["settle_revs"] * spr)
+        if self._ramping(rpm, spr):
+            # the speed may change all through the block: settle_revs from its end
+            self._settle_until = self._total + len(x) + int(self.params["settle_revs"] * spr)
         if self._rpm is None or rpm != self._rpm:
             self._since_idx = self._n   # buffer index of the first sample at this speed
         self._rpm = rpm
@@ -316,6 +322,17 @@ class RevolutionDetector:
             out.append(self._window(start, end, rpm))
             self._next_end += hop
         return out
+
+    def _ramping(self, rpm: float, spr: float) -> bool:
+        """The speed moved by more than ramp_per_rev over the last revolution (blocks of any
+        size, a polled speed that steps every 100 ms): a ramp, whose forced response differs
+        between revolutions; a slower drift (constant surface speed) is followed, not waited out."""
+        q, now = self._speeds, self._total
+        q.append((now, rpm))
+        while len(q) > 1 and q[1][0] <= now - spr:
+            q.popleft()                 # keep the newest block at least a revolution old
+        revs = max((now - q[0][0]) / spr, 1.0)    # blocks longer than a revolution: per revolution
+        return abs(rpm - q[0][1]) > self.params["ramp_per_rev"] * rpm * revs
 
     @property
     def min_rpm(self) -> float:
