@@ -640,6 +640,9 @@ class SuppressionAnalyzer(Analyzer):
             self._follow = None
         elif t > by:
             self._follow, self._follow_told = None, True
+            if self.policy is not None:     # not asked for again this cut (a clamp on the control)
+                band = self.policy.ban_band
+                self.policy.banned.append((target * (1 - band), target * (1 + band)))
             self.ctx.record("spindle_not_following", {"machine": self.machine, "sent_rpm": round(target, 1),
                                                       "rpm": rpm, "after_s": round(t - sent_t, 2)})
             self.ctx.log.warning("spindle_not_following", machine=self.machine, sent_rpm=round(target, 1),

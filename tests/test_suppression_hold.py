@@ -123,6 +123,9 @@ def test_a_speed_the_spindle_does_not_reach_is_said_once(make):
     (nf,) = h.events("spindle_not_following")
     assert nf["sent_rpm"] == pytest.approx(h.sent[0].value, abs=0.1) and nf["rpm"] == 2500.0
     assert nf["after_s"] > 1.0
+    # once said, the unreached speed is not asked for again: the lobes' next best, then the rule
+    # (without the ban: the same speed at every alarm until the budget is spent)
+    assert len({round(c.value) for c in h.sent}) == 3, [c.value for c in h.sent]
     h = make(when_no_stable_speed="move")
 
     async def follows():
