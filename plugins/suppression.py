@@ -324,17 +324,18 @@ class SuppressionAnalyzer(Analyzer):
             return None
         self.idle_load_pct = load_pct if self.idle_load_pct is None else min(self.idle_load_pct, load_pct)
         torque = (load_pct - self.idle_load_pct) / 100.0 * self.limits.peak_torque_nm
-        b_m = torque / (self.kt * self.feed_mm / 1000 * self.diameter_m / 2)
-        if b_m * 1000 > 0.05 and self.in_cut and abs(b_m * 1000 - self.depth_mm) > 0.1 * self.depth_mm:
-            self.depth_mm = b_m * 1000
+        mm = torque / (self.kt * self.feed_mm / 1000 * self.diameter_m / 2) * 1000
+        if not (mm > 0.05 and self.in_cut):
+            return None
+        if abs(mm - self.depth_mm) > 0.1 * self.depth_mm:
+            self.depth_mm = mm
             self.depth_from = "spindle load"
             self._depth_changed()
-        if (b_m * 1000 > 0.05 and self.in_cut and self.cut.active
-                and (self.cut.depth_from != "spindle load" or b_m * 1000 > self.cut.depth_mm)):
+        if self.cut.active and (self.cut.depth_from != "spindle load" or mm > self.cut.depth_mm):
             # the cut's record (the refit's evidence): the deepest the load showed, over a
             # programmed depth_mm; the tool's entry and exit pass through lower loads
-            self.cut.depth_mm, self.cut.depth_from = round(b_m * 1000, 3), "spindle load"
-        return round(b_m * 1000, 3) if b_m * 1000 > 0.05 and self.in_cut else None
+            self.cut.depth_mm, self.cut.depth_from = round(mm, 3), "spindle load"
+        return round(mm, 3)
 
     def _depth_changed(self) -> None:
         """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the
@@ -640,9 +641,8 @@ class SuppressionAnalyzer(Analyzer):
             self._follow = None
         elif t > by:
             self._follow, self._follow_told = None, True
-            if self.policy is not None:     # not asked for again this cut (a clamp on the control)
-                band = self.policy.ban_band
-                self.policy.banned.append((target * (1 - band), target * (1 + band)))
+            if self.policy is not None:
+                self.policy.ban(target)         # not asked for again this cut (a clamp on the control)
             self.ctx.record("spindle_not_following", {"machine": self.machine, "sent_rpm": round(target, 1),
                                                       "rpm": rpm, "after_s": round(t - sent_t, 2)})
             self.ctx.log.warning("spindle_not_following", machine=self.machine, sent_rpm=round(target, 1),
@@ -651,8 +651,7 @@ class SuppressionAnalyzer(Analyzer):
     def _exhausted(self) -> None:
         """Chatter goes on and suppression has no speed left to try in this cut: said once."""
         p = self._told_exhausted = self.policy
-        why = (f"{len(p.changes)} speed changes in this cut, the most it makes ({p.max_changes} chosen, "
-               f"then the rated speed)" if len(p.changes) >= p.max_changes else
+        why = (f"{len(p.changes)} speed changes in this cut, the most it makes" if len(p.changes) >= p.max_changes else
                f"no speed within {p.limits.min_rpm:.0f}-{p.limits.max_rpm:.0f} r/min that the strategy or "
                f"the rated speed would take (left or banned, beyond the speed cap or the spindle's torque)")
         self.ctx.record("suppression_exhausted", {"machine": self.machine, "rpm": self.rpm, "reason": why,
@@ -672,9 +671,7 @@ class SuppressionAnalyzer(Analyzer):
                                                     reason=f"chatter suppression ({d.strategy})",
                                                     context={"strategy": d.strategy}))
             if not result["sent"] and self.policy is not None:
-                # refused by the guard: never ask for that speed again this part
-                band = self.policy.ban_band
-                self.policy.banned.append((d.rpm_after * (1 - band), d.rpm_after * (1 + band)))
+                self.policy.ban(d.rpm_after)    # refused by the guard: never asked for again this part
             if result["sent"] and self.rpm is not None and not self._follow_told:
                 now = time.time()
                 self._follow = (float(d.rpm_after), now, now + FOLLOW_SLACK_S

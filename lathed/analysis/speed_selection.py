@@ -342,6 +342,10 @@ class SuppressionPolicy:
     def hold_until(self) -> float:
         return self._hold_until_s
 
+    def ban(self, rpm: float) -> None:
+        """No speed within ban_band of ``rpm`` is chosen again for this part."""
+        self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
+
     def _admissible(self, d: Decision | None) -> Decision | None:
         # enforced here, not trusted to the strategy: a banned target, or one outside the
         # envelope (the speed cap; a rated_rpm configured beyond it), is refused
@@ -364,7 +368,7 @@ class SuppressionPolicy:
         if (t_s < self._hold_until_s or self.exhausted or len(self.changes) >= self.max_changes
                 or self._admissible(decision) is None):
             return None
-        self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
+        self.ban(rpm)
         self.changes.append(decision)
         self._hold_until_s = (t_s + ramp_time_s(rpm, decision.rpm_after, self.limits.accel_rpm_per_s)
                               + self.settle_revs * 60 / decision.rpm_after)
@@ -381,7 +385,7 @@ class SuppressionPolicy:
         if self._streak < self.confirm or self.exhausted:
             return None
         self._streak = 0
-        self.banned.append((rpm * (1 - self.ban_band), rpm * (1 + self.ban_band)))
+        self.ban(rpm)
         decision = None
         fallback_left = self.fallback is not None and not any(d.strategy == self.fallback.name
                                                               for d in self.changes)
