@@ -25,6 +25,7 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     ssv_amplitude = 0.1          # variation: amplitude / mean speed
     ssv_period = "500ms"
     tool = "T0101"               # the set-up the modal model is for: recorded with every cut
+    tool_number = 1              # its turret position (the machine's tool_number register); optional
     material = "C45"
     depth_mm = 1.2               # the programmed depth of cut, when the machine reports none
 
@@ -89,6 +90,15 @@ the cut (``depth_from = "spindle load"``; the estimate is also published as
 ``depth_est_mm``, which the parts' records take), else the programmed ``depth_mm``,
 else unknown (null): such cuts are recorded but the refit cannot use them
 (it says how many it left out).
+
+A turret holds tools of other dynamics than the one the tap test measured.
+With ``tool_number`` set and the machine reporting its ``tool_number``
+register, a cut with another tool is not judged by the lobes: no prediction
+at entry (``avoid``), no hold with advice, and a chatter alarm is answered
+model-free (the ``frequency`` strategy, the rated speed as its fallback);
+its actions and cut record say ``model = null``, and the refit leaves it
+out.  Without ``tool_number`` (or without the register) the model is taken
+for every tool, as before.
 
 ``lathectl stability refit`` refits the modal model on this machine's
 recorded cuts (lathed.analysis.stability_refit) and adopts the result only
@@ -181,6 +191,8 @@ class SuppressionAnalyzer(Analyzer):
         if self.avoid and self.strategy_name != "lobes":
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.tool = section.getstr("tool", "")
+        # the turret position the modal model was measured at: other tools' cuts are not its
+        self.tool_number: int | None = section.getint("tool_number", None, minval=0, maxval=9999)
         self.material = section.getstr("material", "")
         self.program_depth_mm = section.getfloat("depth_mm", 0.0, minval=0.0, maxval=50.0) or None
         # the tap test's model; the lobes in use are it or the adopted refit of it
@@ -236,18 +248,25 @@ class SuppressionAnalyzer(Analyzer):
     def _cut(self) -> Cut:
         return Cut(max(self._depth_known_mm() or 0.0, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
 
+    def _model_applies(self) -> bool:
+        """The cut's tool is the one the modal model is for (or nothing says otherwise)."""
+        return self.tool_number is None or self.cut.tool_number in (None, self.tool_number)
+
     def _policy(self) -> SuppressionPolicy:
         cut = self._cut()
-        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut
-        self.policy_model = self.model_name
-        if self.strategy_name == "lobes":
+        # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut;
+        # another turret tool's cut has none (its dynamics are not the tap test's)
+        lobes = self.lobes if self._model_applies() else None
+        self.policy_model = self.model_name if lobes is not None else None
+        if self.strategy_name == "lobes" and lobes is not None:
             # with no depth known the lobes cannot say that every speed chatters: no hold
             hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
             return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
                                grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
         limits = reach(self.limits, self.rpm, self.max_speed_ratio)
-        rated = RatedSpeed(self.rated_rpm, self.lobes, cut, limits=limits)
+        rated = RatedSpeed(self.rated_rpm, lobes, cut, limits=limits)
         strategy = {"frequency": lambda: FrequencySelection(limits, cut),
+                    "lobes": lambda: FrequencySelection(limits, cut),     # model-free for another tool
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
         fallback = None if self.strategy_name in ("rated", "variation") else rated
@@ -348,7 +367,7 @@ class SuppressionAnalyzer(Analyzer):
             strategy = getattr(p, attr)
             if getattr(strategy, "cut", None) is not None:
                 setattr(p, attr, replace(strategy, cut=cut))
-        if self.strategy_name == "lobes":
+        if self.strategy_name == "lobes" and self.policy_model is not None:
             p.when_no_stable_speed = self.when_no_stable_speed
 
     async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
@@ -391,7 +410,7 @@ class SuppressionAnalyzer(Analyzer):
             return
         rec = self.cut.end(t)
         rec["ended"] = ended
-        rec["model"] = self.model_name
+        rec["model"] = self.policy_model if self.policy is not None else self.model_name
         self.cuts_recorded += 1
         self.ctx.record("cut", rec)
         if self.remember:
@@ -445,8 +464,11 @@ class SuppressionAnalyzer(Analyzer):
     def models_dir(self):
         return self.ctx.store.path.parent / "stability-models"
 
-    def _setup_json(self) -> dict:
-        return {"base": self.configured.to_json(), "tool": self.tool or None, "material": self.material or None}
+    def _setup_json(self, include_base: bool = True) -> dict:
+        out = {"tool": self.tool or None, "material": self.material or None}
+        if self.tool_number is not None:
+            out["tool_number"] = self.tool_number
+        return {"base": self.configured.to_json(), **out} if include_base else out
 
     def _load_adopted(self) -> None:
         """The newest adopted model of this machine, if it was refitted from the model and set-up
@@ -486,9 +508,14 @@ class SuppressionAnalyzer(Analyzer):
         """The refit of the model in use on this set-up's recorded cuts (a worker thread)."""
         records = self._cut_records()
         mine = [r for r in records if (r.get("tool"), r.get("material")) == (self.tool or None, self.material or None)]
+        setup = len(mine)
+        if self.tool_number is not None:     # the turret's other tools cut with other dynamics
+            mine = [r for r in mine if r.get("tool_number") in (None, self.tool_number)]
         cuts, skipped = cut_rows(mine)
-        if len(mine) < len(records):
-            skipped["cuts of another tool or material"] = len(records) - len(mine)
+        if setup < len(records):
+            skipped["cuts of another tool or material"] = len(records) - setup
+        if len(mine) < setup:
+            skipped[f"cuts with another turret tool than {self.tool_number}"] = setup - len(mine)
         left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
         if cuts is None:
             raise RequestError(f"stability refit: {len(records)} cut(s) of {self.machine} recorded, none usable "
@@ -502,7 +529,7 @@ class SuppressionAnalyzer(Analyzer):
         except ValueError as e:
             raise RequestError(f"stability refit on {len(cuts)} cut speeds of {self.machine}: {e} "
                                f"(left out: {left_out})") from None
-        out = {"machine": self.machine, "setup": {"tool": self.tool or None, "material": self.material or None},
+        out = {"machine": self.machine, "setup": self._setup_json(include_base=False),
                "model_before_name": self.model_name, "cut_records": len(records), "left_out": skipped,
                **r.to_json(), "adopt": bool(r.effects)}
         out["reason"] = r.conclusion if r.effects else "; ".join([r.conclusion, *r.rejected])
@@ -576,7 +603,8 @@ class SuppressionAnalyzer(Analyzer):
         return w < LobeSelection.margin * depth_mm / 1000, w * 1000
 
     async def _avoid(self) -> None:
-        if self.mode == "off" or self.rpm is None or self.rpm <= 0 or self.grid is None:
+        if (self.mode == "off" or self.rpm is None or self.rpm <= 0 or self.grid is None
+                or self.policy_model is None):     # another turret tool: the lobes are not its
             return
         unstable, b_mm = self.predicted_unstable(self.rpm, self.depth_mm)
         if not unstable:
@@ -785,7 +813,9 @@ class SuppressionAnalyzer(Analyzer):
     def status(self) -> dict:
         lat = sorted(self.latency_ms)
         return {"mode": self.mode, "strategy": self.strategy_name, "machine": self.machine,
-                "model": self.model_name, "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
+                "model": self.model_name, "model_tool_number": self.tool_number,
+                "cut_tool_number": self.cut.tool_number,
+                "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": self.actions, "last_action": self.last_action,
                 "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
@@ -798,6 +828,10 @@ class SuppressionAnalyzer(Analyzer):
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
                            + (f", remembers {len(self.memory.cures)} cure(s)" if self.remember else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
+                           + (f" (tool {self.tool_number})" if self.lobes is not None and self.tool_number is not None
+                              else "")
+                           + (f"; tool {self.cut.tool_number} in the cut has no model: model-free"
+                              if self.lobes is not None and not self._model_applies() else "")
                            + f", {self.actions} action(s)"
                            + (f", {self.advisories} held with advice (no stable speed within reach)"
                               if self.advisories else "")}

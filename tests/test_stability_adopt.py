@@ -59,8 +59,8 @@ class Harness:
         return [json.loads(r["payload"]) for r in
                 self.store.query("SELECT payload FROM events WHERE kind = ? ORDER BY id", (kind,))]
 
-    def add_cuts(self, cuts):
-        """Cut records as the tracker writes them, one speed per cut."""
+    def add_cuts(self, cuts, **extra):
+        """Cut records as the tracker writes them, one speed per cut (``extra``: more keys)."""
         for i in range(len(cuts)):
             ch = bool(cuts.chatter[i])
             f = float(cuts.chatter_frequency_hz[i])
@@ -68,7 +68,7 @@ class Harness:
                 "machine": "lathe", "tool": "T0101", "material": "C45", "depth_mm": float(cuts.depth_mm[i]),
                 "depth_from": "register", "feed_mm_rev": 0.25, "outcome": "chatter" if ch else "stable",
                 "speeds": [{"rpm": float(cuts.rpm[i]), "outcome": "chatter" if ch else "stable", "steady": True,
-                            "chatter_frequency_hz": f if ch and np.isfinite(f) else None}]}).result()
+                            "chatter_frequency_hz": f if ch and np.isfinite(f) else None}], **extra}).result()
 
 
 @pytest.fixture
