@@ -146,6 +146,8 @@ MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
 MEMORY_RECORDS = 5000     # cut records the remembered cures are rebuilt from at start: the newest
 FOLLOW_SLACK_S = 1.0      # a commanded speed not reached within the ramp and this: the CNC did not follow
 FOLLOW_BAND = 0.02        # ... to within this share of it
+SHALLOWER = 0.9           # a cut held with advice that gets this much shallower ...
+SHALLOWER_HELD_S = 0.5    # ... for this long (not the tool's exit, a poll or two) is decided afresh
 
 
 class SuppressionAnalyzer(Analyzer):
@@ -210,6 +212,7 @@ class SuppressionAnalyzer(Analyzer):
         self._told_exhausted: SuppressionPolicy | None = None   # the cut's policy said it had no speed left
         self._follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
         self._follow_told = False              # ... and the cut's spindle was said not to follow
+        self._shallower_since: float | None = None   # the cut held with advice is shallower since
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
@@ -324,8 +327,10 @@ class SuppressionAnalyzer(Analyzer):
             if changed:
                 self._depth_changed()      # the vibration may have seen the chip first
             await self._cut_seen("depth", s.value > 0, s.t)
+            self._shallower(s.t if s.value > 0 else None)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             est = self._depth_from_load(s.value)
+            self._shallower(s.t if est is not None else None)
             if est is not None:
                 # the parts' records take it (lathed.records.PartTracker): a real CNC has no depth register
                 self.ctx.bus.publish(Sample(self.name, "depth_est_mm", est, "mm", s.t))
@@ -370,6 +375,28 @@ class SuppressionAnalyzer(Analyzer):
         if self.strategy_name == "lobes" and self.policy_model is not None:
             p.when_no_stable_speed = self.when_no_stable_speed
 
+    def _shallower(self, t: float | None) -> None:
+        """A cut held with advice (every speed within reach chatters at its depth) that has been
+        SHALLOWER x as deep for SHALLOWER_HELD_S (a profile's shallower part; not the tool's exit,
+        which the spindle load reads shallower for a poll) is decided afresh at its next alarm:
+        a stable speed may be within reach at the new depth.  ``t``: the depth's time (None: no
+        depth now)."""
+        p = self.policy
+        if (t is None or p is None or p.advice is None or not self.in_cut
+                or not 0 < self.depth_mm < SHALLOWER * p.advice.depth_mm):
+            self._shallower_since = None
+            return
+        if self._shallower_since is None:
+            self._shallower_since = t
+        if t - self._shallower_since < SHALLOWER_HELD_S:
+            return
+        a = p.lift_advice()
+        self._shallower_since = None
+        payload = {"machine": self.machine, "rpm": self.rpm, "advice_depth_mm": a.depth_mm,
+                   "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from}
+        self.ctx.log.info("suppression_advice_lifted", **payload)
+        self.ctx.record("suppression_advice_lifted", payload)
+
     async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
         """The machine's depth register or the chatter analyzer's cut state
         (whichever this machine has; the first to see the chip starts the cut)."""
@@ -393,6 +420,7 @@ class SuppressionAnalyzer(Analyzer):
                 self.depth_mm = 0.0
             self._avoided.clear()
             self._recalled = False
+            self._shallower_since = None
             self._stop_ssv()
 
     # -- cut records -----------------------------------------------------------------

@@ -135,6 +135,31 @@ def test_a_speed_the_spindle_does_not_reach_is_said_once(make):
     assert h.sent and h.events("spindle_not_following") == []
 
 
+def test_a_cut_held_with_advice_that_gets_shallower_is_decided_afresh(make):
+    """A profile's shallower part: at 1.3 mm the lobes have a stable speed within reach."""
+    h = make()
+
+    async def shallower(polls, via_load=False):
+        await _cut(h.an, 2.2, alarms=2, leave=False)
+        t = time.time()
+        for k in range(polls):             # the register polled every 100 ms, chatter going on
+            t += 0.1
+            await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.3, "mm", t))
+            await h.an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
+        await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.1))
+    asyncio.run(shallower(8))
+    (adv,) = h.events("suppression_advice")
+    (lifted,) = h.events("suppression_advice_lifted")
+    assert lifted["advice_depth_mm"] == pytest.approx(2.2) and lifted["depth_mm"] == 1.3
+    act = h.events("suppression_action")[0]         # (the harness's spindle never moves: re-sent)
+    assert act["expected_stable"] is True and 1.3 < act["expected_b_lim_mm"] < 2.2    # stable at the new depth
+    assert {c.value for c in h.sent} == {act["rpm_after"]}
+    # the tool's exit: shallower for a poll or two, then out of the cut; no move
+    h = make()
+    asyncio.run(shallower(3))
+    assert h.events("suppression_advice_lifted") == [] and h.sent == []
+
+
 def test_manual_mode_records_the_advice_and_suppress_now_says_the_speed_is_held(make):
     h = make(mode="manual")
 

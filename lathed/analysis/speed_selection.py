@@ -302,7 +302,8 @@ class SuppressionPolicy:
        every speed within reach chatters at this depth (its b_lim below the
        depth, LobeSelection.advise), and the fallback too,
        the speed is kept and ``observe`` returns an Advice, once: the policy
-       is then exhausted for this part.  Where a speed's limit is above the
+       is then exhausted for this part, unless the cut gets shallower
+       (``lift_advice``).  Where a speed's limit is above the
        depth but not by the margin, it still moves there (the margin is for
        model error; such moves cure most such cuts).  "move" takes the most
        stable speed and then the fallback, as the paper's rule would.
@@ -341,6 +342,14 @@ class SuppressionPolicy:
 
     def hold_until(self) -> float:
         return self._hold_until_s
+
+    def lift_advice(self) -> Advice | None:
+        """The cut no longer is what the advice judged (it got shallower): the next alarm is
+        decided afresh, with this part's bans and budget.  Returns the advice lifted."""
+        a = self.advice
+        if a is not None:
+            self.advice, self.exhausted = None, False
+        return a
 
     def ban(self, rpm: float) -> None:
         """No speed within ban_band of ``rpm`` is chosen again for this part."""
