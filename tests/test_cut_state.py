@@ -59,6 +59,17 @@ def test_load_learns_the_spindles_no_chip_load():
     assert det.update(20.0, 2500) is True
 
 
+def test_load_keeps_a_cut_whose_speed_runs_through_new_bands():
+    """Constant surface speed: the spindle runs up from 2016 to 2900 r/min while it cuts,
+    through speed bands whose no-chip load was never seen: the nearest band's stands."""
+    det = LoadCutDetector(margin_pct=5.0)
+    assert det.update(2.0, 2016) is False
+    rpms = np.linspace(2016, 2900, 30)
+    assert all(det.update(load, rpm) for rpm, load in zip(rpms, np.linspace(9.4, 7.5, 30)))
+    assert det.cutting_load(7.5, 2900) == pytest.approx(5.5)
+    assert det.update(2.1, 2900) is False      # the tool out: that band's own no-chip load
+
+
 @pytest.mark.parametrize("q,size", [(0.25, 50), (0.25, 4), (0.5, 7), (0.0, 5), (1.0, 5), (0.3, 1), (0.9, 13)])
 def test_sliding_quantile_is_numpys_quantile_bit_for_bit(q, size):
     rng = np.random.default_rng(7)

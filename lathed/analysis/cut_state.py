@@ -154,8 +154,10 @@ class LoadCutDetector:
     """Cutting while the spindle load is ``margin_pct`` above its no-chip load.
 
     The no-chip load (bearings, seals; it rises with speed) is the lowest load
-    seen at the current speed band while the spindle turns, or ``idle_pct``
-    until one is seen."""
+    seen at the current speed band while the spindle turns; in a band not yet
+    seen, the nearest band's (under constant surface speed the spindle runs
+    through new bands while it cuts, and the cut must not end there), or
+    ``idle_pct`` until one is seen."""
 
     def __init__(self, margin_pct: float = 5.0, idle_pct: float = 5.0) -> None:
         self.margin = float(margin_pct)
@@ -167,15 +169,22 @@ class LoadCutDetector:
     def _band(rpm: float | None) -> int:
         return -1 if not rpm or rpm <= 0 else int(round(math.log(rpm) / math.log(1.1)))
 
+    def _idle_at(self, band: int) -> float:
+        if band in self._idle:
+            return self._idle[band]
+        if not self._idle:
+            return self.idle_default
+        return self._idle[min(self._idle, key=lambda b: (abs(b - band), b))]
+
     def cutting_load(self, load_pct: float, rpm: float | None) -> float | None:
         """The load the chip takes (above the no-chip load at this speed band), or None
         under the margin: a measure of the static cutting force (chatter barely moves it)."""
-        extra = load_pct - self._idle.get(self._band(rpm), self.idle_default)
+        extra = load_pct - self._idle_at(self._band(rpm))
         return extra if extra >= self.margin else None
 
     def update(self, load_pct: float, rpm: float | None) -> bool:
         band = self._band(rpm)
-        idle = self._idle.get(band, self.idle_default)
+        idle = self._idle_at(band)
         if rpm and rpm > 0 and load_pct < idle + self.margin:
             self._idle[band] = min(idle, load_pct) if band in self._idle else min(self.idle_default,
                                                                                   load_pct)
