@@ -44,6 +44,15 @@ def test_machine_and_since_filter_the_cuts(daemon_cuts, capsys):
     assert [line.split()[0] for line in capsys.readouterr().out.splitlines()] == ["4"]
 
 
+def test_a_drifting_speed_is_shown_as_its_range(monkeypatch, capsys):
+    # a face at constant surface speed: one stretch, judged stable, its speed not one speed
+    rows = [record(1, speeds=[{"rpm": 2432.0, "outcome": "stable", "steady": False, "rpm_min": 2016.2,
+                               "rpm_max": 2879.6, "chatter_frequency_hz": None}])]
+    monkeypatch.setattr(cuts_cli, "remote", lambda args, cmd, cmd_args=None: rows)
+    assert lathectl.main(["cuts"]) == 0
+    assert "r/min 2016..2880 (drifting) stable" in capsys.readouterr().out
+
+
 def test_an_unreadable_since_is_one_line(capsys):
     with pytest.raises(SystemExit) as e:
         lathectl.main(["cuts", "--since", "yesterday"])

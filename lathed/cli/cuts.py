@@ -70,7 +70,7 @@ def run_cuts(args) -> int:
     for r in rows:
         p = r["payload"]
         t = time.strftime("%m-%d %H:%M:%S", time.localtime(p.get("start_t") or r["t"]))
-        speeds = " -> ".join(f"{_f(s['rpm'], '.0f')}{'' if s['outcome'] is None else ' ' + s['outcome']}"
+        speeds = " -> ".join(f"{_speed(s)}{'' if s['outcome'] is None else ' ' + s['outcome']}"
                              for s in p.get("speeds") or [])
         alarm = "" if p.get("first_alarm_s") is None else \
             (f", first alarm at {p['first_alarm_s']:.2f} s (rev {_f(p.get('first_alarm_rev'), '.0f')}) "
@@ -86,6 +86,13 @@ def run_cuts(args) -> int:
     if not rows:
         print("(no cuts)")
     return 0
+
+
+def _speed(s: dict) -> str:
+    """A stretch's speed; one that drifted (constant surface speed) as its range."""
+    if s.get("steady") is False and s.get("rpm_min") is not None and s.get("rpm_max") is not None:
+        return f"{s['rpm_min']:.0f}..{s['rpm_max']:.0f} (drifting)"
+    return _f(s.get("rpm"), ".0f")
 
 
 def _analyzer(args) -> str | None:
