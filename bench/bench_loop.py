@@ -3,6 +3,8 @@
 Runs the daemon on the default config (etc/lathed.toml, simulator spawned) in
 a temporary copy of etc/ on free ports, every part cut 3 mm deep (above the
 limit at the program's 1500/2000/2500 r/min), until N cuts have chattered.
+The program's constant-surface-speed face is left out (its speed drifts, and
+the simulator times visible chatter in the entry speed's revolutions).
 Three instants per cut, all on the wall clock of the vibration stream:
 
   visible  the simulator's own verdict (lathed.sim.lathe.VisibleChatter: regen's
@@ -34,6 +36,7 @@ next ones entering at that speed are given the cure (``trigger =
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import socket
@@ -49,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_daemon import BIN, as_unit, config  # noqa: E402
 
 from lathed.client import call  # noqa: E402
+from lathed.sim.lathe import DEFAULT_PROGRAM  # noqa: E402
 
 DEPTH_MM = 3.0
 
@@ -115,7 +119,12 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         cfg = config(tmp)
-        text = cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1)
+        # the program's constant-speed passes: a G96 face's speed drifts, so the simulator does not
+        # time its visible-chatter instant (revolutions counted at the entry speed)
+        passes = [f"{c.rpm:g},{c.depth_mm:g},{c.feed_mm_rev:g},{c.length_mm:g}" for c in DEFAULT_PROGRAM
+                  if not c.css_m_min]
+        text = cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}\n"
+                                       f"program = {json.dumps(passes)}", 1)
         if a.avoid:
             text = text.replace("[analyzer.suppress]", "[analyzer.suppress]\navoid = true", 1)
         # the shipped config remembers cures; detection alone (and avoid alone) is timed without them

@@ -143,3 +143,43 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
         assert events(d, "chatter_alarm") == [], st
     finally:
         d.stop()
+
+
+def test_constant_surface_speed_face_is_judged_live(tmp_path):
+    """A face at constant surface speed (G96): the spindle runs up from 2016 to 2880 r/min as
+    the tool moves in.  The default config (no depth register): the 1.5 mm faces (the default
+    program's) are one cut each, judged stable; the 3 mm ones chatter and are caught while the
+    speed drifts, and suppression moves them."""
+    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
+                            simulator='program = ["3500,1.5,0.1,4.5,css=190", "3500,3.0,0.1,4.5,css=190"]\n'
+                                      'load_s = 0.3\nretract_s = 0.2\n')
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 5, timeout=90, interval=0.3,
+                   what="five faces cut")
+        parts = [p for p in sim_call(paths["sim"], "status", {"parts": 16})["parts"]
+                 if p["cut_end_s"] is not None and p["cut_start_wall"] is not None]
+        alarms = [e["payload"]["sample_t"] for e in events(d, "chatter_alarm")]
+
+        def alarmed(p):
+            c0 = p["cut_start_wall"]
+            return [t for t in alarms if c0 <= t <= c0 + p["cut_end_s"] - p["cut_start_s"] + 0.1]
+        shallow = [p for p in parts if p["depth_mm"] == 1.5]
+        deep = [p for p in parts if p["depth_mm"] == 3.0]
+        assert len(shallow) >= 2 and len(deep) >= 2, parts
+        assert all(p["css_m_min"] == 190.0 and p["rpm"] == pytest.approx(2016, abs=1) for p in parts)
+        assert [alarmed(p) for p in shallow] == [[]] * len(shallow)
+        # one cut record a face, judged over its drifting speed (the cut state held through it)
+        cuts = [e["payload"] for e in events(d, "cut") if e["payload"]["feed_mm_rev"] == 0.1]
+        stable = [c for c in cuts if c["outcome"] == "stable"]
+        assert len(stable) >= len(shallow) - 1 and len(cuts) <= len(shallow) + len(deep) + 1, cuts
+        assert all(not c["speeds"][0]["steady"] and c["speeds"][0]["rpm_max"] > 2500 for c in stable), stable
+        for p in deep:
+            assert alarmed(p), p
+            assert p["speed_writes"], p           # suppression moved the face's spindle
+        assert chatter(d)["windows"] > 100
+    finally:
+        d.stop()

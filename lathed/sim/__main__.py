@@ -37,7 +37,7 @@ from lathed.analysis.process_damping import FlankWear
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
-from lathed.sim.program import MAX_DEPTH_MM, parse_cut
+from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
@@ -322,8 +322,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--mode", action="append", default=[], metavar="FN,ZETA,K[,THETA_DEG]",
                    help="the lathe's true structural modes (repeat; default: the default configuration's model)")
     p.add_argument("--kf", type=float, default=LATHE_KF, help="the true cutting coefficient, N/m^2")
-    p.add_argument("--cut", action="append", default=[], metavar="RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]",
-                   help="the cut program, one part per --cut, repeated in turn (default: the paper's six parts)")
+    p.add_argument("--cut", action="append", default=[], metavar=CUT_FORM,
+                   help="the cut program, one part per --cut, repeated in turn; css=M_MIN: a facing pass at "
+                        "that constant surface speed (G96), RPM its clamp (default: the paper's six parts "
+                        "and a G96 face)")
     p.add_argument("--load-s", type=float, default=LOAD_S, help="seconds to load a part")
     p.add_argument("--retract-s", type=float, default=RETRACT_S, help="seconds to retract and unload")
     args = p.parse_args(argv)

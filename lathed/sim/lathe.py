@@ -40,10 +40,14 @@ IDLE_LOAD_PCT = 2.0           # bearings and seals at speed, no chip
 
 
 # The paper's three speeds; every third part is cut 3 mm deep (the paper's
-# depth, above the stability limit of DEFAULT_MODES), the others 1 mm.
+# depth, above the stability limit of DEFAULT_MODES), the others 1 mm.  Then a
+# face at constant surface speed (G96, 190 m/min: 2016 -> 2880 r/min as the
+# tool moves in from 30 to 21 mm at 0.1 mm/rev, 0.7-1 % a revolution), 1.5 mm
+# deep: stable.
 DEFAULT_PROGRAM = (
     Cut(1500, 1.0), Cut(2000, 1.0), Cut(2500, 3.0),
     Cut(2000, 1.0), Cut(1500, 3.0), Cut(2500, 1.0),
+    Cut(3500, 1.5, 0.1, 4.5, css_m_min=190.0),
 )
 
 
@@ -144,8 +148,9 @@ class PartRecord:
     Times are sim seconds (sample index / rate); the simulator process adds
     the wall-clock times of its vibration stream (``*_wall``)."""
     part: int
-    rpm: float                    # programmed
+    rpm: float                    # programmed (a G96 pass: its speed at entry)
     depth_mm: float
+    css_m_min: float = 0.0        # a G96 pass's surface speed (no visible-chatter instant is timed)
     b_lim_mm: float | None = None     # limiting depth at the speed the cut started at
     cut_start_s: float | None = None
     cut_end_s: float | None = None
@@ -207,7 +212,8 @@ class SimLathe:
         self._new_part()
 
     def _new_part(self) -> None:
-        self.parts.append(PartRecord(self.part_index, self.part.rpm, self.depth_mm))
+        self.parts.append(PartRecord(self.part_index, self.part.program_rpm(0.0), self.depth_mm,
+                                     self.part.css_m_min))
 
     @property
     def record(self) -> PartRecord:
@@ -228,8 +234,20 @@ class SimLathe:
         return self.part.depth_mm if self.depth_override_mm is None else self.depth_override_mm
 
     @property
+    def program_rpm(self) -> float:
+        """The speed the program asks for now (under G96 it follows the tool's diameter)."""
+        return self.part.program_rpm(self.y_mm)
+
+    @property
+    def diameter_mm(self) -> float:
+        """The diameter being cut (a facing pass moves in as it goes)."""
+        return self.part.diameter_at(self.y_mm)
+
+    @property
     def rpm_cmd(self) -> float:
-        return self.part.rpm if self.rpm_override is None else self.rpm_override
+        # a written speed is the pass's speed from then on, G96 or not: this control takes it
+        # as an S word with G97 (the write ends constant surface speed for the part)
+        return self.program_rpm if self.rpm_override is None else self.rpm_override
 
     def write(self, name: str, value: float) -> None:
         """A register written by a client (the daemon)."""
@@ -279,7 +297,7 @@ class SimLathe:
         # the speed these samples are cut at: a vibration frame carries this one, not the
         # speed before the step (one ramp step stale) nor the commanded one
         self.block_rpm = self.rpm
-        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.part.diameter_mm)
+        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.diameter_mm)
         self._load(depth, block)
         self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)
@@ -289,7 +307,7 @@ class SimLathe:
         """Spindle load as a drive reports it: cutting torque (Kt b h r, the chip
         actually removed, so chatter's lost contact shows) over the rated torque."""
         torque = LATHE_KT * depth_mm * 1e-3 * float(np.mean(np.maximum(block.h_m, 0.0))) \
-            * self.part.diameter_mm / 2e3
+            * self.diameter_mm / 2e3
         idle = IDLE_LOAD_PCT if self.rpm > 0 else 0.0
         self.load_pct = idle + 100.0 * torque / LATHE_PEAK_TORQUE_NM
 
@@ -299,8 +317,9 @@ class SimLathe:
         if self.phase == "cut" and was != "cut":
             rec.cut_start_s, rec.depth_mm = i / self.rate_hz, self.depth_mm
             rec.b_lim_mm = float(self.lobes.b_lim_at(max(self.rpm, 60.0))[0][0] * 1e3)
-            # regen's rule counts from the instant the cut is above the limit
-            if self.depth_mm > rec.b_lim_mm:
+            # regen's rule counts from the instant the cut is above the limit; its revolutions
+            # are the entry speed's, so a G96 pass (the speed drifting) is not timed
+            if self.depth_mm > rec.b_lim_mm and not self.part.css_m_min:
                 self.watch.start(i, max(self.rpm, 60.0))
                 self._tracked = rec
         elif was == "cut" and self.phase != "cut":
@@ -321,14 +340,16 @@ class SimLathe:
             trec.waviness_um = [round(r * 1e6, 2) for r in w.revs]
 
     def registers(self) -> dict[str, float]:
-        radius = self.part.diameter_mm / 2
+        radius = self.diameter_mm / 2
         cutting = self.phase == "cut"
         return {
             "spindle_rpm_cmd": self.rpm_cmd,
             "spindle_rpm": self.rpm,
-            "spindle_override_pct": 100.0 * self.rpm_cmd / self.part.rpm,
+            "spindle_override_pct": 100.0 * self.rpm_cmd / self.program_rpm,
             "spindle_load_pct": self.load_pct,
-            "x_mm": (radius - self.depth_mm if cutting else radius + 5.0) + self.offset_x_um / 1000.0,
+            # the tool tip's radius: the turned surface's, or (facing) where the tool is
+            "x_mm": ((radius if self.part.css_m_min else radius - self.depth_mm) if cutting else radius + 5.0)
+            + self.offset_x_um / 1000.0,
             "y_mm": self.y_mm,
             "b_deg": 0.0,
             "part_count": self.part_count,

@@ -5,6 +5,7 @@ check a [simulator] program in its config without importing the simulator.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, override, config)
@@ -12,25 +13,56 @@ MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, overrid
 
 @dataclass(frozen=True)
 class Cut:
-    """One part of the program: a turning pass along the bar."""
+    """One part of the program: a turning pass along the bar at ``rpm`` (G97), or, with
+    ``css_m_min``, a facing pass at constant surface speed (G96): the tool moves in from
+    the bar's diameter by ``length_mm`` (radially), the speed follows the diameter
+    (1000 V / (pi D)) and ``rpm`` is the speed clamp (G50 S)."""
     rpm: float
     depth_mm: float
     feed_mm_rev: float = 0.3
     length_mm: float = 40.0
     diameter_mm: float = 30.0
+    css_m_min: float = 0.0
+
+    def program_rpm(self, travel_mm: float) -> float:
+        """The speed the program asks for with the tool ``travel_mm`` into the pass."""
+        if not self.css_m_min:
+            return self.rpm
+        d = max(self.diameter_mm - 2.0 * min(travel_mm, self.length_mm), 1e-3)
+        return min(self.rpm, 1000.0 * self.css_m_min / (math.pi * d))
+
+    def diameter_at(self, travel_mm: float) -> float:
+        """The diameter the tool cuts at ``travel_mm`` into the pass."""
+        if not self.css_m_min:
+            return self.diameter_mm
+        return self.diameter_mm - 2.0 * min(travel_mm, self.length_mm)
+
+
+FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN]"
 
 
 def parse_cut(text: str) -> Cut:
-    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]``: one part of a cut program."""
+    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN]``: one part of a cut program;
+    with ``css=`` a facing pass at that surface speed (G96), RPM its clamp."""
+    items = [x.strip() for x in text.split(",")]
+    css = 0.0
+    if items and items[-1].startswith("css="):
+        try:
+            css = float(items.pop()[4:])
+        except ValueError:
+            raise ValueError(f"cut {text!r}: css= takes a surface speed in m/min") from None
     try:
-        vals = [float(x) for x in text.split(",")]
+        vals = [float(x) for x in items]
     except ValueError:
-        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]] as numbers") from None
+        raise ValueError(f"cut {text!r}: expected {FORM} as numbers") from None
     if not 2 <= len(vals) <= 4:
-        raise ValueError(f"cut {text!r}: expected RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]]")
-    c = Cut(*vals)
+        raise ValueError(f"cut {text!r}: expected {FORM}")
+    c = Cut(*vals, css_m_min=css)
     if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
-            and 0 < c.length_mm <= 1000):
+            and 0 < c.length_mm <= 1000 and math.isfinite(css)):
         raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "
                          "0..2 mm/rev, 0..1000 mm long")
+    if css and not (10 <= css <= 2000 and c.length_mm < c.diameter_mm / 2):
+        raise ValueError(f"cut {text!r}: a facing pass needs css 10..2000 m/min and a radial length "
+                         f"under the bar's radius ({c.diameter_mm / 2:g} mm)")
     return c
