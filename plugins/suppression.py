@@ -858,7 +858,7 @@ class SuppressionAnalyzer(Analyzer):
                            + (f", model {self.model_name}" if self.lobes is not None else "")
                            + (f" (tool {self.tool_number})" if self.lobes is not None and self.tool_number is not None
                               else "")
-                           + (f"; tool {self.cut.tool_number} in the cut has no model: model-free"
+                           + (f"; tool {self.cut.tool_number} has no model: model-free"
                               if self.lobes is not None and not self._model_applies() else "")
                            + f", {self.actions} action(s)"
                            + (f", {self.advisories} held with advice (no stable speed within reach)"

@@ -51,7 +51,7 @@ def test_another_turret_tool_is_not_held_by_the_models_lobes_but_moved_model_fre
     first, second = h.events("cut")
     assert (first["tool_number"], first["model"]) == (1, "configured")
     assert (second["tool_number"], second["model"]) == (2, None)
-    assert "tool 2 in the cut has no model: model-free" in h.an.status()["summary"]
+    assert "tool 2 has no model: model-free" in h.an.status()["summary"]
     _with_tool(h.an, 1, 2.2)                     # back to the modelled tool: its lobes again
     assert len(h.events("suppression_advice")) == 2 and len(h.sent) == 1
 
