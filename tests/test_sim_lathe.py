@@ -33,3 +33,48 @@ def test_a_block_carries_the_speed_it_was_cut_at():
         speeds.append(lathe.block_rpm)
     assert speeds == cut_at[-10:]
     assert len(set(speeds)) > 5 and speeds[-1] == 2400.0
+
+
+def test_a_face_at_constant_surface_speed_follows_the_diameter():
+    """G96: the speed is 1000 V / (pi D) as the tool moves in, up to the clamp; the spindle
+    load falls with the radius; a written speed is the pass's speed from then on."""
+    import math
+
+    face = Cut(2600, 1.5, 0.1, 4.5, css_m_min=190.0)        # 30 -> 21 mm; 2880 r/min clamped at 2600
+    lathe = SimLathe(program=(face,), load_s=0.2, retract_s=0.2)
+    seen = []
+    while not lathe.parts[0].cut_end_s:
+        lathe.step(1024)
+        if lathe.phase == "cut":
+            d = lathe.diameter_mm
+            seen.append((d, lathe.program_rpm, lathe.rpm, lathe.load_pct, lathe.registers()["x_mm"]))
+    d, prog, rpm, load, x = map(list, zip(*seen))
+    assert d[0] > 29.5 and d[-1] < 21.5 and all(a >= b for a, b in zip(d, d[1:]))
+    assert math.isclose(prog[0], 1000 * 190 / (math.pi * d[0]), rel_tol=1e-9)
+    assert max(prog) == 2600.0                                # the clamp
+    assert all(abs(r - p) < 3000 * 1024 / 51200 + 1e-9 for r, p in zip(rpm, prog))   # followed
+    assert load[-1] < 0.8 * load[0] and x[-1] == d[-1] / 2
+    assert lathe.parts[0].css_m_min == 190.0 and lathe.parts[0].visible_at_s is None
+    # a write: the speed the daemon sent, no longer the diameter's
+    lathe = SimLathe(program=(face,), load_s=0.2)
+    while lathe.phase != "cut":
+        lathe.step(1024)
+    lathe.write("spindle_rpm_cmd", 1800.0)
+    for _ in range(30):
+        lathe.step(1024)
+    assert lathe.rpm == 1800.0 and lathe.diameter_mm < 29 and lathe.registers()["spindle_override_pct"] < 100
+
+
+def test_a_facing_pass_in_a_program_is_checked():
+    import pytest
+
+    from lathed.sim.program import parse_cut
+    assert parse_cut("3500,1.5,0.1,4.5,css=190") == Cut(3500, 1.5, 0.1, 4.5, css_m_min=190.0)
+    assert parse_cut("2000,1").css_m_min == 0.0
+    with pytest.raises(ValueError, match=r"css= takes a surface speed in m/min"):
+        parse_cut("3500,1.5,0.1,4.5,css=fast")
+    with pytest.raises(ValueError, match=r"a facing pass needs css 10..2000 m/min and a radial length under "
+                                         r"the bar's radius \(15 mm\)"):
+        parse_cut("3500,1.5,0.1,20,css=190")
+    with pytest.raises(ValueError, match=r"expected RPM,DEPTH_MM\[,FEED_MM_REV\[,LENGTH_MM\]\]\[,css=M_MIN\]"):
+        parse_cut("3500,1.5,0.1,4.5,6,css=190")
