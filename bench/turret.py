@@ -26,12 +26,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from lathed.analysis.cuts import Cuts  # noqa: E402
-from lathed.analysis.modal import Mode  # noqa: E402
 from lathed.analysis.speed_selection import Cut, FrequencySelection, LobeSelection, SpindleLimits, reach  # noqa: E402
 from lathed.analysis.stability_cases import GIVEN, generate_cuts, true_dynamics  # noqa: E402
 from lathed.analysis.stability_refit import StabilityModel, refit  # noqa: E402
+from lathed.sim.lathe import BORING_BAR  # noqa: E402
 
-BAR = StabilityModel((GIVEN.modes[0], Mode(350.0, 0.02, 3.0e7, 0.0)), GIVEN.kf)
+BAR = StabilityModel((GIVEN.modes[0], BORING_BAR), GIVEN.kf)     # the simulated turret's tool 2
 
 
 def shuffled(a: Cuts, b: Cuts, seed: int) -> Cuts:

@@ -183,3 +183,31 @@ def test_constant_surface_speed_face_is_judged_live(tmp_path):
         assert chatter(d)["windows"] > 100
     finally:
         d.stop()
+
+
+def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path):
+    """The simulated turret's tool 2 (a boring bar, a limit of 0.6 mm) chatters at 0.9 mm; the
+    shipped config's model is tool 1's (tool_number = 1), read from the tool_number register
+    over Modbus: the bar's chatter gets the model-free frequency rule and its cut record says
+    so, while tool 1's cuts keep the model."""
+    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    assert "\ntool_number = 1" in suppress
+    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
+                            simulator='program = ["2000,0.9,0.3,20,tool=2", "2000,1.0,0.3,20"]\n'
+                                      'load_s = 0.3\nretract_s = 0.2\n')
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 4, timeout=90, interval=0.3,
+                   what="four parts cut")
+        cuts = [e["payload"] for e in events(d, "cut")]
+        bar = [c for c in cuts if c["tool_number"] == 2 and c["outcome"] == "chatter"]
+        turning = [c for c in cuts if c["tool_number"] == 1]
+        assert bar and turning, cuts
+        assert all(c["model"] is None for c in bar) and all(c["model"] == "configured" for c in turning)
+        acts = [e["payload"] for e in events(d, "suppression_action")]
+        assert acts and all(a["strategy"] == "sss_frequency" and a["model"] is None for a in acts), acts
+        assert "tool 1" in d.item("analyzers", "suppress")["summary"]
+    finally:
+        d.stop()

@@ -78,3 +78,24 @@ def test_a_facing_pass_in_a_program_is_checked():
         parse_cut("3500,1.5,0.1,20,css=190")
     with pytest.raises(ValueError, match=r"expected RPM,DEPTH_MM\[,FEED_MM_REV\[,LENGTH_MM\]\]\[,css=M_MIN\]"):
         parse_cut("3500,1.5,0.1,4.5,6,css=190")
+    assert parse_cut("2000,0.9,0.3,20,tool=2").tool == 2
+    assert parse_cut("3500,1.5,0.1,4.5,tool=2,css=190") == Cut(3500, 1.5, 0.1, 4.5, css_m_min=190.0, tool=2)
+    with pytest.raises(ValueError, match=r"tool= is a turret position of the simulated lathe: 1, 2"):
+        parse_cut("2000,1,tool=3")
+    with pytest.raises(ValueError, match=r"unknown speed=; allowed: css=, tool="):
+        parse_cut("2000,1,speed=3")
+
+
+def test_the_turrets_second_tool_is_a_boring_bar_with_its_own_limit():
+    from lathed.sim.program import parse_cut
+    lathe = SimLathe(program=tuple(parse_cut(c) for c in ("2000,1.0,0.3,10", "2000,0.9,0.3,10,tool=2")),
+                     load_s=0.2, retract_s=0.2)
+    tools = set()
+    while len(lathe.parts) < 3:
+        lathe.step(2048)
+        if lathe.phase == "cut":
+            tools.add((lathe.part_index, lathe.registers()["tool_number"]))
+    turning, bar = lathe.parts[0], lathe.parts[1]
+    assert tools == {(0, 1), (1, 2)}
+    assert turning.b_lim_mm > 2.3 and 0.5 < bar.b_lim_mm < 0.7
+    assert turning.visible_at_s is None and bar.visible_at_s is not None     # 0.9 mm chatters on the bar

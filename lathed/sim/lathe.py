@@ -39,6 +39,17 @@ LATHE_PEAK_TORQUE_NM = 35.8   # the spindle drive's rating: 100 % load
 IDLE_LOAD_PCT = 2.0           # bearings and seals at speed, no chip
 
 
+# The turret: tool 1 is the turning tool the tap test measured (LATHE_MODES, or the true
+# modes a test gives); tool 2 a slender boring bar, its own mode far softer than the
+# tool post's (a limit of 0.6 mm against tool 1's 2.4): the same workpiece, another tool.
+BORING_BAR = Mode(350.0, 0.02, 3.0e7, 0.0)
+
+
+def tool_modes(modes: tuple[Mode, ...], tool: int) -> tuple[Mode, ...]:
+    """The structure a turret position cuts with: tool 2 swaps the tool mode for the bar's."""
+    return modes if tool == 1 else (modes[0], BORING_BAR)
+
+
 # The paper's three speeds; every third part is cut 3 mm deep (the paper's
 # depth, above the stability limit of DEFAULT_MODES), the others 1 mm.  Then a
 # face at constant surface speed (G96, 190 m/min: 2016 -> 2880 r/min as the
@@ -184,7 +195,10 @@ class SimLathe:
         # the true dynamics: by default the model the default configuration gives the daemon;
         # other modes or Kf make an effect the daemon's model lacks (issue 16's tests);
         # flank: the tool's worn land (process damping, issue 12), None for a sharp tool
-        self.cutter = RegenerativeTurning(modes, kf, rate_hz=float(rate_hz), seed=seed, flank=flank)
+        self._cutter_args = (modes, kf, float(rate_hz), seed, flank)
+        self._cutters: dict[int, RegenerativeTurning] = {}
+        self._tool_now: int | None = None
+        self._lobes: dict[int, StabilityLobes] = {}
         self.load_s, self.retract_s = load_s, retract_s
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
@@ -204,7 +218,6 @@ class SimLathe:
         self.probe_seq = 0
         self.program_number = 1000
         self.load_pct = 0.0
-        self.lobes = StabilityLobes(modes, kf)
         self.watch = VisibleChatter(rate_hz)
         self._tracked: PartRecord | None = None     # the part the watch follows
         self.n_samples = 0
@@ -232,6 +245,31 @@ class SimLathe:
     @property
     def depth_mm(self) -> float:
         return self.part.depth_mm if self.depth_override_mm is None else self.depth_override_mm
+
+    @property
+    def cutter(self) -> RegenerativeTurning:
+        """The regenerative model of the tool cutting this part (one per turret position)."""
+        tool = self.part.tool
+        if tool not in self._cutters:
+            modes, kf, rate, seed, flank = self._cutter_args
+            self._cutters[tool] = RegenerativeTurning(tool_modes(modes, tool), kf, rate_hz=rate,
+                                                      seed=seed + 1000 * (tool - 1), flank=flank)
+        cutter = self._cutters[tool]
+        if tool != self._tool_now:
+            # a tool change (between parts): the spindle's angle goes on, the tool is at rest
+            # and the next part is fresh material
+            last = self._cutters.get(self._tool_now)
+            cutter.reset()
+            cutter.theta = last.theta if last is not None else 0.0
+            self._tool_now = tool
+        return cutter
+
+    @property
+    def lobes(self) -> StabilityLobes:
+        tool = self.part.tool
+        if tool not in self._lobes:
+            self._lobes[tool] = StabilityLobes(tool_modes(self._cutter_args[0], tool), self._cutter_args[1])
+        return self._lobes[tool]
 
     @property
     def program_rpm(self) -> float:
@@ -360,7 +398,7 @@ class SimLathe:
             "depth_of_cut_mm": self.depth_mm if cutting else 0.0,
             "feed_mm_rev": self.part.feed_mm_rev,
             "alarm_code": 0,
-            "tool_number": 1,
+            "tool_number": self.part.tool,
             "probe_displacement_um": self.probe_displacement_um,
             "probe_seq": self.probe_seq,
         }

@@ -23,6 +23,7 @@ class Cut:
     length_mm: float = 40.0
     diameter_mm: float = 30.0
     css_m_min: float = 0.0
+    tool: int = 1                 # the turret position cutting (lathed.sim.lathe.TOOLS)
 
     def program_rpm(self, travel_mm: float) -> float:
         """The speed the program asks for with the tool ``travel_mm`` into the pass."""
@@ -38,26 +39,37 @@ class Cut:
         return self.diameter_mm - 2.0 * min(travel_mm, self.length_mm)
 
 
-FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN]"
+FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N]"
+TOOLS = (1, 2)        # the simulated turret's positions (their dynamics: lathed.sim.lathe.TOOLS)
 
 
 def parse_cut(text: str) -> Cut:
-    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN]``: one part of a cut program;
-    with ``css=`` a facing pass at that surface speed (G96), RPM its clamp."""
+    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N]``: one part of a cut
+    program; with ``css=`` a facing pass at that surface speed (G96), RPM its clamp;
+    ``tool=`` the turret position that cuts it (1, the default, or 2)."""
     items = [x.strip() for x in text.split(",")]
-    css = 0.0
-    if items and items[-1].startswith("css="):
-        try:
-            css = float(items.pop()[4:])
-        except ValueError:
-            raise ValueError(f"cut {text!r}: css= takes a surface speed in m/min") from None
+    css, tool = 0.0, 1
+    while items and "=" in items[-1]:
+        key, _, value = items.pop().partition("=")
+        if key == "css":
+            try:
+                css = float(value)
+            except ValueError:
+                raise ValueError(f"cut {text!r}: css= takes a surface speed in m/min") from None
+        elif key == "tool":
+            if value not in [str(t) for t in TOOLS]:
+                raise ValueError(f"cut {text!r}: tool= is a turret position of the simulated lathe: "
+                                 f"{', '.join(map(str, TOOLS))}")
+            tool = int(value)
+        else:
+            raise ValueError(f"cut {text!r}: unknown {key}=; allowed: css=, tool=")
     try:
         vals = [float(x) for x in items]
     except ValueError:
         raise ValueError(f"cut {text!r}: expected {FORM} as numbers") from None
     if not 2 <= len(vals) <= 4:
         raise ValueError(f"cut {text!r}: expected {FORM}")
-    c = Cut(*vals, css_m_min=css)
+    c = Cut(*vals, css_m_min=css, tool=tool)
     if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
             and 0 < c.length_mm <= 1000 and math.isfinite(css)):
         raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "
