@@ -107,6 +107,7 @@ class ChatterAnalyzer(Analyzer):
         self._rebuild = False
         self.rate_hz: float | None = None
         self.cutting = False
+        self.tool_number: int | None = None    # the machine's tool_number register, where mapped
         self.rpm: float | None = None
         self.depth_mm: float | None = None
         self.load_pct: float | None = None
@@ -161,6 +162,8 @@ class ChatterAnalyzer(Analyzer):
             return
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
+        elif s.quantity == "tool_number":
+            self.tool_number = int(s.value)     # the turret position cutting: recorded with the alarm
         elif s.quantity == "depth_of_cut_mm":
             if s.value > 0:
                 self.depth_mm = s.value
@@ -269,7 +272,8 @@ class ChatterAnalyzer(Analyzer):
                     "raised_by": w.raised_by,
                     "chatter_frequency_hz": w.chatter_frequency_hz, "rpm": rpm, "depth_mm": self.depth_mm,
                     "load_pct": self.load_pct, "cut_seen_by": self.cut_by,
-                    "tool": self.tool, "material": self.material, "detector": self.detector_name,
+                    "tool": self.tool, "tool_number": self.tool_number, "material": self.material,
+                    "detector": self.detector_name,
                     "sample_t": t})
             elif was and not w.alarm:
                 self._cleared("index back under the threshold", w)

@@ -209,5 +209,7 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         acts = [e["payload"] for e in events(d, "suppression_action")]
         assert acts and all(a["strategy"] == "sss_frequency" and a["model"] is None for a in acts), acts
         assert "tool 1" in d.item("analyzers", "suppress")["summary"]
+        alarms = [e["payload"] for e in events(d, "chatter_alarm")]      # the bar's: it alone chatters
+        assert alarms and {a["tool_number"] for a in alarms} == {2}, alarms
     finally:
         d.stop()
