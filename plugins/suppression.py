@@ -12,6 +12,8 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     kf = 2.0e9                   # cutting coefficient along the chip thickness, N/m²
     kt = 1.5e9                   # tangential coefficient (spindle torque), N/m²
     diameter_mm = 30.0           # workpiece diameter, for torque and removal rate
+    x_axis = "radius"            # the x_mm register is the tool tip's radius (or "diameter"):
+                                 # the part's diameter read from it at every poll (default off: diameter_mm)
     max_rpm = 6000.0             # the spindle's envelope
     max_speed_ratio = 1.3        # never more than this times the programmed speed (tool life)
     peak_torque_nm = 35.8
@@ -111,6 +113,7 @@ recorded as ``stability_refit_not_adopted`` with the reason.
 from __future__ import annotations
 
 import asyncio
+import math
 import json
 import time
 from dataclasses import replace
@@ -166,6 +169,9 @@ class SuppressionAnalyzer(Analyzer):
         kf = section.getfloat("kf", 2.0e9, above=0)
         self.kt = section.getfloat("kt", 1.5e9, above=0)
         self.diameter_m = section.getfloat("diameter_mm", 30.0, above=0) / 1000
+        # the X axis tells the diameter being cut (a profile, another part) where diameter_mm is one number
+        self.x_axis = section.getstr("x_axis", "", choices=("", "radius", "diameter"))
+        self.x_radius_m: float | None = None     # the tool tip's radius, from the x_mm register
         self.limits = SpindleLimits(
             max_rpm=section.getfloat("max_rpm", 6000.0, above=0),
             min_rpm=section.getfloat("min_rpm", 100.0, minval=0),
@@ -249,7 +255,15 @@ class SuppressionAnalyzer(Analyzer):
         return self.depth_mm if self.depth_mm > 0 else self.program_depth_mm
 
     def _cut(self) -> Cut:
-        return Cut(max(self._depth_known_mm() or 0.0, 0.01) / 1000, self.feed_mm / 1000, self.diameter_m, self.kt)
+        depth_m = max(self._depth_known_mm() or 0.0, 0.01) / 1000
+        return Cut(depth_m, self.feed_mm / 1000, self._diameter_m(depth_m), self.kt)
+
+    def _diameter_m(self, depth_m: float) -> float:
+        """The part's diameter at the cut: the tool tip's radius plus the depth, twice (the
+        X axis, with x_axis set), else the configured diameter_mm."""
+        if self.x_radius_m is not None and self.x_radius_m > 0:
+            return 2.0 * (self.x_radius_m + depth_m)
+        return self.diameter_m
 
     def _model_applies(self) -> bool:
         """The cut's tool is the one the modal model is for (or nothing says otherwise)."""
@@ -318,6 +332,8 @@ class SuppressionAnalyzer(Analyzer):
             self.cut.feed_mm_rev = s.value
         elif s.quantity == "tool_number":
             self.cut.tool_number = int(s.value)    # a tool change between passes: its own cures
+        elif s.quantity == "x_mm" and self.x_axis:
+            self.x_radius_m = s.value / 1000 / (2.0 if self.x_axis == "diameter" else 1.0)
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
             changed = s.value > 0 and s.value != self.depth_mm
@@ -348,7 +364,13 @@ class SuppressionAnalyzer(Analyzer):
             return None
         self.idle_load_pct = load_pct if self.idle_load_pct is None else min(self.idle_load_pct, load_pct)
         torque = (load_pct - self.idle_load_pct) / 100.0 * self.limits.peak_torque_nm
-        mm = torque / (self.kt * self.feed_mm / 1000 * self.diameter_m / 2) * 1000
+        c = torque / (self.kt * self.feed_mm / 1000)       # b times the lever arm, m^2
+        x = self.x_radius_m
+        if x is not None and x > 0:
+            # the lever is the part's radius, x + b: Kt h b (x + b) = T, solved for b
+            mm = (-x + math.sqrt(x * x + 4.0 * max(c, 0.0))) / 2.0 * 1000
+        else:
+            mm = c / (self.diameter_m / 2) * 1000
         if not (mm > 0.05 and self.in_cut):
             return None
         if abs(mm - self.depth_mm) > 0.1 * self.depth_mm:

@@ -195,6 +195,38 @@ def test_without_a_depth_register_the_spindle_load_gives_the_cut_its_depth(h):
     assert list(cuts.depth_mm) == [pytest.approx(2.0, abs=1e-3)] and skipped == {}
 
 
+@pytest.mark.parametrize("x_axis", ["radius", "diameter"])
+def test_the_x_axis_gives_the_spindle_load_its_lever_on_a_part_of_another_diameter(h, x_axis):
+    """diameter_mm is one number; the parts are not: a 60 mm part cut 2 mm deep loads the
+    spindle twice what the configured 30 mm would, and read with the configured diameter its
+    depth is twice the true one.  With x_axis the X register (the tool tip: 28 mm radius, or
+    56 mm as most lathe controls give X) sets the lever, R = x + b."""
+    torque = 1.5e9 * 0.3e-3 * 2.0e-3 * 0.030            # kt, feed, 2 mm, R = 30 mm: 27 N m
+    loaded = 5.0 + 100 * torque / 35.8
+
+    async def cut(an):
+        t = time.time()
+        x = 28.0 if x_axis == "radius" else 56.0
+        await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+        await an._on_machine(Sample("lathe", "spindle_rpm", 1000.0, "r/min", t))
+        await an._on_machine(Sample("lathe", "spindle_load_pct", 5.0, "%", t))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+        for _ in range(5):
+            t += 0.1
+            await an._on_machine(Sample("lathe", "x_mm", x, "mm", t))
+            await an._on_machine(Sample("lathe", "spindle_load_pct", loaded, "%", t))
+        diameter.append(an._cut().diameter_m)        # the torque check's diameter, in the cut
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t))
+    diameter = []
+    an = h.start(h.make(x_axis=x_axis))
+    asyncio.run(cut(an))
+    assert h.events("cut")[-1]["depth_mm"] == pytest.approx(2.0, abs=1e-3)
+    assert diameter == [pytest.approx(0.060)]
+    plain = h.start(h.make())                             # diameter_mm = 30: the lever halved
+    asyncio.run(cut(plain))
+    assert h.events("cut")[-1]["depth_mm"] == pytest.approx(4.0, abs=1e-3)
+
+
 def refit(h, an=None, **args):
     return asyncio.run((an or h.an)._stability({"action": "refit", **args}))
 
