@@ -113,8 +113,8 @@ recorded as ``stability_refit_not_adopted`` with the reason.
 from __future__ import annotations
 
 import asyncio
-import math
 import json
+import math
 import time
 from dataclasses import replace
 
