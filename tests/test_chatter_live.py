@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from contextlib import contextmanager
 
 import pytest
 
@@ -145,22 +146,31 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
         d.stop()
 
 
+@contextmanager
+def program_run(tmp_path, program: list[str], parts: int):
+    """The shipped chatter and suppression tables (cures not remembered: every pass is
+    detection's) on a simulator running ``program``; yields the daemon once ``parts`` are cut."""
+    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
+                            simulator=f"program = {json.dumps(program)}\nload_s = 0.3\nretract_s = 0.2\n")
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= parts, timeout=90, interval=0.3,
+                   what=f"{parts} parts cut")
+        yield d
+    finally:
+        d.stop()
+
+
 def test_constant_surface_speed_face_is_judged_live(tmp_path):
     """A face at constant surface speed (G96): the spindle runs up from 2016 to 2880 r/min as
     the tool moves in.  The default config (no depth register): the 1.5 mm faces (the default
     program's) are one cut each, judged stable; the 3 mm ones chatter and are caught while the
     speed drifts, and suppression moves them."""
-    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
-    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
-                            simulator='program = ["3500,1.5,0.1,4.5,css=190", "3500,3.0,0.1,4.5,css=190"]\n'
-                                      'load_s = 0.3\nretract_s = 0.2\n')
-    d = Daemon(cfg, paths["socket"])
-    d.paths = paths
-    try:
-        d.wait_ready()
-        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 5, timeout=90, interval=0.3,
-                   what="five faces cut")
-        parts = [p for p in sim_call(paths["sim"], "status", {"parts": 16})["parts"]
+    with program_run(tmp_path, ["3500,1.5,0.1,4.5,css=190", "3500,3.0,0.1,4.5,css=190"], 5) as d:
+        parts = [p for p in sim_call(d.paths["sim"], "status", {"parts": 16})["parts"]
                  if p["cut_end_s"] is not None and p["cut_start_wall"] is not None]
         alarms = [e["payload"]["sample_t"] for e in events(d, "chatter_alarm")]
 
@@ -181,8 +191,6 @@ def test_constant_surface_speed_face_is_judged_live(tmp_path):
             assert alarmed(p), p
             assert p["speed_writes"], p           # suppression moved the face's spindle
         assert chatter(d)["windows"] > 100
-    finally:
-        d.stop()
 
 
 def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path):
@@ -190,17 +198,8 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
     shipped config's model is tool 1's (tool_number = 1), read from the tool_number register
     over Modbus: the bar's chatter gets the model-free frequency rule and its cut record says
     so, while tool 1's cuts keep the model."""
-    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
-    assert "\ntool_number = 1" in suppress
-    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
-                            simulator='program = ["2000,0.9,0.3,20,tool=2", "2000,1.0,0.3,20"]\n'
-                                      'load_s = 0.3\nretract_s = 0.2\n')
-    d = Daemon(cfg, paths["socket"])
-    d.paths = paths
-    try:
-        d.wait_ready()
-        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 4, timeout=90, interval=0.3,
-                   what="four parts cut")
+    assert "\ntool_number = 1" in default_table("suppress")
+    with program_run(tmp_path, ["2000,0.9,0.3,20,tool=2", "2000,1.0,0.3,20"], 4) as d:
         cuts = [e["payload"] for e in events(d, "cut")]
         bar = [c for c in cuts if c["tool_number"] == 2 and c["outcome"] == "chatter"]
         turning = [c for c in cuts if c["tool_number"] == 1]
@@ -211,5 +210,3 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         assert "tool 1" in d.item("analyzers", "suppress")["summary"]
         alarms = [e["payload"] for e in events(d, "chatter_alarm")]      # the bar's: it alone chatters
         assert alarms and {a["tool_number"] for a in alarms} == {2}, alarms
-    finally:
-        d.stop()

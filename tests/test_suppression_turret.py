@@ -14,22 +14,7 @@ from lathed.bus import Sample
 from lathed.config import ConfigError
 from lathed.control import RequestError
 from lathed.analysis.stability_cases import generate_cuts, true_dynamics
-from tests.test_stability_adopt import Harness
-from tests.test_suppression_hold import _cut
-
-
-@pytest.fixture
-def make(tmp_path):
-    made = []
-
-    def make(**extra):
-        h = Harness(tmp_path / str(len(made)), max_speed_ratio=1.3, **extra)
-        h.start()
-        made.append(h)
-        return h
-    yield make
-    for h in made:
-        h.store.close()
+from tests.test_suppression_hold import _cut, make  # noqa: F401  (make: the fixture)
 
 
 def _with_tool(an, n, depth_mm, **kw):

@@ -23,14 +23,13 @@ class Cut:
     length_mm: float = 40.0
     diameter_mm: float = 30.0
     css_m_min: float = 0.0
-    tool: int = 1                 # the turret position cutting (lathed.sim.lathe.TOOLS)
+    tool: int = 1                 # the turret position cutting (lathed.sim.lathe.tool_modes)
 
     def program_rpm(self, travel_mm: float) -> float:
         """The speed the program asks for with the tool ``travel_mm`` into the pass."""
         if not self.css_m_min:
             return self.rpm
-        d = max(self.diameter_mm - 2.0 * min(travel_mm, self.length_mm), 1e-3)
-        return min(self.rpm, 1000.0 * self.css_m_min / (math.pi * d))
+        return min(self.rpm, 1000.0 * self.css_m_min / (math.pi * max(self.diameter_at(travel_mm), 1e-3)))
 
     def diameter_at(self, travel_mm: float) -> float:
         """The diameter the tool cuts at ``travel_mm`` into the pass."""
@@ -40,7 +39,7 @@ class Cut:
 
 
 FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N]"
-TOOLS = (1, 2)        # the simulated turret's positions (their dynamics: lathed.sim.lathe.TOOLS)
+TOOLS = (1, 2)        # the simulated turret's positions (their dynamics: lathed.sim.lathe.tool_modes)
 
 
 def parse_cut(text: str) -> Cut:
