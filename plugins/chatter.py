@@ -23,8 +23,14 @@ start of each cut.  ``cut_from`` names the sources of the cut state
   "vibration"  the accelerometer: frame rms against the air-cut floor (sees
                the entry within a few ms; needs an air cut to learn the floor)
   "depth"      a depth_of_cut_mm register > 0 (machines that report one)
+  "feed"       a cutting_feed register != 0: the control's cutting-feed signal
+               (Fanuc CUT); sees light finishing cuts the others miss
 
 The cut starts when the first source sees the chip and ends when none does.
+A cut the feed started is cutting air until the tool reaches the stock: the
+chip's contact (another source seeing it, or the vibration stepping up
+``contact_ratio`` x over the air for 20 ms) restarts the baseline, once; a
+cut so light that neither shows keeps the baseline learned on the approach.
 The cut state is published as ``cutting`` (1/0) and shown in the status.  For
 each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
@@ -67,6 +73,9 @@ EYE_MIN_S = 0.5    # a display eye (detectors other than chaos_sync) is drawn at
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
 ENTRY_REVS = 20.0
+# A vibration entry in a running cut whose frame jumps this much over the one before is an
+# impulse (the tool's release, a knock), not chatter: the detector does not count it.
+IMPULSE_JUMP = 2.0
 
 
 # detector parameters a running cut takes at once on reload; the others (window
@@ -90,9 +99,11 @@ class ChatterAnalyzer(Analyzer):
             raise section.error("cut_from", f"expected a non-empty list of {', '.join(SOURCES)}; "
                                             f"got {self.cut_from!r}")
         self.load_cut = LoadCutDetector(section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0))
+        self.contact_ratio = section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0)
         self.vib_cut: VibrationCutDetector | None = None
         self.seen = {c: False for c in self.cut_from}
         self.cut_by: str | None = None
+        self.chip_by: str | None = None        # what saw the chip in a cut the feed started
         self._cut_rpm: float | None = None     # speed the cut started at (None: no cut)
         self._cut_revs = 0.0
         self._cut_alarmed = False
@@ -164,6 +175,9 @@ class ChatterAnalyzer(Analyzer):
             self.rpm = s.value
         elif s.quantity == "tool_number":
             self.tool_number = int(s.value)     # the turret position cutting: recorded with the alarm
+        elif s.quantity == "cutting_feed":
+            if "feed" in self.seen:
+                self._source("feed", s.value != 0, s.t)
         elif s.quantity == "depth_of_cut_mm":
             if s.value > 0:
                 self.depth_mm = s.value
@@ -185,34 +199,62 @@ class ChatterAnalyzer(Analyzer):
         if cutting and not self.cutting:
             if self._rebuild:             # reloaded parameters shape this cut's windows
                 self.detector, self._rebuild = None, False
-            if self.detector is not None:
-                self.detector.reset()     # a new cut: learn its baseline afresh
-            self._judged.reset()
-            self.state = "learning"
+            self._learn_afresh()
             self.cut_by = name
-            self._cut_rpm = None
+            self.chip_by = None if name == "feed" else name
         elif self.cutting and not cutting:
             if self.detector is not None and self.detector.alarm:
                 self._cleared("cut ended")
             self.state = "idle"
-            self.cut_by = None
+            self.cut_by = self.chip_by = None
+        elif self.cutting and on and name != "feed" and self.chip_by is None:
+            self._contact(name, t)
         if cutting != self.cutting:
             self.cutting = cutting
             self.ctx.bus.publish(Sample(self.name, "cutting", 1.0 if cutting else 0.0, "", t))
             self.ctx.log.info("cut_state", cutting=cutting, source=name)
 
+    def _learn_afresh(self) -> None:
+        """A new cut, or the chip in a cut the feed started in air: learn the baseline anew."""
+        if self.detector is not None:
+            self.detector.reset()
+        self._judged.reset()
+        self.state = "learning"
+        self._cut_rpm = None
+
+    def _contact(self, by: str, t: float) -> None:
+        """The chip, in a cut the feed started: what came before was the approach in air."""
+        self.chip_by = by
+        if self.detector is not None and self.detector.alarm:
+            self._cleared("the tool reached the stock")
+        self._learn_afresh()
+        self.ctx.bus.publish(Sample(self.name, "cut_contact", 1.0, "", t))   # cut records count from it
+        self.ctx.log.info("cut_contact", by=by)
+
     def _on_block(self, b: Block) -> None:
         data = b.data
-        if "vibration" in self.seen:
+        if "vibration" in self.seen or "feed" in self.seen:
             if self.vib_cut is None or self.vib_cut.rate != b.rate_hz:
-                self.vib_cut = VibrationCutDetector(b.rate_hz)
+                self.vib_cut = VibrationCutDetector(b.rate_hz, contact_ratio=self.contact_ratio)
             at = self.vib_cut.process(data)
-            if at is not None:
+            if (at is not None and self.vib_cut.cutting and self.cutting and self.chip_by is not None
+                    and self.vib_cut.entry_jump >= IMPULSE_JUMP
+                    and hasattr(self.detector, "impulse")):     # a plugin's detector may lack it
+                # in the cut already: the tool's release from a light chip (the feed or the load
+                # still says cutting), or a knock; chatter grows into the vibration's entry level
+                self.detector.impulse(at, b.rpm if b.rpm else (self.rpm or 60.0))
+            if at is not None and "vibration" in self.seen:
                 on = bool(self.vib_cut.cutting)
-                was = self.cutting
+                was, air = self.cutting, self.cutting and self.chip_by is None
                 self._source("vibration", on, b.t0 + at / b.rate_hz)
-                if self.cutting and not was:
+                if on and (not was or air):
                     data = data[at:]          # the revolution before the chip is air, not the cut
+            elif self.cutting and self.chip_by is None:
+                # the chip in a cut the feed started: a light one's step, or an entry's
+                chip = self.vib_cut.contact if at is None or not self.vib_cut.cutting else at
+                if chip is not None:
+                    self._contact("vibration", b.t0 + chip / b.rate_hz)
+                    data = data[chip:]
         if not self.cutting or len(data) == 0:
             return
         rpm = b.rpm if b.rpm else self.rpm
@@ -319,7 +361,11 @@ class ChatterAnalyzer(Analyzer):
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
                 "alarms": self.alarms, "windows": self.windows, "unusable_blocks": self.unusable_blocks,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
-                "summary": f"{self.state}" + (f" (cut seen by {self.cut_by})" if self.cut_by else "")
+                "chip_seen_by": self.chip_by,
+                "summary": f"{self.state}" + (f" (cut seen by {self.cut_by}" + (
+                    "" if self.chip_by in (None, self.cut_by) else f", chip by {self.chip_by}") + ")"
+                    if self.cut_by else "")
+
                            + (f", index {idx} / threshold {w.threshold:g}" if idx else "")
                            + f", {self.alarms} alarm(s)"}
 

@@ -691,6 +691,9 @@ class SuppressionAnalyzer(Analyzer):
         if s.quantity == "cutting":
             await self._cut_seen("chatter", s.value > 0.5, s.t)
             return
+        if s.quantity == "cut_contact":      # the chip, after an approach at feed in air
+            self.cut.contact(s.t)
+            return
         if s.quantity != "chatter_alarm":
             return
         alarm = s.value > 0.5

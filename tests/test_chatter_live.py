@@ -51,8 +51,8 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     assert a["source"] == "chatter"
     p = a["payload"]
     assert p["machine"] == "lathe" and p["tool"] == "T0101" and p["material"] == "C45"
-    # the default config maps no depth register: the cut is seen by the load or the vibration
-    assert p["depth_mm"] is None and p["cut_seen_by"] in ("load", "vibration")
+    # the default config maps no depth register: the cut is seen by the feed, the load or the vibration
+    assert p["depth_mm"] is None and p["cut_seen_by"] in ("feed", "load", "vibration")
     assert p["load_pct"] > 20     # a 3 mm chip at 30 mm diameter loads the spindle
     assert p["detector"] == chatter(d)["detector"]
     # over the threshold, or held above the CUSUM's allowance (sync_cusum) long enough
@@ -63,7 +63,7 @@ def test_depth_past_the_limit_raises_a_chatter_event(sim_daemon):
     # the analyzer's own status reports it
     st = chatter(d)
     assert st["alarms"] >= 1 and st["windows"] > 0
-    assert st["cut_from"] == ["load", "vibration"]
+    assert st["cut_from"] == ["feed", "load", "vibration"]
     assert st["threshold"] is not None
     wait_until(lambda: chatter(d)["cut_state"] == "chatter" or events(d, "chatter_cleared"),
                timeout=15, what="chatter state or a cleared alarm")
@@ -81,10 +81,12 @@ def test_cut_state_without_a_depth_register(sim_daemon):
     d = sim_daemon(analyzers=CHATTER)
     assert not re.search(r"^depth_of_cut_mm", d.cfg.read_text(), re.M)     # the default map has none
     assert sim_set(d, 1.0) == {"depth_mm": 1.0}
-    # the cut is seen (by the spindle load or the vibration) and lathectl status says so
+    # the cut is seen (by the cutting-feed signal, the spindle load or the vibration) and
+    # lathectl status says so, and what saw the chip after an approach at feed
     st = wait_until(lambda: (s := chatter(d))["cutting"] and s, timeout=20, interval=0.1, what="a cut seen")
-    assert st["cut_seen_by"] in ("load", "vibration") and st["cut_state"] in ("learning", "watching")
-    wait_until(lambda: re.search(r"^\s+chatter\s.*\b(?:learning|watching) \(cut seen by (?:load|vibration)\)",
+    assert st["cut_seen_by"] in ("feed", "load", "vibration") and st["cut_state"] in ("learning", "watching")
+    wait_until(lambda: re.search(r"^\s+chatter\s.*\b(?:learning|watching) \(cut seen by (?:feed|load|vibration)"
+                                 r"(?:, chip by (?:load|vibration))?\)",
                                  d.ctl("status").stdout, re.M), timeout=10, interval=0.1,
                what="cut state in lathectl status")
     # and its end, when the tool retracts
@@ -210,3 +212,25 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         assert "tool 1" in d.item("analyzers", "suppress")["summary"]
         alarms = [e["payload"] for e in events(d, "chatter_alarm")]      # the bar's: it alone chatters
         assert alarms and {a["tool_number"] for a in alarms} == {2}, alarms
+
+
+
+def test_light_passes_are_judged_with_the_cutting_feed_signal_live(tmp_path):
+    """Finishing passes: a 0.3 mm pass at 0.1 mm/rev (stable) loads the spindle 2 % and
+    vibrates 1.1 x the air, so the load and the vibration see only its entry's ring (two cut
+    records of 0.17 s, neither judged, without the feed).  With the control's cutting-feed
+    signal each is one cut, judged stable over its length, its release not taken for chatter;
+    a boring bar's 0.9 mm pass at 0.05 mm/rev (its limit 0.6 mm) is still caught within a
+    few revolutions of the chip, the record counting from the chip, not from the approach."""
+    assert 'cut_from = ["feed", "load", "vibration"]' in CHATTER
+    with program_run(tmp_path, ["2000,0.9,0.05,6,tool=2", "2000,0.3,0.1,6"], 5) as d:
+        cuts = [e["payload"] for e in events(d, "cut")]
+        light = [c for c in cuts if c["tool_number"] == 1]
+        bar = [c for c in cuts if c["tool_number"] == 2]
+        assert len(light) == 2 and len(bar) >= 2, cuts
+        for c in light:
+            assert c["outcome"] == "stable" and c["duration_s"] > 1.5, c
+            assert c["speeds"][0]["judged_revs"] > 50, c
+        for c in bar:
+            assert c["outcome"] == "chatter" and c["first_alarm_rev"] < 8, c
+        assert chatter(d)["cut_from"] == ["feed", "load", "vibration"]

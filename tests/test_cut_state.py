@@ -6,7 +6,8 @@ import pytest
 
 from lathed.analysis.cut_state import LoadCutDetector, SlidingQuantile, VibrationCutDetector
 from lathed.analysis.regen import Segment as S, simulate_cut
-from lathed.sim.lathe import LATHE_KF, LATHE_MODES
+from lathed.sim.lathe import LATHE_KF, LATHE_MODES, SimLathe
+from lathed.sim.program import Cut
 
 RATE = 51200.0
 FRAME = 1024        # the vibration stream's 20 ms frames
@@ -96,3 +97,57 @@ def test_sliding_quantile_is_nan_while_a_nan_is_in_the_window_as_numpys_is():
         want = float(np.quantile(window, 0.25))
         got = sq.value()
         assert got == want or (np.isnan(got) and np.isnan(want)), (window, got, want)
+
+
+def contact_events(signal: np.ndarray, gain: float = 1.0) -> tuple[list[int], list[tuple[int, bool]]]:
+    det = VibrationCutDetector(RATE)
+    contacts, entries = [], []
+    for i in range(0, len(signal), FRAME):
+        at = det.process(gain * signal[i:i + FRAME])
+        if det.contact is not None:
+            contacts.append(i + det.contact)
+        if at is not None:
+            entries.append((i + at, bool(det.cutting)))
+    return contacts, entries
+
+
+def sim_pass(cut: Cut) -> tuple[np.ndarray, int]:
+    """The simulated lathe's pass from its approach at feed (air) on: signal, and the sample the
+    chip begins at."""
+    lathe = SimLathe(program=(cut,), load_s=0.2, retract_s=0.2)
+    out, start = [], None
+    while lathe.phase != "retract":
+        x = lathe.step(FRAME)
+        if lathe.phase in ("approach", "cut"):
+            if lathe.phase == "cut" and start is None:
+                start = sum(map(len, out))
+            out.append(x)
+    return np.concatenate(out).astype(float), start
+
+
+@pytest.mark.parametrize("gain", [1.0, 10.0, 0.01])
+def test_a_light_chip_entering_gently_is_a_contact_not_an_entry(gain):
+    """A 0.5 mm pass at a fine feed whose depth grows over three revolutions (a chamfer, the
+    nose radius engaging) lifts the vibration 1.1-2.4 x over the air: no entry at 4 x, but a
+    sustained step that a cut the feed started in air takes as the chip."""
+    air, ramp = 0.3, 0.05
+    rec = simulate_cut([S(air, 3500, 0.0), S(0.6, 3500, 0.5, ramp)], modes=LATHE_MODES, kf_n_per_m2=LATHE_KF,
+                       feed_mm_rev=0.08, seed=5)
+    contacts, entries = contact_events(rec.signal, gain)
+    assert entries == [], entries
+    assert len(contacts) == 1 and air * RATE <= contacts[0] <= (air + ramp) * RATE, contacts
+
+
+def test_a_finishing_pass_is_seen_by_the_vibration_only_at_its_entry():
+    """What the feed signal is for: the simulated lathe's 0.3 mm pass at 0.1 mm/rev rings the
+    structure 6 x as the tool enters, then cuts at 1.1 x the air, so the vibration's cut ends
+    while the tool still cuts."""
+    signal, start = sim_pass(Cut(2000, 0.3, 0.1, 8.0))
+    contacts, entries = contact_events(signal)
+    assert [on for _, on in entries] == [True, False], entries
+    assert start <= entries[0][0] <= start + FRAME and entries[1][0] < len(signal) - RATE, (start, entries)
+
+def test_air_and_a_speed_change_are_no_contact():
+    rec = simulate_cut([S(1.0, 2000, 0.0), S(0.5, 2600, 0.0, 0.3), S(0.5, 2600, 0.0)], modes=LATHE_MODES,
+                       kf_n_per_m2=LATHE_KF, seed=3)
+    assert contact_events(rec.signal) == ([], [])

@@ -116,6 +116,12 @@ class CutTracker:
         self.advice = None
         self._last = None if rpm is None else (t, rpm)
 
+    def contact(self, t: float) -> None:
+        """The chip, in a cut the cutting-feed signal started while the tool approached in
+        air: the record counts from here (an approach that saw an action keeps its start)."""
+        if self.active and not self.actions and not self.alarms and t > self.start_t:
+            self.start(t, None if self._last is None else self._last[1])
+
     def speed(self, t: float, rpm: float) -> None:
         if not self.active:
             return

@@ -11,9 +11,15 @@ here turns one of them into cutting / not cutting:
              cut does not.  Frame rms (a few ms) against the air-cut floor
              learned while not cutting; sees the entry within the frame, so
              within one revolution at 3000 r/min.  Gain-invariant (a ratio).
+  feed       the control's cutting-feed signal (Fanuc's CUT, a G01/G02/G03
+             move that is not held): sees a light finishing cut that lifts
+             neither the load nor the vibration much, but comes on before
+             the chip, while the tool approaches the stock in air.  The chip's
+             contact within it is a sustained step of the vibration over the
+             air (``VibrationCutDetector.contact``), smaller than an entry.
 
-``CutState`` ORs the sources a machine's config names: the first to see the
-chip starts the cut, the cut ends when none sees it.  No asyncio here.
+The chatter analyzer ORs the sources a machine's config names: the first to
+see the chip starts the cut, the cut ends when none sees it.  No asyncio here.
 """
 from __future__ import annotations
 
@@ -23,7 +29,7 @@ from collections import deque
 
 import numpy as np
 
-SOURCES = ("depth", "load", "vibration")
+SOURCES = ("depth", "load", "vibration", "feed")
 
 
 class SlidingQuantile:
@@ -94,10 +100,21 @@ class VibrationCutDetector:
     below ``off_ratio`` x the floor for ``off_s`` (longer than a flat's gap in
     an interrupted cut, so the cut does not end at every revolution).  Until
     an air cut has been seen the floor is unknown and the state is None.
+
+    ``contact``: a run of frames ``contact_ratio`` x above the floor lasting
+    ``contact_s`` while not cutting (a chip too light for ``on_ratio``: a
+    finishing pass, a face at a fine feed) sets it to the run's first sample
+    in the block (0 if it began in an earlier one); None otherwise.  The air's
+    frames spread a few per cent; a knock rings down within the run.
+
+    ``entry_jump``: at an entry, its frame's rms over the lower of the two
+    frames' before.  An impulse (the tool's release from a light cut, a knock) jumps within one
+    frame; chatter grows by a few per cent a frame.
     """
 
     def __init__(self, rate_hz: float, frame_s: float = 0.004, on_ratio: float = 4.0,
-                 off_ratio: float = 2.0, off_s: float = 0.15, floor_s: float = 0.2) -> None:
+                 off_ratio: float = 2.0, off_s: float = 0.15, floor_s: float = 0.2,
+                 contact_ratio: float = 1.3, contact_s: float = 0.02) -> None:
         if not rate_hz > 0:
             raise ValueError(f"sample rate must be > 0 Hz, got {rate_hz}")
         if not 1.0 < off_ratio < on_ratio:
@@ -106,6 +123,14 @@ class VibrationCutDetector:
         self.rate = float(rate_hz)
         self.frame = max(8, int(frame_s * rate_hz))
         self.on_ratio, self.off_ratio = on_ratio, off_ratio
+        if not 1.0 < contact_ratio <= on_ratio:
+            raise ValueError(f"contact_ratio must be in (1, on_ratio = {on_ratio:g}], got {contact_ratio:g}")
+        self.contact_ratio = contact_ratio
+        self.contact_frames = max(1, int(round(contact_s * rate_hz / self.frame)))
+        self.contact: int | None = None
+        self._run = 0                        # frames in a row over contact_ratio x the floor
+        self.entry_jump = 0.0                # the entry frame's rms over the two frames before's
+        self._last_rms = (0.0, 0.0)
         self.off_frames = max(1, int(off_s * rate_hz / self.frame))
         self.floor_frames = max(4, int(floor_s * rate_hz / self.frame))
         self.floor: float | None = None
@@ -129,12 +154,20 @@ class VibrationCutDetector:
         rms = np.sqrt(np.add.reduce(dev * dev, axis=1) / self.frame)
         offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
         changed = None
+        self.contact = None
         for i, r in enumerate(rms.tolist()):
             if not self.cutting:
                 if self.floor is not None and r > self.on_ratio * self.floor:
-                    self.cutting, self._quiet = True, 0
+                    self.cutting, self._quiet, self._run = True, 0, 0
+                    # the lower of the two frames before: an impulse mid-frame lifts the first
+                    self.entry_jump = r / max(min(self._last_rms), 1e-300)
+                    self._last_rms = (self._last_rms[1], r)
                     changed = max(0, offset0 + i * self.frame)
                     continue
+                self._last_rms = (self._last_rms[1], r)
+                self._run = self._run + 1 if self.floor is not None and r > self.contact_ratio * self.floor else 0
+                if self._run == self.contact_frames:
+                    self.contact = max(0, offset0 + (i + 1 - self._run) * self.frame)
                 self._air.push(r)
                 if len(self._air) >= min(4, self.floor_frames):
                     # a low quantile: a knock or a ramp's ringing does not lift it
@@ -142,6 +175,7 @@ class VibrationCutDetector:
                     if self.cutting is None:
                         self.cutting = False
             else:
+                self._last_rms = (self._last_rms[1], r)
                 self._quiet = self._quiet + 1 if r < self.off_ratio * self.floor else 0
                 if self._quiet >= self.off_frames:
                     self.cutting = False

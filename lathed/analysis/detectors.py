@@ -186,6 +186,7 @@ class RevolutionDetector:
         self._settle_until = 0
         self._speeds: deque[tuple[int, float]] = deque()   # (sample since reset, r/min) of recent blocks
         self._step_until = 0        # no alarm counted before this sample (a level step)
+        self._impulse = (0, 0)      # windows ending in this span do not count (impulse())
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
         self._learn: list[float] = []
         self.baseline = self._fixed_baseline
@@ -395,7 +396,8 @@ class RevolutionDetector:
             # a step in the level within one revolution is the tool entering or leaving
             # the work, not regenerative chatter (which grows over several revolutions):
             # it, and the ring after it, do not count
-            stepped = self._level_step(start, end, rpm)
+            stepped = (self._level_step(start, end, rpm)
+                       or self._impulse[0] < self._next_end <= self._impulse[1])
             other = settling or self._waiting_for_load(start, end, rpm)
             settling = other or stepped
             self._on = self._on + 1 if (index > self.threshold and not settling) else 0
@@ -500,6 +502,15 @@ class RevolutionDetector:
         self._calm.push(raw)
         if len(self._calm) >= 2 * self.params["learn_windows"]:
             self.baseline = max(self._learned_baseline, self._calm.value())
+
+    def impulse(self, at: int, rpm: float) -> None:
+        """The cut state saw an impulse ``at`` samples into the next block fed (the tool's
+        release ringing the structure, a knock): the windows whose revolution difference spans
+        it do not count, as a level step's.  The release from a light cut rings it 5 x, but
+        lifts a window's median |x| less than jump_ratio: _level_step cannot see it."""
+        a = self._total + at
+        self._impulse = (a, a + int((self.params["window_revs"] + 1.0) * self.rate * 60.0 / rpm))
+        self._step_until = max(self._step_until, self._impulse[1])   # and its ring, as it decays
 
     def _level_step(self, start: int, end: int, rpm: float) -> bool:
         """True for a window whose median |x| is over jump_ratio x, or under 1/jump_ratio x,

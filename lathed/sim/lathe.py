@@ -2,7 +2,7 @@
 
 A simulator of physics, not of a particular controller: the spindle follows
 its commanded speed within an acceleration limit; the program turns parts
-one after another (load, cut along the part, retract); the cut's vibration
+one after another (load, approach at feed, cut along the part, retract); the cut's vibration
 comes from the regenerative chip-thickness model (lathed.analysis.regen), so
 a depth above the stability limit really chatters (with a worn tool,
 ``flank``, chatter just above it stays mild); the spindle warms with
@@ -177,6 +177,9 @@ class PartRecord:
 
 LOAD_S = 1.5       # bar loaded, spindle brought to the part's speed
 RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
+# A pass's G01 starts this far clear of the stock (the CAM's approach clearance): the control
+# is in cutting feed that long before the chip, cutting air (the cutting_feed register says 1)
+APPROACH_MM = 0.5
 
 
 class SimLathe:
@@ -185,7 +188,7 @@ class SimLathe:
                  depth_override_mm: float | None = None, seed: int = 0, room_c: float = 20.0,
                  modes: tuple[Mode, ...] = LATHE_MODES, kf: float = LATHE_KF,
                  load_s: float = LOAD_S, retract_s: float = RETRACT_S,
-                 flank: FlankWear | None = None):
+                 flank: FlankWear | None = None, approach_mm: float = APPROACH_MM):
         self.program = program
         self.rate_hz = rate_hz
         self.time_scale = time_scale          # thermal clock speed-up
@@ -200,6 +203,8 @@ class SimLathe:
         self._tool_now: int | None = None
         self._lobes: dict[int, StabilityLobes] = {}
         self.load_s, self.retract_s = load_s, retract_s
+        self.approach_mm = approach_mm
+        self.approach_left_mm = 0.0
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
         self.t = 0.0
@@ -304,7 +309,12 @@ class SimLathe:
     def _advance_program(self, dt: float) -> None:
         self.phase_t += dt
         if self.phase == "load" and self.phase_t >= self.load_s and abs(self.rpm - self.rpm_cmd) < 1.0:
-            self.phase, self.phase_t, self.y_mm = "cut", 0.0, 0.0
+            self.phase, self.phase_t, self.y_mm = "approach", 0.0, 0.0
+            self.approach_left_mm = self.approach_mm
+        if self.phase == "approach":
+            self.approach_left_mm -= self.part.feed_mm_rev * self.rpm / 60.0 * dt
+            if self.approach_left_mm <= 0.0:
+                self.phase, self.phase_t, self.approach_left_mm = "cut", 0.0, 0.0
         elif self.phase == "cut":
             self.y_mm += self.part.feed_mm_rev * self.rpm / 60.0 * dt
             if self.y_mm >= self.part.length_mm:
@@ -380,14 +390,15 @@ class SimLathe:
     def registers(self) -> dict[str, float]:
         radius = self.diameter_mm / 2
         cutting = self.phase == "cut"
+        feeding = cutting or self.phase == "approach"
         return {
             "spindle_rpm_cmd": self.rpm_cmd,
             "spindle_rpm": self.rpm,
             "spindle_override_pct": 100.0 * self.rpm_cmd / self.program_rpm,
             "spindle_load_pct": self.load_pct,
             # the tool tip's radius: the turned surface's, or (facing) where the tool is
-            "x_mm": ((radius if self.part.css_m_min else radius - self.depth_mm) if cutting else radius + 5.0)
-            + self.offset_x_um / 1000.0,
+            "x_mm": ((radius + self.approach_left_mm if self.part.css_m_min else radius - self.depth_mm)
+                     if feeding else radius + 5.0) + self.offset_x_um / 1000.0,
             "y_mm": self.y_mm,
             "b_deg": 0.0,
             "part_count": self.part_count,
@@ -397,6 +408,7 @@ class SimLathe:
             "offset_x_um": self.offset_x_um,
             "depth_of_cut_mm": self.depth_mm if cutting else 0.0,
             "feed_mm_rev": self.part.feed_mm_rev,
+            "cutting_feed": 1 if feeding else 0,      # the control's cutting-feed signal (Fanuc CUT)
             "alarm_code": 0,
             "tool_number": self.part.tool,
             "probe_displacement_um": self.probe_displacement_um,

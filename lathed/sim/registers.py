@@ -26,8 +26,11 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     "probe_displacement_um": (26, "float32", False, "µm"),
     "probe_seq":             (28, "uint16", False, ""),
     "spindle_load_pct":      (30, "float32", False, "%"),
+    # 1 while the control executes a cutting-feed move (G01/G02/G03, not held): Fanuc's CUT
+    # signal; on from the approach in air, before the chip, to the retract
+    "cutting_feed":          (32, "uint16", False, ""),
 }
-N_REGISTERS = 32
+N_REGISTERS = 34
 
 # The mill (Modbus TCP) and the grinder (Modbus RTU on a pseudo-terminal,
 # unit id 1, 115200 8N1) share one map: holding registers, big word order.
