@@ -350,7 +350,9 @@ class SuppressionAnalyzer(Analyzer):
             if est is not None:
                 # the parts' records take it (lathed.records.PartTracker): a real CNC has no depth register
                 self.ctx.bus.publish(Sample(self.name, "depth_est_mm", est, "mm", s.t))
-            if self.avoid and self.in_cut and self.depth_from == "spindle load" and not self._avoided:
+            # est None: no chip yet (a cut the cutting-feed signal started in air)
+            if self.avoid and self.in_cut and self.depth_from == "spindle load" and est is not None \
+                    and not self._avoided:
                 self._avoided.add("load")
                 await self._avoid()
             if self.remember and self.in_cut:
