@@ -73,7 +73,7 @@ EYE_MIN_S = 0.5    # a display eye (detectors other than chaos_sync) is drawn at
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
 ENTRY_REVS = 20.0
-# A vibration entry in a running cut whose frame jumps this much over the one before is an
+# A vibration entry in a running cut whose frame jumps this much over the two before is an
 # impulse (the tool's release, a knock), not chatter: the detector does not count it.
 IMPULSE_JUMP = 2.0
 
@@ -365,7 +365,6 @@ class ChatterAnalyzer(Analyzer):
                 "summary": f"{self.state}" + (f" (cut seen by {self.cut_by}" + (
                     "" if self.chip_by in (None, self.cut_by) else f", chip by {self.chip_by}") + ")"
                     if self.cut_by else "")
-
                            + (f", index {idx} / threshold {w.threshold:g}" if idx else "")
                            + f", {self.alarms} alarm(s)"}
 

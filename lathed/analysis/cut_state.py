@@ -108,8 +108,8 @@ class VibrationCutDetector:
     frames spread a few per cent; a knock rings down within the run.
 
     ``entry_jump``: at an entry, its frame's rms over the lower of the two
-    frames' before.  An impulse (the tool's release from a light cut, a knock) jumps within one
-    frame; chatter grows by a few per cent a frame.
+    frames' before.  An impulse (the tool's release from a light cut, a
+    knock) jumps within one frame; chatter grows by a few per cent a frame.
     """
 
     def __init__(self, rate_hz: float, frame_s: float = 0.004, on_ratio: float = 4.0,
