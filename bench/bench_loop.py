@@ -31,13 +31,18 @@ the first 3 mm pass at each speed is caught by detection and cured, and the
 next ones entering at that speed are given the cure (``trigger =
 "remembered"``).
 
+``--no-read-on`` leaves out the shipped map's ``read_on`` (the spindle load read at
+the chip's entry as well as every 100 ms), for the entry figures without it.
+
     .venv/bin/python bench/bench_loop.py [--cuts 12] [--timeout 210] [--avoid | --remember] [--load-scaled]
+        [--no-read-on]
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import signal
 import socket
 import statistics
@@ -113,6 +118,9 @@ def main() -> int:
     ap.add_argument("--remember", action="store_true",
                     help="the shipped config as it is: suppression gives a pass the speed that cured it "
                          "before (remember = true; without this flag it is turned off)")
+    ap.add_argument("--no-read-on", action="store_true",
+                    help="the spindle load only at its 100 ms poll (the shipped map also reads it at the "
+                         "chip's entry: read_on)")
     ap.add_argument("--load-scaled", action="store_true",
                     help="the detector reads its index at the polled spindle load (load_scaled = 1)")
     a = ap.parse_args()
@@ -132,6 +140,10 @@ def main() -> int:
             raise SystemExit("bench_loop.py: etc/lathed.toml no longer sets remember = true in [analyzer.suppress]")
         if not a.remember:
             text = text.replace("\nremember = true", "\nremember = false", 1)
+        if a.no_read_on:
+            text, n = re.subn(r', read_on = \[[^]]*\]', "", text)
+            if not n:
+                raise SystemExit("bench_loop.py: etc/lathed.toml no longer has a read_on to leave out")
         if a.load_scaled:
             text = text.replace("[analyzer.suppress]", "[analyzer.chatter.params]\nload_scaled = 1\n\n"
                                 "[analyzer.suppress]", 1)

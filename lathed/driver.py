@@ -129,5 +129,11 @@ class Driver:
         """Extra fields for ``lathectl status``."""
         return {}
 
+    def listens(self) -> dict[str, tuple[str, str]]:
+        """Instances whose bus samples this driver taps (``ctx.bus.tap``), each with the
+        table and key of its config that names it: the supervisor refuses a config that
+        names one not configured (a tap on it would wait forever)."""
+        return {}
+
     def mark_data(self) -> None:
         self.last_data_t = time.time()

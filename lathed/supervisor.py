@@ -118,6 +118,13 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
         for m in an.machines():
             if m not in plan.limits and m not in broken and f"machine.{m}" not in plan.skipped:
                 plan.errors.append(f"{cfg.path}: [analyzer.{name}]: machine {m!r} is not a configured machine")
+    # and a driver may listen only to instances that exist (a read_on trigger)
+    for name, (inst, drv) in plan.drivers.items():
+        for src, (table, key) in getattr(drv, "listens", dict)().items():
+            if src not in plan.analyzers and src not in plan.drivers and src not in broken \
+                    and not any(k.endswith(f".{src}") for k in plan.skipped):
+                plan.errors.append(f"{cfg.path}: [{inst.category}.{name}{table}] {key}: {src!r} is not a "
+                                   f"configured analyzer, machine or sensor")
     return plan
 
 

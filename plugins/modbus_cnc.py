@@ -29,7 +29,11 @@ A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
 uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
 or "little"), ``scale`` (value = raw * scale), ``unit``, ``writable``
 (default false), ``poll`` (its own read period; registers with the same
-period are read together, in as few requests as the protocol allows).
+period are read together, in as few requests as the protocol allows),
+``read_on`` (``["chatter.cutting", "chatter.cut_contact"]``: read it at once
+as well whenever one of these ``source.quantity`` samples says 1 on the bus;
+the spindle load at the chip's entry, which the vibration sees a fraction of
+a revolution in, instead of up to a poll later).
 
 Commands write only to registers declared writable, and only commands the
 supervisor passed through the safety guard reach ``execute``: the
@@ -103,6 +107,7 @@ class Register:
     unit: str
     writable: bool
     poll: float
+    read_on: tuple[str, ...] = ()     # "source.quantity" samples that, at 1, read it at once
 
     @property
     def count(self) -> int:
@@ -131,7 +136,11 @@ def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
             unit=sub.getstr("unit", ""),
             writable=sub.getbool("writable", False),
             poll=sub.getduration("poll", default_poll, minval=0.01, maxval=3600),
+            read_on=tuple(sub.getlist("read_on", [])),
         )
+        bad = [t for t in reg.read_on if t.count(".") != 1 or not all(t.split("."))]
+        if bad:
+            raise sub.error("read_on", f"{bad[0]!r} is not source.quantity (e.g. \"chatter.cut_contact\")")
         if reg.scale == 0:
             raise sub.error("scale", "must not be 0")
         if reg.address + reg.count > 65536:
@@ -195,6 +204,12 @@ class ModbusCNC(Driver):
             raise section.error("stale_after", f"must be longer than the slowest poll ({slowest:g} s), "
                                                "or every value of that group is always stale")
         self.groups = poll_groups(self.registers)
+        # trigger -> the read plan of the registers it reads at once
+        self.read_on = {t: read_plan([r for r in self.registers.values() if t in r.read_on])
+                        for t in sorted({t for r in self.registers.values() for t in r.read_on})}
+        self._triggered: list[str] = []        # triggers seen since the last read (in order, once each)
+        self._wake = asyncio.Event()
+        self.reads_on: Counter = Counter()     # trigger -> reads it caused
         self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
                              if reg in self.registers and self.registers[reg].writable)
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
@@ -336,16 +351,51 @@ class ModbusCNC(Driver):
         elif (ax := AXIS.match(name)) is not None:
             m.set_axis(ax.group(1), v, t)
 
+    def listens(self) -> dict[str, tuple[str, str]]:
+        """The instances whose samples read_on waits for, each with the table and key that
+        name it (the supervisor checks they exist)."""
+        return {t.split(".")[0]: (f".registers.{r.name}", "read_on") for r in self.registers.values()
+                for t in r.read_on}
+
+    def _trigger(self, msg) -> None:
+        """A bus tap (in publish: no I/O here): a read_on sample at 1 wakes the poll loop."""
+        if not isinstance(msg, Sample) or msg.value != 1.0:
+            return
+        key = f"{msg.source}.{msg.quantity}"
+        if key in self.read_on and key not in self._triggered:
+            self._triggered.append(key)
+            self._wake.set()
+
     async def run(self) -> None:
+        sources = sorted(self.listens())
+        self._triggered.clear()       # a trigger seen before a reconnect: the poll reads it anyway
+        for src in sources:
+            self.ctx.bus.tap(src, self._trigger)
+        try:
+            await self._poll()
+        finally:
+            for src in sources:
+                self.ctx.bus.untap(src, self._trigger)
+
+    async def _poll(self) -> None:
         due = {p: time.monotonic() + p for p in self.groups}
         while True:
+            while self._triggered:
+                key = self._triggered.pop(0)
+                await self._read_group(self.read_on[key])
+                self.reads_on[key] += 1
             for p, plan in self.groups.items():
                 now = time.monotonic()
                 if now >= due[p]:
                     await self._read_group(plan)
                     self.reads[p] += 1
                     due[p] = max(due[p] + p, now)   # after a stall: no burst of catch-up reads
-            await asyncio.sleep(max(0.0, min(due.values()) - time.monotonic()))
+            self._wake.clear()
+            if self._triggered:
+                continue
+            with contextlib.suppress(asyncio.TimeoutError):
+                async with asyncio.timeout(max(0.0, min(due.values()) - time.monotonic())):
+                    await self._wake.wait()
 
     async def execute(self, cmd: Command) -> None:
         reg = self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
@@ -383,6 +433,7 @@ class ModbusCNC(Driver):
         return {"spindle_rpm": self.model.live("spindle_rpm"), "machine_state": self.model.state(),
                 "model": self.model.snapshot(), "values": values, "polls": self.polls,
                 "reads_by_period_s": {f"{p:g}": n for p, n in sorted(self.reads.items())},
+                "reads_on": dict(self.reads_on),
                 "link": {"transport": self.transport, "where": self.where, "errors": dict(self.errors)}}
 
 

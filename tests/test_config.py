@@ -256,3 +256,11 @@ def test_checking_the_default_config_imports_neither_scipy_nor_the_simulator():
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]", r.stdout
+
+
+def test_a_read_on_trigger_must_name_a_configured_instance(tmp_path):
+    text = BASE.replace('spindle_rpm = { address = 2, type = "float32" }',
+                        'spindle_rpm = { address = 2, type = "float32", read_on = ["chatr.cutting"] }')
+    code, err = check(tmp_path, text)
+    assert (code, err) == (78, "lathed: FILE: [machine.lathe.registers.spindle_rpm] read_on: 'chatr' is not a "
+                               "configured analyzer, machine or sensor")

@@ -10,7 +10,7 @@ from collections import Counter
 import pytest
 import structlog
 
-from lathed.bus import Bus
+from lathed.bus import Bus, Sample
 from lathed.command import Command
 from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
@@ -281,3 +281,37 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
             nm.close()
         assert str(link) not in modbus_cnc._LINKS       # the last machine closed the port
     asyncio.run(asyncio.wait_for(main(), 60))
+
+
+def test_read_on_reads_a_register_at_once_when_its_trigger_says_1():
+    """read_on: the spindle load at the chip's entry, not a poll later.  The register
+    polled every 10 s is read as soon as the trigger sample says 1 (never at 0)."""
+    port = free_port()
+    mill = SimCycleMachine(MILL_PROGRAM)
+    peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, mill.write)
+    regs = {**REGS, "x_mm": {"address": 4, "type": "float32", "poll": "10s",
+                             "read_on": ["chatter.cutting", "chatter.cut_contact"]}}
+    d = driver(tcp(port, registers=regs, stale_after="30s"))
+    assert d.listens() == {"chatter": (".registers.x_mm", "read_on")}
+
+    async def check(d, events):
+        sub = d.ctx.bus.subscribe("m")
+        await until(lambda: d.polls > 3, what="polls")
+        first = d.reads_on.copy()
+        d.ctx.bus.publish(Sample("chatter", "cutting", 0.0, "", time.time()))
+        d.ctx.bus.publish(Sample("chatter", "chatter_index", 1.0, "", time.time()))
+        await until(lambda: d.reads[0.05] >= 8, what="more fast polls")
+        assert d.reads_on == first == Counter()
+        sub._items.clear()
+        d.ctx.bus.publish(Sample("chatter", "cut_contact", 1.0, "", time.time()))
+        await until(lambda: d.reads_on["chatter.cut_contact"] == 1, what="the triggered read")
+        assert d.reads[10.0] == 0      # not the poll: its first is 10 s off
+        assert "x_mm" in {s.quantity for s in sub._items if isinstance(s, Sample)}
+        assert d.status()["reads_on"] == {"chatter.cut_contact": 1}
+    asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
+
+
+def test_read_on_must_name_source_and_quantity():
+    regs = {**REGS, "x_mm": {"address": 4, "type": "float32", "read_on": ["cutting"]}}
+    with pytest.raises(ConfigError, match=r"read_on: 'cutting' is not source.quantity"):
+        driver(tcp(502, registers=regs))

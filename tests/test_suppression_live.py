@@ -205,6 +205,9 @@ def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_dae
     for p in parts:
         writes = [w["wall_t"] for w in p["speed_writes"] if "wall_t" in w]
         assert writes and writes[0] - p["cut_start_wall"] < 1.0, p
+    # the load that gave the depth was read at the chip's entry (read_on), not only at its poll
+    reads_on = d.item("machines", "lathe")["reads_on"]
+    assert reads_on.get("chatter.cutting", 0) + reads_on.get("chatter.cut_contact", 0) >= len(parts) + 3, reads_on
     # and no chatter alarm at a speed the lobes call stable for 3 mm (they pick about 1950 r/min
     # for the 1500 r/min part, 2290 for the 2000 and 2500 r/min ones: limits 4.0 and 5.5 mm):
     # the entry's chatter is gone before the detector, which learns its baseline afresh after a
