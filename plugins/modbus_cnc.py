@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import re
 import time
 from collections import Counter
@@ -74,6 +75,7 @@ DT = AsyncModbusTcpClient.DATATYPE
 TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2),
          "uint32": (DT.UINT32, 2), "float32": (DT.FLOAT32, 2)}
 ACTION_REGISTERS = {"spindle_rpm": "spindle_rpm_cmd", "offset_x_um": "offset_x_um"}
+READ_ON_MIN_S = 0.05   # a trigger's reads at most this often: a flapping source costs 20 reads/s, deferred not lost
 MAX_READ = 125   # registers per Modbus read request (protocol limit)
 AXIS = re.compile(r"^([a-z])_(mm|deg)$")
 
@@ -210,6 +212,7 @@ class ModbusCNC(Driver):
         self._triggered: list[str] = []        # triggers seen since the last read (in order, once each)
         self._wake = asyncio.Event()
         self.reads_on: Counter = Counter()     # trigger -> reads it caused
+        self._read_on_t: dict[str, float] = {}  # trigger -> monotonic time of its last read
         self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
                              if reg in self.registers and self.registers[reg].writable)
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
@@ -380,10 +383,12 @@ class ModbusCNC(Driver):
     async def _poll(self) -> None:
         due = {p: time.monotonic() + p for p in self.groups}
         while True:
-            while self._triggered:
-                key = self._triggered.pop(0)
-                await self._read_group(self.read_on[key])
-                self.reads_on[key] += 1
+            for key in list(self._triggered):
+                if time.monotonic() - self._read_on_t.get(key, -math.inf) >= READ_ON_MIN_S:
+                    self._triggered.remove(key)
+                    await self._read_group(self.read_on[key])
+                    self._read_on_t[key] = time.monotonic()
+                    self.reads_on[key] += 1
             for p, plan in self.groups.items():
                 now = time.monotonic()
                 if now >= due[p]:
@@ -391,10 +396,9 @@ class ModbusCNC(Driver):
                     self.reads[p] += 1
                     due[p] = max(due[p] + p, now)   # after a stall: no burst of catch-up reads
             self._wake.clear()
-            if self._triggered:
-                continue
+            wake_at = min([*due.values(), *(self._read_on_t.get(k, -math.inf) + READ_ON_MIN_S for k in self._triggered)])
             with contextlib.suppress(asyncio.TimeoutError):
-                async with asyncio.timeout(max(0.0, min(due.values()) - time.monotonic())):
+                async with asyncio.timeout(max(0.0, wake_at - time.monotonic())):
                     await self._wake.wait()
 
     async def execute(self, cmd: Command) -> None:

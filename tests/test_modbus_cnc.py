@@ -18,7 +18,7 @@ from lathed.sim.line import MILL_PROGRAM, SimCycleMachine
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
 from lathed.sim.serial_peer import NullModem
-from lathed_plugins.modbus_cnc import ModbusCNC, poll_groups
+from lathed_plugins.modbus_cnc import READ_ON_MIN_S, ModbusCNC, poll_groups
 from tests.conftest import free_port
 
 REGS = {"spindle_rpm_cmd": {"address": 0, "type": "float32", "writable": True},
@@ -308,6 +308,14 @@ def test_read_on_reads_a_register_at_once_when_its_trigger_says_1():
         assert d.reads[10.0] == 0      # not the poll: its first is 10 s off
         assert "x_mm" in {s.quantity for s in sub._items if isinstance(s, Sample)}
         assert d.status()["reads_on"] == {"chatter.cut_contact": 1}
+        # a flapping trigger: many at once are one read, and the next waits READ_ON_MIN_S
+        first_t = d._read_on_t["chatter.cut_contact"]
+        for _ in range(10):
+            d.ctx.bus.publish(Sample("chatter", "cut_contact", 1.0, "", time.time()))
+        await until(lambda: d.reads_on["chatter.cut_contact"] == 2, what="the deferred read")
+        assert d._read_on_t["chatter.cut_contact"] - first_t >= READ_ON_MIN_S
+        await until(lambda: d.reads[0.05] >= 20, what="more fast polls")
+        assert d.reads_on["chatter.cut_contact"] == 2
     asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
 
 
