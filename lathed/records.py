@@ -36,6 +36,7 @@ class Part:
     feed_mm_rev: float | None = None
     tool: str | None = None
     material: str | None = None
+    tools: str | None = None             # turret tools that cut it, in order ("1,2"): tool_number register
     reasons: list[str] = field(default_factory=list)
 
     @property
@@ -76,6 +77,7 @@ class PartTracker:
         self.chatter_hz: float | None = None
         self.rpm: float | None = None
         self.feed: float | None = None
+        self.tool_number: int | None = None   # the turret position, where the machine maps it
         self.part: Part | None = None
         self._partial = True
         self._cut = False             # the part in progress has cut
@@ -110,7 +112,8 @@ class PartTracker:
         p.chatter_alarms += 1
         if p.chatter_alarms == 1:
             hz = f" at {self.chatter_hz:.0f} Hz" if self.chatter_hz else ""
-            p.reasons.append(f"chatter alarm during the cut{hz}: cut under abnormal vibration")
+            tool = f" with tool {self.tool_number}" if self.tool_number is not None else ""
+            p.reasons.append(f"chatter alarm during the cut{hz}{tool}: cut under abnormal vibration")
 
     def feed_sample(self, source: str, quantity: str, value: float, t: float) -> list[Part]:
         done: list[Part] = []
@@ -160,6 +163,8 @@ class PartTracker:
             self.rpm = v
         elif q == "feed_mm_rev":
             self.feed = v
+        elif q == "tool_number":
+            self.tool_number = int(v)      # the part's tools: those in the turret when a cut begins
         elif q == "depth_of_cut_mm":
             self._depth_register = True
             if self.part is not None and v > 0:
@@ -170,6 +175,11 @@ class PartTracker:
         if not self._cut:
             self._cut = True
             p.rpm, p.feed_mm_rev = self.rpm, self.feed
+        self._tool(p)
+
+    def _tool(self, p: Part) -> None:
+        if self.tool_number is not None and str(self.tool_number) not in (p.tools or "").split(","):
+            p.tools = f"{p.tools},{self.tool_number}" if p.tools else str(self.tool_number)
 
     def _chatter(self, q: str, v: float) -> None:
         p = self.part
@@ -202,7 +212,7 @@ Query = Callable[[str, tuple], list[dict[str, Any]]]
 _PARTS = """
 SELECT w.id, w.uuid, w.machine_id, w.machine, w.part_no, w.program, w.start_t, w.end_t, w.outcome,
        w.max_chatter_index, w.chatter_threshold, w.chatter_alarms, w.chatter_frequency_hz,
-       w.compensation_um, w.rpm, w.depth_mm, w.feed_mm_rev, w.tool, w.material, w.abnormal, w.reason,
+       w.compensation_um, w.rpm, w.depth_mm, w.feed_mm_rev, w.tool, w.material, w.tools, w.abnormal, w.reason,
        q.t AS queued_t, i.t AS inspected_t, i.ra_um, i.diameter_error_um, i.measured, i.inspector
 FROM workpieces w
 LEFT JOIN sampling_queue q ON q.part_uuid = w.uuid

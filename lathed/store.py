@@ -204,6 +204,45 @@ MIGRATIONS: list[tuple[int, str]] = [
            json_extract(payload, '$.model') AS model
     FROM events WHERE kind = 'cut';
     """),
+    (5, """
+    -- the turret tools that cut each part, in the order they first cut ("1,2"); NULL
+    -- where the machine maps no tool_number register
+    ALTER TABLE workpieces ADD COLUMN tools TEXT;
+    -- alarms and cuts carry the turret tool in their payloads: a column in their views
+    DROP VIEW chatter_events;
+    CREATE VIEW chatter_events AS
+    SELECT id, uuid, machine_id, t, source, kind,
+           json_extract(payload, '$.machine') AS machine,
+           json_extract(payload, '$.index') AS chatter_index,
+           json_extract(payload, '$.threshold') AS threshold,
+           json_extract(payload, '$.chatter_frequency_hz') AS chatter_frequency_hz,
+           json_extract(payload, '$.rpm') AS rpm,
+           json_extract(payload, '$.depth_mm') AS depth_mm,
+           json_extract(payload, '$.tool') AS tool,
+           json_extract(payload, '$.material') AS material,
+           json_extract(payload, '$.tool_number') AS tool_number
+    FROM events WHERE kind IN ('chatter_alarm', 'chatter_cleared');
+    DROP VIEW cuts;
+    CREATE VIEW cuts AS
+    SELECT id, uuid, machine_id, t, source,
+           json_extract(payload, '$.machine') AS machine,
+           json_extract(payload, '$.tool') AS tool,
+           json_extract(payload, '$.material') AS material,
+           json_extract(payload, '$.start_t') AS start_t,
+           json_extract(payload, '$.end_t') AS end_t,
+           json_extract(payload, '$.rpm_start') AS rpm_start,
+           json_extract(payload, '$.rpm_end') AS rpm_end,
+           json_extract(payload, '$.depth_mm') AS depth_mm,
+           json_extract(payload, '$.feed_mm_rev') AS feed_mm_rev,
+           json_extract(payload, '$.outcome') AS outcome,
+           json_extract(payload, '$.first_alarm_s') AS first_alarm_s,
+           json_extract(payload, '$.chatter_frequency_hz') AS chatter_frequency_hz,
+           json_array_length(payload, '$.actions') AS actions,
+           json_extract(payload, '$.cured') AS cured,
+           json_extract(payload, '$.model') AS model,
+           json_extract(payload, '$.tool_number') AS tool_number
+    FROM events WHERE kind = 'cut';
+    """),
 ]
 
 # The time a record row is aged by, for retention.

@@ -47,7 +47,7 @@ _VIEWS = {
     "chatter_events": ("kind IN ('chatter_alarm', 'chatter_cleared')", [
         ("machine", "text"), ("index", "double precision"), ("threshold", "double precision"),
         ("chatter_frequency_hz", "double precision"), ("rpm", "double precision"),
-        ("depth_mm", "double precision"), ("tool", "text"), ("material", "text")]),
+        ("depth_mm", "double precision"), ("tool", "text"), ("material", "text"), ("tool_number", "integer")]),
     "suppression_actions": ("kind = 'suppression_action'", [
         ("strategy", "text"), ("rpm_before", "double precision"), ("rpm_after", "double precision"),
         ("index", "double precision"), ("threshold", "double precision"),
@@ -57,7 +57,7 @@ _VIEWS = {
         ("end_t", "double precision"), ("rpm_start", "double precision"), ("rpm_end", "double precision"),
         ("depth_mm", "double precision"), ("feed_mm_rev", "double precision"), ("outcome", "text"),
         ("first_alarm_s", "double precision"), ("chatter_frequency_hz", "double precision"),
-        ("cured", "boolean"), ("model", "text")]),
+        ("cured", "boolean"), ("model", "text"), ("tool_number", "integer")]),
     "compensations": ("kind = 'compensation'", [
         ("predicted_um", "double precision"), ("offset_um", "double precision"), ("model", "text")]),
 }

@@ -149,11 +149,12 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
 
 
 @contextmanager
-def program_run(tmp_path, program: list[str], parts: int):
+def program_run(tmp_path, program: list[str], parts: int, more: str = ""):
     """The shipped chatter and suppression tables (cures not remembered: every pass is
-    detection's) on a simulator running ``program``; yields the daemon once ``parts`` are cut."""
+    detection's), and ``more``, on a simulator running ``program``; yields the daemon once
+    ``parts`` are cut."""
     suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
-    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n",
+    cfg, paths = sim_config(tmp_path, analyzers=CHATTER + "\n" + suppress + "\n" + more,
                             simulator=f"program = {json.dumps(program)}\nload_s = 0.3\nretract_s = 0.2\n")
     d = Daemon(cfg, paths["socket"])
     d.paths = paths
@@ -201,7 +202,8 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
     over Modbus: the bar's chatter gets the model-free frequency rule and its cut record says
     so, while tool 1's cuts keep the model."""
     assert "\ntool_number = 1" in default_table("suppress")
-    with program_run(tmp_path, ["2000,0.9,0.3,20,tool=2", "2000,1.0,0.3,20"], 4) as d:
+    with program_run(tmp_path, ["2000,0.9,0.3,20,tool=2", "2000,1.0,0.3,20"], 4,
+                     more=default_table("records").replace('\nthermal = "thermal"', "")) as d:
         cuts = [e["payload"] for e in events(d, "cut")]
         bar = [c for c in cuts if c["tool_number"] == 2 and c["outcome"] == "chatter"]
         turning = [c for c in cuts if c["tool_number"] == 1]
@@ -212,6 +214,12 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         assert "tool 1" in d.item("analyzers", "suppress")["summary"]
         alarms = [e["payload"] for e in events(d, "chatter_alarm")]      # the bar's: it alone chatters
         assert alarms and {a["tool_number"] for a in alarms} == {2}, alarms
+        # each part (one pass here) records the tool that cut it, and the bar's alarm names it
+        parts = [p for p in json.loads(d.ctl("parts", "--json").stdout) if p["outcome"] == "finished"]
+        assert {p["tools"] for p in parts} == {"1", "2"}, parts
+        assert all("with tool 2" in p["reason"] for p in parts if p["tools"] == "2" and p["chatter_alarms"])
+        assert any(p["chatter_alarms"] for p in parts if p["tools"] == "2"), parts
+        assert not any(p["chatter_alarms"] for p in parts if p["tools"] == "1"), parts
 
 
 

@@ -127,6 +127,31 @@ def test_without_a_depth_register_the_cut_state_gives_speed_and_feed_and_an_abor
     assert (done.rpm, done.feed_mm_rev) == (1500, 0.3) and not done.abnormal
 
 
+def test_a_part_lists_the_turret_tools_that_cut_it_and_its_alarm_names_the_tool():
+    f = Feed(tracker())
+    f.lathe(part_count=1, program_state=1)
+    f.lathe(part_count=2)
+    f.lathe(tool_number=1)
+    vibration_cut(f, 1500, 0.2)
+    f.lathe(tool_number=2)                   # the turret indexes: the boring bar's pass chatters
+    vibration_cut(f, 1500, 2.7, alarm=1.0)
+    f.lathe(tool_number=1)                   # back to tool 1 for the next part, before it ends
+    f.lathe(part_count=3)
+    f.lathe(tool_number=3)
+    f.lathe(tool_number=1)                   # an index without a cut is no tool of the part
+    vibration_cut(f, 1500, 0.2)
+    f.lathe(part_count=4)
+    two, three = f.done[1:]
+    assert (two.tools, three.tools) == ("1,2", "1")
+    assert "chatter alarm during the cut at 312 Hz with tool 2" in two.row()["reason"]
+    # a machine without the register: no tools, and the reason as before
+    g = Feed(tracker())
+    g.lathe(part_count=1, program_state=1)
+    vibration_cut(g, 1500, 2.7, alarm=1.0)
+    g.lathe(part_count=2)
+    assert g.done[0].tools is None and "312 Hz: cut under" in g.done[0].row()["reason"]
+
+
 def test_without_a_depth_register_the_part_takes_the_deepest_spindle_load_estimate():
     f = Feed(PartTracker("lathe", "chatter", "thermal", "T0101", "C45", suppress="suppress"))
     f.lathe(part_count=3, program_state=1)

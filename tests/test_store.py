@@ -32,6 +32,22 @@ def test_version_1_database_is_upgraded_and_its_events_will_be_forwarded(tmp_pat
     s.close()
 
 
+def test_version_4_database_gains_the_turret_tool_in_its_parts_and_views(tmp_path):
+    con = sqlite3.connect(tmp_path / "v4.db", isolation_level=None)
+    con.executescript("".join(sql for v, sql in MIGRATIONS if v <= 4) + "PRAGMA user_version=4;")
+    con.execute("INSERT INTO events(uuid, t, source, kind, payload) VALUES ('c1', 1.0, 'suppress', 'cut', "
+                "'{\"machine\": \"lathe\", \"tool_number\": 2, \"outcome\": \"chatter\"}')")
+    con.execute("INSERT INTO events(uuid, t, source, kind, payload) VALUES ('a1', 1.0, 'chatter', "
+                "'chatter_alarm', '{\"machine\": \"lathe\", \"tool_number\": 2}')")
+    con.close()
+    s = Store(tmp_path / "v4.db")
+    assert s.schema_version == MIGRATIONS[-1][0]
+    assert s.query("SELECT outcome, tool_number FROM cuts") == [{"outcome": "chatter", "tool_number": 2}]
+    assert s.query("SELECT kind, tool_number FROM chatter_events") == [{"kind": "chatter_alarm", "tool_number": 2}]
+    assert "tools" in {n for n, _ in s.columns("workpieces")}
+    s.close()
+
+
 def test_statement_splitter_keeps_trigger_bodies_whole():
     stmts = storemod.statements("CREATE TABLE a(x);\nCREATE TRIGGER t AFTER INSERT ON a\n"
                                 "BEGIN INSERT INTO a VALUES (1); INSERT INTO a VALUES (2); END;\n")

@@ -157,7 +157,7 @@ def cmd_parts(args: argparse.Namespace) -> int:
     if not rows:
         print("(no parts)")
         return 0
-    print(f"{'part':>5} {'no':>5} {'prog':>5} {'ended':<14} {'outcome':<8} {'r/min':>6} {'depth':>5} "
+    print(f"{'part':>5} {'no':>5} {'prog':>5} {'ended':<14} {'outcome':<8} {'tools':<5} {'r/min':>6} {'depth':>5} "
           f"{'chatter':>8} {'alarms':>6} {'comp µm':>7}  {'Ra µm':>6} {'dD µm':>6}  state")
     for r in rows:
         if r["inspected_t"] is not None:
@@ -169,7 +169,7 @@ def cmd_parts(args: argparse.Namespace) -> int:
         if r["abnormal"]:
             state = f"ABNORMAL: {r['reason']}; {state}"
         print(f"{r['id']:>5} {_f(r['part_no'], 'd'):>5} {_f(r['program'], 'd'):>5} {_t(r['end_t']):<14} "
-              f"{r['outcome']:<8} {_f(r['rpm'], '.0f'):>6} {_f(r['depth_mm'], '.2g'):>5} "
+              f"{r['outcome']:<8} {r.get('tools') or '-':<5} {_f(r['rpm'], '.0f'):>6} {_f(r['depth_mm'], '.2g'):>5} "
               f"{_f(r['max_chatter_index']):>8} {r['chatter_alarms']:>6} {_f(r['compensation_um'], '.1f'):>7}  "
               f"{_f(r['ra_um'], '.2f'):>6} {_f(r['diameter_error_um'], '.1f'):>6}  {state}")
     return 0
