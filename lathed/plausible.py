@@ -164,5 +164,7 @@ class Plausibility:
 
 
 def _within(b: Bounds, last: tuple[float, float], value: float, t: float) -> bool:
+    if b.rate == INF:
+        return True                 # no rate bound (inf x 0 s would be NaN, and refuse)
     dt = max(t - last[1], 0.0)      # a clock step back allows no more than tol
     return abs(value - last[0]) <= b.tol + b.rate * dt

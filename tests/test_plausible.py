@@ -47,6 +47,17 @@ def test_nan_and_out_of_range_refused_for_any_unit():
     assert c.bus.published == 1
 
 
+def test_without_a_rate_bound_two_values_at_one_instant_are_accepted():
+    # an MTConnect agent reports a load that rose and fell within its timestamp's resolution:
+    # no rate bound (%) times 0 s was NaN, and the second value was refused as a jump
+    p = Plausibility()
+    assert p.check("spindle_load_pct", "%", 40.0, 5.0) is None
+    assert p.check("spindle_load_pct", "%", 12.5, 5.0) is None
+    assert p.check("t_motor", "°C", 20.0, 5.0) is None
+    assert p.check("t_motor", "°C", 20.4, 5.0) is None               # within tol at 0 s
+    assert p.check("t_motor", "°C", 30.0, 5.0) is not None           # a rate bound still holds
+
+
 def test_after_a_long_gap_a_value_within_range_is_accepted():
     p = Plausibility()
     assert p.check("t_motor", "°C", 20.0, 0.0) is None
