@@ -40,6 +40,7 @@ from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
 from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
+from lathed.sim.mtconnect_agent import MTConnectAgent
 from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
@@ -56,6 +57,7 @@ class Simulator:
                               depth_override_mm=args.depth_mm, flank=args.flank, **args.lathe)
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
+        self.agent = MTConnectAgent(args.host, args.mtconnect_port) if args.mtconnect_port else None
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
         self.mill_peer = self.grinder_peer = self.robot_peer = None
@@ -86,6 +88,9 @@ class Simulator:
         tty = self.serial.open()
         await self.modbus.start()
         await self.vibration.start()
+        if self.agent is not None:
+            self.agent.update(self.lathe.registers())
+            await self.agent.start()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
                 await peer.start()
@@ -102,6 +107,8 @@ class Simulator:
         ready = {"modbus": [self.args.host, self.args.modbus_port],
                  "vibration": [self.args.host, self.args.vibration_port],
                  "serial": self.args.serial_link, "tty": tty, "control": self.args.control}
+        if self.agent is not None:
+            ready["mtconnect"] = [self.args.host, self.args.mtconnect_port]
         if self.mill_peer:
             ready["mill"] = [self.args.host, self.args.mill_port]
         if self.grinder_peer:
@@ -131,6 +138,8 @@ class Simulator:
             t.cancel()
         await self.modbus.stop()
         await self.vibration.stop()
+        if self.agent is not None:
+            await self.agent.stop()
         self.serial.close()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
@@ -156,8 +165,12 @@ class Simulator:
                 # the speed the block was cut at (read before the step, it lagged a ramp step)
                 self.vibration.send(t0, self.lathe.block_rpm, data)
                 self.produced += BLOCK
-            if self.modbus.up:
-                self.modbus.block.update(self.lathe.registers())
+            if self.modbus.up or self.agent is not None:
+                regs = self.lathe.registers()
+                if self.modbus.up:
+                    self.modbus.block.update(regs)
+                if self.agent is not None and self.agent.up:
+                    self.agent.update(regs)
             await asyncio.sleep(max(0.0, start + (self.produced + BLOCK) / rate - time.time()))
 
     def _wall(self, sim_t: float) -> float | None:
@@ -315,6 +328,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="indentation coefficient under the land, N/m^3")
     p.add_argument("--exit-with-parent", action="store_true")
     p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
+    p.add_argument("--mtconnect-port", type=int, default=0,
+                   help="serve the lathe as an MTConnect agent on this HTTP port too (0: none)")
     p.add_argument("--grinder-link", default="",
                    help="serve the grinder on Modbus RTU; path of the symlink to its tty (empty: no grinder)")
     p.add_argument("--robot-link", default="",

@@ -41,6 +41,8 @@ class SimulatorSettings:
         self.flank_indentation = sec.getfloat("flank_indentation_n_m3", 4.0e13, minval=1e11, maxval=1e16)
         # the lathe's neighbours; each off unless configured
         self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
+        # the lathe as an MTConnect agent too (read-only, beside its Modbus server; 0: none)
+        self.mtconnect_port = sec.getint("mtconnect_port", 0, minval=0, maxval=65535)
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
         # the lathe's true dynamics and program, when they are to differ from the built-in ones
@@ -77,6 +79,8 @@ class SimulatorSettings:
              "--exit-with-parent"]
         if self.mill_port:
             a += ["--mill-port", str(self.mill_port)]
+        if self.mtconnect_port:
+            a += ["--mtconnect-port", str(self.mtconnect_port)]
         if self.grinder_link:
             a += ["--grinder-link", self.grinder_link]
         if self.robot_link:

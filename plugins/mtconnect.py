@@ -1,0 +1,297 @@
+"""CNC machines that report over MTConnect (read-only): an agent's HTTP interface.
+
+    [machine.lathe2]
+    plugin = "mtconnect"
+    kind = "lathe"                     # lathe | mill | grinder
+    url = "http://10.0.4.21:8082"      # the agent (Haas NGC, Okuma, Mazak and DMG Mori ship one)
+    device = "Haas-ST10"               # where the agent serves several devices (default: all)
+    poll = "100ms"                     # how often new observations are asked for
+    timeout = "1s"
+    stale_after = "2s"
+
+    [machine.lathe2.items]             # lathed's name = the agent's dataItemId (its /probe lists them)
+    spindle_rpm = "Sspeed"             # ROTARY_VELOCITY, REVOLUTION/MINUTE
+    spindle_load_pct = "Sload"         # LOAD, PERCENT: the chatter analyzer's "load" cut source
+    program_state = "execution"        # EXECUTION: ACTIVE is running (1), anything else idle (0)
+    alarm_code = "system"              # a CONDITION: Fault is an alarm (its nativeCode, else 1)
+    part_count = "part_count"
+    tool_number = "tool"
+    x_mm = "Xpos"
+
+MTConnect is read-only, so such a machine takes no commands: chatter detection,
+part records and thermal prediction run on it, and a speed or offset asked of it
+is refused by the supervisor ("does not take 'spindle_rpm'").
+
+At connect the driver reads ``/probe`` and refuses a map naming an item the
+device lacks, or one whose units are not lathed's (a speed not in
+REVOLUTION/MINUTE, a position not in MILLIMETER, a load not in PERCENT). It then
+reads ``/current`` and, every ``poll``, ``/sample?from=N``: every observation
+since the last, in the agent's sequence order, so a value that changed and
+changed back between two polls is still seen.  An agent that restarted (a new
+``instanceId``) or a client that fell out of the agent's buffer (OUT_OF_RANGE)
+starts again from ``/current``, and the gap is recorded (``mtconnect_gap``),
+never skipped silently.  An UNAVAILABLE value is not published; the last one
+goes stale.  A value is stamped with its arrival less its age at the agent
+(the document's creationTime less the observation's timestamp): the spacing of
+the observations is the agent's, the clock this PC's, which the agent's may not
+match.
+"""
+from __future__ import annotations
+
+import asyncio
+import re
+import time
+from collections import Counter
+from datetime import datetime
+from xml.etree import ElementTree as ET
+
+import aiohttp
+
+from lathed import hookimpl
+from lathed.bus import Sample
+from lathed.config import Section
+from lathed.driver import Driver
+from lathed.machine import MachineModel
+
+UNITS = {"spindle_rpm": "REVOLUTION/MINUTE", "spindle_load_pct": "PERCENT", "feed_mm_rev": "MILLIMETER/REVOLUTION",
+         "spindle_override_pct": "PERCENT"}
+AXIS = re.compile(r"^([a-z])_(mm|deg)$")
+AXIS_UNITS = {"mm": "MILLIMETER", "deg": "DEGREE"}
+UNIT_TEXT = {"spindle_rpm": "r/min", "spindle_load_pct": "%", "feed_mm_rev": "mm/rev", "spindle_override_pct": "%"}
+COUNT = 1000    # observations asked for at a time
+
+
+def _local(tag: str) -> str:
+    return tag.rsplit("}", 1)[-1]
+
+
+def _epoch(stamp: str | None) -> float | None:
+    """An MTConnect timestamp (ISO 8601, UTC) in seconds since the epoch."""
+    if not stamp:
+        return None
+    try:
+        return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+    except ValueError:
+        return None
+
+
+class AgentError(Exception):
+    def __init__(self, code: str, text: str):
+        super().__init__(f"{code}: {text}")
+        self.code = code
+
+
+class MTConnect(Driver):
+    role = "machine"
+    actions: tuple[str, ...] = ()      # read-only: MTConnect has no writes
+
+    def __init__(self, name: str, section: Section):
+        super().__init__(name, section)
+        self.kind = section.getstr("kind", "lathe", choices=("lathe", "mill", "grinder"))
+        self.url = section.getstr("url").rstrip("/")
+        if not re.match(r"^https?://[^/]+", self.url):
+            raise section.error("url", f"{self.url!r} is not an http:// or https:// address of an agent")
+        self.device = section.getstr("device", "")
+        self.poll = section.getduration("poll", 0.1, minval=0.01, maxval=60)
+        self.timeout = section.getduration("timeout", 1.0, minval=0.05, maxval=60)
+        self.stale_after = section.getduration("stale_after", max(2.0, 3 * self.poll), minval=0.05)
+        if self.stale_after <= self.poll:
+            raise section.error("stale_after", f"must be longer than the poll ({self.poll:g} s)")
+        items = section.getsection("items")
+        self.items: dict[str, str] = {}          # dataItemId -> lathed name
+        for name_ in items.keys():
+            ident = items.getstr(name_)
+            if ident in self.items:
+                raise items.error(name_, f"item {ident!r} is already mapped to {self.items[ident]!r}")
+            self.items[ident] = name_
+        if not self.items:
+            raise items.error(None, "no items mapped; add lathed_name = \"dataItemId\" lines")
+        self.base = f"{self.url}/{self.device}" if self.device else self.url
+        self.model = MachineModel(self.kind, self.stale_after, self._record)
+        self.session: aiohttp.ClientSession | None = None
+        self.kinds: dict[str, tuple[str, str]] = {}   # dataItemId -> (category, type), from /probe
+        self.instance: str | None = None
+        self.next_seq: int | None = None
+        self.values: dict[str, tuple[float, float]] = {}
+        self.polls = 0
+        self.observations = 0
+        self.gaps = 0
+        self.errors: Counter = Counter()
+
+    def _record(self, kind: str, payload: dict) -> None:
+        if self.ctx is not None:
+            self.ctx.record(kind, payload)
+
+    # -- the agent --------------------------------------------------------------------
+    async def _get(self, path: str) -> ET.Element:
+        try:
+            async with asyncio.timeout(self.timeout + 1):
+                async with self.session.get(f"{self.base}/{path}") as r:
+                    body = await r.read()
+        except asyncio.TimeoutError as e:
+            self.errors["timeout"] += 1
+            raise TimeoutError(f"no answer from the MTConnect agent at {self.url} within {self.timeout:g} s") from e
+        except aiohttp.ClientError as e:
+            self.errors["connection"] += 1
+            raise ConnectionError(f"MTConnect agent at {self.url}: {e} (agent down or network?)") from e
+        try:
+            root = ET.fromstring(body)
+        except ET.ParseError as e:
+            self.errors["malformed"] += 1
+            raise ValueError(f"{self.base}/{path} is not an MTConnect document ({e}; HTTP {r.status})") from None
+        if _local(root.tag) == "MTConnectError":
+            err = next((e for e in root.iter() if _local(e.tag) == "Error"), None)
+            code = err.get("errorCode", "?") if err is not None else "?"
+            raise AgentError(code, (err.text or "").strip() if err is not None else "")
+        return root
+
+    async def connect(self) -> None:
+        self.session = aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=self.timeout))
+        try:
+            probe = await self._get("probe")
+        except AgentError as e:
+            raise ConnectionError(f"the agent at {self.url} refused /probe ({e}): is device "
+                                  f"{self.device!r} served there?") from None
+        have = {d.get("id"): d for d in probe.iter() if _local(d.tag) == "DataItem"}
+        for ident, name in self.items.items():
+            d = have.get(ident)
+            if d is None:
+                raise ConnectionError(f"{self.name}: items.{name} = {ident!r} is not a data item of "
+                                      f"{self.device or 'the agent'} at {self.url}; it has: {', '.join(sorted(have))}")
+            ax = AXIS.match(name)
+            want = AXIS_UNITS[ax.group(2)] if ax else UNITS.get(name)
+            if want and d.get("units") not in (None, want):
+                raise ConnectionError(f"{self.name}: items.{name} = {ident!r} is in {d.get('units')}, "
+                                      f"not {want}: map an item in {want}")
+            self.kinds[ident] = (d.get("category", ""), d.get("type", ""))
+        if self.next_seq is None:
+            await self._current()
+        # else a reconnect: the next sample goes on from the last sequence read, so the outage
+        # loses nothing the agent still buffers
+        self.model.link_up()
+
+    async def close(self) -> None:
+        self.model.link_down()
+        if self.session is not None:
+            await self.session.close()
+            self.session = None
+
+    async def _current(self) -> None:
+        doc = await self._get("current")
+        self.instance, self.next_seq = self._header(doc)
+        self._publish(doc)
+
+    def _header(self, doc: ET.Element) -> tuple[str, int]:
+        h = next((e for e in doc.iter() if _local(e.tag) == "Header"), None)
+        if h is None or not (h.get("nextSequence") or "").isdigit():
+            raise ValueError(f"{self.url}: an MTConnect document without a Header's nextSequence")
+        return h.get("instanceId", ""), int(h.get("nextSequence"))
+
+    async def run(self) -> None:
+        while True:
+            try:
+                doc = await self._get(f"sample?from={self.next_seq}&count={COUNT}")
+            except AgentError as e:
+                if e.code != "OUT_OF_RANGE":
+                    raise
+                self._gap(f"observations from sequence {self.next_seq} left the agent's buffer before "
+                          "they were read")
+                await self._current()
+                continue
+            instance, nxt = self._header(doc)
+            if instance != self.instance:
+                self._gap(f"the agent restarted (instanceId {self.instance} -> {instance}): what it "
+                          "observed after the last read and before its restart is gone")
+                await self._current()
+                continue
+            self._publish(doc)
+            self.next_seq = nxt
+            self.polls += 1
+            h = next(e for e in doc.iter() if _local(e.tag) == "Header")
+            if (h.get("lastSequence") or "").isdigit() and int(h.get("lastSequence")) >= nxt:
+                continue        # more than COUNT new: ask again at once
+            await asyncio.sleep(self.poll)
+
+    def _gap(self, why: str) -> None:
+        self.gaps += 1
+        self.errors["gap"] += 1
+        payload = {"machine": self.name, "agent": self.url, "why": why}
+        self.ctx.log.warning("mtconnect_gap", **payload)
+        self._record("mtconnect_gap", payload)
+
+    # -- observations -------------------------------------------------------------------
+    def _publish(self, doc: ET.Element) -> None:
+        now = time.time()
+        h = next(e for e in doc.iter() if _local(e.tag) == "Header")
+        created = _epoch(h.get("creationTime"))
+        obs = sorted(((int(e.get("sequence", 0)), e) for e in doc.iter() if e.get("dataItemId") in self.items),
+                     key=lambda p: p[0])
+        for _, e in obs:
+            ident = e.get("dataItemId")
+            name = self.items[ident]
+            v = self._value(ident, e)
+            if v is None:
+                continue        # UNAVAILABLE: the last value goes stale
+            self.observations += 1
+            # the arrival, less how long before the document the agent observed it: the
+            # spacing of a batch's observations is the agent's, the clock this PC's
+            ts = _epoch(e.get("timestamp"))
+            t = now - max(0.0, created - ts) if ts is not None and created is not None else now
+            if self.ctx.bus.publish(Sample(self.name, name, v, UNIT_TEXT.get(name, ""), t)):
+                self.values[name] = (v, t)
+                self._to_model(name, v, t)
+        self.mark_data()
+
+    def _value(self, ident: str, e: ET.Element) -> float | None:
+        category, typ = self.kinds.get(ident, ("", ""))
+        if category == "CONDITION":
+            level = _local(e.tag)
+            if level == "Unavailable":
+                return None
+            if level == "Fault":
+                code = e.get("nativeCode", "")
+                return float(code) if code.isdigit() and int(code) else 1.0
+            return 0.0
+        text = (e.text or "").strip()
+        if text == "UNAVAILABLE" or not text:
+            return None
+        if typ == "EXECUTION":
+            return 1.0 if text == "ACTIVE" else 0.0
+        if typ == "PROGRAM":
+            digits = re.sub(r"\D", "", text)
+            return float(digits) if digits else None
+        try:
+            return float(text)
+        except ValueError:
+            self.errors["unreadable"] += 1
+            return None
+
+    def _to_model(self, name: str, v: float, t: float) -> None:
+        m = self.model
+        if name in ("spindle_rpm", "cycle_time_s"):
+            m.set(name, v, t)
+        elif name == "part_count":
+            m.set("part_count", int(v), t)
+        elif name == "program_number":
+            m.set("program", int(v), t)
+        elif name == "program_state":
+            m.set_running(int(v) == 1, t)
+        elif name == "alarm_code":
+            m.set_alarms([int(v)] if int(v) else [], t)
+        elif (ax := AXIS.match(name)) is not None:
+            m.set_axis(ax.group(1), v, t)
+
+    def status(self) -> dict:
+        now = time.time()
+        values = {n: {"value": v, "age_s": round(now - t, 3), "stale": self.session is None or
+                      now - t > self.stale_after} for n, (v, t) in self.values.items()}
+        return {"spindle_rpm": self.model.live("spindle_rpm"), "machine_state": self.model.state(),
+                "model": self.model.snapshot(), "values": values, "polls": self.polls,
+                "observations": self.observations,
+                "link": {"transport": "mtconnect", "where": self.url, "instance": self.instance,
+                         "next_sequence": self.next_seq, "gaps": self.gaps, "errors": dict(self.errors)}}
+
+
+@hookimpl
+def lathed_driver_types():
+    return {"mtconnect": MTConnect}
