@@ -27,7 +27,9 @@ device lacks, or one whose units are not lathed's (a speed not in
 REVOLUTION/MINUTE, a position not in MILLIMETER, a load not in PERCENT). It then
 reads ``/current`` and, every ``poll``, ``/sample?from=N``: every observation
 since the last, in the agent's sequence order, so a value that changed and
-changed back between two polls is still seen.  An agent that restarted (a new
+changed back between two polls is still seen; a value the agent does not
+observe again (it reports changes only) still holds, and is published again at
+each poll, as a Modbus register read again is.  An agent that restarted (a new
 ``instanceId``) or a client that fell out of the agent's buffer (OUT_OF_RANGE)
 starts again from ``/current``, and the gap is recorded (``mtconnect_gap``),
 never skipped silently.  An UNAVAILABLE value is not published; the last one
@@ -113,6 +115,7 @@ class MTConnect(Driver):
         self.instance: str | None = None
         self.next_seq: int | None = None
         self.values: dict[str, tuple[float, float]] = {}
+        self.unavailable: set[str] = set()
         self.polls = 0
         self.observations = 0
         self.gaps = 0
@@ -226,21 +229,33 @@ class MTConnect(Driver):
         created = _epoch(h.get("creationTime"))
         obs = sorted(((int(e.get("sequence", 0)), e) for e in doc.iter() if e.get("dataItemId") in self.items),
                      key=lambda p: p[0])
+        seen = set()
         for _, e in obs:
             ident = e.get("dataItemId")
             name = self.items[ident]
+            seen.add(name)
             v = self._value(ident, e)
             if v is None:
-                continue        # UNAVAILABLE: the last value goes stale
+                self.unavailable.add(name)     # UNAVAILABLE: the last value goes stale
+                continue
+            self.unavailable.discard(name)
             self.observations += 1
             # the arrival, less how long before the document the agent observed it: the
             # spacing of a batch's observations is the agent's, the clock this PC's
             ts = _epoch(e.get("timestamp"))
             t = now - max(0.0, created - ts) if ts is not None and created is not None else now
-            if self.ctx.bus.publish(Sample(self.name, name, v, UNIT_TEXT.get(name, ""), t)):
-                self.values[name] = (v, t)
-                self._to_model(name, v, t)
+            self._publish_one(name, v, t)
+        # an agent reports changes only: a value it did not observe again still holds now, as
+        # a Modbus register read again does (the analyzers and the model see it every poll)
+        for name, (v, _) in list(self.values.items()):
+            if name not in seen and name not in self.unavailable:
+                self._publish_one(name, v, now)
         self.mark_data()
+
+    def _publish_one(self, name: str, v: float, t: float) -> None:
+        if self.ctx.bus.publish(Sample(self.name, name, v, UNIT_TEXT.get(name, ""), t)):
+            self.values[name] = (v, t)
+            self._to_model(name, v, t)
 
     def _value(self, ident: str, e: ET.Element) -> float | None:
         category, typ = self.kinds.get(ident, ("", ""))
@@ -280,6 +295,13 @@ class MTConnect(Driver):
             m.set_alarms([int(v)] if int(v) else [], t)
         elif (ax := AXIS.match(name)) is not None:
             m.set_axis(ax.group(1), v, t)
+
+    def current(self, action: str) -> float | None:
+        """The spindle's speed as the agent last reported it (shown by status; no action takes it)."""
+        v = self.values.get("spindle_rpm") if action == "spindle_rpm" else None
+        if v is None or self.session is None or time.time() - v[1] > self.stale_after:
+            return None
+        return v[0]
 
     def status(self) -> dict:
         now = time.time()

@@ -80,10 +80,15 @@ def test_values_every_observation_and_the_machine_model():
             agent.update({"part_count": 8})
             await until(lambda: any(k == "part_completed" for k, _ in events), what="part")
             assert d.status()["link"]["gaps"] == 0
+            # a speed the agent does not observe again holds: live past stale_after (300 ms here)
+            n = len(seen)
+            await until(lambda: sum(s.quantity == "spindle_rpm" for s in seen[n:]) * d.poll > 2 * d.stale_after,
+                        what="polls past stale_after")
+            assert d.model.live("spindle_rpm") == 1500.0 and d.current("spindle_rpm") == 1500.0
         finally:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
-    asyncio.run(asyncio.wait_for(_with_agent(check), 30))
+    asyncio.run(asyncio.wait_for(_with_agent(check, stale_after="300ms"), 30))
 
 
 def test_an_agent_restart_and_a_buffer_overrun_are_recorded_gaps(monkeypatch):
@@ -118,7 +123,11 @@ def test_unavailable_is_not_a_value():
             agent._observe("Sload", "UNAVAILABLE")
             agent.update({"spindle_rpm": 1234.0})
             await until(lambda: d.model.live("spindle_rpm") == 1234.0, what="the next value")
-            assert [s.value for s in seen if s.quantity == "spindle_load_pct"] == [12.5]
+            assert "spindle_load_pct" in d.unavailable
+            n = len(seen)
+            await until(lambda: len([s for s in seen[n:] if s.quantity == "spindle_rpm"]) > 2, what="polls")
+            # the speed is carried on every poll; the unavailable load is not, and goes stale
+            assert [s for s in seen[n:] if s.quantity == "spindle_load_pct"] == []
         finally:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
@@ -197,7 +206,7 @@ def test_a_lathe_read_over_mtconnect_raises_chatter_alarms_and_flags_parts_live(
         mt = d.item("machines", "mt")
         assert mt["state"] == "connected" and mt["link"]["transport"] == "mtconnect" and mt["link"]["gaps"] == 0
         assert mt["observations"] > 100 and mt["model"]["part_count"]["value"] >= 2
-        assert re.search(r"^\s+mt\s", d.ctl("status").stdout, re.M)
+        assert re.search(r"^\s+mt\s+lathe\s+\d+ r/min\s+connected", d.ctl("status").stdout, re.M)
         assert events(d, "command_sent") == []
     finally:
         d.stop()
