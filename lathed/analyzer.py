@@ -20,7 +20,8 @@ class AnalyzerContext:
     def __init__(self, bus: Bus, log: structlog.typing.FilteringBoundLogger, record,
                  command: Callable[[Command], Awaitable[dict]],
                  register_control: Callable[[str, Callable[[dict], Awaitable[Any]]], None],
-                 store, machine_status: Callable[[str], dict | None], config_dir, plugins=None):
+                 store, machine_status: Callable[[str], dict | None], config_dir, plugins=None,
+                 release: Callable[[str, str, str], Awaitable[dict | None]] | None = None):
         self.bus = bus
         self.log = log
         self.record = record                  # record(kind, payload) -> None
@@ -30,6 +31,13 @@ class AnalyzerContext:
         self.machine_status = machine_status
         self.config_dir = config_dir
         self.plugins = plugins                # the PluginLoader: plugin-supplied detectors, candidates
+        # await release(machine, action, source): the action back to what the machine's program
+        # sets, where a command's effect outlasts the cut (a spindle override); None: nothing to do
+        self.release = release or (lambda machine, action, source: _nothing())
+
+
+async def _nothing() -> None:
+    return None
 
 
 class Analyzer:

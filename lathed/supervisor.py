@@ -230,7 +230,7 @@ class Supervisor:
         for name, (inst, an) in plan.analyzers.items():
             an.ctx = AnalyzerContext(bus, log.bind(analyzer=name), self._recorder(name), self.command,
                                      self._control_registrar(name), store, self.machine_status,
-                                     cfg.path.parent, plugins=plan.loader)
+                                     cfg.path.parent, plugins=plan.loader, release=self.release)
             self.analyzer_runners[name] = Runner("analyzer", name, an, *self._retry(inst), self.record)
 
     def _control_registrar(self, analyzer: str):
@@ -321,16 +321,31 @@ class Supervisor:
                 self.record("command_refused", cmd.source, {**payload, "refused": reason})
                 return {"sent": False, "reason": reason}
             try:
-                await asyncio.wait_for(drv.execute(cmd), 5.0)
+                detail = await asyncio.wait_for(drv.execute(cmd), 5.0)
             except Exception as e:
                 err = _one_line(e)
                 log.error("command_failed", command=cmd.describe(), error=err)
                 self.record("command_failed", cmd.source, {**payload, "error": err})
                 return {"sent": False, "reason": f"write failed: {err}"}
             self.guard.passed(cmd)
-            log.info("command_sent", command=cmd.describe())
+            payload.update(detail or {})     # how the driver carried it (an override: its % and speed)
+            log.info("command_sent", command=cmd.describe(), **(detail or {}))
             self.record("command_sent", cmd.source, payload)
-            return {"sent": True, "reason": None}
+            return {"sent": True, "reason": None, **(detail or {})}
+
+    async def release(self, machine: str, action: str, source: str) -> dict | None:
+        """``action`` back to what the machine's program sets, through the guard as any command:
+        where the driver writes it as something that holds beyond the cut (a spindle override),
+        the value that undoes it; None where there is nothing to undo."""
+        runner = self.runners.get(machine)
+        drv = runner.obj if runner else None
+        if drv is None or action not in getattr(drv, "actions", ()) or runner.state != "connected":
+            return None
+        value = getattr(drv, "released", lambda a: None)(action)
+        if value is None:
+            return None
+        return await self.command(Command(machine, action, float(value), source,
+                                          reason="released: back to the programmed speed"))
 
     # -- status ---------------------------------------------------------------
     def machine_status(self, name: str) -> dict | None:

@@ -38,7 +38,12 @@ a revolution in, instead of up to a poll later).
 Commands write only to registers declared writable, and only commands the
 supervisor passed through the safety guard reach ``execute``: the
 ``spindle_rpm`` action writes ``spindle_rpm_cmd``, ``offset_x_um`` writes
-``offset_x_um``; nothing else is ever written.
+``offset_x_um``; nothing else is ever written.  A control that takes the speed
+only as an override maps ``spindle_override_pct`` writable and
+``spindle_rpm_cmd`` read-only: ``spindle_rpm`` is then written as a percentage
+of the programmed speed (``override_step_pct``, ``override_min_pct``,
+``override_max_pct``), rounded towards the present override, and ``released``
+gives the speed that puts it back to 100 % when the analysis is done.
 
 The machine model (lathed.machine) is filled from registers by name:
 ``spindle_rpm``, ``part_count``, ``cycle_time_s``, ``program_number``
@@ -215,6 +220,20 @@ class ModbusCNC(Driver):
         self._read_on_t: dict[str, float] = {}  # trigger -> monotonic time of its last read
         self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
                              if reg in self.registers and self.registers[reg].writable)
+        # a control that takes the spindle speed only as an override (Fanuc's SOV through the
+        # PMC, Siemens' DBB19): the spindle_rpm action is written as a percentage of the
+        # programmed speed, and released (back to 100 %) when the analysis is done with it
+        ovr = self.registers.get("spindle_override_pct")
+        self.speed_by_override = "spindle_rpm" not in self.actions and ovr is not None and ovr.writable
+        self.override_range = (section.getfloat("override_min_pct", 50.0, minval=1.0, maxval=100.0),
+                               section.getfloat("override_max_pct", 150.0, minval=100.0, maxval=254.0))
+        self.override_step = section.getfloat("override_step_pct", 1.0, minval=0.01, maxval=50.0)
+        if self.speed_by_override:
+            if "spindle_rpm_cmd" not in self.registers and "spindle_rpm" not in self.registers:
+                raise section.error("registers", "a writable spindle_override_pct needs spindle_rpm_cmd (the "
+                                                 "commanded speed) or spindle_rpm mapped: the override is a "
+                                                 "percentage of the programmed speed")
+            self.actions += ("spindle_rpm",)
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self.link: SerialLink | None = None
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
@@ -401,7 +420,54 @@ class ModbusCNC(Driver):
                 async with asyncio.timeout(max(0.0, wake_at - time.monotonic())):
                     await self._wake.wait()
 
-    async def execute(self, cmd: Command) -> None:
+    def _override_for(self, rpm: float) -> tuple[float, float]:
+        """(override %, the speed it gives) for a speed the guard passed: a percentage of the
+        programmed speed (the commanded speed over the present override) on the control's
+        step, rounded towards the present override, so the spindle lands between its present
+        speed and the one asked, never beyond."""
+        ovr = self._fresh("spindle_override_pct")
+        now = self._fresh("spindle_rpm_cmd") if "spindle_rpm_cmd" in self.registers else self._fresh("spindle_rpm")
+        if ovr is None or now is None or not ovr > 0 or not now > 0:
+            raise ConnectionError("no fresh spindle override and speed to take the programmed speed from")
+        base = now * 100.0 / ovr
+        exact = 100.0 * rpm / base
+        if abs(exact - 100.0) < 0.05:
+            return 100.0, base       # the programmed speed (a release; G96 drifts between the reads)
+        q = exact / self.override_step
+        q = (math.floor(q + 1e-9) if exact >= ovr else math.ceil(q - 1e-9)) * self.override_step
+        lo, hi = self.override_range
+        if not lo <= q <= hi:
+            raise ValueError(f"{rpm:.0f} r/min is a spindle override of {q:g} % of the programmed "
+                             f"{base:.0f} r/min, beyond the control's {lo:g}..{hi:g} %")
+        return q, base * q / 100.0
+
+    def released(self, action: str) -> float | None:
+        """What ``action`` goes back to when the analysis is done with it: the programmed
+        speed (an override of 100 %) where the speed is written as an override, which holds
+        part after part; None where the program's next speed word takes over anyway."""
+        if action != "spindle_rpm" or not self.speed_by_override:
+            return None
+        ovr = self._fresh("spindle_override_pct")
+        now = self.current("spindle_rpm")
+        if ovr is None or now is None or not ovr > 0 or abs(ovr - 100.0) < 1e-6:
+            return None
+        return now * 100.0 / ovr
+
+    async def execute(self, cmd: Command) -> dict | None:
+        if cmd.action == "spindle_rpm" and self.speed_by_override:
+            q, rpm = self._override_for(float(cmd.value))
+            reg = self.registers["spindle_override_pct"]
+            if self.client is None:
+                raise ConnectionError("not connected")
+            async with self._turn():
+                rr = await self.client.write_registers(reg.address, reg.encode(q), device_id=self.unit)
+            if rr.isError():
+                raise ModbusException(f"controller refused the spindle override {q:g} %: {rr}")
+            now = time.time()
+            self.values["spindle_override_pct"] = (q, now)
+            if "spindle_rpm_cmd" in self.registers:
+                self.values["spindle_rpm_cmd"] = (rpm, now)
+            return {"override_pct": q, "rpm_effective": round(rpm, 1)}
         reg = self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
         if cmd.action not in self.actions or reg is None or not reg.writable:
             # only the supervisor calls this, after the guard; anything else is a bug

@@ -218,6 +218,7 @@ class SuppressionAnalyzer(Analyzer):
         self._told_exhausted: SuppressionPolicy | None = None   # the cut's policy said it had no speed left
         self._follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
         self._follow_told = False              # ... and the cut's spindle was said not to follow
+        self._commanded = False                # a speed was sent in this cut: released at its end
         self._shallower_since: float | None = None   # the cut held with advice is shallower since
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
@@ -440,12 +441,22 @@ class SuppressionAnalyzer(Analyzer):
         if was and not self.in_cut:
             self._follow, self._follow_told = None, False    # the program sets the next pass's speed
             self._cut_ended(time.time() if t is None else t)
+            self._stop_ssv()
+            if self._commanded:
+                # a speed written as an override holds part after part: back to the program's
+                # (through the guard; nothing to do where the next S word takes over)
+                self._commanded = False
+                r = await self.ctx.release(self.machine, "spindle_rpm", self.name)
+                if r is not None and not r["sent"]:
+                    # the next parts run at the override until someone resets it: said loudly
+                    payload = {"machine": self.machine, "why": r["reason"]}
+                    self.ctx.log.error("speed_not_released", **payload)
+                    self.ctx.record("speed_not_released", payload)
             if self.depth_from == "spindle load":
                 self.depth_mm = 0.0
             self._avoided.clear()
             self._recalled = False
             self._shallower_since = None
-            self._stop_ssv()
 
     # -- cut records -----------------------------------------------------------------
     def _cut_started(self, t: float) -> None:
@@ -755,9 +766,12 @@ class SuppressionAnalyzer(Analyzer):
                                                     context={"strategy": d.strategy}))
             if not result["sent"] and self.policy is not None:
                 self.policy.ban(d.rpm_after)    # refused by the guard: never asked for again this part
+            if result["sent"]:
+                self._commanded = True
             if result["sent"] and self.rpm is not None and not self._follow_told:
                 now = time.time()
-                self._follow = (float(d.rpm_after), now, now + FOLLOW_SLACK_S
+                # an override lands on the control's step: the speed it gives, not the one asked
+                self._follow = (float(result.get("rpm_effective", d.rpm_after)), now, now + FOLLOW_SLACK_S
                                 + ramp_time_s(self.rpm, d.rpm_after, self.limits.accel_rpm_per_s))
             if result["sent"] and self.alarm_wall_t is not None and trigger == "alarm":
                 # from the first alarm window's sample time to the write's return
@@ -810,6 +824,7 @@ class SuppressionAnalyzer(Analyzer):
             if not r["sent"]:
                 self.ctx.log.warning("ssv_stopped", reason=r["reason"])
                 return
+            self._commanded = True
             await asyncio.sleep(SSV_STEP_S)
 
     # -- operator ------------------------------------------------------------------

@@ -323,3 +323,69 @@ def test_read_on_must_name_source_and_quantity():
     regs = {**REGS, "x_mm": {"address": 4, "type": "float32", "read_on": ["cutting"]}}
     with pytest.raises(ConfigError, match=r"read_on: 'cutting' is not source.quantity"):
         driver(tcp(502, registers=regs))
+
+
+class OverrideControl:
+    """A control that takes the spindle speed only as an override of its programmed 1500 r/min
+    (50..150 %), as Fanuc's SOV through the PMC: the commanded speed follows it."""
+    MAP = {"spindle_rpm_cmd": (0, "float32", False, "r/min"), "spindle_override_pct": (2, "float32", True, "%")}
+
+    def __init__(self):
+        self.program, self.override, self.writes = 1500.0, 100.0, []
+        self.peer = ModbusPeer("127.0.0.1", free_port(), self.MAP, 4, self.write)
+        self.publish()
+
+    def write(self, name, value):
+        if not 50 <= value <= 150:
+            raise ValueError(f"override {value} beyond 50..150 %")
+        self.override = value
+        self.writes.append(value)
+        self.publish()
+
+    def publish(self):
+        self.peer.block.update({"spindle_rpm_cmd": self.program * self.override / 100,
+                                "spindle_override_pct": self.override})
+
+
+def test_a_speed_is_written_as_an_override_rounded_towards_the_present_speed():
+    ctl = OverrideControl()
+    regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms",
+                "registers": regs, "override_min_pct": 50.0, "override_max_pct": 150.0})
+    assert d.speed_by_override and d.actions == ("spindle_rpm",)
+
+    async def check(d, events):
+        async def speed(rpm):
+            n = len(ctl.writes)
+            out = await d.execute(Command(machine="m", action="spindle_rpm", value=rpm, reason="t", source="t"))
+            await until(lambda: len(ctl.writes) > n and d._fresh("spindle_override_pct") == ctl.override
+                        and d.current("spindle_rpm") == ctl.program * ctl.override / 100, what="the write read back")
+            return out
+        await until(lambda: d.current("spindle_rpm") == 1500.0, what="polls")
+        assert d.released("spindle_rpm") is None             # at 100 %: nothing to undo
+        assert await speed(1650.0) == {"override_pct": 110.0, "rpm_effective": 1650.0}
+        # 110.8 % asked, up from 110: the step below, between the present speed and the one asked
+        assert (await speed(1662.0))["override_pct"] == 110.0
+        assert (await speed(1000.0)) == {"override_pct": 67.0, "rpm_effective": 1005.0}   # 66.7 %: up to 67
+        with pytest.raises(ValueError, match=r"2400 r/min is a spindle override of 160 % of the programmed "
+                                             r"1500 r/min, beyond the control's 50\.\.150 %"):
+            await d.execute(Command(machine="m", action="spindle_rpm", value=2400.0, reason="t", source="t"))
+        assert ctl.override == 67.0
+        assert d.released("spindle_rpm") == pytest.approx(1500.0)    # the programmed speed: 100 %
+        assert (await speed(1500.0))["override_pct"] == 100.0
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check), 30))
+
+
+class _NoPhysics:
+    def step(self, dt):
+        pass
+
+    def registers(self):
+        return {}
+
+
+def test_an_override_needs_the_speed_it_is_a_percentage_of():
+    with pytest.raises(ConfigError, match="a writable spindle_override_pct needs spindle_rpm_cmd"):
+        driver({"host": "127.0.0.1", "registers": {"spindle_override_pct": {"address": 2, "type": "float32",
+                                                                           "writable": True}}})

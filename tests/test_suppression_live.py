@@ -222,3 +222,43 @@ def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_dae
             continue
         rpm = e["payload"]["rpm"]
         assert float(lobes.b_lim_at(rpm)[0][0]) * 1000 < 3.0, (rpm, e["payload"])
+
+
+def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_live(tmp_path):
+    """The lathe's map with the commanded speed read-only and the spindle override writable
+    (Fanuc's SOV through the PMC): a 3 mm pass at 2000 r/min chatters, suppression's speed is
+    written as a percentage of the programmed speed, and when the cut ends the override goes
+    back to 100 % through the guard, so the next pass (1 mm at 1500) runs at its own speed."""
+    suppress_table = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + suppress_table + "\n",
+                            simulator='program = ["2000,3.0,0.3,20", "1500,1.0,0.3,20"]\nload_s = 0.3\n'
+                                      'retract_s = 0.2\n')
+    text = cfg.read_text()
+    for old, new in (('spindle_rpm_cmd = { address = 0, type = "float32", writable = true, unit = "r/min" }',
+                      'spindle_rpm_cmd = { address = 0, type = "float32", unit = "r/min" }'),
+                     ('spindle_override_pct = { address = 4, type = "float32", unit = "%" }',
+                      'spindle_override_pct = { address = 4, type = "float32", unit = "%", writable = true }')):
+        assert old in text
+        text = text.replace(old, new)
+    cfg.write_text(text)
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 5, timeout=90, interval=0.3,
+                   what="five parts")
+        sent = [e["payload"] for e in spindle_commands(d)]
+        cures = [p for p in sent if p["by"] == "suppress" and not p["reason"].startswith("released")]
+        released = [p for p in sent if p["reason"].startswith("released")]
+        assert cures and released, sent
+        assert all(50 <= p["override_pct"] <= 150 and p["override_pct"] != 100 for p in cures), cures
+        assert all(p["override_pct"] == 100 for p in released), released
+        parts = [p for p in sim_call(paths["sim"], "status", {"parts": 16})["parts"] if p["cut_end_s"] is not None]
+        deep = [p for p in parts if p["depth_mm"] == 3.0 and p["speed_writes"]]
+        assert deep and all(w.get("override_pct") for p in deep for w in p["speed_writes"]), deep
+        # each 1 mm pass cut at its own 1500 r/min: the override was back at 100 % before it
+        # (held, it would have run at 1500 x the cure's override)
+        light = [e["payload"] for e in events(d, "cut") if (e["payload"]["depth_mm"] or 0) < 2.0]
+        assert light and all(abs(c["rpm_start"] - 1500) < 15 for c in light), light
+    finally:
+        d.stop()

@@ -191,7 +191,7 @@ class Simulator:
         # the instant the machine got the command, not when the daemon sent it
         t = time.time()
         self.lathe.write(name, value)
-        if name == "spindle_rpm_cmd":
+        if name in ("spindle_rpm_cmd", "spindle_override_pct"):
             self.lathe.record.speed_writes[-1]["wall_t"] = t
 
     async def _serial_loop(self) -> None:

@@ -175,6 +175,7 @@ class PartRecord:
         return {k: v for k, v in self.__dict__.items()}
 
 
+OVERRIDE_MIN_PCT, OVERRIDE_MAX_PCT = 50.0, 150.0   # the control's spindle override range
 LOAD_S = 1.5       # bar loaded, spindle brought to the part's speed
 RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
 # A pass's G01 starts this far clear of the stock (the CAM's approach clearance): the control
@@ -215,6 +216,9 @@ class SimLathe:
         self.rpm = 0.0
         self.block_rpm = 0.0                     # speed the last step's samples were cut at
         self.rpm_override: float | None = None   # written over Modbus; holds for the current part
+        # the spindle override (Fanuc's SOV through the PMC, Siemens' DBB19): a percentage of
+        # the programmed speed, G96 or not, that holds until written again, part after part
+        self.override_pct = 100.0
         self.offset_x_um = 0.0
         self.part_count = 0
         self.cycle_start = 0.0
@@ -290,7 +294,8 @@ class SimLathe:
     def rpm_cmd(self) -> float:
         # a written speed is the pass's speed from then on, G96 or not: this control takes it
         # as an S word with G97 (the write ends constant surface speed for the part)
-        return self.program_rpm if self.rpm_override is None else self.rpm_override
+        base = self.program_rpm if self.rpm_override is None else self.rpm_override
+        return min(base * self.override_pct / 100.0, self.max_rpm)    # the control clamps at its maximum
 
     def write(self, name: str, value: float) -> None:
         """A register written by a client (the daemon)."""
@@ -299,6 +304,12 @@ class SimLathe:
                 raise ValueError(f"spindle speed {value} r/min beyond the drive's 0..{self.max_rpm:g}")
             self.rpm_override = value
             self.record.speed_writes.append({"sim_t": self.t, "rpm": value})
+        elif name == "spindle_override_pct":
+            if not (math.isfinite(value) and OVERRIDE_MIN_PCT <= value <= OVERRIDE_MAX_PCT):
+                raise ValueError(f"spindle override {value} % beyond the control's "
+                                 f"{OVERRIDE_MIN_PCT:g}..{OVERRIDE_MAX_PCT:g} %")
+            self.override_pct = value
+            self.record.speed_writes.append({"sim_t": self.t, "rpm": self.rpm_cmd, "override_pct": value})
         elif name == "offset_x_um":
             if not math.isfinite(value):
                 raise ValueError("offset is not a number")

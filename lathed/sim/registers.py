@@ -10,7 +10,8 @@ from __future__ import annotations
 LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     "spindle_rpm_cmd":       (0, "float32", True, "r/min"),
     "spindle_rpm":           (2, "float32", False, "r/min"),
-    "spindle_override_pct":  (4, "float32", False, "%"),
+    # writable too: a config can command the speed as an override instead of an S word
+    "spindle_override_pct":  (4, "float32", True, "%"),
     "x_mm":                  (6, "float32", False, "mm"),
     "y_mm":                  (8, "float32", False, "mm"),
     "b_deg":                 (10, "float32", False, "deg"),
