@@ -31,11 +31,13 @@ the first 3 mm pass at each speed is caught by detection and cured, and the
 next ones entering at that speed are given the cure (``trigger =
 "remembered"``).
 
-``--no-read-on`` leaves out the shipped map's ``read_on`` (the spindle load read at
+``--override`` writes the speed as a spindle override instead (the map's commanded speed
+read-only, its override writable), as most controls take it.  ``--no-read-on`` leaves
+out the shipped map's ``read_on`` (the spindle load read at
 the chip's entry as well as every 100 ms), for the entry figures without it.
 
     .venv/bin/python bench/bench_loop.py [--cuts 12] [--timeout 210] [--avoid | --remember] [--load-scaled]
-        [--no-read-on]
+        [--override] [--no-read-on]
 """
 from __future__ import annotations
 
@@ -118,6 +120,9 @@ def main() -> int:
     ap.add_argument("--remember", action="store_true",
                     help="the shipped config as it is: suppression gives a pass the speed that cured it "
                          "before (remember = true; without this flag it is turned off)")
+    ap.add_argument("--override", action="store_true",
+                    help="the speed written as a spindle override (spindle_override_pct writable, "
+                         "spindle_rpm_cmd read-only), as most controls take it")
     ap.add_argument("--no-read-on", action="store_true",
                     help="the spindle load only at its 100 ms poll (the shipped map also reads it at the "
                          "chip's entry: read_on)")
@@ -140,6 +145,14 @@ def main() -> int:
             raise SystemExit("bench_loop.py: etc/lathed.toml no longer sets remember = true in [analyzer.suppress]")
         if not a.remember:
             text = text.replace("\nremember = true", "\nremember = false", 1)
+        if a.override:
+            for old, new in (('spindle_rpm_cmd = { address = 0, type = "float32", writable = true, unit = "r/min" }',
+                              'spindle_rpm_cmd = { address = 0, type = "float32", unit = "r/min" }'),
+                             ('spindle_override_pct = { address = 4, type = "float32", unit = "%" }',
+                              'spindle_override_pct = { address = 4, type = "float32", unit = "%", writable = true }')):
+                if old not in text:
+                    raise SystemExit(f"bench_loop.py: etc/lathed.toml no longer maps {old.split()[0]} as expected")
+                text = text.replace(old, new)
         if a.no_read_on:
             text, n = re.subn(r', read_on = \[[^]]*\]', "", text)
             if not n:
