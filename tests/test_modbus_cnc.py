@@ -389,3 +389,45 @@ def test_an_override_needs_the_speed_it_is_a_percentage_of():
     with pytest.raises(ConfigError, match="a writable spindle_override_pct needs spindle_rpm_cmd"):
         driver({"host": "127.0.0.1", "registers": {"spindle_override_pct": {"address": 2, "type": "float32",
                                                                            "writable": True}}})
+
+
+def test_a_release_passes_the_guard_as_any_command():
+    """The supervisor's release: the programmed speed, through the guard. A programmed speed
+    above spindle_rpm_max is refused (suppression then records speed_not_released), within
+    it the override goes back to 100 %."""
+    from lathed.config import Instance
+    from lathed.safety import Limits
+    from lathed.supervisor import Plan, Supervisor
+    from tests.test_plausible import FakeStore
+    ctl = OverrideControl()
+    ctl.override = 90.0
+    ctl.publish()
+    regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}
+    data = {"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms", "registers": regs}
+
+    async def go(rpm_max):
+        d = driver(data)
+        inst = Instance("machine", "m", "modbus_cnc", Section("t.toml", "machine.m", data),
+                        Section("t.toml", "machine.m", {}))
+        store = FakeStore()
+        sup = Supervisor(None, Plan(drivers={"m": (inst, d)}, limits={"m": Limits(rpm_min=100.0, rpm_max=rpm_max)}),
+                         Bus(), store, lambda *a: None)
+        await ctl.peer.start()
+        sup.start_drivers()
+        try:
+            await until(lambda: sup.runners["m"].state == "connected" and d.current("spindle_rpm") == 1350.0,
+                        what="connected")
+            return await sup.release("m", "spindle_rpm", "suppress"), store.records
+        finally:
+            await sup.stop()
+            await ctl.peer.stop()
+
+    refused, records = asyncio.run(asyncio.wait_for(go(1400.0), 30))
+    assert refused == {"sent": False, "reason": "spindle speed 1500 r/min outside [100, 1400]"}
+    assert ctl.override == 90.0 and [k for k, _, _ in records if k.startswith("command")] == ["command_refused"]
+    sent, records = asyncio.run(asyncio.wait_for(go(2000.0), 30))
+    assert sent == {"sent": True, "reason": None, "override_pct": 100.0, "rpm_effective": 1500.0}
+    assert ctl.override == 100.0
+    (payload,) = [p for k, _, p in records if k == "command_sent"]
+    assert payload["reason"] == "released: back to the programmed speed" and payload["override_pct"] == 100.0
