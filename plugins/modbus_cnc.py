@@ -62,7 +62,7 @@ import contextlib
 import math
 import re
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 from pymodbus import FramerType
@@ -234,6 +234,7 @@ class ModbusCNC(Driver):
                                                  "commanded speed) or spindle_rpm mapped: the override is a "
                                                  "percentage of the programmed speed")
             self.actions += ("spindle_rpm",)
+        self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last polls
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self.link: SerialLink | None = None
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
@@ -351,6 +352,8 @@ class ModbusCNC(Driver):
                 # a float32 NaN or an implausible speed must reach neither the
                 # machine model nor current() (the guard's step reference)
                 if self.ctx.bus.publish(Sample(self.name, r.name, v, r.unit, now)):
+                    if r.name == "spindle_rpm_cmd" and self.speed_by_override:
+                        self._cmd_seen.append((v, self.values.get("spindle_override_pct", (None, 0))[0]))
                     self.values[r.name] = (v, now)
                     self._to_model(r.name, v, now)
         self.polls += 1
@@ -433,6 +436,12 @@ class ModbusCNC(Driver):
         exact = 100.0 * rpm / base
         if abs(exact - 100.0) < 0.05:
             return 100.0, base       # the programmed speed (a release; G96 drifts between the reads)
+        if self._speed_drifting():
+            # an override scales the programmed speed, and under G96 that moves on its own: the
+            # spindle would leave the speed the guard checked, by as much as the face drifts
+            raise ValueError(f"the control's programmed speed is moving on its own (constant surface "
+                             f"speed, G96): an override would take the spindle past the {rpm:.0f} r/min "
+                             f"the guard checked; not written")
         q = exact / self.override_step
         q = (math.floor(q + 1e-9) if exact >= ovr else math.ceil(q - 1e-9)) * self.override_step
         lo, hi = self.override_range
@@ -440,6 +449,18 @@ class ModbusCNC(Driver):
             raise ValueError(f"{rpm:.0f} r/min is a spindle override of {q:g} % of the programmed "
                              f"{base:.0f} r/min, beyond the control's {lo:g}..{hi:g} %")
         return q, base * q / 100.0
+
+    def _speed_drifting(self) -> bool:
+        """The control in constant surface speed: its css_active register (Fanuc's CSS, F2.2)
+        where mapped, else the commanded speed changed at each of the last two polls while
+        the override held (a new S word changes it once): slower, a G96 face's first
+        revolutions are not seen so."""
+        css = self._fresh("css_active")
+        if css is not None:
+            return css >= 0.5
+        seen = list(self._cmd_seen)[-3:]
+        return len(seen) == 3 and all(b[1] == a[1] and abs(b[0] - a[0]) > 5e-4 * max(a[0], 1.0)
+                                      for a, b in zip(seen, seen[1:]))
 
     def released(self, action: str) -> float | None:
         """What ``action`` goes back to when the analysis is done with it: the programmed

@@ -431,3 +431,62 @@ def test_a_release_passes_the_guard_as_any_command():
     assert ctl.override == 100.0
     (payload,) = [p for k, _, p in records if k == "command_sent"]
     assert payload["reason"] == "released: back to the programmed speed" and payload["override_pct"] == 100.0
+
+
+def test_no_override_under_constant_surface_speed():
+    """Under G96 the programmed speed moves on its own, and an override would carry the spindle
+    past the speed the guard checked: refused, seen from css_active where mapped, else from the
+    commanded speed changing at every poll. Back to 100 % (a release) is always written."""
+    ctl = OverrideControl()
+    ctl.peer = ModbusPeer("127.0.0.1", free_port(), {**OverrideControl.MAP, "css_active": (4, "uint16", False, "")},
+                          5, ctl.write)
+    ctl.css = 0
+
+    def publish():
+        ctl.peer.block.update({"spindle_rpm_cmd": ctl.program * ctl.override / 100,
+                               "spindle_override_pct": ctl.override, "css_active": ctl.css})
+    ctl.publish = publish
+    ctl.publish()
+    base = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}
+
+    async def check_css(d, events):
+        await until(lambda: d.current("spindle_rpm") == 1500.0, what="polls")
+        await d.execute(Command(machine="m", action="spindle_rpm", value=1650.0, reason="t", source="t"))
+        ctl.css = 1
+        ctl.publish()
+        await until(lambda: d._fresh("css_active") == 1, what="G96 seen")
+        with pytest.raises(ValueError, match="constant surface speed, G96"):
+            await d.execute(Command(machine="m", action="spindle_rpm", value=1800.0, reason="t", source="t"))
+        assert ctl.override == 110.0
+        assert (await d.execute(Command(machine="m", action="spindle_rpm", value=d.released("spindle_rpm"),
+                                        reason="released", source="t")))["override_pct"] == 100.0
+
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms",
+                "registers": {**base, "css_active": {"address": 4, "type": "uint16"}}})
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check_css), 30))
+
+    class Facing:       # no css_active register: the commanded speed rises at every poll
+        def step(self, dt):
+            ctl.program += 30.0
+            ctl.publish()
+
+        def registers(self):
+            return {}
+
+    async def check_drift(d, events):
+        def moving():      # three polls in a row, each with the speed moved (a stalled loop may repeat one)
+            seen = list(d._cmd_seen)[-3:]
+            return len(seen) == 3 and all(a[1] == b[1] == 100.0 and b[0] > a[0] for a, b in zip(seen, seen[1:]))
+        await until(moving, what="the speed moving at each poll")
+        with pytest.raises(ValueError, match="moving on its own"):
+            await d.execute(Command(machine="m", action="spindle_rpm", value=ctl.program * 1.1, reason="t",
+                                    source="t"))
+    ctl.program, ctl.override, ctl.css = 1500.0, 100.0, 0
+    ctl.peer = ModbusPeer("127.0.0.1", free_port(), OverrideControl.MAP, 4, ctl.write)
+    ctl.publish = lambda: ctl.peer.block.update({"spindle_rpm_cmd": ctl.program * ctl.override / 100,
+                                                 "spindle_override_pct": ctl.override})
+    ctl.publish()
+    # polled slower than the facing's 20 ms steps: each poll sees the speed moved
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "60ms", "registers": base})
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, Facing(), d, check_drift), 30))

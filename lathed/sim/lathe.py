@@ -420,6 +420,8 @@ class SimLathe:
             "depth_of_cut_mm": self.depth_mm if cutting else 0.0,
             "feed_mm_rev": self.part.feed_mm_rev,
             "cutting_feed": 1 if feeding else 0,      # the control's cutting-feed signal (Fanuc CUT)
+            # G96 until a written S word ends it for the part (G97); an override does not
+            "css_active": 1 if self.part.css_m_min and self.rpm_override is None else 0,
             "alarm_code": 0,
             "tool_number": self.part.tool,
             "probe_displacement_um": self.probe_displacement_um,

@@ -30,6 +30,8 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     # 1 while the control executes a cutting-feed move (G01/G02/G03, not held): Fanuc's CUT
     # signal; on from the approach in air, before the chip, to the retract
     "cutting_feed":          (32, "uint16", False, ""),
+    # 1 while the pass runs at constant surface speed (G96): Fanuc's CSS signal (F2.2)
+    "css_active":            (33, "uint16", False, ""),
 }
 N_REGISTERS = 34
 
