@@ -18,6 +18,7 @@ from lathed.sim.line import MILL_PROGRAM, SimCycleMachine
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
 from lathed.sim.serial_peer import NullModem
+from lathed.supervisor import cancel_and_wait
 from lathed_plugins.modbus_cnc import READ_ON_MIN_S, ModbusCNC, poll_groups
 from tests.conftest import free_port
 
@@ -86,8 +87,7 @@ async def _run_against(peer: ModbusPeer, machine: SimCycleMachine, d: ModbusCNC,
         try:
             await check(d, events)
         finally:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await cancel_and_wait([task])
             await d.close()
     finally:
         stop.set()
@@ -274,9 +274,9 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
                                                       r"this machine asks 9600 baud 8N1"):
                 await c.connect()
         finally:
-            for r in runners:
-                r.task.cancel()
-            await asyncio.gather(*(r.task for r in runners), return_exceptions=True)
+            # as the daemon stops them: pymodbus's wait_for (Python 3.11) can swallow a cancellation
+            # that lands as a read times out, and one cancel then leaves the runner polling (seen once)
+            await cancel_and_wait([r.task for r in runners])
             await server.shutdown()
             nm.close()
         assert str(link) not in modbus_cnc._LINKS       # the last machine closed the port

@@ -14,6 +14,7 @@ from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.sim import mtconnect_agent
 from lathed.sim.mtconnect_agent import MTConnectAgent
+from lathed.supervisor import cancel_and_wait
 from lathed_plugins.mtconnect import MTConnect
 
 ITEMS = {"spindle_rpm": "Sspeed", "spindle_load_pct": "Sload", "program_state": "execution",
@@ -86,8 +87,7 @@ def test_values_every_observation_and_the_machine_model():
                         what="polls past stale_after")
             assert d.model.live("spindle_rpm") == 1500.0 and d.current("spindle_rpm") == 1500.0
         finally:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await cancel_and_wait([task])
     asyncio.run(asyncio.wait_for(_with_agent(check, stale_after="300ms"), 30))
 
 
@@ -111,8 +111,7 @@ def test_an_agent_restart_and_a_buffer_overrun_are_recorded_gaps(monkeypatch):
             await until(lambda: d.gaps == 2 and d.model.live("spindle_rpm") == 2000.0, what="restart gap")
             assert "the agent restarted" in [p for k, p in events if k == "mtconnect_gap"][1]["why"]
         finally:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await cancel_and_wait([task])
     asyncio.run(asyncio.wait_for(_with_agent(check), 30))
 
 
@@ -129,8 +128,7 @@ def test_unavailable_is_not_a_value():
             # the speed is carried on every poll; the unavailable load is not, and goes stale
             assert [s for s in seen[n:] if s.quantity == "spindle_load_pct"] == []
         finally:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+            await cancel_and_wait([task])
     asyncio.run(asyncio.wait_for(_with_agent(check), 30))
 
 
