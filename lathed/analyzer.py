@@ -33,10 +33,10 @@ class AnalyzerContext:
         self.plugins = plugins                # the PluginLoader: plugin-supplied detectors, candidates
         # await release(machine, action, source): the action back to what the machine's program
         # sets, where a command's effect outlasts the cut (a spindle override); None: nothing to do
-        self.release = release or (lambda machine, action, source: _nothing())
+        self.release = release or _no_release
 
 
-async def _nothing() -> None:
+async def _no_release(machine: str, action: str, source: str) -> None:
     return None
 
 

@@ -15,12 +15,14 @@ asyncio here.
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
 STATES = ("running", "idle", "alarm", "disconnected")
 SCALARS = ("spindle_rpm", "part_count", "cycle_time_s", "program", "gripper")
+AXIS = re.compile(r"^([a-z])_(mm|deg)$")    # a controller value named for an axis: x_mm, b_deg
 MAX_LATE_PARTS = 10_000   # a jump larger than this is a counter reset or a different controller
 
 
@@ -79,6 +81,26 @@ class MachineModel:
         for c in sorted(old - set(new)):
             self.record("alarm_cleared", {"kind": self.kind, "alarm": c})
         self.alarms = Stamped(new, t)
+
+    def reading(self, name: str, v: float, t: float, alarm_from_state: bool = False) -> None:
+        """A controller value by its lathed name (a register, an MTConnect item): spindle_rpm,
+        cycle_time_s, part_count, program_number, program_state (1 running; with
+        ``alarm_from_state``, 2 an alarm: a controller without an alarm_code), alarm_code (0:
+        none), <axis>_mm / <axis>_deg. Other names are not the model's."""
+        if name in ("spindle_rpm", "cycle_time_s"):
+            self.set(name, v, t)
+        elif name == "part_count":
+            self.set("part_count", int(v), t)
+        elif name == "program_number":
+            self.set("program", int(v), t)
+        elif name == "program_state":
+            self.set_running(int(v) == 1, t)
+            if alarm_from_state:
+                self.set_alarms(["controller_alarm"] if int(v) == 2 else [], t)
+        elif name == "alarm_code":
+            self.set_alarms([int(v)] if int(v) else [], t)
+        elif (ax := AXIS.match(name)) is not None:
+            self.set_axis(ax.group(1), v, t)
 
     def _count(self, count: int, t: float) -> None:
         last = self._last_count

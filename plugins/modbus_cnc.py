@@ -60,7 +60,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import re
 import time
 from collections import Counter, deque
 from dataclasses import dataclass
@@ -82,7 +81,6 @@ TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2
 ACTION_REGISTERS = {"spindle_rpm": "spindle_rpm_cmd", "offset_x_um": "offset_x_um"}
 READ_ON_MIN_S = 0.05   # a trigger's reads at most this often: a flapping source costs 20 reads/s, deferred not lost
 MAX_READ = 125   # registers per Modbus read request (protocol limit)
-AXIS = re.compile(r"^([a-z])_(mm|deg)$")
 
 
 class SerialLink:
@@ -355,26 +353,9 @@ class ModbusCNC(Driver):
                     if r.name == "spindle_rpm_cmd" and self.speed_by_override:
                         self._cmd_seen.append((v, self.values.get("spindle_override_pct", (None, 0))[0]))
                     self.values[r.name] = (v, now)
-                    self._to_model(r.name, v, now)
+                    self.model.reading(r.name, v, now, alarm_from_state="alarm_code" not in self.registers)
         self.polls += 1
         self.mark_data()
-
-    def _to_model(self, name: str, v: float, t: float) -> None:
-        m = self.model
-        if name in ("spindle_rpm", "cycle_time_s"):
-            m.set(name, v, t)
-        elif name == "part_count":
-            m.set("part_count", int(v), t)
-        elif name == "program_number":
-            m.set("program", int(v), t)
-        elif name == "program_state":
-            m.set_running(int(v) == 1, t)
-            if "alarm_code" not in self.registers:
-                m.set_alarms(["controller_alarm"] if int(v) == 2 else [], t)
-        elif name == "alarm_code":
-            m.set_alarms([int(v)] if int(v) else [], t)
-        elif (ax := AXIS.match(name)) is not None:
-            m.set_axis(ax.group(1), v, t)
 
     def listens(self) -> dict[str, tuple[str, str]]:
         """The instances whose samples read_on waits for, each with the table and key that
@@ -423,16 +404,21 @@ class ModbusCNC(Driver):
                 async with asyncio.timeout(max(0.0, wake_at - time.monotonic())):
                     await self._wake.wait()
 
+    def _programmed(self) -> tuple[float, float] | None:
+        """(present override %, programmed speed): the commanded speed over the override."""
+        ovr, now = self._fresh("spindle_override_pct"), self.current("spindle_rpm")
+        if ovr is None or now is None or not ovr > 0 or not now > 0:
+            return None
+        return ovr, now * 100.0 / ovr
+
     def _override_for(self, rpm: float) -> tuple[float, float]:
         """(override %, the speed it gives) for a speed the guard passed: a percentage of the
-        programmed speed (the commanded speed over the present override) on the control's
-        step, rounded towards the present override, so the spindle lands between its present
-        speed and the one asked, never beyond."""
-        ovr = self._fresh("spindle_override_pct")
-        now = self._fresh("spindle_rpm_cmd") if "spindle_rpm_cmd" in self.registers else self._fresh("spindle_rpm")
-        if ovr is None or now is None or not ovr > 0 or not now > 0:
+        programmed speed on the control's step, rounded towards the present override, so the
+        spindle lands between its present speed and the one asked, never beyond."""
+        p = self._programmed()
+        if p is None:
             raise ConnectionError("no fresh spindle override and speed to take the programmed speed from")
-        base = now * 100.0 / ovr
+        ovr, base = p
         exact = 100.0 * rpm / base
         if abs(exact - 100.0) < 0.05:
             return 100.0, base       # the programmed speed (a release; G96 drifts between the reads)
@@ -466,40 +452,33 @@ class ModbusCNC(Driver):
         """What ``action`` goes back to when the analysis is done with it: the programmed
         speed (an override of 100 %) where the speed is written as an override, which holds
         part after part; None where the program's next speed word takes over anyway."""
-        if action != "spindle_rpm" or not self.speed_by_override:
+        p = self._programmed() if action == "spindle_rpm" and self.speed_by_override else None
+        if p is None or abs(p[0] - 100.0) < 1e-6:
             return None
-        ovr = self._fresh("spindle_override_pct")
-        now = self.current("spindle_rpm")
-        if ovr is None or now is None or not ovr > 0 or abs(ovr - 100.0) < 1e-6:
-            return None
-        return now * 100.0 / ovr
+        return p[1]
 
     async def execute(self, cmd: Command) -> dict | None:
+        detail = None
         if cmd.action == "spindle_rpm" and self.speed_by_override:
-            q, rpm = self._override_for(float(cmd.value))
+            value, rpm = self._override_for(float(cmd.value))
             reg = self.registers["spindle_override_pct"]
-            if self.client is None:
-                raise ConnectionError("not connected")
-            async with self._turn():
-                rr = await self.client.write_registers(reg.address, reg.encode(q), device_id=self.unit)
-            if rr.isError():
-                raise ModbusException(f"controller refused the spindle override {q:g} %: {rr}")
-            now = time.time()
-            self.values["spindle_override_pct"] = (q, now)
-            if "spindle_rpm_cmd" in self.registers:
-                self.values["spindle_rpm_cmd"] = (rpm, now)
-            return {"override_pct": q, "rpm_effective": round(rpm, 1)}
-        reg = self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
-        if cmd.action not in self.actions or reg is None or not reg.writable:
-            # only the supervisor calls this, after the guard; anything else is a bug
-            raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
+            detail = {"override_pct": value, "rpm_effective": round(rpm, 1)}
+        else:
+            value, reg = float(cmd.value), self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
+            if cmd.action not in self.actions or reg is None or not reg.writable:
+                # only the supervisor calls this, after the guard; anything else is a bug
+                raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
         if self.client is None:
             raise ConnectionError("not connected")
         async with self._turn():
-            rr = await self.client.write_registers(reg.address, reg.encode(cmd.value), device_id=self.unit)
+            rr = await self.client.write_registers(reg.address, reg.encode(value), device_id=self.unit)
         if rr.isError():
-            raise ModbusException(f"controller refused write of {cmd.value:g} to {reg.name}: {rr}")
-        self.values[reg.name] = (float(cmd.value), time.time())
+            raise ModbusException(f"controller refused write of {value:g} to {reg.name}: {rr}")
+        now = time.time()
+        self.values[reg.name] = (value, now)
+        if detail is not None and "spindle_rpm_cmd" in self.registers:
+            self.values["spindle_rpm_cmd"] = (rpm, now)      # the commanded speed it gives
+        return detail
 
     def _fresh(self, name: str) -> float | None:
         v = self.values.get(name)

@@ -53,11 +53,10 @@ from lathed import hookimpl
 from lathed.bus import Sample
 from lathed.config import Section
 from lathed.driver import Driver
-from lathed.machine import MachineModel
+from lathed.machine import AXIS, MachineModel
 
 UNITS = {"spindle_rpm": "REVOLUTION/MINUTE", "spindle_load_pct": "PERCENT", "feed_mm_rev": "MILLIMETER/REVOLUTION",
          "spindle_override_pct": "PERCENT"}
-AXIS = re.compile(r"^([a-z])_(mm|deg)$")
 AXIS_UNITS = {"mm": "MILLIMETER", "deg": "DEGREE"}
 UNIT_TEXT = {"spindle_rpm": "r/min", "spindle_load_pct": "%", "feed_mm_rev": "mm/rev", "spindle_override_pct": "%"}
 COUNT = 1000    # observations asked for at a time
@@ -181,14 +180,15 @@ class MTConnect(Driver):
 
     async def _current(self) -> None:
         doc = await self._get("current")
-        self.instance, self.next_seq = self._header(doc)
-        self._publish(doc)
+        h = self._header(doc)
+        self.instance, self.next_seq = h.get("instanceId", ""), int(h.get("nextSequence"))
+        self._publish(doc, h)
 
-    def _header(self, doc: ET.Element) -> tuple[str, int]:
+    def _header(self, doc: ET.Element) -> ET.Element:
         h = next((e for e in doc.iter() if _local(e.tag) == "Header"), None)
         if h is None or not (h.get("nextSequence") or "").isdigit():
             raise ValueError(f"{self.url}: an MTConnect document without a Header's nextSequence")
-        return h.get("instanceId", ""), int(h.get("nextSequence"))
+        return h
 
     async def run(self) -> None:
         while True:
@@ -201,16 +201,16 @@ class MTConnect(Driver):
                           "they were read")
                 await self._current()
                 continue
-            instance, nxt = self._header(doc)
+            h = self._header(doc)
+            instance, nxt = h.get("instanceId", ""), int(h.get("nextSequence"))
             if instance != self.instance:
                 self._gap(f"the agent restarted (instanceId {self.instance} -> {instance}): what it "
                           "observed after the last read and before its restart is gone")
                 await self._current()
                 continue
-            self._publish(doc)
+            self._publish(doc, h)
             self.next_seq = nxt
             self.polls += 1
-            h = next(e for e in doc.iter() if _local(e.tag) == "Header")
             if (h.get("lastSequence") or "").isdigit() and int(h.get("lastSequence")) >= nxt:
                 continue        # more than COUNT new: ask again at once
             await asyncio.sleep(self.poll)
@@ -223,9 +223,8 @@ class MTConnect(Driver):
         self._record("mtconnect_gap", payload)
 
     # -- observations -------------------------------------------------------------------
-    def _publish(self, doc: ET.Element) -> None:
+    def _publish(self, doc: ET.Element, h: ET.Element) -> None:
         now = time.time()
-        h = next(e for e in doc.iter() if _local(e.tag) == "Header")
         created = _epoch(h.get("creationTime"))
         obs = sorted(((int(e.get("sequence", 0)), e) for e in doc.iter() if e.get("dataItemId") in self.items),
                      key=lambda p: p[0])
@@ -255,7 +254,7 @@ class MTConnect(Driver):
     def _publish_one(self, name: str, v: float, t: float) -> None:
         if self.ctx.bus.publish(Sample(self.name, name, v, UNIT_TEXT.get(name, ""), t)):
             self.values[name] = (v, t)
-            self._to_model(name, v, t)
+            self.model.reading(name, v, t)
 
     def _value(self, ident: str, e: ET.Element) -> float | None:
         category, typ = self.kinds.get(ident, ("", ""))
@@ -280,21 +279,6 @@ class MTConnect(Driver):
         except ValueError:
             self.errors["unreadable"] += 1
             return None
-
-    def _to_model(self, name: str, v: float, t: float) -> None:
-        m = self.model
-        if name in ("spindle_rpm", "cycle_time_s"):
-            m.set(name, v, t)
-        elif name == "part_count":
-            m.set("part_count", int(v), t)
-        elif name == "program_number":
-            m.set("program", int(v), t)
-        elif name == "program_state":
-            m.set_running(int(v) == 1, t)
-        elif name == "alarm_code":
-            m.set_alarms([int(v)] if int(v) else [], t)
-        elif (ax := AXIS.match(name)) is not None:
-            m.set_axis(ax.group(1), v, t)
 
     def current(self, action: str) -> float | None:
         """The spindle's speed as the agent last reported it (shown by status; no action takes it)."""

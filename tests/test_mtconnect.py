@@ -4,7 +4,6 @@ a restart of the agent and a client fallen out of its buffer recorded as gaps.""
 from __future__ import annotations
 
 import asyncio
-import time
 
 import pytest
 import structlog
@@ -15,6 +14,7 @@ from lathed.driver import DriverContext
 from lathed.sim import mtconnect_agent
 from lathed.sim.mtconnect_agent import MTConnectAgent
 from lathed.supervisor import cancel_and_wait
+from tests.test_modbus_cnc import until
 from lathed_plugins.mtconnect import MTConnect
 
 ITEMS = {"spindle_rpm": "Sspeed", "spindle_load_pct": "Sload", "program_state": "execution",
@@ -30,15 +30,6 @@ def driver(port: int, **kw) -> MTConnect:
     d = MTConnect("m", sec)
     sec.check_unused()
     return d
-
-
-async def until(pred, timeout=5.0, what="condition"):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return
-        await asyncio.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 async def _with_agent(check, **kw):
