@@ -488,8 +488,8 @@ class RevolutionDetector:
         """The window's second half's level over its first half's (median |x|, a few hundred
         samples): a ring decaying within the window reads well below 1, growth above."""
         mid, step = (start + end) // 2, max(1, (end - start) // 256)
-        first = float(np.median(np.abs(self._x[start:mid:step])))
-        return float(np.median(np.abs(self._x[mid:end:step]))) / first if first > 0 else math.inf
+        first = median_abs(self._x[start:mid:step])
+        return median_abs(self._x[mid:end:step]) / first if first > 0 else math.inf
 
     def _follow(self, raw: float) -> None:
         """A window below the CUSUM's allowance is the stable cut's own: the baseline rises to
@@ -639,6 +639,19 @@ class JudgedIndex:
         return out
 
 
+def median_abs(x: np.ndarray) -> float:
+    """np.median(np.abs(x)), bit for bit, without np.median's checks and copies: the
+    windowed detectors' largest cost (a third of sync_cusum's time went to its wrappers)."""
+    a = np.abs(x)
+    n = len(a)
+    k = n // 2
+    if n % 2:
+        a.partition(k)
+        return float(a[k])
+    a.partition((k - 1, k))
+    return float((a[k - 1] + a[k]) / 2)
+
+
 def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> float | None:
     n = len(x)
     if n < 8:
@@ -666,7 +679,7 @@ class SyncResidualDetector(RevolutionDetector):
     name = "sync_residual"
 
     def _measure(self, start: int, end: int, rpm: float) -> float:
-        return 1.4826 * float(np.median(np.abs(self._d[start:end])))
+        return 1.4826 * median_abs(self._d[start:end])
 
 
 class SyncCusumDetector(SyncResidualDetector):
