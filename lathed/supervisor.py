@@ -294,9 +294,21 @@ class Supervisor:
         self.start_drivers()
 
     async def stop(self) -> None:
-        # analyzers first, so no command is asked for while drivers close
-        for group in (self.analyzer_runners, self.runners):
-            await cancel_and_wait([r.task for r in group.values() if r.task])
+        # analyzers first, so no command is asked for while drivers close; then what the
+        # analyses left held on a machine beyond its cut (a spindle override) goes back
+        await cancel_and_wait([r.task for r in self.analyzer_runners.values() if r.task])
+        await self.release_held()
+        await cancel_and_wait([r.task for r in self.runners.values() if r.task])
+
+    async def release_held(self) -> None:
+        """Every action a machine still holds from lathed's commands back to its program's
+        value, through the guard (``release``); a write that fails or hangs is logged and
+        recorded by ``command``, and the stop goes on (the control's heartbeat watchdog,
+        where mapped, takes the override back)."""
+        for name, r in self.runners.items():
+            for action in getattr(r.obj, "actions", ()):
+                if r.state == "connected" and getattr(r.obj, "released", lambda a: None)(action) is not None:
+                    await self.release(name, action, "lathed", reason="released: the daemon is stopping")
 
     # -- commands -------------------------------------------------------------
     async def command(self, cmd: Command) -> dict:
@@ -333,7 +345,8 @@ class Supervisor:
             self.record("command_sent", cmd.source, payload)
             return {"sent": True, "reason": None, **(detail or {})}
 
-    async def release(self, machine: str, action: str, source: str) -> dict | None:
+    async def release(self, machine: str, action: str, source: str,
+                      reason: str = "released: back to the programmed speed") -> dict | None:
         """``action`` back to what the machine's program sets, through the guard as any command:
         where the driver writes it as something that holds beyond the cut (a spindle override),
         the value that undoes it; None where there is nothing to undo."""
@@ -344,8 +357,7 @@ class Supervisor:
         value = getattr(drv, "released", lambda a: None)(action)
         if value is None:
             return None
-        return await self.command(Command(machine, action, float(value), source,
-                                          reason="released: back to the programmed speed"))
+        return await self.command(Command(machine, action, float(value), source, reason=reason))
 
     # -- status ---------------------------------------------------------------
     def machine_status(self, name: str) -> dict | None:

@@ -43,7 +43,16 @@ only as an override maps ``spindle_override_pct`` writable and
 ``spindle_rpm_cmd`` read-only: ``spindle_rpm`` is then written as a percentage
 of the programmed speed (``override_step_pct``, ``override_min_pct``,
 ``override_max_pct``), rounded towards the present override, and ``released``
-gives the speed that puts it back to 100 % when the analysis is done.
+gives the speed that puts it back to 100 % when the analysis is done (only an
+override lathed wrote and still finds there: one the operator has moved since is
+theirs).
+
+An override holds beyond the daemon: one lathed wrote is released when the
+daemon stops (``Supervisor.stop``), and for a daemon that dies or loses the
+link, a writable ``heartbeat`` register is written with a counter (1..32767)
+every ``heartbeat_every`` (500 ms), the one write no command asks for: it
+moves nothing. The control's PMC puts its external override back to 100 %
+when the count stops changing (the simulated control after 1.5 s).
 
 The machine model (lathed.machine) is filled from registers by name:
 ``spindle_rpm``, ``part_count``, ``cycle_time_s``, ``program_number``
@@ -233,6 +242,15 @@ class ModbusCNC(Driver):
                                                  "percentage of the programmed speed")
             self.actions += ("spindle_rpm",)
         self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last polls
+        self._ours: float | None = None           # the override lathed wrote and has not released
+        hb = self.registers.get("heartbeat")
+        if hb is not None and not hb.writable:
+            raise section.error("registers", "heartbeat must be writable: lathed writes it, the control's "
+                                             "PMC watches it")
+        # read only with the register: given without it, it is an unknown key
+        self.heartbeat_every = (section.getduration("heartbeat_every", 0.5, minval=0.05, maxval=10.0)
+                                if hb is not None else None)
+        self.beats = 0
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self.link: SerialLink | None = None
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
@@ -255,6 +273,7 @@ class ModbusCNC(Driver):
             await self._join_link()
         # the first read proves the controller answers: an open port is not a machine
         await self._read_group(self.groups[min(self.groups)])
+        await self._beat()        # the control's watchdog is armed from the link's first minute
         self.model.link_up()
 
     async def _open(self, client) -> None:
@@ -383,8 +402,24 @@ class ModbusCNC(Driver):
             for src in sources:
                 self.ctx.bus.untap(src, self._trigger)
 
+    async def _beat(self) -> None:
+        """One heartbeat, where mapped: the count the control's PMC watches (a held override
+        goes back to 100 % when it stops).  A refused write is a link fault, as a failed read."""
+        reg = self.registers.get("heartbeat")
+        if reg is None or self.client is None:
+            return
+        n = self.beats % 32767 + 1
+        async with self._turn():
+            rr = await self.client.write_registers(reg.address, reg.encode(n), device_id=self.unit)
+        if rr.isError():
+            self.errors["heartbeat"] += 1
+            raise ModbusException(f"controller refused the heartbeat write to register {reg.address}: {rr}")
+        self.beats = n
+
     async def _poll(self) -> None:
         due = {p: time.monotonic() + p for p in self.groups}
+        if "heartbeat" in self.registers:
+            due["heartbeat"] = time.monotonic() + self.heartbeat_every
         while True:
             for key in list(self._triggered):
                 if time.monotonic() - self._read_on_t.get(key, -math.inf) >= READ_ON_MIN_S:
@@ -398,6 +433,9 @@ class ModbusCNC(Driver):
                     await self._read_group(plan)
                     self.reads[p] += 1
                     due[p] = max(due[p] + p, now)   # after a stall: no burst of catch-up reads
+            if time.monotonic() >= due.get("heartbeat", math.inf):
+                await self._beat()
+                due["heartbeat"] = time.monotonic() + self.heartbeat_every
             self._wake.clear()
             wake_at = min([*due.values(), *(self._read_on_t.get(k, -math.inf) + READ_ON_MIN_S for k in self._triggered)])
             with contextlib.suppress(asyncio.TimeoutError):
@@ -451,9 +489,11 @@ class ModbusCNC(Driver):
     def released(self, action: str) -> float | None:
         """What ``action`` goes back to when the analysis is done with it: the programmed
         speed (an override of 100 %) where the speed is written as an override, which holds
-        part after part; None where the program's next speed word takes over anyway."""
+        part after part; None where the program's next speed word takes over anyway, and
+        where the override there is not the one lathed wrote (the operator's, or one left
+        by an earlier run, which the control's heartbeat watchdog takes back)."""
         p = self._programmed() if action == "spindle_rpm" and self.speed_by_override else None
-        if p is None or abs(p[0] - 100.0) < 1e-6:
+        if p is None or self._ours is None or abs(p[0] - self._ours) > 1e-3 * self._ours:
             return None
         return p[1]
 
@@ -476,6 +516,8 @@ class ModbusCNC(Driver):
             raise ModbusException(f"controller refused write of {value:g} to {reg.name}: {rr}")
         now = time.time()
         self.values[reg.name] = (value, now)
+        if detail is not None:
+            self._ours = None if value == 100.0 else value
         if detail is not None and "spindle_rpm_cmd" in self.registers:
             self.values["spindle_rpm_cmd"] = (rpm, now)      # the commanded speed it gives
         return detail
@@ -504,6 +546,8 @@ class ModbusCNC(Driver):
                 "model": self.model.snapshot(), "values": values, "polls": self.polls,
                 "reads_by_period_s": {f"{p:g}": n for p, n in sorted(self.reads.items())},
                 "reads_on": dict(self.reads_on),
+                **({"heartbeat": {"every_s": self.heartbeat_every, "sent": self.beats}}
+                   if "heartbeat" in self.registers else {}),
                 "link": {"transport": self.transport, "where": self.where, "errors": dict(self.errors)}}
 
 

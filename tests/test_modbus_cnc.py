@@ -391,22 +391,18 @@ def test_an_override_needs_the_speed_it_is_a_percentage_of():
                                                                            "writable": True}}})
 
 
-def test_a_release_passes_the_guard_as_any_command():
-    """The supervisor's release: the programmed speed, through the guard. A programmed speed
-    above spindle_rpm_max is refused (suppression then records speed_not_released), within
-    it the override goes back to 100 %."""
+def _supervised(ctl, rpm_max, act):
+    """A supervisor with one machine on ``ctl``: ``act(sup, d)`` runs once it is connected,
+    then the supervisor stops. Returns act's result and the records."""
     from lathed.config import Instance
     from lathed.safety import Limits
     from lathed.supervisor import Plan, Supervisor
     from tests.test_plausible import FakeStore
-    ctl = OverrideControl()
-    ctl.override = 90.0
-    ctl.publish()
     regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
             "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}
     data = {"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms", "registers": regs}
 
-    async def go(rpm_max):
+    async def go():
         d = driver(data)
         inst = Instance("machine", "m", "modbus_cnc", Section("t.toml", "machine.m", data),
                         Section("t.toml", "machine.m", {}))
@@ -416,21 +412,95 @@ def test_a_release_passes_the_guard_as_any_command():
         await ctl.peer.start()
         sup.start_drivers()
         try:
-            await until(lambda: sup.runners["m"].state == "connected" and d.current("spindle_rpm") == 1350.0,
+            await until(lambda: sup.runners["m"].state == "connected" and d.current("spindle_rpm") is not None,
                         what="connected")
-            return await sup.release("m", "spindle_rpm", "suppress"), store.records
+            return await act(sup, d), store.records
         finally:
             await sup.stop()
             await ctl.peer.stop()
+    return asyncio.run(asyncio.wait_for(go(), 30))
 
-    refused, records = asyncio.run(asyncio.wait_for(go(1400.0), 30))
+
+def _speed(rpm, reason="t"):
+    return Command(machine="m", action="spindle_rpm", value=rpm, reason=reason, source="suppress")
+
+
+def test_a_release_passes_the_guard_as_any_command():
+    """The supervisor's release: the programmed speed, through the guard. A programmed speed
+    above spindle_rpm_max is refused (suppression then records speed_not_released), within
+    it the override goes back to 100 %. Only an override lathed wrote is released: one the
+    control or its operator set is not lathed's to undo."""
+    async def cured_then_released(sup, d):
+        await sup.command(_speed(1350.0))                         # 90 %
+        await until(lambda: d.current("spindle_rpm") == 1350.0, what="the override read back")
+        return await sup.release("m", "spindle_rpm", "suppress")
+
+    ctl = OverrideControl()
+    refused, records = _supervised(ctl, 1400.0, cured_then_released)
     assert refused == {"sent": False, "reason": "spindle speed 1500 r/min outside [100, 1400]"}
-    assert ctl.override == 90.0 and [k for k, _, _ in records if k.startswith("command")] == ["command_refused"]
-    sent, records = asyncio.run(asyncio.wait_for(go(2000.0), 30))
+    assert ctl.override == 90.0
+    assert [k for k, _, _ in records if k.startswith("command")] == ["command_sent", "command_refused",
+                                                                     "command_refused"]   # the stop's too
+    ctl = OverrideControl()
+    sent, records = _supervised(ctl, 2000.0, cured_then_released)
     assert sent == {"sent": True, "reason": None, "override_pct": 100.0, "rpm_effective": 1500.0}
     assert ctl.override == 100.0
-    (payload,) = [p for k, _, p in records if k == "command_sent"]
+    payload = [p for k, _, p in records if k == "command_sent"][-1]
     assert payload["reason"] == "released: back to the programmed speed" and payload["override_pct"] == 100.0
+
+    async def operators(sup, d):
+        await until(lambda: d.current("spindle_rpm") == 1350.0, what="polls")
+        return await sup.release("m", "spindle_rpm", "suppress")
+    ctl = OverrideControl()
+    ctl.override = 90.0          # set on the control's panel, not by lathed
+    ctl.publish()
+    assert _supervised(ctl, 2000.0, operators) == (None, [])
+    assert ctl.override == 90.0
+
+
+def test_an_override_lathed_left_is_released_when_the_daemon_stops():
+    """Supervisor.stop puts back what lathed's commands left held (an override holds part
+    after part), through the guard; an override the operator moved since is theirs."""
+    async def cured(sup, d):
+        await sup.command(_speed(1650.0))                         # 110 %
+        await until(lambda: d.current("spindle_rpm") == 1650.0, what="the override read back")
+    ctl = OverrideControl()
+    _, records = _supervised(ctl, 2000.0, cured)
+    assert ctl.writes == [110.0, 100.0]
+    payload = [p for k, _, p in records if k == "command_sent"][-1]
+    assert payload["reason"] == "released: the daemon is stopping" and payload["override_pct"] == 100.0
+
+    async def then_the_operator(sup, d):
+        await cured(sup, d)
+        ctl.write("spindle_override_pct", 80.0)
+        await until(lambda: d.current("spindle_rpm") == 1200.0, what="the operator's override read back")
+    ctl = OverrideControl()
+    _, records = _supervised(ctl, 2000.0, then_the_operator)
+    assert ctl.writes == [110.0, 80.0] and ctl.override == 80.0
+    assert [k for k, _, _ in records if k.startswith("command")] == ["command_sent"]
+
+
+def test_the_heartbeat_counts_while_the_link_is_up():
+    """A writable heartbeat register gets a count every heartbeat_every (the control's PMC
+    takes a held override back when it stops); a read-only one is a config error."""
+    ctl = OverrideControl()
+    beats = []
+    ctl.MAP = {**OverrideControl.MAP, "heartbeat": (4, "uint16", True, "")}
+    ctl.peer = ModbusPeer("127.0.0.1", free_port(), ctl.MAP, 5,
+                          lambda n, v: beats.append(v) if n == "heartbeat" else ctl.write(n, v))
+    ctl.publish()
+    regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "heartbeat": {"address": 4, "type": "uint16", "writable": True}}
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms",
+                "heartbeat_every": "50ms", "registers": regs})
+
+    async def check(d, events):
+        await until(lambda: len(beats) >= 4, what="four beats")
+        assert d.status()["heartbeat"] == {"every_s": 0.05, "sent": len(beats)}
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check), 30))
+    assert beats[:4] == [1.0, 2.0, 3.0, 4.0]          # the first at connect
+    with pytest.raises(ConfigError, match="heartbeat must be writable"):
+        driver({"host": "127.0.0.1", "registers": {"heartbeat": {"address": 4, "type": "uint16"}}})
 
 
 def test_no_override_under_constant_surface_speed():

@@ -224,15 +224,12 @@ def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_dae
         assert float(lobes.b_lim_at(rpm)[0][0]) * 1000 < 3.0, (rpm, e["payload"])
 
 
-def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_live(tmp_path):
+def override_config(tmp_path, program: str):
     """The lathe's map with the commanded speed read-only and the spindle override writable
-    (Fanuc's SOV through the PMC): a 3 mm pass at 2000 r/min chatters, suppression's speed is
-    written as a percentage of the programmed speed, and when the cut ends the override goes
-    back to 100 % through the guard, so the next pass (1 mm at 1500) runs at its own speed."""
+    (Fanuc's SOV through the PMC), chatter and suppression as shipped without remember."""
     suppress_table = default_table("suppress").replace("\nremember = true", "\nremember = false")
     cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + suppress_table + "\n",
-                            simulator='program = ["2000,3.0,0.3,20", "1500,1.0,0.3,20"]\nload_s = 0.3\n'
-                                      'retract_s = 0.2\n')
+                            simulator=f'program = {program}\nload_s = 0.3\nretract_s = 0.2\n')
     text = cfg.read_text()
     for old, new in (('spindle_rpm_cmd = { address = 0, type = "float32", writable = true, unit = "r/min" }',
                       'spindle_rpm_cmd = { address = 0, type = "float32", unit = "r/min" }'),
@@ -241,6 +238,15 @@ def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_liv
         assert old in text
         text = text.replace(old, new)
     cfg.write_text(text)
+    return cfg, paths
+
+
+def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_live(tmp_path):
+    """The lathe's map with the commanded speed read-only and the spindle override writable
+    (Fanuc's SOV through the PMC): a 3 mm pass at 2000 r/min chatters, suppression's speed is
+    written as a percentage of the programmed speed, and when the cut ends the override goes
+    back to 100 % through the guard, so the next pass (1 mm at 1500) runs at its own speed."""
+    cfg, paths = override_config(tmp_path, '["2000,3.0,0.3,20", "1500,1.0,0.3,20"]')
     d = Daemon(cfg, paths["socket"])
     d.paths = paths
     try:
@@ -262,3 +268,25 @@ def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_liv
         assert light and all(abs(c["rpm_start"] - 1500) < 15 for c in light), light
     finally:
         d.stop()
+
+
+def test_an_override_held_mid_cut_is_released_when_the_daemon_stops_live(tmp_path):
+    """An override holds beyond the daemon: stopped in the middle of a cured cut (SIGTERM,
+    systemctl stop), the daemon writes the programmed speed back (override 100 %) through the
+    guard before it closes the link, and records it."""
+    import sqlite3
+    cfg, paths = override_config(tmp_path, '["2000,3.0,0.3,400"]')     # a 40 s pass: stopped inside it
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: [e for e in spindle_commands(d) if e["payload"]["by"] == "suppress"],
+                   timeout=60, interval=0.2, what="a cure written as an override")
+        assert sim_registers(d)["spindle_override_pct"] != 100.0
+    finally:
+        assert d.stop() == 0
+    con = sqlite3.connect(f"file:{paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)
+    rows = [json.loads(p) for (p,) in con.execute(
+        "SELECT payload FROM events WHERE kind = 'command_sent' ORDER BY id")]
+    con.close()
+    assert rows[-1]["reason"] == "released: the daemon is stopping" and rows[-1]["override_pct"] == 100.0, rows

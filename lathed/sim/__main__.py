@@ -41,7 +41,7 @@ from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.mtconnect_agent import MTConnectAgent
-from lathed.sim.registers import CELL_MAP, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
+from lathed.sim.registers import CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
 
@@ -74,6 +74,9 @@ class Simulator:
         self.robot_silent = False
         self.produced = 0
         self.overruns = 0
+        self._beat_wall: float | None = None    # wall time the heartbeat count last changed
+        self._beat: float | None = None
+        self.watchdog_resets: list[dict] = []   # the PMC took a held override back
         self.booted = time.monotonic()
         # (sim time, wall time) of recent vibration blocks' first samples: sim
         # instants become comparable with the stream's t0 stamps, overruns too
@@ -165,6 +168,7 @@ class Simulator:
                 # the speed the block was cut at (read before the step, it lagged a ramp step)
                 self.vibration.send(t0, self.lathe.block_rpm, data)
                 self.produced += BLOCK
+            self._pmc_watchdog()
             if self.modbus.up or self.agent is not None:
                 regs = self.lathe.registers()
                 if self.modbus.up:
@@ -187,9 +191,23 @@ class Simulator:
         if rec.visible_at_s is not None and rec.visible_wall is None:
             rec.visible_wall = self._wall(rec.visible_at_s)
 
+    def _pmc_watchdog(self) -> None:
+        """The PMC's side of the heartbeat (wall time, as a ladder's timer): an override held
+        while the count stopped is the client's, and the client is gone."""
+        now = time.time()
+        if (self._beat_wall is not None and now - self._beat_wall > HEARTBEAT_TIMEOUT_S
+                and self.lathe.override_pct != 100.0):
+            self.watchdog_resets.append({"wall_t": now, "override_pct": self.lathe.override_pct,
+                                         "silent_s": round(now - self._beat_wall, 3)})
+            self.lathe.override_pct = 100.0
+
     def _lathe_write(self, name: str, value: float) -> None:
         # the instant the machine got the command, not when the daemon sent it
         t = time.time()
+        if name == "heartbeat":
+            if value != self._beat:
+                self._beat, self._beat_wall = value, t
+            return
         self.lathe.write(name, value)
         if name in ("spindle_rpm_cmd", "spindle_override_pct"):
             self.lathe.record.speed_writes[-1]["wall_t"] = t
@@ -245,6 +263,7 @@ class Simulator:
             return {"t": self.lathe.t, "phase": self.lathe.phase, "part": self.lathe.part_index,
                     "registers": self.lathe.registers(), "temperatures": self.lathe.thermal.readings(),
                     "displacement_um": self.lathe.thermal.displacement_um, "overruns": self.overruns,
+                    "watchdog_resets": self.watchdog_resets[-16:],
                     "visible_at": self.lathe.record.visible_wall,
                     "parts": [r.as_dict() for r in list(self.lathe.parts)[-max(1, int(args.get("parts", 16))):]],
                     "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,

@@ -32,8 +32,13 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     "cutting_feed":          (32, "uint16", False, ""),
     # 1 while the pass runs at constant surface speed (G96): Fanuc's CSS signal (F2.2)
     "css_active":            (33, "uint16", False, ""),
+    # the client's heartbeat count: while an override written by the client is held, the PMC
+    # puts it back to 100 % when the count has not changed for HEARTBEAT_TIMEOUT_S (the daemon
+    # died or lost the link); armed by the first write
+    "heartbeat":             (34, "uint16", True, ""),
 }
-N_REGISTERS = 34
+N_REGISTERS = 35
+HEARTBEAT_TIMEOUT_S = 1.5   # three of the driver's default 500 ms beats
 
 # The mill (Modbus TCP) and the grinder (Modbus RTU on a pseudo-terminal,
 # unit id 1, 115200 8N1) share one map: holding registers, big word order.

@@ -1,0 +1,62 @@
+"""The simulated control's PMC watchdog on the heartbeat register: an override held by a
+client whose count stopped (the daemon died, the link is down) goes back to 100 %."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+from pymodbus.client import AsyncModbusTcpClient
+
+from lathed.sim.__main__ import Simulator, parse_args
+from lathed.sim.modbus_peer import decode, encode
+from lathed.sim.registers import HEARTBEAT_TIMEOUT_S, LATHE_MAP
+from tests.conftest import free_port
+
+OVR, BEAT = LATHE_MAP["spindle_override_pct"][0], LATHE_MAP["heartbeat"][0]
+
+
+def test_a_held_override_goes_back_to_100_when_the_heartbeat_stops(tmp_path):
+    async def go():
+        sim = Simulator(parse_args(["--modbus-port", str(free_port()), "--vibration-port", str(free_port()),
+                                    "--serial-link", str(tmp_path / "tty")]))
+        task = asyncio.create_task(sim.run())
+        client = AsyncModbusTcpClient("127.0.0.1", port=sim.args.modbus_port, timeout=1)
+        try:
+            while not sim.modbus.up:
+                await asyncio.sleep(0.02)
+            assert await client.connect()
+
+            async def override():
+                rr = await client.read_holding_registers(OVR, count=2, device_id=1)
+                return decode(rr.registers, "float32")
+
+            async def beat(n):
+                assert not (await client.write_registers(BEAT, encode(n, "uint16"), device_id=1)).isError()
+
+            # no heartbeat yet: the watchdog is not armed, a held override stays
+            assert not (await client.write_registers(OVR, encode(110.0, "float32"), device_id=1)).isError()
+            n, end = 1, time.monotonic() + HEARTBEAT_TIMEOUT_S + 0.5
+            while time.monotonic() < end:
+                assert await override() == 110.0
+                await asyncio.sleep(0.1)
+            # beating: held past the timeout
+            end = time.monotonic() + HEARTBEAT_TIMEOUT_S + 0.5
+            while time.monotonic() < end:
+                await beat(n)
+                n += 1
+                assert await override() == 110.0
+                await asyncio.sleep(0.1)
+            # a count that repeats is a stopped count
+            stopped = time.monotonic()
+            while await override() != 100.0:
+                await beat(n)
+                assert time.monotonic() - stopped < HEARTBEAT_TIMEOUT_S + 1.0, "override still held"
+                await asyncio.sleep(0.05)
+            assert time.monotonic() - stopped >= HEARTBEAT_TIMEOUT_S - 0.1
+            (reset,) = sim.watchdog_resets
+            assert reset["override_pct"] == 110.0 and reset["silent_s"] > HEARTBEAT_TIMEOUT_S
+        finally:
+            client.close()
+            sim._stop.set()
+            await asyncio.wait_for(task, 10)
+    asyncio.run(asyncio.wait_for(go(), 60))
