@@ -273,7 +273,7 @@ class ModbusCNC(Driver):
             await self._join_link()
         # the first read proves the controller answers: an open port is not a machine
         await self._read_group(self.groups[min(self.groups)])
-        await self._beat()        # the control's watchdog is armed from the link's first minute
+        await self._beat()        # the control's watchdog is armed as soon as the link is up
         self.model.link_up()
 
     async def _open(self, client) -> None:
@@ -546,7 +546,7 @@ class ModbusCNC(Driver):
                 "model": self.model.snapshot(), "values": values, "polls": self.polls,
                 "reads_by_period_s": {f"{p:g}": n for p, n in sorted(self.reads.items())},
                 "reads_on": dict(self.reads_on),
-                **({"heartbeat": {"every_s": self.heartbeat_every, "sent": self.beats}}
+                **({"heartbeat": {"every_s": self.heartbeat_every, "count": self.beats}}
                    if "heartbeat" in self.registers else {}),
                 "link": {"transport": self.transport, "where": self.where, "errors": dict(self.errors)}}
 

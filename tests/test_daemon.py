@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -35,6 +36,8 @@ def test_status_json_has_live_values(sim_daemon):
     text = d.ctl("status").stdout
     for name in ("lathe", "temps", "accel"):
         assert name in text
+    # the shipped map's heartbeat, counted at connect and every 500 ms since
+    assert re.search(r"^    heartbeat: count [1-9]\d*, written every 0.5 s$", text, re.M), text
     events = json.loads(d.ctl("events", "--json").stdout)
     assert events[0]["kind"] == "daemon_started"
 

@@ -496,7 +496,8 @@ def test_the_heartbeat_counts_while_the_link_is_up():
 
     async def check(d, events):
         await until(lambda: len(beats) >= 4, what="four beats")
-        assert d.status()["heartbeat"] == {"every_s": 0.05, "sent": len(beats)}
+        hb = d.status()["heartbeat"]
+        assert hb["every_s"] == 0.05 and abs(hb["count"] - len(beats)) <= 1     # one may be in flight
     asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check), 30))
     assert beats[:4] == [1.0, 2.0, 3.0, 4.0]          # the first at connect
     with pytest.raises(ConfigError, match="heartbeat must be writable"):

@@ -108,6 +108,9 @@ def _status_text(r: dict) -> str:
              "registers: " + _fmt_value(r["registers"]),
              "temperatures: " + _fmt_value(r["temperatures"])]
     lines += [f"{name}: {_fmt_value(m)}" for name, m in r["line"].items()]
+    for w in r.get("watchdog_resets", []):
+        lines.append(f"PMC watchdog: a held override of {w['override_pct']:g} % taken back to 100 % after "
+                     f"{w['silent_s']:g} s without a heartbeat")
     return "\n".join(lines)
 
 
