@@ -10,7 +10,8 @@ import importlib
 import importlib.util
 from types import ModuleType
 
-EXTRAS = {"psycopg": "postgres", "matplotlib": "plots", "asyncua": "opcua", "aiomqtt": "mqtt"}   # module -> extra that installs it
+EXTRAS = {"psycopg": "postgres", "matplotlib": "plots", "asyncua": "opcua", "aiomqtt": "mqtt",
+          "h5py": "recordings", "nptdms": "recordings"}   # module -> extra that installs it
 
 
 class MissingExtra(ImportError):

@@ -18,9 +18,8 @@ from typing import Any, Callable
 
 from lathed import __version__
 from lathed import cli as cli_pkg
+from lathed.cli import EX_UNAVAILABLE
 from lathed.client import DaemonUnavailable, RemoteError, call, default_db, subscribe
-
-EX_UNAVAILABLE = 69
 
 
 def remote(args: argparse.Namespace, cmd: str, cmd_args: dict | None = None) -> Any:

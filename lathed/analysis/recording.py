@@ -1,8 +1,11 @@
 """Reading vibration recordings: WAV (PCM 8/16/24/32-bit, float 32/64,
-WAVE_FORMAT_EXTENSIBLE), CSV, and MATLAB .mat (a named variable: one column
-of samples, or time and value columns), with clipped-sample detection: PCM
-samples at the converter's full scale; float WAV, CSV and .mat (no known full
-scale, often physical units) runs of equal samples at the recording's extremes.
+WAVE_FORMAT_EXTENSIBLE), CSV, MATLAB .mat (a named variable: one column of
+samples, or time and value columns; v4-v7.2 through scipy, v7.3, which is
+HDF5, through h5py) and NI TDMS (a named channel, its rate from the
+waveform's ``wf_increment``, through npTDMS), with clipped-sample detection:
+PCM samples at the converter's full scale; float WAV, CSV, .mat and TDMS (no
+known full scale, often physical units) runs of equal samples at the
+recording's extremes.  h5py and npTDMS come with the ``recordings`` extra.
 
 The standard library's ``wave`` cannot read float WAV, so the RIFF chunks are
 parsed here.  Errors are ``RecordingError`` carrying a one-line message that
@@ -24,9 +27,10 @@ _PCM, _FLOAT, _EXTENSIBLE = 1, 3, 0xFFFE
 
 
 class RecordingError(Exception):
-    def __init__(self, message: str, missing: bool = False) -> None:
+    def __init__(self, message: str, missing: bool = False, unavailable: bool = False) -> None:
         super().__init__(message)
         self.missing = missing
+        self.unavailable = unavailable     # a reader the install lacks (an extra)
 
 
 @dataclass
@@ -46,8 +50,9 @@ class Signal:
 
 def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None,
                 var: str | None = None) -> Signal:
-    """Read ``path`` (.wav, .mat, or anything else as CSV) and return one channel.
-    ``var`` names the variable of a .mat file (default: its only numeric one)."""
+    """Read ``path`` (.wav, .mat, .tdms, or anything else as CSV) and return one channel.
+    ``var`` names the variable of a .mat file or the channel of a TDMS file (default:
+    its only numeric one)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -59,7 +64,9 @@ def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None
         raise RecordingError(f"cannot read {p}: {e.strerror}", missing=True) from None
     if not raw.strip():
         raise RecordingError(f"{p} is empty")
-    if p.suffix.lower() == ".mat" or raw[:6] == b"MATLAB":
+    if raw[:4] == b"TDSm" or p.suffix.lower() == ".tdms":
+        sig = _read_tdms(raw, str(p), channel, rate_hz, var)
+    elif p.suffix.lower() == ".mat" or raw[:6] == b"MATLAB":
         sig = _read_mat(raw, str(p), channel, rate_hz, var)
     elif raw[:4] == b"RIFF" or p.suffix.lower() == ".wav":
         sig = _read_wav(raw, str(p), channel)
@@ -136,7 +143,30 @@ def _with_clips(sig: Signal, mask: np.ndarray) -> Signal:
 
 
 # -- MATLAB ---------------------------------------------------------------------------
+def _extra(module: str, what: str, src: str):
+    from lathed.extras import MissingExtra, need
+    try:
+        return need(module, f"reading {what} ({src})")
+    except MissingExtra as e:
+        raise RecordingError(str(e), unavailable=True) from None
+
+
+_HDF5 = b"\x89HDF\r\n\x1a\n"   # a v7.3 .mat: MATLAB's 512-byte header, then an HDF5 file
+
+
 def _read_mat(raw: bytes, src: str, channel: int, rate_hz: float | None, var: str | None) -> Signal:
+    if raw[512:520] == _HDF5:
+        h5py = _extra("h5py", "a MATLAB v7.3 .mat", src)
+        try:
+            f = h5py.File(io.BytesIO(raw), "r")
+        except OSError as e:
+            raise RecordingError(f"{src} is not a MATLAB v7.3 .mat (HDF5) file h5py can read ({e})") from None
+        with f:
+            # MATLAB writes column-major, so an N x K matrix is stored K x N: the rule below,
+            # samples along the longer side, reads both layouts alike
+            mat = {k: v for k, v in f.items() if isinstance(v, h5py.Dataset)
+                   and v.attrs.get("MATLAB_class", b"double") not in (b"char", b"logical")}
+            return _mat_signal(mat, src, channel, rate_hz, var)
     from scipy.io import loadmat     # only here: the daemon never reads .mat
     from scipy.io.matlab import MatReadError
 
@@ -144,10 +174,14 @@ def _read_mat(raw: bytes, src: str, channel: int, rate_hz: float | None, var: st
         mat = loadmat(io.BytesIO(raw))
     except (MatReadError, ValueError, TypeError, IndexError, NotImplementedError, OSError,
             struct.error) as e:
-        raise RecordingError(f"{src} is not a MATLAB v4-v7.2 .mat file scipy can read ({e}); "
-                             "v7.3 files are HDF5: save with -v7") from None
-    names = [k for k, v in mat.items() if not k.startswith("__") and isinstance(v, np.ndarray)
-             and v.dtype.kind in "iuf" and v.size > 1]
+        raise RecordingError(f"{src} is not a MATLAB v4-v7.3 .mat file scipy or h5py can read ({e})") from None
+    return _mat_signal({k: v for k, v in mat.items() if not k.startswith("__") and isinstance(v, np.ndarray)},
+                       src, channel, rate_hz, var)
+
+
+def _mat_signal(mat: dict, src: str, channel: int, rate_hz: float | None, var: str | None) -> Signal:
+    """One signal of a .mat's variables (arrays, or h5py datasets read only when chosen)."""
+    names = [k for k, v in mat.items() if v.dtype.kind in "iuf" and v.size > 1]
     if var is None:
         if len(names) != 1:
             raise RecordingError(f"{src}: name the variable to read with --var "
@@ -184,6 +218,44 @@ def _read_mat(raw: bytes, src: str, channel: int, rate_hz: float | None, var: st
                              f"({cols.shape[1]} signal column(s), numbered from 0)")
     x = np.ascontiguousarray(cols[:, channel])
     return _with_clips(Signal(x, rate, f"{src}:{var}", cols.shape[1], notes=notes), _flat_tops(x))
+
+
+# -- TDMS (National Instruments) ----------------------------------------------------------
+def _read_tdms(raw: bytes, src: str, channel: int, rate_hz: float | None, var: str | None) -> Signal:
+    nptdms = _extra("nptdms", "a TDMS file", src)
+    try:
+        f = nptdms.TdmsFile.read(io.BytesIO(raw))
+        chans = {f"{g.name}/{c.name}": c for g in f.groups() for c in g.channels()
+                 if c.dtype is not None and np.dtype(c.dtype).kind in "iuf" and len(c) > 1}
+    except Exception as e:    # npTDMS raises what its parser meets (ValueError, KeyError, struct.error...)
+        raise RecordingError(f"{src} is not a TDMS file npTDMS can read ({type(e).__name__}: {e})") from None
+    listed = ", ".join(chans) or "none"
+    if channel:
+        raise RecordingError(f"{src}: a TDMS channel is one signal, so --channel does not apply: "
+                             f"name it with --var (numeric channels: {listed})")
+    if var is None:
+        if len(chans) != 1:
+            raise RecordingError(f"{src}: name the channel to read with --var GROUP/CHANNEL "
+                                 f"(numeric channels: {listed})")
+        var = next(iter(chans))
+    picked = [k for k in chans if k == var] or [k for k in chans if k.split("/", 1)[1] == var]
+    if len(picked) != 1:
+        why = "is in more than one group" if picked else "is not a numeric channel"
+        raise RecordingError(f"{src}: {var!r} {why} (numeric channels: {listed})")
+    c = chans[picked[0]]
+    notes: list[str] = []
+    inc = c.properties.get("wf_increment")
+    if inc is not None and float(inc) > 0:
+        rate = 1.0 / float(inc)
+        if rate_hz is not None and abs(rate - rate_hz) > 1e-6 * rate:
+            notes.append(f"--rate {rate_hz:g} ignored: the channel's wf_increment gives {rate:g} Hz")
+    elif rate_hz is None:
+        raise RecordingError(f"{src}: channel {picked[0]!r} has no wf_increment, so the sample rate is "
+                             "unknown (give --rate HZ)")
+    else:
+        rate = float(rate_hz)
+    x = np.ascontiguousarray(c[:], dtype=float)
+    return _with_clips(Signal(x, rate, f"{src}:{picked[0]}", len(chans), notes=notes), _flat_tops(x))
 
 
 # -- CSV -------------------------------------------------------------------------------

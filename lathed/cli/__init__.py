@@ -6,7 +6,7 @@ import math
 import sys
 
 # sysexits codes the offline commands use
-EX_DATAERR, EX_NOINPUT, EX_CANTCREAT = 65, 66, 73
+EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, EX_CANTCREAT = 65, 66, 69, 73
 
 
 def positive(text: str) -> float:

@@ -4,8 +4,10 @@
         [--reference REF] [--detector NAME] [--param KEY=VALUE ...] [--json] [--plot OUT.png]
     lathectl analyze chatter --params [NAME]     (a detector's options, then exit)
 
-FILE is WAV, CSV (time_s and value columns, or one column with --rate) or a
-MATLAB .mat (--var names the variable: samples, or time and value columns).
+FILE is WAV, CSV (time_s and value columns, or one column with --rate), a
+MATLAB .mat (--var names the variable: samples, or time and value columns; v7.3
+needs the recordings extra) or an NI TDMS file (--var GROUP/CHANNEL; the
+recordings extra).
 
 ``--json`` prints one object: verdict, first_alarm_s,
 chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
@@ -13,8 +15,8 @@ clipped_samples, rate_hz, duration_s and notes. The verdict is "chatter" (an
 onset found), "stable" (none, against --reference) or "unknown" (none, and no
 reference: the baseline is the recording's start, and a recording that
 chatters from its first sample shows no onset either).
-Exit: 0 ok, 2 usage, 66 file missing/unreadable, 65 data invalid, 73 plot
-cannot be written.
+Exit: 0 ok, 2 usage, 66 file missing/unreadable, 65 data invalid, 69 a reader
+not installed (the extra named), 73 plot cannot be written.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ import json
 import math
 import sys
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, positive, spindle_rpm
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, positive, spindle_rpm
 
 # numpy and the detectors are imported when the command runs: lathectl's other
 # commands start without them (the names below are checked against the registry)
@@ -70,14 +72,15 @@ class _ListParams(argparse.Action):
 
 
 def register_analyze(sub) -> None:
-    p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV, CSV or .mat)",
+    p = sub.add_parser("chatter", help="detect chatter in a vibration recording (WAV, CSV, .mat or TDMS)",
                        description="Run a chatter detector over a recorded accelerometer signal. "
                                    "The baseline is learned from the first revolutions of the "
                                    "recording, or from --reference (a stable cut).")
     p.add_argument("file", metavar="FILE", help="WAV (PCM 16/24/32-bit or float), CSV "
-                   "(time_s plus one signal column, or one column with --rate) or MATLAB .mat")
-    p.add_argument("--var", metavar="NAME", help="variable of a .mat file (default: its only "
-                   "numeric one); a first column of evenly increasing times is the time")
+                   "(time_s plus one signal column, or one column with --rate), MATLAB .mat or NI TDMS")
+    p.add_argument("--var", metavar="NAME", help="variable of a .mat file or GROUP/CHANNEL (or a unique "
+                   "CHANNEL) of a TDMS file (default: its only numeric one); a .mat's first column of "
+                   "evenly increasing times is the time")
     p.add_argument("--rpm", type=spindle_rpm, required=True, help="spindle speed in r/min")
     p.add_argument("--rate", type=positive, metavar="HZ", help="sample rate of a CSV without time_s")
     p.add_argument("--channel", type=_channel, default=0, metavar="K",
@@ -122,7 +125,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
         ref = read_signal(args.reference, args.channel, args.rate, var) if args.reference else None
     except RecordingError as e:
         _err(str(e))
-        return EX_NOINPUT if e.missing else EX_DATAERR
+        return EX_NOINPUT if e.missing else EX_UNAVAILABLE if e.unavailable else EX_DATAERR
     if not VIB_RATE_MIN <= sig.rate_hz <= VIB_RATE_MAX:
         _err(f"sample rate {sig.rate_hz:g} Hz is outside the {VIB_RATE_MIN:g}..{VIB_RATE_MAX:g} Hz of an "
              f"accelerometer recording ({args.file})")

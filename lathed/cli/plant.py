@@ -15,9 +15,8 @@ import os
 import time
 from typing import Any
 
-from lathed.cli import fail, positive
+from lathed.cli import EX_NOINPUT, EX_UNAVAILABLE, fail, positive
 
-EX_UNAVAILABLE, EX_NOINPUT = 69, 66
 MACHINE_EVENTS = ("alarm_raised", "alarm_cleared", "part_completed", "part_counter_reset")
 
 
