@@ -274,7 +274,19 @@ class ModbusCNC(Driver):
         # the first read proves the controller answers: an open port is not a machine
         await self._read_group(self.groups[min(self.groups)])
         await self._beat()        # the control's watchdog is armed as soon as the link is up
+        self._held_at_connect()
         self.model.link_up()
+
+    def _held_at_connect(self) -> None:
+        """An override the link comes up to that lathed did not write is the operator's, or an
+        earlier process's (one that died on a control without the heartbeat): said, never undone."""
+        ovr = self._fresh("spindle_override_pct") if self.speed_by_override else None
+        if ovr is None or ovr == 100.0 or (self._ours is not None and abs(ovr - self._ours) <= 1e-3 * self._ours):
+            return
+        payload = {"machine": self.name, "override_pct": ovr}
+        if self.ctx is not None:
+            self.ctx.log.warning("override_found_held", **payload)
+        self._record("override_found_held", payload)
 
     async def _open(self, client) -> None:
         try:

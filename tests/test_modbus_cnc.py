@@ -452,10 +452,12 @@ def test_a_release_passes_the_guard_as_any_command():
         await until(lambda: d.current("spindle_rpm") == 1350.0, what="polls")
         return await sup.release("m", "spindle_rpm", "suppress")
     ctl = OverrideControl()
-    ctl.override = 90.0          # set on the control's panel, not by lathed
+    ctl.override = 90.0          # set on the control's panel (or by an earlier run), not by lathed
     ctl.publish()
-    assert _supervised(ctl, 2000.0, operators) == (None, [])
-    assert ctl.override == 90.0
+    released, records = _supervised(ctl, 2000.0, operators)
+    assert released is None and ctl.override == 90.0
+    # said once, when the link came up
+    assert [(k, p) for k, _, p in records] == [("override_found_held", {"machine": "m", "override_pct": 90.0})]
 
 
 def test_an_override_lathed_left_is_released_when_the_daemon_stops():
