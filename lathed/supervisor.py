@@ -307,8 +307,7 @@ class Supervisor:
         where mapped, takes the override back)."""
         for name, r in self.runners.items():
             for action in getattr(r.obj, "actions", ()):
-                if r.state == "connected" and getattr(r.obj, "released", lambda a: None)(action) is not None:
-                    await self.release(name, action, "lathed", reason="released: the daemon is stopping")
+                await self.release(name, action, "lathed", reason="released: the daemon is stopping")
 
     # -- commands -------------------------------------------------------------
     async def command(self, cmd: Command) -> dict:

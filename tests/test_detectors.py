@@ -472,3 +472,12 @@ def test_the_release_from_a_light_cut_is_an_impulse_not_chatter(seed):
             alarm |= any(w.alarm for w in det.process(blk, 2000.0))
         alarms[told] = alarm
     assert alarms == {False: True, True: False}
+
+
+def test_median_abs_is_numpys_bit_for_bit():
+    from lathed.analysis.detectors import median_abs
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 3, 16, 1535, 1536, 4097):
+        for _ in range(20):
+            x = rng.standard_normal(n) * rng.uniform(0.1, 10.0)
+            assert median_abs(x) == float(np.median(np.abs(x))), n
