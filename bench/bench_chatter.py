@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/bench_chatter.py [--quick] [--detectors a,b] [--json OUT]
         [--seed-base N] [--with-reference] [--no-ablation] [--cases] [--no-wander]
+        [--variant KEY=V[,KEY=V...]]
 
 Corpus: lathed.analysis.regen.simulate_cut with the default lathe structure
 (limit ~1.5-2.6 mm over 500-6000 r/min), stable cuts, chatter cuts, slow-growing
@@ -366,6 +367,9 @@ def main(argv=None) -> int:
                     help="also the default detector's median with its window grid at N random phases "
                          "to the onsets: each recording's first 0..half a revolution dropped, so the "
                          "detector also starts up to half a revolution into each cut's entry")
+    ap.add_argument("--variant", action="append", default=[], metavar="KEY=V[,KEY=V...]",
+                    help=f"also a {DEFAULT_DETECTOR} row with these options (repeat for more), e.g. "
+                         "hop_revs=0.25,learn_windows=8,off_windows=8")
     ap.add_argument("--no-wander", action="store_true",
                     help="stationary stable cutting (the simulator before regen.Wander): for comparison")
     args = ap.parse_args(argv)
@@ -378,6 +382,16 @@ def main(argv=None) -> int:
     if DEFAULT_DETECTOR in names:
         # the index read at the polled spindle load (the cases' depth, read every 100 ms)
         variants += [(DEFAULT_DETECTOR, {"load_scaled": 1.0})]
+    for v in args.variant:
+        try:
+            params = {k.strip(): float(x) for k, x in (kv.split("=", 1) for kv in v.split(","))}
+        except ValueError:
+            ap.error(f"--variant {v!r}: give KEY=NUMBER[,KEY=NUMBER...]")
+        try:
+            make_detector(DEFAULT_DETECTOR, 51200.0, **params)
+        except ValueError as e:
+            ap.error(f"--variant {v!r}: {e}")
+        variants.append((DEFAULT_DETECTOR, params))
     if args.with_reference:
         variants += [(n, {"_reference": True}) for n in names if n != "spectral_ratio"]
 

@@ -28,7 +28,7 @@ from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
-from lathed.supervisor import Runner
+from lathed.supervisor import Runner, cancel_and_wait
 from lathed_plugins.can_robot import CanRobot
 from lathed_plugins.ds18b20_serial import DS18B20Serial
 from lathed_plugins.modbus_cnc import ModbusCNC
@@ -106,9 +106,8 @@ class Line:
         await self.until(lambda: all(r.state == "connected" for r in self.runners.values()), 10, "all connected")
 
     async def stop(self) -> None:
-        for t in self.tasks + [r.task for r in self.runners.values()]:
-            t.cancel()
-        await asyncio.gather(*self.tasks, *[r.task for r in self.runners.values()], return_exceptions=True)
+        # as the daemon stops them: pymodbus's wait_for can swallow a single cancellation
+        await cancel_and_wait(self.tasks + [r.task for r in self.runners.values()])
         await self.mill_peer.stop()
         await self.grinder_peer.stop()
         self.arduino.close()
