@@ -59,6 +59,9 @@ class Settings:
         self.control_operator_groups = sec.getlist("control_operator_groups", [])
         # `subscribe` connections (lathectl watch, lathed-web) at once, within control_max_clients
         self.control_max_subscribers = sec.getint("control_max_subscribers", 16, minval=0, maxval=1024)
+        # a stop while an override lathed wrote holds mid-cut waits this long for the cut to end,
+        # the cure held over the rest of the pass (0: released at once, under the chip)
+        self.stop_wait = sec.getduration("stop_wait", 60.0, minval=0.0, maxval=600.0)
         sec.check_unused()
         st = cfg.store
         # 0: every record is kept. Otherwise records older than this are deleted,
@@ -170,6 +173,7 @@ class Daemon:
         self.state = "stopping"
         notify("STOPPING=1")
         log.info("stopping")
+        await self._finish_cuts()
         # A driver stuck in a blocking read in a worker thread must not keep
         # the process alive: acknowledged records are already committed, so
         # past the grace period we leave (systemd would SIGKILL us anyway).
@@ -216,6 +220,8 @@ class Daemon:
             if "log_level" in ch.daemon:
                 self.settings.log_level = settings.log_level
                 logmod.setup(settings.log_level)
+            if "stop_wait" in ch.daemon:
+                self.settings.stop_wait = settings.stop_wait
             if ch.store:
                 self.settings.keep_days, self.settings.prune_every = settings.keep_days, settings.prune_every
                 if self.settings.keep_days > 0 and (self._pruning is None or self._pruning.done()):
@@ -247,6 +253,45 @@ class Daemon:
             if any(removed.values()):
                 self.supervisor.record("store_pruned", "lathed", {"older_than_t": cutoff, "removed": removed,
                                                                   "sinks": sinks})
+
+    async def _finish_cuts(self) -> None:
+        """A stop while an override lathed wrote holds mid-cut (a chatter cure) waits, up to
+        stop_wait, for the cut to end: the analyses and drivers run on, the cure holds over
+        the rest of the pass, and the cut's end releases it as after any cut.  Released at
+        once, the pass would run on at the speed that chattered.  A second SIGTERM or SIGINT,
+        or the wait's end, stops at once (the override then released mid-cut)."""
+        sup = self.supervisor
+        held = sup.held()
+        wait = self.settings.stop_wait
+        if not held or wait <= 0:
+            return
+        self._stop.clear()
+        t0 = time.monotonic()
+        self._step = f"waiting up to {wait:g} s for the cut to end ({', '.join(held)} held)"
+        log.warning("stop_waiting", held=held, up_to_s=wait,
+                    why="an override lathed wrote holds mid-cut; the cut's end releases it (signal again to stop now)")
+        # systemd's TimeoutStopSec counts from the stop: extended by the wait and the grace after it
+        notify(f"STATUS=stopping: {self._step}\nEXTEND_TIMEOUT_USEC={int((wait + STOP_GRACE_S + 5.0) * 1e6)}")
+        ended = f"not within {wait:g} s"
+        while True:
+            sup.sent.clear()
+            if not sup.held():
+                ended = "the cut ended"
+                break
+            if self._stop.is_set():
+                ended = "a second stop signal"
+                break
+            left = t0 + wait - time.monotonic()
+            if left <= 0:
+                break
+            # a release is a command sent; a link lost on the way is seen within the second
+            waiters = [asyncio.ensure_future(self._stop.wait()), asyncio.ensure_future(sup.sent.wait())]
+            await asyncio.wait(waiters, timeout=min(left, 1.0), return_when=asyncio.FIRST_COMPLETED)
+            for w in waiters:
+                w.cancel()
+        waited = round(time.monotonic() - t0, 3)
+        log.info("stop_waited", held=held, waited_s=waited, ended=ended)
+        sup.record("stop_waited", "lathed", {"held": held, "waited_s": waited, "ended": ended})
 
     def _stop_overdue(self) -> None:
         # what was still running, so the next hang names its culprit
@@ -299,7 +344,7 @@ class Daemon:
     def status_state(self) -> str:
         if self.state == "running" and self.store.stats()["failing"]:
             return "degraded: store failing"
-        return self.state
+        return f"stopping: {self._step}" if self.state == "stopping" else self.state
 
     async def _cmd_status(self, args: dict) -> Any:
         Args("status", args).check_unused()

@@ -1,6 +1,6 @@
 """What a configuration reload (SIGHUP) may change in a running daemon.
 
-Live: ``[daemon] log_level``, ``[store] keep_days`` and ``prune_every``, a
+Live: ``[daemon] log_level`` and ``stop_wait``, ``[store] keep_days`` and ``prune_every``, a
 machine's ``[*.limits]``, and an analyzer's keys it lists in ``LIVE_KEYS``
 (applied by its ``reconfigure(section)``). Anything else that differs — a
 machine, sensor or analyzer added, removed or of another plugin, a driver's
@@ -14,7 +14,7 @@ from typing import Any
 
 from lathed.config import Config
 
-LIVE_DAEMON = {"log_level"}
+LIVE_DAEMON = {"log_level", "stop_wait"}
 LIVE_STORE = {"keep_days", "prune_every"}
 
 

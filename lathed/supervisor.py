@@ -221,6 +221,7 @@ class Supervisor:
         self.runners: dict[str, Runner] = {}
         self.analyzer_runners: dict[str, Runner] = {}
         self._cmd_locks: dict[str, asyncio.Lock] = {}
+        self.sent = asyncio.Event()      # set at every command sent (a stop waiting for a release)
         self._register_control = register_control
         for name, (inst, drv) in plan.drivers.items():
             drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name),
@@ -300,6 +301,16 @@ class Supervisor:
         await self.release_held()
         await cancel_and_wait([r.task for r in self.runners.values() if r.task])
 
+    def held(self) -> list[str]:
+        """What the machines still hold from lathed's commands beyond their cut ("lathe
+        spindle_rpm": an override the driver would release), connected machines only."""
+        out = []
+        for name, r in self.runners.items():
+            released = getattr(r.obj, "released", None)
+            if r.state == "connected" and released is not None:
+                out += [f"{name} {a}" for a in getattr(r.obj, "actions", ()) if released(a) is not None]
+        return out
+
     async def release_held(self) -> None:
         """Every action a machine still holds from lathed's commands back to its program's
         value, through the guard (``release``); a write that fails or hangs is logged and
@@ -342,6 +353,7 @@ class Supervisor:
             payload.update(detail or {})     # how the driver carried it (an override: its % and speed)
             log.info("command_sent", command=cmd.describe(), **(detail or {}))
             self.record("command_sent", cmd.source, payload)
+            self.sent.set()
             return {"sent": True, "reason": None, **(detail or {})}
 
     async def release(self, machine: str, action: str, source: str,

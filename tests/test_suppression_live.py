@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 
 import pytest
 
@@ -270,23 +271,59 @@ def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_liv
         d.stop()
 
 
-def test_an_override_held_mid_cut_is_released_when_the_daemon_stops_live(tmp_path):
-    """An override holds beyond the daemon: stopped in the middle of a cured cut (SIGTERM,
-    systemctl stop), the daemon writes the programmed speed back (override 100 %) through the
-    guard before it closes the link, and records it."""
+def _stored(paths, kind: str) -> list[dict]:
     import sqlite3
-    cfg, paths = override_config(tmp_path, '["2000,3.0,0.3,400"]')     # a 40 s pass: stopped inside it
+    con = sqlite3.connect(f"file:{paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)
+    rows = [json.loads(p) for (p,) in con.execute("SELECT payload FROM events WHERE kind = ? ORDER BY id", (kind,))]
+    con.close()
+    return rows
+
+
+def _stopped_mid_cure(tmp_path, program: str):
+    """A daemon on the override map, sent SIGTERM once a cure holds the override mid-cut."""
+    cfg, paths = override_config(tmp_path, program)
     d = Daemon(cfg, paths["socket"])
     d.paths = paths
+    d.wait_ready()
+    wait_until(lambda: [e for e in spindle_commands(d) if e["payload"]["by"] == "suppress"],
+               timeout=60, interval=0.2, what="a cure written as an override")
+    assert sim_registers(d)["spindle_override_pct"] != 100.0
+    d.proc.send_signal(signal.SIGTERM)
+    return d, paths
+
+
+def test_a_stop_mid_cure_waits_for_the_cut_to_end_live(tmp_path):
+    """Stopped (SIGTERM: systemctl stop or restart) while a cure holds the override mid-cut,
+    the daemon goes on supervising until the cut ends, so the pass is finished at the cured
+    speed, not the one that chattered; the cut's end releases the override as after any cut,
+    and then the daemon stops."""
+    d, paths = _stopped_mid_cure(tmp_path, '["2000,3.0,0.3,80"]')     # an 8 s pass
     try:
-        d.wait_ready()
-        wait_until(lambda: [e for e in spindle_commands(d) if e["payload"]["by"] == "suppress"],
-                   timeout=60, interval=0.2, what="a cure written as an override")
-        assert sim_registers(d)["spindle_override_pct"] != 100.0
+        st = wait_until(lambda: (s := d.status()["daemon"]["state"]).startswith("stopping") and s,
+                        what="the stopping daemon's state")
+        assert st == "stopping: waiting up to 60 s for the cut to end (lathe spindle_rpm held)", st
+        assert d.proc.wait(60) == 0
     finally:
-        assert d.stop() == 0
-    con = sqlite3.connect(f"file:{paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)
-    rows = [json.loads(p) for (p,) in con.execute(
-        "SELECT payload FROM events WHERE kind = 'command_sent' ORDER BY id")]
-    con.close()
+        d.stop()
+    waited = _stored(paths, "stop_waited")
+    assert len(waited) == 1 and waited[0]["ended"] == "the cut ended" and waited[0]["held"] == ["lathe spindle_rpm"]
+    sent = [p for p in _stored(paths, "command_sent") if p["action"] == "spindle_rpm"]
+    assert sent[-1]["override_pct"] == 100.0 and sent[-1]["reason"].startswith("released"), sent
+    assert sent[-1]["reason"] != "released: the daemon is stopping", sent
+
+
+def test_a_second_signal_stops_at_once_and_releases_the_override_live(tmp_path):
+    """The override holds beyond the daemon: stopped in the middle of a cured cut with a second
+    SIGTERM (or Ctrl-C) while it waits for the cut's end, the daemon writes the programmed speed
+    back (override 100 %) through the guard before it closes the link, and records it."""
+    d, paths = _stopped_mid_cure(tmp_path, '["2000,3.0,0.3,400"]')     # a 40 s pass
+    try:
+        wait_until(lambda: d.status()["daemon"]["state"].startswith("stopping: waiting"),
+                   what="the daemon waiting for the cut's end")
+        d.proc.send_signal(signal.SIGTERM)
+        assert d.proc.wait(20) == 0
+    finally:
+        d.stop()
+    assert _stored(paths, "stop_waited")[0]["ended"] == "a second stop signal"
+    rows = [p for p in _stored(paths, "command_sent") if p["action"] == "spindle_rpm"]
     assert rows[-1]["reason"] == "released: the daemon is stopping" and rows[-1]["override_pct"] == 100.0, rows
