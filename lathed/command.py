@@ -18,6 +18,7 @@ class Command:
     source: str                # who asked: analyzer instance name or "operator"
     reason: str = ""
     context: dict = field(default_factory=dict)   # critical values to record with it
+    release: bool = False      # back to the program's own value (an override's 100 %): no step or pace bound
 
     def describe(self) -> str:
         return f"{self.action}={self.value!r} on {self.machine} from {self.source}"

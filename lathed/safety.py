@@ -52,7 +52,10 @@ class SafetyGuard:
         """None if the command may be sent, else the reason it may not.
 
         ``current`` is the machine's present value of the commanded quantity
-        (e.g. its commanded spindle speed), used for the step bound.
+        (e.g. its commanded spindle speed), used for the step bound.  A release
+        (``cmd.release``: back to what the program runs without lathed) is bounded
+        by the range only: the way back may be a bigger step, or come sooner, than
+        the steps that led away, and refusing it would leave lathed's value held.
         """
         lim = self.limits.get(cmd.machine)
         if lim is None:
@@ -75,7 +78,7 @@ class SafetyGuard:
                 return "spindle speed commands are not allowed on this machine (spindle_rpm_max not set)"
             if not lim.rpm_min <= v <= lim.rpm_max:
                 return f"spindle speed {v:g} r/min outside [{lim.rpm_min:g}, {lim.rpm_max:g}]"
-            if ref is not None and abs(v - ref) > lim.rpm_step_max:
+            if ref is not None and not cmd.release and abs(v - ref) > lim.rpm_step_max:
                 return f"spindle speed step {abs(v - ref):g} r/min exceeds {lim.rpm_step_max:g}"
             rate_max = lim.rpm_rate_max
             unit = "r/min per s"
@@ -86,7 +89,7 @@ class SafetyGuard:
                 return f"offset {v:g} µm beyond ±{lim.offset_max_um:g} µm"
             rate_max = lim.offset_rate_max_um_s
             unit = "µm/s"
-        if last is not None and math.isfinite(rate_max):
+        if last is not None and not cmd.release and math.isfinite(rate_max):
             dt = max(now - last[1], 1e-6)
             if abs(v - last[0]) > rate_max * dt:
                 return f"{cmd.action} changing at {abs(v - last[0]) / dt:.3g} {unit}, above {rate_max:g}"

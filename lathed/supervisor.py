@@ -368,7 +368,7 @@ class Supervisor:
         value = getattr(drv, "released", lambda a: None)(action)
         if value is None:
             return None
-        return await self.command(Command(machine, action, float(value), source, reason=reason))
+        return await self.command(Command(machine, action, float(value), source, reason=reason, release=True))
 
     # -- status ---------------------------------------------------------------
     def machine_status(self, name: str) -> dict | None:

@@ -236,13 +236,22 @@ class ModbusCNC(Driver):
                                section.getfloat("override_max_pct", 150.0, minval=100.0, maxval=254.0))
         self.override_step = section.getfloat("override_step_pct", 1.0, minval=0.01, maxval=50.0)
         if self.speed_by_override:
-            if "spindle_rpm_cmd" not in self.registers and "spindle_rpm" not in self.registers:
+            if "spindle_rpm_cmd" not in self.registers:
+                # the measured speed lags a write and a ramp (the override just written over a
+                # speed not yet reached gives a wrong programmed speed), and a G96 drift is seen
+                # only in the commanded one: an override beyond the speed the guard checked
                 raise section.error("registers", "a writable spindle_override_pct needs spindle_rpm_cmd (the "
-                                                 "commanded speed) or spindle_rpm mapped: the override is a "
-                                                 "percentage of the programmed speed")
+                                                 "commanded speed) mapped: the override is a percentage of the "
+                                                 "programmed speed, which the measured speed does not give")
+            res = ovr.scale if ovr.type != "float32" else 0.0
+            if res and abs(self.override_step / res - round(self.override_step / res)) > 1e-6:
+                raise section.error("override_step_pct", f"{self.override_step:g} % is not a whole number of "
+                                                         f"the override register's {res:g} % steps: the control "
+                                                         "would round it past the speed the guard checked")
             self.actions += ("spindle_rpm",)
         self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last polls
         self._ours: float | None = None           # the override lathed wrote and has not released
+        self._pending: float | None = None        # one written whose answer never came (it may hold)
         hb = self.registers.get("heartbeat")
         if hb is not None and not hb.writable:
             raise section.error("registers", "heartbeat must be writable: lathed writes it, the control's "
@@ -505,7 +514,7 @@ class ModbusCNC(Driver):
         where the override there is not the one lathed wrote (the operator's, or one left
         by an earlier run, which the control's heartbeat watchdog takes back)."""
         p = self._programmed() if action == "spindle_rpm" and self.speed_by_override else None
-        if p is None or self._ours is None or abs(p[0] - self._ours) > 1e-3 * self._ours:
+        if p is None or not any(v is not None and abs(p[0] - v) <= 1e-3 * v for v in (self._ours, self._pending)):
             return None
         return p[1]
 
@@ -522,6 +531,8 @@ class ModbusCNC(Driver):
                 raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
         if self.client is None:
             raise ConnectionError("not connected")
+        if detail is not None:
+            self._pending = value    # a write the control applied but answered late is still ours
         async with self._turn():
             rr = await self.client.write_registers(reg.address, reg.encode(value), device_id=self.unit)
         if rr.isError():
@@ -529,7 +540,7 @@ class ModbusCNC(Driver):
         now = time.time()
         self.values[reg.name] = (value, now)
         if detail is not None:
-            self._ours = None if value == 100.0 else value
+            self._ours, self._pending = (None if value == 100.0 else value), None
         if detail is not None and "spindle_rpm_cmd" in self.registers:
             self.values["spindle_rpm_cmd"] = (rpm, now)      # the commanded speed it gives
         return detail

@@ -766,8 +766,9 @@ class SuppressionAnalyzer(Analyzer):
                                                     context={"strategy": d.strategy}))
             if not result["sent"] and self.policy is not None:
                 self.policy.ban(d.rpm_after)    # refused by the guard: never asked for again this part
-            if result["sent"]:
-                self._commanded = True
+            # a write that failed may still have reached the control: the cut's end asks the
+            # driver, which releases only what it finds of lathed's
+            self._commanded = True
             if result["sent"] and self.rpm is not None and not self._follow_told:
                 now = time.time()
                 # an override lands on the control's step: the speed it gives, not the one asked
@@ -819,12 +820,12 @@ class SuppressionAnalyzer(Analyzer):
         t0 = time.monotonic()
         while True:
             n = float(np.asarray(var.profile(time.monotonic() - t0, n0)))
+            self._commanded = True       # as above: a failed write may have reached the control
             r = await self.ctx.command(Command(self.machine, "spindle_rpm", n, self.name,
                                                reason=f"speed variation ({var.kind})"))
             if not r["sent"]:
                 self.ctx.log.warning("ssv_stopped", reason=r["reason"])
                 return
-            self._commanded = True
             await asyncio.sleep(SSV_STEP_S)
 
     # -- operator ------------------------------------------------------------------

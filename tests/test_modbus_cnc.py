@@ -391,7 +391,51 @@ def test_an_override_needs_the_speed_it_is_a_percentage_of():
                                                                            "writable": True}}})
 
 
-def _supervised(ctl, rpm_max, act):
+def test_an_override_needs_the_commanded_speed_not_the_measured_one():
+    # the measured speed lags a write and a ramp: an override taken from it, just after a cure,
+    # was 117 % for 1600 r/min asked (1755 on the control); and a G96 drift shows only in the
+    # commanded speed
+    with pytest.raises(ConfigError, match="a writable spindle_override_pct needs spindle_rpm_cmd"):
+        driver({"host": "127.0.0.1", "registers": {
+            "spindle_rpm": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}})
+
+
+def test_an_override_step_finer_than_its_register_is_refused():
+    # 103.5 % on the 0.5 % step, written to a whole-percent register as 104: past the speed checked
+    regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "uint16", "writable": True}}
+    with pytest.raises(ConfigError, match=r"override_step_pct: 0.5 % is not a whole number of the override "
+                                          r"register's 1 % steps"):
+        driver({"host": "127.0.0.1", "registers": regs, "override_step_pct": 0.5})
+    assert driver({"host": "127.0.0.1", "registers": regs, "override_step_pct": 2.0}).override_step == 2.0
+
+
+def test_an_override_the_control_took_but_answered_late_is_still_released():
+    """The write reached the control, the answer did not (a timeout): the command failed, but
+    the override on the control is lathed's, and released."""
+    ctl = OverrideControl()
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms",
+                "registers": {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+                              "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}})
+
+    async def check(d, events):
+        await until(lambda: d.current("spindle_rpm") == 1500.0, what="polls")
+        write = d.client.write_registers
+
+        async def lost_answer(*a, **k):
+            await write(*a, **k)
+            raise asyncio.TimeoutError
+        d.client.write_registers = lost_answer
+        with pytest.raises(asyncio.TimeoutError):
+            await d.execute(Command(machine="m", action="spindle_rpm", value=1650.0, reason="t", source="t"))
+        d.client.write_registers = write
+        await until(lambda: d.current("spindle_rpm") == 1650.0, what="the override read back")
+        assert d.released("spindle_rpm") == pytest.approx(1500.0)
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check), 30))
+
+
+def _supervised(ctl, rpm_max, act, **limits):
     """A supervisor with one machine on ``ctl``: ``act(sup, d)`` runs once it is connected,
     then the supervisor stops. Returns act's result and the records."""
     from lathed.config import Instance
@@ -407,7 +451,8 @@ def _supervised(ctl, rpm_max, act):
         inst = Instance("machine", "m", "modbus_cnc", Section("t.toml", "machine.m", data),
                         Section("t.toml", "machine.m", {}))
         store = FakeStore()
-        sup = Supervisor(None, Plan(drivers={"m": (inst, d)}, limits={"m": Limits(rpm_min=100.0, rpm_max=rpm_max)}),
+        lim = Limits(rpm_min=100.0, rpm_max=rpm_max, **limits)
+        sup = Supervisor(None, Plan(drivers={"m": (inst, d)}, limits={"m": lim}),
                          Bus(), store, lambda *a: None)
         await ctl.peer.start()
         sup.start_drivers()
@@ -458,6 +503,23 @@ def test_a_release_passes_the_guard_as_any_command():
     assert released is None and ctl.override == 90.0
     # said once, when the link came up
     assert [(k, p) for k, _, p in records] == [("override_found_held", {"machine": "m", "override_pct": 90.0})]
+
+
+@pytest.mark.parametrize("limits", [{"rpm_step_max": 100.0}, {"rpm_rate_max": 100.0}])
+def test_a_release_is_bounded_by_the_range_not_the_step_or_pace(limits):
+    """Two steps of 90 and 60 r/min lead to 110 %; the way back is one of 150, and it may come
+    at once (a cut that ends just after the cure): refused, the override would hold over the
+    next parts (a program's S1900 run at 2090 r/min)."""
+    async def cured_then_released(sup, d):
+        for rpm in ((1590.0, 1650.0) if "rpm_step_max" in limits else (1590.0,)):
+            assert (await sup.command(_speed(rpm)))["sent"]
+            await until(lambda: d.current("spindle_rpm") == rpm, what="the override read back")
+        return await sup.release("m", "spindle_rpm", "suppress")
+    ctl = OverrideControl()
+    if "rpm_rate_max" in limits:
+        ctl.program = 1500.0
+    released, _ = _supervised(ctl, 2000.0, cured_then_released, **limits)
+    assert released["sent"] and released["override_pct"] == 100.0 and ctl.override == 100.0
 
 
 def test_an_override_lathed_left_is_released_when_the_daemon_stops():

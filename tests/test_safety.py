@@ -53,6 +53,19 @@ def test_step_bound():
     assert g.check(cmd("spindle_rpm", 4000), current=1500) == "spindle speed step 2500 r/min exceeds 2000"
 
 
+def test_a_release_is_bounded_by_the_range_only():
+    # back to the program's own speed: the way back may be a bigger step, and come sooner,
+    # than the steps that led away; refused, lathed's override would hold over the next parts
+    from dataclasses import replace
+    g, clock = guard()
+    c = cmd("spindle_rpm", 3400)
+    g.passed(c)
+    back = replace(cmd("spindle_rpm", 1000), release=True)
+    assert g.check(replace(back, release=False), current=3400).startswith("spindle speed step 2400")
+    assert g.check(back, current=3400) is None
+    assert g.check(replace(back, value=7000.0), current=3400) == "spindle speed 7000 r/min outside [300, 6000]"
+
+
 def test_rate_bound_between_commands():
     g, clock = guard()
     c = cmd("spindle_rpm", 1500)

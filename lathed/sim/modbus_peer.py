@@ -79,7 +79,9 @@ class _Registers:
                 except (ValueError, KeyError) as e:
                     log.warning("write refused by the machine: %s", e)
                     return ExcCodes.ILLEGAL_VALUE
-            self.regs = new
+            # the written words over what the machine made of them (a commanded speed that
+            # follows a new override), not over a copy from before the write
+            self.regs[address:address + count] = set_values
         first = address - start_address
         registers[first:first + count] = self.regs[address:address + count]
         return None
