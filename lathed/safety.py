@@ -48,7 +48,8 @@ class SafetyGuard:
         self._clock = clock
         self._last: dict[tuple[str, str], tuple[float, float]] = {}   # (machine, action) -> (value, t)
 
-    def check(self, cmd: Command, current: float | None = None) -> str | None:
+    def check(self, cmd: Command, current: float | None = None,
+              runs_at: tuple[float, str] | None = None) -> str | None:
         """None if the command may be sent, else the reason it may not.
 
         ``current`` is the machine's present value of the commanded quantity
@@ -56,6 +57,9 @@ class SafetyGuard:
         (``cmd.release``: back to what the program runs without lathed) is bounded
         by the range only: the way back may be a bigger step, or come sooner, than
         the steps that led away, and refusing it would leave lathed's value held.
+        ``runs_at``: (the speed the machine will run for this value, why it differs),
+        where the driver knows (an S word times the operator's override): held to the
+        range too, for the range bounds the spindle, not the word written.
         """
         lim = self.limits.get(cmd.machine)
         if lim is None:
@@ -78,6 +82,9 @@ class SafetyGuard:
                 return "spindle speed commands are not allowed on this machine (spindle_rpm_max not set)"
             if not lim.rpm_min <= v <= lim.rpm_max:
                 return f"spindle speed {v:g} r/min outside [{lim.rpm_min:g}, {lim.rpm_max:g}]"
+            if runs_at is not None and not lim.rpm_min <= runs_at[0] <= lim.rpm_max:
+                return (f"spindle speed {v:g} r/min runs at {runs_at[0]:.0f} {runs_at[1]}, outside "
+                        f"[{lim.rpm_min:g}, {lim.rpm_max:g}]")
             if ref is not None and not cmd.release and abs(v - ref) > lim.rpm_step_max:
                 return f"spindle speed step {abs(v - ref):g} r/min exceeds {lim.rpm_step_max:g}"
             rate_max = lim.rpm_rate_max

@@ -335,7 +335,8 @@ class Supervisor:
         lock = self._cmd_locks.setdefault(cmd.machine, asyncio.Lock())
         async with lock:
             if reason is None:
-                reason = self.guard.check(cmd, drv.current(cmd.action))
+                runs_at = getattr(drv, "runs_at", lambda c: None)(cmd)
+                reason = self.guard.check(cmd, drv.current(cmd.action), runs_at)
             payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
                        "reason": cmd.reason, "by": cmd.source, **cmd.context}
             if reason is not None:

@@ -545,6 +545,16 @@ class ModbusCNC(Driver):
             self.values["spindle_rpm_cmd"] = (rpm, now)      # the commanded speed it gives
         return detail
 
+    def runs_at(self, cmd: Command) -> tuple[float, str] | None:
+        """The speed an S word runs at where the operator's spindle override, read, is not
+        100 %: the control multiplies the two (the guard holds that to the range too)."""
+        if cmd.action != "spindle_rpm" or self.speed_by_override:
+            return None
+        ovr = self._fresh("spindle_override_pct")
+        if ovr is None or ovr == 100.0 or not math.isfinite(ovr):
+            return None
+        return float(cmd.value) * ovr / 100.0, f"with the control's spindle override at {ovr:g} %"
+
     def _fresh(self, name: str) -> float | None:
         v = self.values.get(name)
         if v is None or self.client is None or time.time() - v[1] > self.stale_after:

@@ -505,6 +505,42 @@ def test_a_release_passes_the_guard_as_any_command():
     assert [(k, p) for k, _, p in records] == [("override_found_held", {"machine": "m", "override_pct": 90.0})]
 
 
+def test_an_s_word_is_held_to_the_range_at_the_speed_the_operators_override_gives():
+    """The control multiplies the S word by the panel's spindle override: at 120 %, 2800 r/min
+    runs at 3360, beyond spindle_rpm_max 3000, and is refused; 2400 (2880) is sent."""
+    from lathed.config import Instance
+    from lathed.safety import Limits
+    from lathed.supervisor import Plan, Supervisor
+    from tests.test_plausible import FakeStore
+    written = []
+    peer = ModbusPeer("127.0.0.1", free_port(), {"spindle_rpm_cmd": (0, "float32", True, "r/min"),
+                                                 "spindle_override_pct": (2, "float32", False, "%")}, 4,
+                      lambda n, v: written.append(v))
+    peer.block.update({"spindle_rpm_cmd": 2000.0, "spindle_override_pct": 120.0})
+    data = {"kind": "lathe", "host": "127.0.0.1", "port": peer.port, "poll": "20ms",
+            "registers": {"spindle_rpm_cmd": {"address": 0, "type": "float32", "writable": True},
+                          "spindle_override_pct": {"address": 2, "type": "float32"}}}
+
+    async def go():
+        d = driver(data)
+        inst = Instance("machine", "m", "modbus_cnc", Section("t.toml", "machine.m", data),
+                        Section("t.toml", "machine.m", {}))
+        sup = Supervisor(None, Plan(drivers={"m": (inst, d)}, limits={"m": Limits(rpm_min=100.0, rpm_max=3000.0)}),
+                         Bus(), FakeStore(), lambda *a: None)
+        await peer.start()
+        sup.start_drivers()
+        try:
+            await until(lambda: d._fresh("spindle_override_pct") == 120.0, what="the override read")
+            return await sup.command(_speed(2800.0)), await sup.command(_speed(2400.0))
+        finally:
+            await sup.stop()
+            await peer.stop()
+    refused, sent = asyncio.run(asyncio.wait_for(go(), 30))
+    assert refused == {"sent": False, "reason": "spindle speed 2800 r/min runs at 3360 with the control's "
+                                                "spindle override at 120 %, outside [100, 3000]"}
+    assert sent["sent"] and written == [2400.0]
+
+
 @pytest.mark.parametrize("limits", [{"rpm_step_max": 100.0}, {"rpm_rate_max": 100.0}])
 def test_a_release_is_bounded_by_the_range_not_the_step_or_pace(limits):
     """Two steps of 90 and 60 r/min lead to 110 %; the way back is one of 150, and it may come
