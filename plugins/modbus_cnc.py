@@ -134,7 +134,9 @@ class Register:
     def encode(self, value: float) -> list[int]:
         raw = value / self.scale
         if self.type != "float32":
-            raw = int(round(raw))
+            # never further from zero than the value the guard checked (7.5 µm at a limit
+            # of 7.5 rounded to 8 on a 1 µm register); a float's last bit is not a step
+            raw = int(math.trunc(raw + math.copysign(1e-6, raw)))
         return AsyncModbusTcpClient.convert_to_registers(raw, TYPES[self.type][0], word_order=self.word_order)
 
 

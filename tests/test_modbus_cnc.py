@@ -391,6 +391,14 @@ def test_an_override_needs_the_speed_it_is_a_percentage_of():
                                                                            "writable": True}}})
 
 
+@pytest.mark.parametrize("value, word", [(7.5, 7), (-7.5, -7), (7.4, 7), (7.6, 7), (109.99999999, 110), (-3.0, -3)])
+def test_an_integer_register_is_written_no_further_from_zero_than_the_value(value, word):
+    # the guard checked the value: a half step rounded away from zero would pass its limit
+    from lathed_plugins.modbus_cnc import Register
+    reg = Register("offset_x_um", 10, "int16", "big", 1.0, "µm", True, 0.1)
+    assert reg.decode(reg.encode(value)) == word
+
+
 def test_an_override_needs_the_commanded_speed_not_the_measured_one():
     # the measured speed lags a write and a ramp: an override taken from it, just after a cure,
     # was 117 % for 1600 r/min asked (1755 on the control); and a G96 drift shows only in the
