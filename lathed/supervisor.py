@@ -343,19 +343,30 @@ class Supervisor:
                 log.warning("command_refused", command=cmd.describe(), why=reason)
                 self.record("command_refused", cmd.source, {**payload, "refused": reason})
                 return {"sent": False, "reason": reason}
+            send = asyncio.ensure_future(self._send(cmd, drv, payload))
             try:
-                detail = await asyncio.wait_for(drv.execute(cmd), 5.0)
-            except Exception as e:
-                err = _one_line(e)
-                log.error("command_failed", command=cmd.describe(), error=err)
-                self.record("command_failed", cmd.source, {**payload, "error": err})
-                return {"sent": False, "reason": f"write failed: {err}"}
-            self.guard.passed(cmd)
-            payload.update(detail or {})     # how the driver carried it (an override: its % and speed)
-            log.info("command_sent", command=cmd.describe(), **(detail or {}))
-            self.record("command_sent", cmd.source, payload)
-            self.sent.set()
-            return {"sent": True, "reason": None, **(detail or {})}
+                return await asyncio.shield(send)
+            except asyncio.CancelledError:
+                # the asker was cancelled (a speed variation stopped at the cut's end, the
+                # daemon stopping) with the write on its way: it may reach the machine, so it
+                # is finished, paced and recorded all the same
+                await asyncio.gather(send, return_exceptions=True)
+                raise
+
+    async def _send(self, cmd: Command, drv, payload: dict) -> dict:
+        try:
+            detail = await asyncio.wait_for(drv.execute(cmd), 5.0)
+        except Exception as e:
+            err = _one_line(e)
+            log.error("command_failed", command=cmd.describe(), error=err)
+            self.record("command_failed", cmd.source, {**payload, "error": err})
+            return {"sent": False, "reason": f"write failed: {err}"}
+        self.guard.passed(cmd)
+        payload.update(detail or {})     # how the driver carried it (an override: its % and speed)
+        log.info("command_sent", command=cmd.describe(), **(detail or {}))
+        self.record("command_sent", cmd.source, payload)
+        self.sent.set()
+        return {"sent": True, "reason": None, **(detail or {})}
 
     async def release(self, machine: str, action: str, source: str,
                       reason: str = "released: back to the programmed speed") -> dict | None:

@@ -549,6 +549,34 @@ def test_an_s_word_is_held_to_the_range_at_the_speed_the_operators_override_give
     assert sent["sent"] and written == [2400.0]
 
 
+def test_a_command_whose_asker_is_cancelled_mid_write_is_finished_and_recorded():
+    """A speed variation stopped at the cut's end, or the daemon stopping, cancels the task that
+    asked for a speed while its write is on the wire: the control takes it, so it is recorded
+    (and paced, and released) as any command sent."""
+    async def cancelled_mid_write(sup, d):
+        answer, on_wire = asyncio.Event(), asyncio.Event()
+        write = d.client.write_registers
+
+        async def slow_answer(*a, **k):
+            r = await write(*a, **k)          # on the control
+            on_wire.set()
+            await answer.wait()               # ... the answer still on its way
+            return r
+        d.client.write_registers = slow_answer
+        asker = asyncio.create_task(sup.command(_speed(1650.0)))
+        await on_wire.wait()
+        asker.cancel()
+        answer.set()
+        with pytest.raises(asyncio.CancelledError):
+            await asker
+        d.client.write_registers = write
+    ctl = OverrideControl()
+    _, records = _supervised(ctl, 2000.0, cancelled_mid_write)
+    sent = [p for k, _, p in records if k == "command_sent"]
+    assert [p["override_pct"] for p in sent] == [110.0, 100.0], sent      # the cure, then the stop's release
+    assert ctl.override == 100.0
+
+
 @pytest.mark.parametrize("limits", [{"rpm_step_max": 100.0}, {"rpm_rate_max": 100.0}])
 def test_a_release_is_bounded_by_the_range_not_the_step_or_pace(limits):
     """Two steps of 90 and 60 r/min lead to 110 %; the way back is one of 150, and it may come
