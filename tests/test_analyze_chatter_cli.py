@@ -263,3 +263,26 @@ def test_a_csv_of_only_comments_after_its_header_is_one_line(tmp_path, capsys):
     p.write_text("time_s,a\n# exported by the logger\n#\n")
     code, _, err = _cli([str(p), "--rpm", "1000"], capsys)
     assert code == 65 and err.count("\n") == 1 and "no data rows" in err and "Warning" not in err
+
+
+@pytest.mark.parametrize("rows, msg", [
+    (["0,1", "0.0001,2,7", "0.0002,3"], "line 3 has 3 fields, the header 2"),
+    (["0,1", "nan,2", "0.0002,3"], "line 3, column 'time_s': nan is not a time"),
+    (["0,1", "0.0001,2", "0.0003,3", "0.0004,1"], "line 4: step 0.0002 s"),     # a dropped sample
+])
+def test_a_csv_row_that_would_be_misread_is_one_line(tmp_path, capsys, rows, msg):
+    p = tmp_path / "rows.csv"
+    p.write_text("time_s,a\n" + "\n".join(rows) + "\n")
+    code, _, err = _cli([str(p), "--rpm", "1000"], capsys)
+    assert code == 65 and err.count("\n") == 1 and msg in err, err
+
+
+def test_times_printed_to_the_microsecond_at_51_2_khz_are_evenly_spaced(tmp_path):
+    # 19.53125 us printed as 0.000020, 0.000039, 0.000059...: the last digit steps unevenly
+    n = 51200
+    x = np.sin(2 * np.pi * 190 * np.arange(n) / 51200) + 0.01 * np.random.default_rng(1).standard_normal(n)
+    p = tmp_path / "us.csv"
+    np.savetxt(p, np.c_[np.arange(n) / 51200, x], delimiter=",", fmt=["%.6f", "%.6g"], header="time_s,a",
+               comments="")
+    sig = read_signal(p)
+    assert sig.rate_hz == pytest.approx(51200, rel=1e-6)

@@ -293,6 +293,7 @@ def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Sign
     if not body:
         raise RecordingError(f"{src}: CSV has a header but no data rows")
     want = [col] if t_col is None else [t_col, col]
+    _check_fields(body, body_start, delim, len(names), src)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)     # rows that are all comments: said below
@@ -309,16 +310,23 @@ def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Sign
         t = arr[:, 0]
         if len(t) < 2:
             raise RecordingError(f"{src}: CSV needs at least two rows to know the sample rate")
+        if not np.isfinite(t).all():
+            i = int(np.argmin(np.isfinite(t)))
+            raise RecordingError(f"{src}: line {body_start + i + 1}, column 'time_s': {float(t[i]):g} is not a time")
         dt = np.diff(t)
         step = float(np.median(dt))
         if not step > 0:
             raise RecordingError(f"{src}: column time_s does not increase (line {body_start + 2})")
-        bad = np.flatnonzero(np.abs(dt - step) > 0.01 * step)
+        # times printed to a few decimals step unevenly by up to their last digit (51.2 kHz
+        # to the microsecond: 19 and 20 us); a dropped or repeated sample steps by a whole step
+        res = max(_resolution(r, delim, t_col) for r in body[:5])
+        tol = max(0.01 * step, min(1.01 * res, 0.5 * step))
+        bad = np.flatnonzero(np.abs(dt - step) > tol)
         if bad.size:
             raise RecordingError(f"{src}: samples are not evenly spaced in time_s "
                                  f"(line {body_start + int(bad[0]) + 2}: step {dt[bad[0]]:g} s, "
                                  f"median {step:g} s)")
-        rate = 1.0 / step
+        rate = (len(t) - 1) / float(t[-1] - t[0])    # the mean step: exact over the file, whatever the rounding
         if rate_hz is not None and abs(rate - rate_hz) > 0.01 * rate:
             notes.append(f"--rate {rate_hz:g} ignored: time_s gives {rate:g} Hz")
     else:
@@ -348,6 +356,27 @@ def _is_number(s: str) -> bool:
         return True
     except ValueError:
         return False
+
+
+def _check_fields(body, start, delim, n, src) -> None:
+    """Every row has the header's fields: a row with more is not read right (the columns
+    taken by position would be someone else's).  One count over the text where it can."""
+    if delim == " " or n < 1:
+        return
+    if sum(ln.count(delim) for ln in body) == len(body) * (n - 1):
+        return
+    for i, row in enumerate(csv.reader(body, delimiter=delim)):
+        if row and not row[0].lstrip().startswith("#") and len(row) != n:
+            raise RecordingError(f"{src}: line {start + i + 1} has {len(row)} fields, the header {n}")
+
+
+def _resolution(row: str, delim: str, col: int) -> float:
+    """The last printed digit's step of a row's field: 0.000123 -> 1e-6 (0 when exponent form)."""
+    cells = [c for c in row.split(None if delim == " " else delim)]
+    text = cells[col].strip() if col < len(cells) else ""
+    if "e" in text.lower() or "." not in text:
+        return 0.0
+    return 10.0 ** -len(text.split(".")[1])
 
 
 def _locate_csv_error(body, start, delim, want, names, src) -> None:
