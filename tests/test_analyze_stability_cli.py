@@ -93,3 +93,14 @@ def test_mode_at_right_angle_is_invalid_data(pd_csv, capsys):
     code, out, err = _run([str(pd_csv), "--mode", "620,0.035,3e7,90", "--kf", "2e9"], capsys)
     assert code == 65 and out == "" and err.count("\n") == 1
     assert err.startswith("lathectl: ") and "90 deg" in err
+
+
+def test_a_misspelled_optional_column_is_said(tmp_path, capsys):
+    # chatter_freq_hz for chatter_frequency_hz: read as "no chatter frequency measured" before, silently
+    src = tmp_path / "none.csv"
+    write_cuts_csv(generate_cuts(true_dynamics("none"), 200, seed=12), src)
+    p = tmp_path / "typo.csv"
+    p.write_text(src.read_text().replace("chatter_frequency_hz", "chatter_freq_hz", 1))
+    code, out, err = _run([str(p), *MODEL], capsys)
+    assert code == 0 and err.count("\n") == 1
+    assert err.startswith(f"lathectl: warning: {p}:1: column(s) 'chatter_freq_hz' ignored (known: machine,"), err

@@ -82,6 +82,11 @@ def run(args) -> int:
         for line in e.lines:
             print(f"lathectl: {line}", file=sys.stderr)
         return e.exit_code
+    if cuts.ignored_columns:
+        # a misspelled optional column (chatter_freq_hz) would silently change the report
+        from lathed.analysis.cuts import OPTIONAL, REQUIRED
+        print(f"lathectl: warning: {args.cuts}:1: column(s) {', '.join(map(repr, cuts.ignored_columns))} "
+              f"ignored (known: {', '.join(REQUIRED + OPTIONAL)})", file=sys.stderr)
     cuts = _select(cuts, args)
     if len(cuts) == 0:
         return fail(f"no cut in {args.cuts} matches --machine/--tool/--material", EX_DATAERR)
