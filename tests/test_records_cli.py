@@ -155,3 +155,21 @@ def test_no_daemon_exits_69(tmp_path, monkeypatch):
     from lathed.lathectl import main
     monkeypatch.setenv("LATHED_DB", str(tmp_path / "no.db"))    # nor a database to read instead
     assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69
+
+
+@pytest.mark.parametrize("argv, msg", [
+    (["inspect", "2", "--value", "x=1", "--value", "x=2"], "lathectl: --value x given twice"),
+    (["experiment", "add", "--tool", "T1", "--material", "C45", "--run", "1", "--levels", "speed=1",
+      "--setting", "speed=1", "--setting", "speed=2"], "lathectl: --setting speed given twice"),
+    (["experiment", "add", "--tool", "T1", "--material", "C45", "--run", "1", "--levels", "speed=1,speed=2"],
+     "'speed' given twice"),
+])
+def test_a_name_given_twice_is_refused_not_overwritten(argv, msg, tmp_path, capsys):
+    # the last value was kept without a word (x = 2 stored for the inspection)
+    from lathed.lathectl import main
+    try:
+        code = main(["--socket", str(tmp_path / "none.sock"), *argv])
+    except SystemExit as e:
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and msg in err, err

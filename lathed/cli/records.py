@@ -51,6 +51,8 @@ def _levels(text: str) -> dict[str, int]:
         name, sep, value = item.partition("=")
         if not sep or not name or not value.isdigit() or int(value) < 1:
             raise argparse.ArgumentTypeError(f"{item!r}: expected FACTOR=LEVEL with LEVEL 1, 2, 3...")
+        if name.strip() in out:
+            raise argparse.ArgumentTypeError(f"{name.strip()!r} given twice")
         out[name.strip()] = int(value)
     return out
 
@@ -175,8 +177,21 @@ def cmd_parts(args: argparse.Namespace) -> int:
     return 0
 
 
+def _once(pairs: list, option: str) -> dict | None:
+    """NAME=V options as a dict; a name given twice is one line, exit 2 (the last one
+    would be kept without a word)."""
+    seen = [n for n, _ in pairs]
+    twice = sorted({n for n in seen if seen.count(n) > 1})
+    if twice:
+        print(f"lathectl: {option} {twice[0]} given twice", file=sys.stderr)
+        return None
+    return dict(pairs)
+
+
 def cmd_inspect(args: argparse.Namespace) -> int:
-    values = dict(args.value)
+    values = _once(args.value, "--value")
+    if values is None:
+        return 2
     part = remote(args, "inspect", {"part": args.part, "ra_um": args.ra, "diameter_error_um": args.diameter_error,
                                     "values": values, "by": args.by})
     if args.json:
@@ -189,7 +204,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment_add(args: argparse.Namespace) -> int:
-    settings = dict(args.setting)
+    settings = _once(args.setting, "--setting")
+    if settings is None:
+        return 2
     unknown = set(settings) - set(args.levels)
     if unknown:
         print(f"lathectl: --setting for {', '.join(sorted(unknown))}, which --levels does not name",
