@@ -440,6 +440,11 @@ class Store:
         self.last_error, self.last_error_t = text, time.time()
 
     def _commit(self, batch: list) -> None:
+        for _, _, fut in batch:
+            # taken: a waiter's late cancel() now fails instead of leaving a committed record
+            # with a future nobody may settle; one cancelled before is written all the same
+            if isinstance(fut, Future) and not fut.done() and not fut.running():
+                fut.set_running_or_notify_cancel()
         results = []
         storage = False    # a record failed for the storage itself (full, I/O), not for its content
         try:
@@ -498,6 +503,8 @@ class Store:
         for fut, rowid, err in results:
             if isinstance(fut, asyncio.Future):
                 by_loop.setdefault(fut.get_loop(), []).append((fut, rowid, err))
+            elif fut.done():    # cancelled before the writer took it; the record is committed all the same
+                continue
             elif err is None:
                 fut.set_result(rowid)
             else:

@@ -250,3 +250,52 @@ def test_any_exception_binding_a_record_fails_that_record_alone(tmp_path):
         bad.result(10)
     assert good.result(10) >= 1 and s.stats()["failing"] is False and s.writer_alive
     s.close()
+
+
+def test_a_record_whose_waiter_was_cancelled_does_not_fail_its_committed_batch(tmp_path):
+    # a sink cancelled while it awaited asyncio.wrap_future(set_progress(...)) cancels the
+    # concurrent future: the batch it is in still commits, and is reported committed
+    import threading
+    s = Store(tmp_path / "a.db")
+    real = s._commit
+    taken, release = threading.Event(), threading.Event()
+
+    def held(batch):                           # a slow fsync: what comes now queues behind it
+        s._commit = real
+        taken.set()
+        release.wait(10)
+        real(batch)
+    s._commit = held
+    first = s.record_future("tick", "w", {})
+    assert taken.wait(10)
+    progress = s.set_progress("mqtt", 1)
+    event = s.record_future("part_abnormal", "records", {"part": 1})
+    assert progress.cancel()
+    release.set()
+    assert first.result(10) >= 1 and event.result(10) >= 1
+    st = s.stats()
+    assert (st["failed"], st["failing"], st["last_error"]) == (0, False, None)
+    s.close()
+    assert _count(tmp_path / "a.db", "part_abnormal") == 1
+    con = sqlite3.connect(tmp_path / "a.db")
+    assert con.execute("SELECT sink, outbox_id FROM forward_progress").fetchall() == [("mqtt", 1)]
+    con.close()
+
+
+def test_a_record_taken_by_the_writer_can_no_longer_be_cancelled(tmp_path):
+    import threading
+    s = Store(tmp_path / "a.db")
+    taken, release = threading.Event(), threading.Event()
+
+    def hold():                                # the writer is executing this record
+        taken.set()
+        release.wait(10)
+        return 0
+    s._wcon.create_function("hold", 0, hold)
+    fut = s.submit("SELECT hold()", ())
+    assert taken.wait(10)
+    cancelled = fut.cancel()                   # too late: it is being written
+    release.set()
+    fut.result(10)
+    assert not cancelled and s.stats()["failed"] == 0
+    s.close()
