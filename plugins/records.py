@@ -14,6 +14,7 @@ Adds the control commands ``parts``, ``inspect``, ``experiment_add``,
 """
 from __future__ import annotations
 
+import asyncio
 import time
 import uuid as uuidlib
 from typing import Any
@@ -26,6 +27,7 @@ from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.config import Section
 from lathed.control import RequestError, offload
+from lathed.store import EVENT_SQL
 
 EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
@@ -65,17 +67,24 @@ class Records(Analyzer):
             self.ctx.bus.unsubscribe(sub)
 
     async def _write(self, part: records.Part) -> None:
+        """The part's row, and for an abnormal part its sampling queue entry and event,
+        as one write: all or none, so no abnormal part goes uninspected."""
         store = self.ctx.store
         row = {"uuid": str(uuidlib.uuid4()), **part.row()}
-        pid = await store.add("workpieces", row)
+        stmts = [store.row_statement("workpieces", row)]
+        if part.abnormal:
+            stmts.append(store.row_statement("sampling_queue", {"t": time.time(), "part_uuid": row["uuid"],
+                                                                "reason": row["reason"]}))
+            payload = {"part_no": part.part_no, "machine": part.machine, "reason": row["reason"],
+                       "max_chatter_index": part.max_chatter_index}
+            # the event names the part's row id, known only as the row is inserted
+            stmts.append((EVENT_SQL, lambda pid: store.event_statement(
+                "part_abnormal", self.name, {"part": pid, **payload})[1]))
+        # shielded: cancelled at a stop, the write stays queued and the store's close commits it
+        pid = await asyncio.shield(asyncio.wrap_future(store.submit(stmts, ())))
         self.parts_written += 1
         if part.abnormal:
-            await store.add("sampling_queue", {"t": time.time(), "part_uuid": row["uuid"],
-                                               "reason": row["reason"]})
             self.abnormal_written += 1
-            self.ctx.record("part_abnormal", {"part": pid, "part_no": part.part_no, "machine": part.machine,
-                                              "reason": row["reason"],
-                                              "max_chatter_index": part.max_chatter_index})
             self.ctx.log.warning("part_abnormal", part=pid, reason=row["reason"])
 
     def status(self) -> dict[str, Any]:
