@@ -344,3 +344,65 @@ def test_a_stop_while_a_part_commits_leaves_no_abnormal_part_out_of_the_sampling
     parts, queued, events = written(tmp_path / "r.db")
     assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1)]
     assert {u for *_, u in parts} == queued and events == [parts[0][0]]
+
+
+def test_a_stalled_commit_holds_up_neither_the_bus_nor_the_parts_behind_it(tmp_path):
+    from lathed.bus import Sample
+    store, bus, r, _ = records_analyzer(tmp_path)
+    taken, release = hold_first_part_commit(store)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        abnormal_part(f, 2)
+        assert await asyncio.to_thread(taken.wait, 5)     # part 2's commit stalls
+        for _ in range(3):                                 # seconds of a machine polled at 10 Hz meanwhile
+            for q in range(500):
+                bus.publish(Sample("lathe", f"reg{q}", 1.0, "", f.t))
+            await asyncio.sleep(0)
+        abnormal_part(f, 3)
+        f.lathe(part_count=4)
+        await turns(lambda: not bus._subs["lathe"][0]._items)   # the bus loop read on
+        task.cancel()                                      # stopped with parts 3 and 4 still unwritten
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    release.set()
+    store.close()
+    assert bus.stats()["dropped"] == {}
+    parts, queued, events = written(tmp_path / "r.db")
+    assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1), (3, 1), (4, 0)]
+    assert {u for _, _, ab, u in parts if ab} == queued and events == [p[0] for p in parts if p[2]]
+
+
+def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_records(tmp_path, monkeypatch):
+    import lathed_plugins.records as plugin
+    monkeypatch.setattr(plugin, "RETRY_S", (0.001, 0.01), raising=False)
+    store, bus, r, log = records_analyzer(tmp_path)
+    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON workpieces "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        abnormal_part(f, 2)
+        assert await asyncio.to_thread(log.heard("part_not_written").wait, 5)
+        event, kw = next(line for line in log.lines if line[0] == "part_not_written")
+        assert kw["part_no"] == 2 and "chatter alarm" in kw["reason"] and "disk is full" in kw["error"]
+        await turns(lambda: r.status()["last_write_error"])
+        st = r.status()
+        assert st["unwritten"] == 1 and "1 not yet written, retrying" in st["summary"] and not task.done()
+        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))   # space again
+        assert await asyncio.to_thread(log.heard("part_abnormal").wait, 5)
+        assert r.status()["unwritten"] == 0 and r.status()["parts"] == 1
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    assert store.events_stored == 1           # the events poller hears of its event
+    store.close()
+    parts, queued, events = written(tmp_path / "r.db")
+    assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1)]
+    assert {u for *_, u in parts} == queued and events == [parts[0][0]]
