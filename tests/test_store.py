@@ -299,3 +299,57 @@ def test_a_record_taken_by_the_writer_can_no_longer_be_cancelled(tmp_path):
     fut.result(10)
     assert not cancelled and s.stats()["failed"] == 0
     s.close()
+
+
+def test_retention_waits_for_every_configured_sink_also_one_not_running(tmp_path, monkeypatch):
+    # a postgres_sink whose constructor failed (psycopg without libpq) and a disabled mqtt_sink
+    # are not running; their unforwarded records are kept all the same
+    import threading
+    import time
+    import lathed_plugins.postgres_sink as pg
+    from lathed import daemon as daemonmod
+
+    def no_libpq(self, name, section):
+        raise ImportError("no pq wrapper available")
+    monkeypatch.setattr(pg.PostgresSink, "__init__", no_libpq)
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(f'''
+[daemon]
+state_dir = "{tmp_path}/state"
+runtime_dir = "{tmp_path}/run"
+[store]
+keep_days = 1
+[analyzer.central]
+plugin = "postgres_sink"
+dsn = "host=db.plant dbname=lathed"
+[analyzer.broker]
+plugin = "mqtt_sink"
+enabled = false
+host = "broker.plant"
+''')
+    cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=False)
+    assert "analyzer.central" in plan.skipped and not plan.analyzers
+    s = Store(tmp_path / "a.db")
+    d = daemonmod.Daemon(cfg, settings, loader, plan, sim, s)
+    for k in range(5):
+        s.record_future("tick", "w", {"k": k}, t=time.time() - 3 * 86400).result(10)
+    s.set_progress("broker", 5).result(10)            # forwarded before it was disabled
+    real, passes = s.prune, []
+    pruned = threading.Event()
+
+    def prune(before_t, sinks):
+        passes.append((sorted(sinks), real(before_t, sinks)["events"]))
+        pruned.set()
+    monkeypatch.setattr(s, "prune", prune)
+    d.settings.prune_every = 0.0
+
+    async def one_pass():
+        task = asyncio.create_task(d._prune())
+        assert await asyncio.to_thread(pruned.wait, 5)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(one_pass())
+    assert passes[:1] == [(["broker", "central"], 0)]       # central never forwarded: nothing goes
+    s.set_progress("central", 2).result(10)
+    assert real(time.time() - 86400, ["broker", "central"])["events"] == 2
+    s.close()
