@@ -1,8 +1,9 @@
 """The in-process sample bus: drivers publish, analyzers subscribe.
 
 Publishing never blocks a driver. Each subscriber has its own bounded queue;
-when an analyzer falls behind, what it missed is counted and shown in status
-(never silently dropped).
+when an analyzer falls behind, what it missed is counted, per subscriber, in
+``stats()`` (``lathectl status``), and its first miss is logged: never
+silently dropped.
 
 A tap is the other way to listen: a plain function the bus calls with each
 message of a source as it is published, for work too small to deserve a task
@@ -54,9 +55,10 @@ class Subscription:
     asyncio.Queue, whose put and get are a handful of method calls each (the
     default config publishes ~1000 messages a second to its analyzers)."""
 
-    def __init__(self, sources: frozenset[str], maxsize: int = 1024):
+    def __init__(self, sources: frozenset[str], maxsize: int = 1024, name: str | None = None):
         self.sources = sources
         self.maxsize = maxsize
+        self.name = name or "+".join(sorted(sources))    # who reads it, for status and the log
         self.dropped = 0
         self._items: deque[Message] = deque()
         self._waiter: asyncio.Future | None = None
@@ -64,6 +66,9 @@ class Subscription:
     def put(self, msg: Message) -> None:
         """Queue a message, or count it dropped when ``maxsize`` wait already."""
         if len(self._items) >= self.maxsize:
+            if not self.dropped:   # once: a subscriber behind stays behind for a while
+                log.warning("bus_subscriber_behind", subscriber=self.name, sources=sorted(self.sources),
+                            maxsize=self.maxsize)
             self.dropped += 1
             return
         self._items.append(msg)
@@ -90,17 +95,22 @@ class Bus:
         self._taps: dict[str, list[Tap]] = {}
         self.tap_failures = 0
         self.last_tap_failure: str | None = None
+        self._dropped_gone: dict[str, int] = defaultdict(int)   # by unsubscribed subscriptions, by name
 
-    def subscribe(self, *sources: str, maxsize: int = 1024) -> Subscription:
-        sub = Subscription(frozenset(sources), maxsize)
+    def subscribe(self, *sources: str, maxsize: int = 1024, name: str | None = None) -> Subscription:
+        sub = Subscription(frozenset(sources), maxsize, name)
         for s in sources:
             self._subs[s].append(sub)
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
+        subscribed = False
         for s in sub.sources:
             if sub in self._subs.get(s, []):
                 self._subs[s].remove(sub)
+                subscribed = True
+        if subscribed and sub.dropped:    # a restarted analyzer subscribes again: its count goes on
+            self._dropped_gone[sub.name] += sub.dropped
 
     def tap(self, source: str, fn: Tap) -> None:
         """Call ``fn(msg)`` with each message ``source`` publishes, in publish."""
@@ -135,8 +145,13 @@ class Bus:
                           error=f"{type(e).__name__}: {e}", removed=True)
 
     def stats(self) -> dict:
+        dropped = dict(self._dropped_gone)
+        for sub in {id(sub): sub for subs in self._subs.values() for sub in subs}.values():
+            if sub.dropped:
+                dropped[sub.name] = dropped.get(sub.name, 0) + sub.dropped
         return {"published": self.published, "taps": sum(map(len, self._taps.values())),
-                "tap_failures": self.tap_failures, "last_tap_failure": self.last_tap_failure}
+                "tap_failures": self.tap_failures, "last_tap_failure": self.last_tap_failure,
+                "dropped": dropped}
 
     def forget(self, source: str, quantity: str) -> None:
         """A quantity its source no longer has (a sensor taken off the line)."""

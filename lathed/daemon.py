@@ -30,7 +30,7 @@ from lathed.push import PushHub
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import Store
-from lathed.supervisor import Plan, Supervisor, build
+from lathed.supervisor import Plan, Supervisor, build, record_sinks
 
 log = structlog.get_logger("lathed")
 STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
@@ -237,12 +237,14 @@ class Daemon:
             return {"applied": True, "changed": changed}
 
     async def _prune(self) -> None:
-        """Retention: delete records older than keep_days that every sink has forwarded."""
-        sinks = [name for name, (_, an) in self.plan.analyzers.items() if getattr(an, "forwards_records", False)]
+        """Retention: delete records older than keep_days that every configured sink has forwarded."""
         while True:
             await asyncio.sleep(self.settings.prune_every)
             if self.settings.keep_days <= 0:      # retention switched off by a reload
                 return
+            # the configured sinks, not the running ones: a sink that failed to start or is
+            # disabled would otherwise lose its unforwarded backlog (none running: all of it)
+            sinks = record_sinks(self.cfg, self.loader)
             cutoff = time.time() - self.settings.keep_days * 86400.0
             try:
                 removed = await asyncio.to_thread(self.store.prune, cutoff, sinks)

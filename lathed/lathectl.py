@@ -113,6 +113,10 @@ def cmd_status(args: argparse.Namespace) -> int:
           f"(name {d['name']}, pid {d['pid']})")
     if d.get("store"):
         print(_store_line(d["store"]))
+    dropped = (d.get("bus") or {}).get("dropped")
+    if dropped:     # an analysis fell behind its samples and missed these
+        print("bus: samples missed by a subscriber behind: "
+              + ", ".join(f"{n} {c}" for n, c in sorted(dropped.items())))
     print("machines:")
     for m in st["machines"] or [{"name": "(none)"}]:
         if "state" not in m:

@@ -130,7 +130,9 @@ class PushHub:
             if events:
                 # registered before this query: whatever is committed after it reaches the subscriber
                 rows, last = await asyncio.to_thread(self._recent, limit, sub)
-                sub.last_event_id = last
+                # a poll while it ran handed over events up to ``last`` too: the snapshot has them
+                sub._events = [r for r in sub._events if r["id"] > last]
+                sub.last_event_id = max(sub.last_event_id, last)
                 first["events"] = rows
                 self._start_poller(last)
         except BaseException:

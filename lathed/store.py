@@ -366,7 +366,9 @@ class Store:
     # -- writing --------------------------------------------------------
     def submit(self, sql: str | list[tuple[str, tuple]], params: tuple) -> Future:
         """Queue one write; the future resolves to lastrowid after commit. A
-        list of (sql, params) is executed together, all or none."""
+        list of (sql, params) is executed together, all or none, and resolves
+        to the first statement's row id; a params that is callable is called
+        with that id (a later row naming the first: a part's id in its event)."""
         fut: Future = Future()
         self._put((sql, params, fut))
         return fut
@@ -440,6 +442,11 @@ class Store:
         self.last_error, self.last_error_t = text, time.time()
 
     def _commit(self, batch: list) -> None:
+        for _, _, fut in batch:
+            # taken: a waiter's late cancel() now fails instead of leaving a committed record
+            # with a future nobody may settle; one cancelled before is written all the same
+            if isinstance(fut, Future) and not fut.done() and not fut.running():
+                fut.set_running_or_notify_cancel()
         results = []
         storage = False    # a record failed for the storage itself (full, I/O), not for its content
         try:
@@ -448,15 +455,17 @@ class Store:
                 try:
                     if isinstance(sql, list):     # statements that stand or fall together
                         self._wcon.execute("SAVEPOINT item")
+                        first = None
                         try:
                             for s, p in sql:
-                                self._wcon.execute(s, p)
+                                rowid = self._wcon.execute(s, p(first) if callable(p) else p).lastrowid
+                                first = rowid if first is None else first
                         except Exception:
                             self._wcon.execute("ROLLBACK TO item")
                             raise
                         finally:
                             self._wcon.execute("RELEASE item")
-                        results.append((fut, None, None))
+                        results.append((fut, first, None))
                     else:
                         results.append((fut, self._wcon.execute(sql, params).lastrowid, None))
                 except Exception as e:   # one bad record must not sink the batch...
@@ -483,7 +492,8 @@ class Store:
             for (sql, _, _), (_, _, err) in zip(batch, results):
                 if err is None:
                     self.written += 1
-                    self.events_stored += sql is EVENT_SQL
+                    self.events_stored += sum(s is EVENT_SQL for s, _ in sql) if isinstance(sql, list) \
+                        else sql is EVENT_SQL
                 else:
                     self.failed += 1
                     self._note_error(_one_line(err))
@@ -498,6 +508,8 @@ class Store:
         for fut, rowid, err in results:
             if isinstance(fut, asyncio.Future):
                 by_loop.setdefault(fut.get_loop(), []).append((fut, rowid, err))
+            elif fut.done():    # cancelled before the writer took it; the record is committed all the same
+                continue
             elif err is None:
                 fut.set_result(rowid)
             else:
@@ -516,22 +528,25 @@ class Store:
     async def record(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                      t: float | None = None) -> int:
         """Record an event; returns its id once durably committed."""
-        return await self._submit_async(*self._event(kind, source, payload, t))
+        return await self._submit_async(*self.event_statement(kind, source, payload, t))
 
     def record_future(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                       t: float | None = None) -> Future:
-        return self.submit(*self._event(kind, source, payload, t))
+        return self.submit(*self.event_statement(kind, source, payload, t))
 
-    def _event(self, kind: str, source: str, payload: dict[str, Any] | None, t: float | None) -> tuple[str, tuple]:
+    def event_statement(self, kind: str, source: str, payload: dict[str, Any] | None = None,
+                        t: float | None = None) -> tuple[str, tuple]:
+        """(sql, params) of an event, to submit() in a list with others."""
         body = dumps(payload or {})
         return (EVENT_SQL, (str(uuidlib.uuid4()), self.machine_id, time.time() if t is None else t, source, kind, body))
 
     def insert(self, table: str, row: dict[str, Any]) -> Future:
         """Insert a record row; uuid and machine_id are filled in unless given,
         JSON columns are serialised. The future resolves to the row id."""
-        return self.submit(*self._row(table, row))
+        return self.submit(*self.row_statement(table, row))
 
-    def _row(self, table: str, row: dict[str, Any]) -> tuple[str, tuple]:
+    def row_statement(self, table: str, row: dict[str, Any]) -> tuple[str, tuple]:
+        """(sql, params) of insert(), to submit() in a list with others."""
         if table not in FORWARDED:
             raise ValueError(f"{table!r} is not a record table; record tables: {', '.join(FORWARDED)}")
         row = {"uuid": str(uuidlib.uuid4()), "machine_id": self.machine_id, **row}
@@ -541,7 +556,7 @@ class Store:
 
     async def add(self, table: str, row: dict[str, Any]) -> int:
         """Insert a record row; returns its id once durably committed."""
-        return await self._submit_async(*self._row(table, row))
+        return await self._submit_async(*self.row_statement(table, row))
 
     # -- forwarding -----------------------------------------------------
     def columns(self, table: str) -> list[tuple[str, str]]:

@@ -128,6 +128,15 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     return plan
 
 
+def record_sinks(cfg: Config, loader: PluginLoader) -> list[str]:
+    """Every configured analyzer that forwards records, running or not: one skipped at start
+    (its constructor failed) or with enabled = false forwards later, and until it has, what
+    it has not forwarded is kept. One whose plugin type did not load may be a sink: counted."""
+    types = loader.analyzer_types()
+    return [inst.name for inst in cfg.instances if inst.category == "analyzer"
+            and (inst.plugin not in types or getattr(types[inst.plugin], "forwards_records", False))]
+
+
 async def cancel_and_wait(tasks, every_s: float = 1.0) -> None:
     """Cancel the tasks and wait for them, cancelling again every ``every_s``
     those still running: Python 3.11's asyncio.wait_for (in our code and in

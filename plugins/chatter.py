@@ -157,7 +157,7 @@ class ChatterAnalyzer(Analyzer):
         return make_detector(self.detector_name, rate, extra=extra, **self.params)
 
     async def run(self) -> None:
-        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096)
+        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096, name=self.name)
         try:
             while True:
                 msg = await sub.get()

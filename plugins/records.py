@@ -14,8 +14,12 @@ Adds the control commands ``parts``, ``inspect``, ``experiment_add``,
 """
 from __future__ import annotations
 
+import asyncio
 import time
 import uuid as uuidlib
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
 from lathed import hookimpl, records
@@ -26,9 +30,26 @@ from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.config import Section
 from lathed.control import RequestError, offload
+from lathed.store import EVENT_SQL
 
 EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
+RETRY_S = (1.0, 60.0)   # a failed part write is tried again after 1 s, doubling up to a minute
+
+
+@dataclass
+class Unwritten:
+    """A finished part not yet committed: its row, sampling queue entry and event."""
+    part: records.Part
+    row: dict[str, Any]          # with its uuid: a retry writes the same record
+    t: float                     # when it finished, its time in the sampling queue
+    fut: Future | None = None    # its write, queued in the store
+
+    @property
+    def due(self) -> bool:
+        """Not queued in the store, or its write failed."""
+        f = self.fut
+        return f is None or (f.done() and not f.cancelled() and f.exception() is not None)
 
 
 class Records(Analyzer):
@@ -44,6 +65,12 @@ class Records(Analyzer):
                                            self.tool or None, self.material or None, self.suppress)
         self.parts_written = 0
         self.abnormal_written = 0
+        # finished parts not yet committed, oldest first: written in order by _write_parts, kept
+        # over a failed write (disk full) and a restart, retried until the store takes them
+        self.unwritten: deque[Unwritten] = deque()
+        self.write_failures = 0
+        self.last_write_error: str | None = None
+        self._finished: asyncio.Event | None = None
         self._registered = False
 
     def inputs(self) -> list[str]:
@@ -54,34 +81,90 @@ class Records(Analyzer):
             for cmd in ("parts", "inspect", "experiment_add", "experiments", "recommend", "export"):
                 self.ctx.register_control(cmd, getattr(self, f"_cmd_{cmd}"))
             self._registered = True
-        sub = self.ctx.bus.subscribe(self.machine, self.chatter, self.thermal, self.suppress)
+        self._finished = asyncio.Event()
+        # as deep as the other analyzers': a burst (a stalled loop) must not cost a part_count step
+        sub = self.ctx.bus.subscribe(self.machine, self.chatter, self.thermal, self.suppress, maxsize=4096,
+                                     name=self.name)
+        writer = asyncio.create_task(self._write_parts(), name=f"analyzer:{self.name}:writer")
         try:
             while True:
                 msg = await sub.get()
+                if writer.done():
+                    writer.result()       # its fault is this analyzer's: reported, restarted
                 if isinstance(msg, Sample):
+                    # the bus is not held up by a commit (a slow fsync): the writer takes the parts
                     for part in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
-                        await self._write(part)
+                        self.unwritten.append(Unwritten(part, {"uuid": str(uuidlib.uuid4()), **part.row()},
+                                                        time.time()))
+                        self._finished.set()
         finally:
             self.ctx.bus.unsubscribe(sub)
+            writer.cancel()
+            # stopping (or restarting): queued now, the parts are committed by the store's close
+            # (or awaited by the next run); before any await, which a second cancel would cut short
+            for u in self.unwritten:
+                if u.due:
+                    self._submit(u)
+            await asyncio.gather(writer, return_exceptions=True)
 
-    async def _write(self, part: records.Part) -> None:
-        store = self.ctx.store
-        row = {"uuid": str(uuidlib.uuid4()), **part.row()}
-        pid = await store.add("workpieces", row)
-        self.parts_written += 1
+    async def _write_parts(self) -> None:
+        """Commit the finished parts in order, each as one transaction; a failed write
+        is retried, backing off up to a minute, until it is committed."""
+        wait = RETRY_S[0]
+        while True:
+            if not self.unwritten:
+                self._finished.clear()
+                await self._finished.wait()
+                continue
+            u = self.unwritten[0]
+            if u.due:
+                self._submit(u)
+            try:
+                # shielded: cancelled at a stop, the write stays queued and the store's close commits it
+                pid = await asyncio.shield(asyncio.wrap_future(u.fut))
+            except Exception as e:      # logged with the part by _submit; kept, and tried again
+                self.write_failures += 1
+                self.last_write_error = f"{type(e).__name__}: {e}"
+                await asyncio.sleep(wait)
+                wait = min(2 * wait, RETRY_S[1])
+                continue
+            wait, self.last_write_error = RETRY_S[0], None
+            self.unwritten.popleft()
+            self.parts_written += 1
+            if u.part.abnormal:
+                self.abnormal_written += 1
+                self.ctx.log.warning("part_abnormal", part=pid, reason=u.row["reason"])
+
+    def _submit(self, u: Unwritten) -> None:
+        """Queue the part's row, and for an abnormal part its sampling queue entry and
+        event, as one write: all or none, so no abnormal part goes uninspected."""
+        store, part, row = self.ctx.store, u.part, u.row
+        stmts = [store.row_statement("workpieces", row)]
         if part.abnormal:
-            await store.add("sampling_queue", {"t": time.time(), "part_uuid": row["uuid"],
-                                               "reason": row["reason"]})
-            self.abnormal_written += 1
-            self.ctx.record("part_abnormal", {"part": pid, "part_no": part.part_no, "machine": part.machine,
-                                              "reason": row["reason"],
-                                              "max_chatter_index": part.max_chatter_index})
-            self.ctx.log.warning("part_abnormal", part=pid, reason=row["reason"])
+            stmts.append(store.row_statement("sampling_queue", {"t": u.t, "part_uuid": row["uuid"],
+                                                                "reason": row["reason"]}))
+            payload = {"part_no": part.part_no, "machine": part.machine, "reason": row["reason"],
+                       "max_chatter_index": part.max_chatter_index}
+            # the event names the part's row id, known only as the row is inserted
+            stmts.append((EVENT_SQL, lambda pid: store.event_statement(
+                "part_abnormal", self.name, {"part": pid, **payload})[1]))
+        try:
+            u.fut = store.submit(stmts, ())
+        except Exception as e:          # the store is closed: a failed write like any other
+            u.fut = Future()
+            u.fut.set_exception(e)
+        # the log keeps the part while the store does not (the writer tries again)
+        u.fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.error(
+            "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **row))
 
     def status(self) -> dict[str, Any]:
         p = self.tracker.part
-        return {"parts": self.parts_written, "abnormal": self.abnormal_written,
+        pending = len(self.unwritten)
+        return {"parts": self.parts_written, "abnormal": self.abnormal_written, "unwritten": pending,
+                "write_failures": self.write_failures, "last_write_error": self.last_write_error,
                 "summary": f"{self.parts_written} parts, {self.abnormal_written} abnormal"
+                           + (f"; {pending} not yet written, retrying: {self.last_write_error}"
+                              if pending and self.last_write_error else "")
                            + (f"; part in progress since {time.strftime('%H:%M:%S', time.localtime(p.start_t))}"
                               if p else "")}
 

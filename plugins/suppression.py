@@ -302,7 +302,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.remember and not self._memory_loaded:
             self._memory_loaded = True
             await asyncio.to_thread(self._load_memory)
-        sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096)
+        sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096, name=self.name)
         ended = "analyzer failed"     # the supervisor restarts it; the cut so far is kept
         try:
             while True:

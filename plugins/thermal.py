@@ -133,7 +133,7 @@ class ThermalAnalyzer(Analyzer):
         self.ctx.register_control("thermal", self._control)
         self._load_newest()
         self._restore_touchoff()
-        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096)
+        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096, name=self.name)
         ticker = asyncio.create_task(self._tick())
         try:
             while True:

@@ -76,3 +76,19 @@ def test_a_tap_sees_its_sources_messages_in_publish_and_a_raising_tap_is_removed
     bus.untap("lathe", seen.append)
     bus.publish(s(3))
     assert len(seen) == 3 and bus.stats()["taps"] == 1
+
+
+def test_what_a_full_subscriber_missed_is_in_stats_by_subscriber_and_logged_once():
+    import structlog
+    bus = Bus()
+    sub = bus.subscribe("lathe", maxsize=2, name="records")
+    bus.subscribe("lathe", name="chatter").put = lambda msg: None     # keeps up
+    with structlog.testing.capture_logs() as logs:
+        for i in range(5):
+            bus.publish(s(i))
+    assert bus.stats()["dropped"] == {"records": 3}
+    assert [(e["event"], e["subscriber"]) for e in logs] == [("bus_subscriber_behind", "records")]
+    bus.unsubscribe(sub)                       # the analyzer restarts: its count goes on
+    bus.subscribe("lathe", maxsize=0, name="records")
+    bus.publish(s(9))
+    assert bus.stats()["dropped"] == {"records": 4}

@@ -385,3 +385,51 @@ def test_the_daemon_stops_cleanly_with_a_subscriber_connected(sim_daemon):
     out = d.cfg.with_suffix(".log").read_text(errors="replace")
     assert "Traceback" not in out and "Exception in callback" not in out, out[-3000:]
     frames.close()
+
+
+def test_events_a_poll_hands_a_new_subscriber_during_its_snapshot_are_not_sent_twice(tmp_path, monkeypatch):
+    """A second events subscriber was in the hub from before its snapshot query; a poll landing
+    meanwhile handed it events that the snapshot carried too."""
+    import asyncio
+    import threading
+
+    from lathed import push
+    from lathed.bus import Bus
+    from lathed.push import PushHub
+    from lathed.store import Store
+    monkeypatch.setattr(push, "EVENT_POLL_S", 0.0)
+    store = Store(tmp_path / "lathed.db")
+    polled = threading.Event()
+    real_add = push.Subscription.add_events
+
+    async def scenario():
+        tock = asyncio.Event()
+
+        def add_events(self, rows):
+            real_add(self, rows)
+            polled.set()
+            if any(r["kind"] == "tock" for r in rows):
+                tock.set()
+        monkeypatch.setattr(push.Subscription, "add_events", add_events)
+        hub = PushHub(Bus(), store, {}, dict, {}, max_subscribers=4)
+        first = await hub.subscribe({"events": True, "events_limit": 0})       # the poller runs
+        real_recent = hub._recent
+
+        def recent(limit, sub):             # a busy line: events come while the snapshot is taken...
+            for k in range(3):
+                store.record_future("tick", "lathe", {"k": k}).result(10)
+            assert polled.wait(10)          # ...and a poll hands them over before it returns
+            return real_recent(limit, sub)
+        hub._recent = recent
+        sub = await hub.subscribe({"events": True, "events_limit": 100})
+        await store.record("tock", "lathe", {})             # after the snapshot: the poller's
+        await asyncio.wait_for(tock.wait(), 10)
+        first.close()
+        sub.close()
+        return [e["id"] for e in sub.first["events"]], [e["id"] for e in sub.frame()["events"]]
+
+    try:
+        snapshot, pushed = asyncio.run(scenario())
+    finally:
+        store.close()
+    assert snapshot == [1, 2, 3] and pushed == [4]

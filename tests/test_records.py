@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 
 import pytest
 
@@ -224,3 +225,184 @@ def test_experiment_run_must_be_a_sane_integer(run):
     r = Records("records", Section("f.toml", "analyzer.records", {"tool": "T", "material": "M"}))
     with pytest.raises(RequestError, match=r"^experiment_add: run: .*an integer in \[1, 10000\]"):
         asyncio.run(r._cmd_experiment_add({"levels": {"A": 1}, "ra_um": 1.0, "run": run}))
+
+
+# -- the records analyzer writing parts: on the bus, against the real store --------------------
+
+class BusFeed(Feed):
+    """The same samples published on a bus, for the records analyzer."""
+
+    def __init__(self, bus):
+        self.bus, self.t = bus, 1000.0
+
+    def lathe(self, **values):
+        from lathed.bus import Sample
+        self.t += 0.1
+        for q, v in values.items():
+            self.bus.publish(Sample("lathe", q, float(v), "", self.t))
+
+    def chatter(self, index, alarm, threshold=1.0, hz=312.0):
+        from lathed.bus import Sample
+        for q, v in (("chatter_threshold", threshold), ("chatter_index", index), ("chatter_index_judged", index),
+                     ("chatter_frequency_hz", hz), ("chatter_alarm", alarm)):
+            self.bus.publish(Sample("chatter", q, float(v), "", self.t))
+
+
+class Log:
+    """The analyzer's logger: what it said, and a threading.Event per message name."""
+
+    def __init__(self):
+        import threading
+        self.lines, self.said = [], {}
+        self._lock = threading.Lock()
+
+    def heard(self, event: str):
+        import threading
+        with self._lock:
+            return self.said.setdefault(event, threading.Event())
+
+    def _log(self, event, **kw):
+        self.lines.append((event, kw))
+        self.heard(event).set()
+    info = warning = error = _log
+
+
+def records_analyzer(tmp_path):
+    import structlog  # noqa: F401  (AnalyzerContext's annotations)
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    from lathed_plugins.records import Records
+    store, bus, log = Store(tmp_path / "r.db", machine_id="cell"), Bus(), Log()
+    r = Records("records", Section("t.toml", "analyzer.records", {"tool": "T", "material": "M"}))
+    r.ctx = AnalyzerContext(bus, log, lambda kind, payload=None: store.record_future(kind, "records", payload),
+                            None, lambda cmd, handler: None, store, lambda n: None, ".")
+    return store, bus, r, log
+
+
+def hold_first_part_commit(store):
+    """The commit of the first part's transaction stalls (a slow fsync) until released."""
+    import threading
+    real, taken, release = store._commit, threading.Event(), threading.Event()
+
+    def held(batch):
+        if any("workpieces" in str(sql) for sql, _, _ in batch):
+            store._commit = real
+            taken.set()
+            release.wait(10)
+        real(batch)
+    store._commit = held
+    return taken, release
+
+
+async def turns(pred, n: int = 20_000):
+    """Loop turns (no clock) until ``pred()``: the work it waits for needs only the loop."""
+    for _ in range(n):
+        if pred():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError("not reached in loop turns")
+
+
+def abnormal_part(f: BusFeed, count: int):
+    f.lathe(spindle_rpm=2000, feed_mm_rev=0.3, depth_of_cut_mm=2.0)
+    f.chatter(3.0, 1.0)
+    f.chatter(0.1, 0.0)
+    f.lathe(depth_of_cut_mm=0.0)
+    f.lathe(part_count=count)
+
+
+def written(path) -> tuple[list, list, list]:
+    import sqlite3
+    con = sqlite3.connect(path)
+    try:
+        parts = con.execute("SELECT id, part_no, abnormal, uuid FROM workpieces ORDER BY id").fetchall()
+        queued = {u for (u,) in con.execute("SELECT part_uuid FROM sampling_queue")}
+        events = [json.loads(p)["part"] for (p,) in
+                  con.execute("SELECT payload FROM events WHERE kind = 'part_abnormal' ORDER BY id")]
+    finally:
+        con.close()
+    return parts, queued, events
+
+
+def test_a_stop_while_a_part_commits_leaves_no_abnormal_part_out_of_the_sampling_queue(tmp_path):
+    store, bus, r, _ = records_analyzer(tmp_path)
+    taken, release = hold_first_part_commit(store)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        abnormal_part(f, 2)
+        assert await asyncio.to_thread(taken.wait, 5)     # part 2 is being committed...
+        task.cancel()                                      # ...when the daemon stops
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    release.set()
+    store.close()
+    parts, queued, events = written(tmp_path / "r.db")
+    assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1)]
+    assert {u for *_, u in parts} == queued and events == [parts[0][0]]
+
+
+def test_a_stalled_commit_holds_up_neither_the_bus_nor_the_parts_behind_it(tmp_path):
+    from lathed.bus import Sample
+    store, bus, r, _ = records_analyzer(tmp_path)
+    taken, release = hold_first_part_commit(store)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        abnormal_part(f, 2)
+        assert await asyncio.to_thread(taken.wait, 5)     # part 2's commit stalls
+        for _ in range(3):                                 # seconds of a machine polled at 10 Hz meanwhile
+            for q in range(500):
+                bus.publish(Sample("lathe", f"reg{q}", 1.0, "", f.t))
+            await asyncio.sleep(0)
+        abnormal_part(f, 3)
+        f.lathe(part_count=4)
+        await turns(lambda: not bus._subs["lathe"][0]._items)   # the bus loop read on
+        task.cancel()                                      # stopped with parts 3 and 4 still unwritten
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    release.set()
+    store.close()
+    assert bus.stats()["dropped"] == {}
+    parts, queued, events = written(tmp_path / "r.db")
+    assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1), (3, 1), (4, 0)]
+    assert {u for _, _, ab, u in parts if ab} == queued and events == [p[0] for p in parts if p[2]]
+
+
+def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_records(tmp_path, monkeypatch):
+    import lathed_plugins.records as plugin
+    monkeypatch.setattr(plugin, "RETRY_S", (0.001, 0.01), raising=False)
+    store, bus, r, log = records_analyzer(tmp_path)
+    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON workpieces "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        abnormal_part(f, 2)
+        assert await asyncio.to_thread(log.heard("part_not_written").wait, 5)
+        event, kw = next(line for line in log.lines if line[0] == "part_not_written")
+        assert kw["part_no"] == 2 and "chatter alarm" in kw["reason"] and "disk is full" in kw["error"]
+        await turns(lambda: r.status()["last_write_error"])
+        st = r.status()
+        assert st["unwritten"] == 1 and "1 not yet written, retrying" in st["summary"] and not task.done()
+        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))   # space again
+        assert await asyncio.to_thread(log.heard("part_abnormal").wait, 5)
+        assert r.status()["unwritten"] == 0 and r.status()["parts"] == 1
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    assert store.events_stored == 1           # the events poller hears of its event
+    store.close()
+    parts, queued, events = written(tmp_path / "r.db")
+    assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1)]
+    assert {u for *_, u in parts} == queued and events == [parts[0][0]]

@@ -250,3 +250,106 @@ def test_any_exception_binding_a_record_fails_that_record_alone(tmp_path):
         bad.result(10)
     assert good.result(10) >= 1 and s.stats()["failing"] is False and s.writer_alive
     s.close()
+
+
+def test_a_record_whose_waiter_was_cancelled_does_not_fail_its_committed_batch(tmp_path):
+    # a sink cancelled while it awaited asyncio.wrap_future(set_progress(...)) cancels the
+    # concurrent future: the batch it is in still commits, and is reported committed
+    import threading
+    s = Store(tmp_path / "a.db")
+    real = s._commit
+    taken, release = threading.Event(), threading.Event()
+
+    def held(batch):                           # a slow fsync: what comes now queues behind it
+        s._commit = real
+        taken.set()
+        release.wait(10)
+        real(batch)
+    s._commit = held
+    first = s.record_future("tick", "w", {})
+    assert taken.wait(10)
+    progress = s.set_progress("mqtt", 1)
+    event = s.record_future("part_abnormal", "records", {"part": 1})
+    assert progress.cancel()
+    release.set()
+    assert first.result(10) >= 1 and event.result(10) >= 1
+    st = s.stats()
+    assert (st["failed"], st["failing"], st["last_error"]) == (0, False, None)
+    s.close()
+    assert _count(tmp_path / "a.db", "part_abnormal") == 1
+    con = sqlite3.connect(tmp_path / "a.db")
+    assert con.execute("SELECT sink, outbox_id FROM forward_progress").fetchall() == [("mqtt", 1)]
+    con.close()
+
+
+def test_a_record_taken_by_the_writer_can_no_longer_be_cancelled(tmp_path):
+    import threading
+    s = Store(tmp_path / "a.db")
+    taken, release = threading.Event(), threading.Event()
+
+    def hold():                                # the writer is executing this record
+        taken.set()
+        release.wait(10)
+        return 0
+    s._wcon.create_function("hold", 0, hold)
+    fut = s.submit("SELECT hold()", ())
+    assert taken.wait(10)
+    cancelled = fut.cancel()                   # too late: it is being written
+    release.set()
+    fut.result(10)
+    assert not cancelled and s.stats()["failed"] == 0
+    s.close()
+
+
+def test_retention_waits_for_every_configured_sink_also_one_not_running(tmp_path, monkeypatch):
+    # a postgres_sink whose constructor failed (psycopg without libpq) and a disabled mqtt_sink
+    # are not running; their unforwarded records are kept all the same
+    import threading
+    import time
+    import lathed_plugins.postgres_sink as pg
+    from lathed import daemon as daemonmod
+
+    def no_libpq(self, name, section):
+        raise ImportError("no pq wrapper available")
+    monkeypatch.setattr(pg.PostgresSink, "__init__", no_libpq)
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(f'''
+[daemon]
+state_dir = "{tmp_path}/state"
+runtime_dir = "{tmp_path}/run"
+[store]
+keep_days = 1
+[analyzer.central]
+plugin = "postgres_sink"
+dsn = "host=db.plant dbname=lathed"
+[analyzer.broker]
+plugin = "mqtt_sink"
+enabled = false
+host = "broker.plant"
+''')
+    cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=False)
+    assert "analyzer.central" in plan.skipped and not plan.analyzers
+    s = Store(tmp_path / "a.db")
+    d = daemonmod.Daemon(cfg, settings, loader, plan, sim, s)
+    for k in range(5):
+        s.record_future("tick", "w", {"k": k}, t=time.time() - 3 * 86400).result(10)
+    s.set_progress("broker", 5).result(10)            # forwarded before it was disabled
+    real, passes = s.prune, []
+    pruned = threading.Event()
+
+    def prune(before_t, sinks):
+        passes.append((sorted(sinks), real(before_t, sinks)["events"]))
+        pruned.set()
+    monkeypatch.setattr(s, "prune", prune)
+    d.settings.prune_every = 0.0
+
+    async def one_pass():
+        task = asyncio.create_task(d._prune())
+        assert await asyncio.to_thread(pruned.wait, 5)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(one_pass())
+    assert passes[:1] == [(["broker", "central"], 0)]       # central never forwarded: nothing goes
+    s.set_progress("central", 2).result(10)
+    assert real(time.time() - 86400, ["broker", "central"])["events"] == 2
+    s.close()
