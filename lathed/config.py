@@ -160,6 +160,9 @@ class Section:
                 raise self.error(key, f"expected {want}, got {v!r}") from None
         else:
             raise self.error(key, f"expected {want}, got {v!r}")
+        # nan compares false with every bound and asyncio.sleep(nan) returns at once: a busy loop
+        if not finite(secs):
+            raise self.error(key, f"expected a finite duration, got {v!r}")
         if (minval is not None and secs < minval) or (maxval is not None and secs > maxval):
             raise self.error(key, f"{v!r} is out of range; allowed: {_range_text(minval, maxval).strip()} s")
         return secs
@@ -171,7 +174,9 @@ class Section:
         def ok(x: Any) -> bool:
             if isinstance(x, bool):
                 return item is bool
-            return isinstance(x, (int, float)) if item is float else isinstance(x, item)
+            if item is float:   # nan/inf pass every range check that follows
+                return isinstance(x, (int, float)) and finite(x)
+            return isinstance(x, item)
         if not isinstance(v, list) or not all(ok(x) for x in v):
             raise self.error(key, f"expected a list of {item.__name__}, got {v!r}")
         return list(v)

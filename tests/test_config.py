@@ -264,3 +264,43 @@ def test_a_read_on_trigger_must_name_a_configured_instance(tmp_path):
     code, err = check(tmp_path, text)
     assert (code, err) == (78, "lathed: FILE: [machine.lathe.registers.spindle_rpm] read_on: 'chatr' is not a "
                                "configured analyzer, machine or sensor")
+
+
+def check_inproc(tmp_path, text: str) -> str:
+    """The first problem prepare() reports, as --check-config prints it (in this process, so the
+    code under test is this checkout's, not the installed console script's)."""
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        prepare(cfg, strict=True)
+    return str(e.value).replace(str(cfg), "FILE").splitlines()[0]
+
+
+@pytest.mark.parametrize("edit, line", [
+    # nan passed every range check: asyncio.sleep(nan) returns at once (a busy loop)
+    (("port = 15020", "port = 15020\npoll = nan"), "[machine.lathe] poll: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\nretry_initial = nan"),
+     "[machine.lathe] retry_initial: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\nstale_after = inf"),
+     "[machine.lathe] stale_after: expected a finite duration, got inf"),
+    (("port = 15020", "port = 15020\nstale_after = nan"),
+     "[machine.lathe] stale_after: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\ntimeout = nan"), "[machine.lathe] timeout: expected a finite duration, got nan"),
+    (("port = 15020", 'port = 15020\nheartbeat_every = nan\n[machine.lathe.registers.heartbeat]\n'
+                      'address = 9\ntype = "uint16"\nwritable = true'),
+     "[machine.lathe] heartbeat_every: expected a finite duration, got nan"),
+    (("writable = true }\n", "writable = true }\n[store]\nprune_every = nan\n"),
+     "[store] prune_every: expected a finite duration, got nan"),
+    # a string of digits too long for a float is inf too
+    (("port = 15020", 'port = 15020\npoll = "' + "9" * 400 + 'ms"'),
+     "[machine.lathe] poll: expected a finite duration, got '99"),
+])
+def test_non_finite_durations_are_refused(tmp_path, edit, line):
+    text = BASE.replace(*edit, 1)
+    assert text != BASE
+    assert check_inproc(tmp_path, text).startswith("FILE: " + line)
+
+
+def test_float_lists_refuse_non_finite_items():
+    with pytest.raises(ConfigError, match=r"^f: \[t\] l: expected a list of float, got \[1, nan\]$"):
+        Section("f", "t", {"l": [1, float("nan")]}).getlist("l", item=float)
