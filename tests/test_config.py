@@ -304,3 +304,19 @@ def test_non_finite_durations_are_refused(tmp_path, edit, line):
 def test_float_lists_refuse_non_finite_items():
     with pytest.raises(ConfigError, match=r"^f: \[t\] l: expected a list of float, got \[1, nan\]$"):
         Section("f", "t", {"l": [1, float("nan")]}).getlist("l", item=float)
+
+
+def test_a_non_finite_mode_is_refused_naming_mode_and_field(tmp_path):
+    text = BASE + ANALYZERS.replace('[analyzer.records]', """[analyzer.suppress]
+plugin = "suppression"
+chatter = "chatter"
+machine = "lathe"
+strategy = "lobes"
+modes = ["190,0.03,7.5e7,0", "620,0.035,4e8,nan"]
+
+[analyzer.records]""")
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.suppress] modes: mode '620,0.035,4e8,nan': "
+                                            "angle THETA_DEG must be a finite number, got nan")
+    text = text.replace("4e8,nan", "inf,30")
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.suppress] modes: mode '620,0.035,inf,30': "
+                                            "stiffness K_N_PER_M must be a finite number, got inf")
