@@ -320,3 +320,10 @@ modes = ["190,0.03,7.5e7,0", "620,0.035,4e8,nan"]
     text = text.replace("4e8,nan", "inf,30")
     assert check_inproc(tmp_path, text) == ("FILE: [analyzer.suppress] modes: mode '620,0.035,inf,30': "
                                             "stiffness K_N_PER_M must be a finite number, got inf")
+
+
+def test_a_detector_parameter_must_be_a_number_not_a_string(tmp_path):
+    text = BASE + ANALYZERS.replace('machine = "lathe"\n', 'machine = "lathe"\n[analyzer.chatter.params]\n'
+                                    'threshold = "2"\n', 1)
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.chatter.params]: detector 'sync_cusum': threshold: "
+                                            "expected a number, got '2'")
