@@ -1,6 +1,7 @@
 """Config validation: every refusal is one line naming file, table, key and what is allowed."""
 from __future__ import annotations
 
+import shutil
 import subprocess
 
 import pytest
@@ -327,3 +328,30 @@ def test_a_detector_parameter_must_be_a_number_not_a_string(tmp_path):
                                     'threshold = "2"\n', 1)
     assert check_inproc(tmp_path, text) == ("FILE: [analyzer.chatter.params]: detector 'sync_cusum': threshold: "
                                             "expected a number, got '2'")
+
+
+@pytest.mark.parametrize("edit, line", [
+    # each passed: the analyzer then waited for messages that never came, or commanded nothing
+    (('chatter = "chatter"\nmachine = "lathe"\nmode', 'chatter = "chattr"\nmachine = "lathe"\nmode'),
+     "[analyzer.suppress] chatter: 'chattr' is not a configured analyzer; configured: chatter, suppress, "
+     "thermal, records"),
+    (('thermal = "thermal"', 'thermal = "thermall"'), "[analyzer.records] thermal: 'thermall' is not a configured "
+     "analyzer; configured: chatter, suppress, thermal, records"),
+    (('suppress = "suppress"', 'suppress = "supress"'), "[analyzer.records] suppress: 'supress' is not a "
+     "configured analyzer; configured: chatter, suppress, thermal, records"),
+    (('input = "accel"', 'input = "lathe"'),
+     "[analyzer.chatter] input: 'lathe' is a machine of kind 'lathe', not a sensor of kind 'accelerometer'"),
+    (('input = "temps"', 'input = "accel"'),
+     "[analyzer.thermal] input: 'accel' is a sensor of kind 'accelerometer', not a sensor of kind 'temperature'"),
+    (('chatter = "chatter"\nmachine = "lathe"', 'chatter = "chatter"\nmachine = "grinder"'),
+     "[analyzer.suppress] machine: 'grinder' does not take 'spindle_rpm' (takes: none)"),
+])
+def test_an_analyzer_key_must_name_an_instance_of_the_right_kind(tmp_path, edit, line):
+    shutil.copytree(ROOT / "etc", tmp_path / "etc")
+    text = (ROOT / "etc" / "lathed.toml").read_text()
+    assert edit[0] in text
+    cfg = tmp_path / "etc" / "lathed.toml"
+    cfg.write_text(text.replace(*edit, 1))
+    with pytest.raises(ConfigError) as e:
+        prepare(cfg, strict=True)
+    assert str(e.value) == f"{cfg}: {line}"
