@@ -355,3 +355,12 @@ def test_an_analyzer_key_must_name_an_instance_of_the_right_kind(tmp_path, edit,
     with pytest.raises(ConfigError) as e:
         prepare(cfg, strict=True)
     assert str(e.value) == f"{cfg}: {line}"
+
+
+def test_a_plugin_that_fails_to_load_fails_the_check(tmp_path):
+    # --check-config printed a warning and "ok", exit 0, though the daemon would run without it
+    missing = tmp_path / "nonexistent"
+    text = BASE.replace('name = "t"', f'name = "t"\nplugin_dirs = ["{missing}"]')
+    assert check_inproc(tmp_path, text) == (f"FILE: plugin {missing} ({missing}) failed to load: "
+                                            "plugin directory does not exist")
+    prepare(tmp_path / "lathed.toml", strict=False)     # the daemon runs on without it
