@@ -101,7 +101,9 @@ class Section:
     def get(self, key: str, default: Any = _REQUIRED) -> Any:
         return self._raw(key, default)
 
-    def getstr(self, key: str, default: Any = _REQUIRED, choices: tuple[str, ...] | None = None) -> str:
+    def getstr(self, key: str, default: Any = _REQUIRED, choices: tuple[str, ...] | None = None,
+               empty: bool = False) -> str:
+        """A string; "" only where the caller allows it (``empty``, a default of "", a choice of "")."""
         v = self._raw(key, default)
         if v is default and default is not _REQUIRED:
             return v
@@ -109,6 +111,9 @@ class Section:
             raise self.error(key, f"expected a string, got {type(v).__name__} {v!r}")
         if choices is not None and v not in choices:
             raise self.error(key, f"{v!r} is not allowed; allowed: {', '.join(choices)}")
+        # name = "" or host = "" was taken: a machine with no name, a link to nowhere
+        if v == "" and not (empty or default == "" or choices):
+            raise self.error(key, "expected a non-empty string, got ''")
         return v
 
     def getint(self, key: str, default: Any = _REQUIRED, minval: int | None = None,

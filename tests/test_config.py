@@ -364,3 +364,19 @@ def test_a_plugin_that_fails_to_load_fails_the_check(tmp_path):
     assert check_inproc(tmp_path, text) == (f"FILE: plugin {missing} ({missing}) failed to load: "
                                             "plugin directory does not exist")
     prepare(tmp_path / "lathed.toml", strict=False)     # the daemon runs on without it
+
+
+@pytest.mark.parametrize("edit, line", [
+    # both were taken: a daemon with no name in its records, a Modbus link to no host
+    (('name = "t"', 'name = ""'), "[daemon] name: expected a non-empty string, got ''"),
+    (('host = "127.0.0.1"', 'host = ""'), "[machine.lathe] host: expected a non-empty string, got ''"),
+])
+def test_an_empty_string_is_refused_where_a_name_is_needed(tmp_path, edit, line):
+    assert check_inproc(tmp_path, BASE.replace(*edit, 1)) == "FILE: " + line
+
+
+def test_an_empty_string_is_taken_where_it_is_the_default_or_allowed():
+    s = Section("f", "t", {"tool": "", "a": "", "c": ""})
+    assert s.getstr("tool", "") == "" and s.getstr("a", empty=True) == "" and s.getstr("c", "x", choices=("", "x")) == ""
+    with pytest.raises(ConfigError, match=r"^f: \[t\] a: expected a non-empty string, got ''$"):
+        s.getstr("a", "default")
