@@ -53,6 +53,14 @@ class Analyzer:
         """Instance names of the machines this analyzer may command."""
         return []
 
+    def refers(self) -> dict[str, tuple[str, str, str | None]]:
+        """Keys of this analyzer's table that name another instance: key -> (name, category,
+        need). Category is "analyzer", "machine" or "sensor"; need is, for a sensor, the kind
+        it must be ("accelerometer"; a plugin sensor of the unspecified kind "sensor" passes),
+        for a machine an action it must take ("spindle_rpm"). The supervisor refuses a key
+        naming no such instance, naming the key (inputs() and machines() only say it exists)."""
+        return {}
+
     async def run(self) -> None:
         """Analyse until cancelled; an exception is reported and the analyzer restarted."""
         raise NotImplementedError

@@ -101,7 +101,9 @@ class Section:
     def get(self, key: str, default: Any = _REQUIRED) -> Any:
         return self._raw(key, default)
 
-    def getstr(self, key: str, default: Any = _REQUIRED, choices: tuple[str, ...] | None = None) -> str:
+    def getstr(self, key: str, default: Any = _REQUIRED, choices: tuple[str, ...] | None = None,
+               empty: bool = False) -> str:
+        """A string; "" only where the caller allows it (``empty``, a default of "", a choice of "")."""
         v = self._raw(key, default)
         if v is default and default is not _REQUIRED:
             return v
@@ -109,6 +111,9 @@ class Section:
             raise self.error(key, f"expected a string, got {type(v).__name__} {v!r}")
         if choices is not None and v not in choices:
             raise self.error(key, f"{v!r} is not allowed; allowed: {', '.join(choices)}")
+        # name = "" or host = "" was taken: a machine with no name, a link to nowhere
+        if v == "" and not (empty or default == "" or choices):
+            raise self.error(key, "expected a non-empty string, got ''")
         return v
 
     def getint(self, key: str, default: Any = _REQUIRED, minval: int | None = None,
@@ -160,6 +165,9 @@ class Section:
                 raise self.error(key, f"expected {want}, got {v!r}") from None
         else:
             raise self.error(key, f"expected {want}, got {v!r}")
+        # nan compares false with every bound and asyncio.sleep(nan) returns at once: a busy loop
+        if not finite(secs):
+            raise self.error(key, f"expected a finite duration, got {v!r}")
         if (minval is not None and secs < minval) or (maxval is not None and secs > maxval):
             raise self.error(key, f"{v!r} is out of range; allowed: {_range_text(minval, maxval).strip()} s")
         return secs
@@ -171,7 +179,9 @@ class Section:
         def ok(x: Any) -> bool:
             if isinstance(x, bool):
                 return item is bool
-            return isinstance(x, (int, float)) if item is float else isinstance(x, item)
+            if item is float:   # nan/inf pass every range check that follows
+                return isinstance(x, (int, float)) and finite(x)
+            return isinstance(x, item)
         if not isinstance(v, list) or not all(ok(x) for x in v):
             raise self.error(key, f"expected a list of {item.__name__}, got {v!r}")
         return list(v)

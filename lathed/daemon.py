@@ -96,10 +96,11 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
             sim = SimulatorSettings(cfg.simulator, settings.runtime_dir)
         except configmod.ConfigError as e:
             plan.errors.append(str(e))
-    if plan.errors:
-        # root cause first: a plugin that failed to load explains the types it would have provided
-        failed = [f"{cfg.path}: plugin {p.name} ({p.origin}) failed to load: {p.error}"
-                  for p in loader.plugins if p.error]
+    # root cause first: a plugin that failed to load explains the types it would have provided
+    failed = [f"{cfg.path}: plugin {p.name} ({p.origin}) failed to load: {p.error}"
+              for p in loader.plugins if p.error]
+    # the daemon runs on without a broken plugin; --check-config (strict) says the config is not ok
+    if plan.errors or (strict and failed):
         raise configmod.ConfigError("\n".join(failed + plan.errors))
     return cfg, settings, loader, plan, sim
 
@@ -404,9 +405,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"lathed: {path}: [daemon] {line}", file=sys.stderr)
         return EX_CANTCREAT
     if args.check_config:
-        failed = [p for p in loader.plugins if p.error]
-        for pl in failed:
-            print(f"lathed: warning: plugin {pl.name} ({pl.origin}) failed to load: {pl.error}", file=sys.stderr)
         print(f"{path}: ok ({len(plan.drivers)} drivers, {len(plan.analyzers)} analyzers)")
         return 0
     logmod.setup(settings.log_level)

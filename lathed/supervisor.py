@@ -55,6 +55,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
     drivers, analyzers = loader.driver_types(), loader.analyzer_types()
     failed = [p.name for p in loader.plugins if p.error]
     broken: set[str] = set()   # instances refused above: what refers to them is not a further error
+    disabled: set[str] = set()
     for inst in cfg.instances:
         key = f"{inst.category}.{inst.name}"
         types = analyzers if inst.category == "analyzer" else drivers
@@ -72,6 +73,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
             continue
         try:
             if not inst.framework.getbool("enabled", True):
+                disabled.add(inst.name)
                 continue
             limits = None
             if inst.category != "machine" and "limits" in inst.framework:
@@ -109,15 +111,26 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
             if limits is not None:
                 plan.limits[inst.name] = limits
     # wiring: analyzers may only read and command instances that exist
+    # not built: nothing to say what they are
+    skipped = {k.split(".", 1)[1] for k in plan.skipped} | disabled
     for name, (inst, an) in plan.analyzers.items():
+        missing = set()
         for src in an.inputs():
             if src not in plan.drivers and src not in broken and f"machine.{src}" not in plan.skipped \
                     and f"sensor.{src}" not in plan.skipped:
                 plan.errors.append(f"{cfg.path}: [analyzer.{name}]: input {src!r} is not a configured "
                                    f"machine or sensor; configured: {', '.join(plan.drivers) or 'none'}")
+                missing.add(src)
         for m in an.machines():
             if m not in plan.limits and m not in broken and f"machine.{m}" not in plan.skipped:
                 plan.errors.append(f"{cfg.path}: [analyzer.{name}]: machine {m!r} is not a configured machine")
+                missing.add(m)
+        # ... and be what the key needs (an accelerometer, a machine that takes the speed, an analyzer)
+        for key, (ref, category, need) in an.refers().items():
+            if ref not in missing and ref not in broken and ref not in skipped:
+                problem = _reference_problem(plan, ref, category, need)
+                if problem:
+                    plan.errors.append(f"{cfg.path}: [analyzer.{name}] {key}: {problem}")
     # and a driver may listen only to instances that exist (a read_on trigger)
     for name, (inst, drv) in plan.drivers.items():
         for src, (table, key) in getattr(drv, "listens", dict)().items():
@@ -135,6 +148,24 @@ def record_sinks(cfg: Config, loader: PluginLoader) -> list[str]:
     types = loader.analyzer_types()
     return [inst.name for inst in cfg.instances if inst.category == "analyzer"
             and (inst.plugin not in types or getattr(types[inst.plugin], "forwards_records", False))]
+
+
+def _reference_problem(plan: Plan, ref: str, category: str, need: str | None) -> str | None:
+    """Why ``ref`` is not the ``category`` instance (with ``need``) an analyzer's key asks for."""
+    if category == "analyzer":
+        if ref in plan.analyzers:
+            return None
+        return f"{ref!r} is not a configured analyzer; configured: {', '.join(plan.analyzers) or 'none'}"
+    drv = plan.drivers.get(ref)
+    if drv is None:
+        return f"{ref!r} is not a configured {category}; configured: {', '.join(plan.drivers) or 'none'}"
+    drv = drv[1]
+    if drv.role != category or (category == "sensor" and need and drv.kind not in (need, "sensor")):
+        return f"{ref!r} is a {drv.role} of kind {drv.kind!r}, not a {category}" + \
+            (f" of kind {need!r}" if category == "sensor" and need else "")
+    if category == "machine" and need and need not in drv.actions:
+        return f"{ref!r} does not take {need!r} (takes: {', '.join(drv.actions) or 'none'})"
+    return None
 
 
 async def cancel_and_wait(tasks, every_s: float = 1.0) -> None:

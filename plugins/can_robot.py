@@ -99,8 +99,12 @@ class CanRobot(Driver):
         self.stale_after = section.getduration("stale_after", 1.0, minval=0.05, maxval=3600)
         try:
             self.db = cantools.database.load_file(str(self.dbc_path))
-        except (OSError, cantools.database.UnsupportedDatabaseFormatError) as e:
+        except OSError as e:
             raise section.error("dbc", f"cannot load {self.dbc_path}: {str(e).splitlines()[0]}") from None
+        except (ValueError, cantools.database.UnsupportedDatabaseFormatError) as e:
+            # ValueError: cantools goes by the name's extension and knows no such format (a .json),
+            # which came out as "failed to start" with a path inside cantools
+            raise section.error("dbc", f"{self.dbc_path} is not a DBC file ({str(e).splitlines()[0]})") from None
         have = {s.name for m in self.db.messages for s in m.signals}
         missing = [s for s in REQUIRED if s not in have]
         if missing:

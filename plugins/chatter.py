@@ -137,6 +137,9 @@ class ChatterAnalyzer(Analyzer):
     def inputs(self) -> list[str]:
         return [self.input, self.machine]
 
+    def refers(self) -> dict[str, tuple[str, str, str | None]]:
+        return {"input": (self.input, "sensor", "accelerometer"), "machine": (self.machine, "machine", None)}
+
     def reconfigure(self, section: Section) -> None:
         """New detector parameters (checked by the reload): alarm levels at once, without
         dropping the cut; window shapes from the next cut (the next detector is built with them)."""

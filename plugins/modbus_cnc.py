@@ -28,7 +28,7 @@ supervisor's backoff spaces its tries out.
 A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
 uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
 or "little"), ``scale`` (value = raw * scale), ``unit``, ``writable``
-(default false), ``poll`` (its own read period; registers with the same
+(default false; only for the registers lathed writes, below), ``poll`` (its own read period; registers with the same
 period are read together, in as few requests as the protocol allows),
 ``read_on`` (``["chatter.cutting", "chatter.cut_contact"]``: read it at once
 as well whenever one of these ``source.quantity`` samples says 1 on the bus;
@@ -140,8 +140,15 @@ class Register:
         return AsyncModbusTcpClient.convert_to_registers(raw, TYPES[self.type][0], word_order=self.word_order)
 
 
+# what lathed writes: an action's register, the override a speed is commanded by, the heartbeat
+WRITABLE = (*ACTION_REGISTERS.values(), "spindle_override_pct", "heartbeat")
+
+
 def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
     regs = {}
+    for key in sec.keys():   # subsections() passes over the rest: `foo = 3` was silently ignored
+        if not sec.has_section(key):
+            raise sec.error(key, f"expected a table {{ address = ..., type = ... }}, got {sec.get(key)!r}")
     for sub in sec.subsections():
         reg = Register(
             name=sub.name,
@@ -161,6 +168,8 @@ def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
             raise sub.error("scale", "must not be 0")
         if reg.address + reg.count > 65536:
             raise sub.error("address", f"a {reg.type} at {reg.address} runs past register 65535")
+        if reg.writable and reg.name not in WRITABLE:   # a typo would leave the action without its register
+            raise sub.error("writable", f"no action writes {reg.name!r}; writable registers: {', '.join(WRITABLE)}")
         sub.check_unused()
         regs[reg.name] = reg
     if not regs:

@@ -59,6 +59,7 @@ class Records(Analyzer):
         self.chatter = section.getstr("chatter", "chatter")
         self.thermal = section.getstr("thermal", "thermal")
         self.suppress = section.getstr("suppress", "suppress")
+        self._given = [k for k in ("chatter", "thermal", "suppress") if k in section]
         self.tool = section.getstr("tool", "")
         self.material = section.getstr("material", "")
         self.tracker = records.PartTracker(self.machine, self.chatter, self.thermal,
@@ -75,6 +76,11 @@ class Records(Analyzer):
 
     def inputs(self) -> list[str]:
         return [self.machine]
+
+    def refers(self) -> dict[str, tuple[str, str, str | None]]:
+        # the defaults may name analyzers not configured (then nothing is read from them); a name
+        # written out must exist, or a typo silently records no chatter, thermal or suppression
+        return {k: (getattr(self, k), "analyzer", None) for k in self._given}
 
     async def run(self) -> None:
         if not self._registered:   # run() is restarted after a fault; commands stay registered

@@ -250,6 +250,10 @@ class SuppressionAnalyzer(Analyzer):
     def machines(self) -> list[str]:
         return [self.machine]
 
+    def refers(self) -> dict[str, tuple[str, str, str | None]]:
+        # what it reads the alarms from, and a machine it can slow or speed up
+        return {"chatter": (self.chatter, "analyzer", None), "machine": (self.machine, "machine", "spindle_rpm")}
+
     # -- strategy ----------------------------------------------------------------
     def _depth_known_mm(self) -> float | None:
         """The cut's depth: the register or the spindle load's estimate, else the programmed depth_mm."""

@@ -101,6 +101,10 @@ class ThermalAnalyzer(Analyzer):
     def machines(self) -> list[str]:
         return [self.machine]
 
+    def refers(self) -> dict[str, tuple[str, str, str | None]]:
+        # the offset is not needed: on a read-only machine (MTConnect) the analyzer predicts only
+        return {"input": (self.input, "sensor", "temperature")}
+
     @property
     def models_dir(self) -> Path:
         return self.ctx.store.path.parent / "thermal-models"

@@ -35,9 +35,23 @@ port = "{tmp}/no-tty"
 retry_initial = "10s"
 retry_max = "10s"
 
+[sensor.vib]
+plugin = "vibration_tcp"
+host = "127.0.0.1"
+port = 9
+retry_initial = "10s"
+retry_max = "10s"
+
+# the analyzer suppression and records read the alarms from (a name that is not one is refused);
+# named so that no test's "accel*" or "chat*" pattern finds it
+[analyzer.watch]
+plugin = "chatter"
+input = "vib"
+machine = "lathe"
+
 [analyzer.suppress]
 plugin = "suppression"
-chatter = "chatter"
+chatter = "watch"
 machine = "lathe"
 mode = "manual"
 strategy = "frequency"
@@ -50,7 +64,7 @@ machine = "lathe"
 [analyzer.records]
 plugin = "records"
 machine = "lathe"
-chatter = "chatter"
+chatter = "watch"
 thermal = "thermal"
 tool = "T0101"
 material = "C45"

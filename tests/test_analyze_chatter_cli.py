@@ -226,6 +226,8 @@ def test_param_reaches_the_detector(files, capsys):
 @pytest.mark.parametrize("param, msg", [
     ("threshold=0.5", "threshold = 0.5 is outside [1.05, 1000] (--param)"),
     ("nope=1", "unknown parameter(s) nope"),
+    # a count of 4.7 windows was taken (and used as 4 or 5)
+    ("learn_windows=4.7", "learn_windows: expected a whole number (a count), got 4.7 (--param)"),
 ])
 def test_a_bad_param_is_one_usage_line(files, capsys, param, msg):
     d, _, _ = files

@@ -63,6 +63,12 @@ def test_unwritable_plot_is_one_line_error(tmp_path, capsys):
 @pytest.mark.parametrize("argv,needle", [
     (["lobes", "--mode", "250,0.03", "--kf", "1e9"], "FN_HZ,ZETA,K_N_PER_M"),
     (["lobes", "--mode", "250,1.5,2e7", "--kf", "1e9"], "damping ratio"),
+    # inf and nan passed the range checks (nan theta every one): lobes of nan
+    (["lobes", "--mode", "250,0.03,inf", "--kf", "1e9"],
+     "mode '250,0.03,inf': stiffness K_N_PER_M must be a finite number, got inf"),
+    (["lobes", "--mode", "250,0.03,2e7,nan", "--kf", "1e9"],
+     "mode '250,0.03,2e7,nan': angle THETA_DEG must be a finite number, got nan"),
+    (["lobes", "--mode", "inf,0.03,2e7", "--kf", "1e9"], "natural frequency FN_HZ must be a finite number"),
     (["lobes", "--mode", "250,0.03,2e7", "--kf", "-3"], "positive"),
     (["lobes", "--mode", "250,0.03,2e7", "--kf", "1e9", "--range", "4000:1000"], "MIN must be below"),
 ])

@@ -84,6 +84,21 @@ def test_dbc_missing_signals_is_a_config_error(tmp_path):
                                   {"interface": "virtual", "channel": "x", "dbc": "other.dbc"}))
 
 
+@pytest.mark.parametrize("name, text, why", [
+    # cantools goes by the extension: a .json gave "failed to start: ValueError: ... at .../cantools/..."
+    ("robot.json", '{"a": 1}', "expected database format 'arxml', 'dbc', 'kcd', 'sym', 'cdd' or None, but got 'json'"),
+    ("robot.dbc", "hello world\n", 'DBC: "Invalid syntax at line 1, column 1'),
+])
+def test_a_file_that_is_not_a_dbc_is_one_line_naming_it(tmp_path, name, text, why):
+    (tmp_path / name).write_text(text)
+    with pytest.raises(ConfigError) as e:
+        CanRobot("robot", Section(str(tmp_path / "t.toml"), "machine.robot",
+                                  {"interface": "virtual", "channel": "x", "dbc": name}))
+    assert str(e.value).startswith(f"{tmp_path / 't.toml'}: [machine.robot] dbc: {tmp_path / name} is not a DBC "
+                                   f"file ({why}"), str(e.value)
+    assert "\n" not in str(e.value)
+
+
 def test_virtual_bus_silent_then_back():
     channel = f"robot-test-{os.getpid()}"
 

@@ -13,6 +13,16 @@ from lathed.lathectl import main
     (["sim", "depth", "20"], "outside the depths the simulated lathe cuts (0..10 mm)"),
     (["nope"], "lathectl: argument COMMAND: invalid choice: 'nope'"),
     (["analyze", "chatter", "x.wav"], "lathectl analyze chatter: the following arguments are required: --rpm"),
+    # type=int and type=float took these: a limit of 0 or -1 listed every cut (out[-0:]) or all but
+    # one, SQL's LIMIT -3 every event; an outage of -5 s, nan or 1e12 s was sent to the simulator
+    (["cuts", "--limit", "0"], "lathectl cuts: argument --limit: 0 must be at least 1"),
+    (["cuts", "--limit", "-1"], "lathectl cuts: argument --limit: -1 must be at least 1"),
+    (["events", "--db", "x.db", "--limit", "0"], "lathectl events: argument --limit: 0 must be at least 1"),
+    (["events", "--db", "x.db", "--limit", "-3"], "lathectl events: argument --limit: -3 must be at least 1"),
+    (["sim", "outage", "modbus", "--", "-5"], "lathectl sim outage: argument seconds: '-5' must be a positive number"),
+    (["sim", "outage", "modbus", "nan"], "lathectl sim outage: argument seconds: 'nan' must be a positive number"),
+    (["sim", "outage", "modbus", "1e12"], "lathectl sim outage: argument seconds: 1e12 s is longer than an outage "
+                                          "the simulator takes (at most 3600 s)"),
 ])
 def test_bad_arguments_are_one_line_and_exit_2(argv, needle, capsys):
     with pytest.raises(SystemExit) as e:
@@ -108,3 +118,17 @@ def test_export_pages_through_every_row_oldest_first(tmp_path, monkeypatch, caps
         assert [r["id"] for r in lines] == ids[-5:]
     finally:
         d.close()
+
+
+def test_the_simulator_refuses_an_outage_it_cannot_take(tmp_path):
+    # its control socket took float(seconds): "-5", nan and 1e12 (a peer down for 30000 years)
+    import asyncio
+
+    from lathed.sim.__main__ import Simulator, parse_args
+    from tests.conftest import free_port
+    sim = Simulator(parse_args(["--modbus-port", str(free_port()), "--vibration-port", str(free_port()),
+                                "--serial-link", str(tmp_path / "tty")]))
+    for seconds in ("-5", -5, float("nan"), 1e12, 0, True):
+        with pytest.raises(ValueError, match=r"^seconds must be a number in \(0, 3600\], got "):
+            asyncio.run(sim._command("outage", {"peer": "modbus", "seconds": seconds}))
+    assert not sim._outages

@@ -1,6 +1,7 @@
 """Config validation: every refusal is one line naming file, table, key and what is allowed."""
 from __future__ import annotations
 
+import shutil
 import subprocess
 
 import pytest
@@ -264,3 +265,118 @@ def test_a_read_on_trigger_must_name_a_configured_instance(tmp_path):
     code, err = check(tmp_path, text)
     assert (code, err) == (78, "lathed: FILE: [machine.lathe.registers.spindle_rpm] read_on: 'chatr' is not a "
                                "configured analyzer, machine or sensor")
+
+
+def check_inproc(tmp_path, text: str) -> str:
+    """The first problem prepare() reports, as --check-config prints it (in this process, so the
+    code under test is this checkout's, not the installed console script's)."""
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        prepare(cfg, strict=True)
+    return str(e.value).replace(str(cfg), "FILE").splitlines()[0]
+
+
+@pytest.mark.parametrize("edit, line", [
+    # nan passed every range check: asyncio.sleep(nan) returns at once (a busy loop)
+    (("port = 15020", "port = 15020\npoll = nan"), "[machine.lathe] poll: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\nretry_initial = nan"),
+     "[machine.lathe] retry_initial: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\nstale_after = inf"),
+     "[machine.lathe] stale_after: expected a finite duration, got inf"),
+    (("port = 15020", "port = 15020\nstale_after = nan"),
+     "[machine.lathe] stale_after: expected a finite duration, got nan"),
+    (("port = 15020", "port = 15020\ntimeout = nan"), "[machine.lathe] timeout: expected a finite duration, got nan"),
+    (("port = 15020", 'port = 15020\nheartbeat_every = nan\n[machine.lathe.registers.heartbeat]\n'
+                      'address = 9\ntype = "uint16"\nwritable = true'),
+     "[machine.lathe] heartbeat_every: expected a finite duration, got nan"),
+    (("writable = true }\n", "writable = true }\n[store]\nprune_every = nan\n"),
+     "[store] prune_every: expected a finite duration, got nan"),
+    # a string of digits too long for a float is inf too
+    (("port = 15020", 'port = 15020\npoll = "' + "9" * 400 + 'ms"'),
+     "[machine.lathe] poll: expected a finite duration, got '99"),
+])
+def test_non_finite_durations_are_refused(tmp_path, edit, line):
+    text = BASE.replace(*edit, 1)
+    assert text != BASE
+    assert check_inproc(tmp_path, text).startswith("FILE: " + line)
+
+
+def test_float_lists_refuse_non_finite_items():
+    with pytest.raises(ConfigError, match=r"^f: \[t\] l: expected a list of float, got \[1, nan\]$"):
+        Section("f", "t", {"l": [1, float("nan")]}).getlist("l", item=float)
+
+
+def test_a_non_finite_mode_is_refused_naming_mode_and_field(tmp_path):
+    text = BASE + ANALYZERS.replace('[analyzer.records]', """[analyzer.suppress]
+plugin = "suppression"
+chatter = "chatter"
+machine = "lathe"
+strategy = "lobes"
+modes = ["190,0.03,7.5e7,0", "620,0.035,4e8,nan"]
+
+[analyzer.records]""")
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.suppress] modes: mode '620,0.035,4e8,nan': "
+                                            "angle THETA_DEG must be a finite number, got nan")
+    text = text.replace("4e8,nan", "inf,30")
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.suppress] modes: mode '620,0.035,inf,30': "
+                                            "stiffness K_N_PER_M must be a finite number, got inf")
+
+
+def test_a_detector_parameter_must_be_a_number_not_a_string(tmp_path):
+    text = BASE + ANALYZERS.replace('machine = "lathe"\n', 'machine = "lathe"\n[analyzer.chatter.params]\n'
+                                    'threshold = "2"\n', 1)
+    assert check_inproc(tmp_path, text) == ("FILE: [analyzer.chatter.params]: detector 'sync_cusum': threshold: "
+                                            "expected a number, got '2'")
+
+
+@pytest.mark.parametrize("edit, line", [
+    # each passed: the analyzer then waited for messages that never came, or commanded nothing
+    (('chatter = "chatter"\nmachine = "lathe"\nmode', 'chatter = "chattr"\nmachine = "lathe"\nmode'),
+     "[analyzer.suppress] chatter: 'chattr' is not a configured analyzer; configured: chatter, suppress, "
+     "thermal, records"),
+    (('thermal = "thermal"', 'thermal = "thermall"'), "[analyzer.records] thermal: 'thermall' is not a configured "
+     "analyzer; configured: chatter, suppress, thermal, records"),
+    (('suppress = "suppress"', 'suppress = "supress"'), "[analyzer.records] suppress: 'supress' is not a "
+     "configured analyzer; configured: chatter, suppress, thermal, records"),
+    (('input = "accel"', 'input = "lathe"'),
+     "[analyzer.chatter] input: 'lathe' is a machine of kind 'lathe', not a sensor of kind 'accelerometer'"),
+    (('input = "temps"', 'input = "accel"'),
+     "[analyzer.thermal] input: 'accel' is a sensor of kind 'accelerometer', not a sensor of kind 'temperature'"),
+    (('chatter = "chatter"\nmachine = "lathe"', 'chatter = "chatter"\nmachine = "grinder"'),
+     "[analyzer.suppress] machine: 'grinder' does not take 'spindle_rpm' (takes: none)"),
+])
+def test_an_analyzer_key_must_name_an_instance_of_the_right_kind(tmp_path, edit, line):
+    shutil.copytree(ROOT / "etc", tmp_path / "etc")
+    text = (ROOT / "etc" / "lathed.toml").read_text()
+    assert edit[0] in text
+    cfg = tmp_path / "etc" / "lathed.toml"
+    cfg.write_text(text.replace(*edit, 1))
+    with pytest.raises(ConfigError) as e:
+        prepare(cfg, strict=True)
+    assert str(e.value) == f"{cfg}: {line}"
+
+
+def test_a_plugin_that_fails_to_load_fails_the_check(tmp_path):
+    # --check-config printed a warning and "ok", exit 0, though the daemon would run without it
+    missing = tmp_path / "nonexistent"
+    text = BASE.replace('name = "t"', f'name = "t"\nplugin_dirs = ["{missing}"]')
+    assert check_inproc(tmp_path, text) == (f"FILE: plugin {missing} ({missing}) failed to load: "
+                                            "plugin directory does not exist")
+    prepare(tmp_path / "lathed.toml", strict=False)     # the daemon runs on without it
+
+
+@pytest.mark.parametrize("edit, line", [
+    # both were taken: a daemon with no name in its records, a Modbus link to no host
+    (('name = "t"', 'name = ""'), "[daemon] name: expected a non-empty string, got ''"),
+    (('host = "127.0.0.1"', 'host = ""'), "[machine.lathe] host: expected a non-empty string, got ''"),
+])
+def test_an_empty_string_is_refused_where_a_name_is_needed(tmp_path, edit, line):
+    assert check_inproc(tmp_path, BASE.replace(*edit, 1)) == "FILE: " + line
+
+
+def test_an_empty_string_is_taken_where_it_is_the_default_or_allowed():
+    s = Section("f", "t", {"tool": "", "a": "", "c": ""})
+    assert s.getstr("tool", "") == "" and s.getstr("a", empty=True) == "" and s.getstr("c", "x", choices=("", "x")) == ""
+    with pytest.raises(ConfigError, match=r"^f: \[t\] a: expected a non-empty string, got ''$"):
+        s.getstr("a", "default")

@@ -43,6 +43,21 @@ def test_params_validated_with_range():
     with pytest.raises(ValueError, match=r"jump_ratio = 1.2 is outside \[1.5, 1000\]"):
         make_detector("sync_cusum", RATE, jump_ratio=1.2)
     assert all(describe_params(n)["jump_ratio"][0] == 3.0 for n in DETECTORS)
+
+
+@pytest.mark.parametrize("params, msg", [
+    # float() took a string, took true as 1 ("1 is outside"), and a count of 4.7 windows (used as 4 or 5)
+    ({"threshold": "2"}, "threshold: expected a number, got '2'"),
+    ({"learn_windows": True}, "learn_windows: expected a number, got True"),
+    ({"learn_windows": 4.7}, r"learn_windows: expected a whole number \(a count\), got 4.7"),
+    ({"off_windows": 2.5}, r"off_windows: expected a whole number \(a count\), got 2.5"),
+])
+def test_params_must_be_numbers_and_counts_whole(params, msg):
+    with pytest.raises(ValueError, match=msg):
+        make_detector("sync_cusum", RATE, **params)
+    with pytest.raises(ValueError, match=r"memory: expected a whole number \(a count\), got 6.5"):
+        make_detector("chaos_sync", RATE, memory=6.5)
+    assert make_detector("sync_cusum", RATE, learn_windows=5.0, on_windows=3).params["learn_windows"] == 5
     assert "p" in describe_params("chaos_sync")
     assert all(len(v) == 4 for v in describe_params("spectral_ratio").values())
 

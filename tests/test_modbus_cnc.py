@@ -51,6 +51,13 @@ def tcp(port: int, **kw) -> dict:
      "longer than the slowest poll"),
     ({"transport": "rtu", "registers": REGS}, "[machine.m] device: missing required key"),
     ({"transport": "rtu", "device": "/dev/ttyUSB0", "host": "x", "registers": REGS}, "host: unknown key"),
+    # both passed: a key that is not a table was ignored, and a mistyped writable register
+    # left the action without one
+    ({"registers": {**REGS, "foo": 3}},
+     "[machine.m.registers] foo: expected a table { address = ..., type = ... }, got 3"),
+    ({"registers": {"spindle_rmp_cmd": {"address": 0, "type": "float32", "writable": True}}},
+     "[machine.m.registers.spindle_rmp_cmd] writable: no action writes 'spindle_rmp_cmd'; writable registers: "
+     "spindle_rpm_cmd, offset_x_um, spindle_override_pct, heartbeat"),
 ])
 def test_config_errors_name_the_key(data, problem):
     data = {"host": "127.0.0.1", **data} if data.get("transport") != "rtu" else data

@@ -26,7 +26,6 @@ depth_mm = 2.0
 plugin = "records"
 machine = "lathe"
 chatter = "chatter"
-thermal = "thermal"
 tool = "T0101"
 material = "C45"
 """

@@ -51,6 +51,7 @@ here: plugin detectors arrive as the ``extra`` dict.
 from __future__ import annotations
 
 import math
+import numbers
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -146,10 +147,13 @@ class RevolutionDetector:
         self.params: dict[str, float] = {}
         for key, (default, lo, hi, _) in spec.items():
             v = params.get(key, default)
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"detector {self.name!r}: {key} must be a number, got {v!r}") from None
+            # float() took "2" and true (as 1) from the config: a number must be written as one
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise ValueError(f"detector {self.name!r}: {key}: expected a number, got {v!r}")
+            v = float(v)
+            # a count (an integer default) is used whole: 4.7 windows would silently be 4 or 5
+            if isinstance(default, int) and math.isfinite(v) and not v.is_integer():
+                raise ValueError(f"detector {self.name!r}: {key}: expected a whole number (a count), got {v:g}")
             if not lo <= v <= hi:
                 raise ValueError(f"detector {self.name!r}: {key} = {v:g} is outside [{lo:g}, {hi:g}]")
             self.params[key] = v

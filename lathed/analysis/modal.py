@@ -23,6 +23,11 @@ class Mode:
     theta_deg: float = 0.0
 
     def __post_init__(self) -> None:
+        # inf passes the range checks below and nan theta passes none of them: lobes of nan
+        for name, what in (("fn_hz", "natural frequency FN_HZ"), ("zeta", "damping ratio ZETA"),
+                           ("k_n_per_m", "stiffness K_N_PER_M"), ("theta_deg", "angle THETA_DEG")):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"mode {what} must be a finite number, got {getattr(self, name)}")
         if not self.fn_hz > 0:
             raise ValueError(f"mode natural frequency must be > 0 Hz, got {self.fn_hz}")
         if not 0 < self.zeta < 1:
@@ -63,4 +68,7 @@ def parse_mode(text: str) -> Mode:
         values = [float(p) for p in parts]
     except ValueError:
         raise ValueError(f"mode {text!r}: every field must be a number") from None
-    return Mode(*values)
+    try:
+        return Mode(*values)
+    except ValueError as e:   # name the mode among several
+        raise ValueError(f"mode {text!r}: {str(e).removeprefix('mode ')}") from None

@@ -468,27 +468,66 @@ class ThermalModel:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], candidates: Sequence[Candidate] = ()) -> ThermalModel:
+        """The inverse of to_dict; ValueError naming the key of a malformed one (a hand edit, a
+        damaged file: AttributeError, a bare KeyError 'sensor' and nan coefficients got through)."""
+        fmt = d.get("format", 1)
+        if fmt != 1 or isinstance(fmt, bool):
+            raise ValueError(f"format: {fmt!r} is not a thermal model format this lathed reads (1)")
+        if "intercept_um" not in d:
+            raise ValueError("intercept_um: missing key")
         makers: dict[str, Any] = {c.name: c for c in [*builtin_candidates(), *candidates]}
         terms: list[Term] = []
         coef: list[float] = []
-        for i, td in enumerate(d.get("terms", [])):
+        tds = d.get("terms", [])
+        if not isinstance(tds, list):
+            raise ValueError(f"terms: expected a list of tables, got {tds!r}")
+        for i, td in enumerate(tds):
+            if not isinstance(td, dict):
+                raise ValueError(f"term {i + 1}: expected a table, got {td!r}")
             eff = td.get("effect")
-            if eff == "linear":
-                p = td.get("params", {})
-                term: Term = LinearTerm(td["sensor"], float(p.get("smooth_s", 0.0)),
-                                        notch_s=float(p.get("notch_s", 0.0)))
-            elif eff in makers:
-                term = makers[eff].make_term(td.get("sensor"), td.get("params", {}))
-            else:
+            p = td.get("params", {})
+            if not isinstance(p, dict):
+                raise ValueError(f"term {i + 1} ({eff}) params: expected a table, got {p!r}")
+            for k, v in p.items():
+                if isinstance(v, float) and not math.isfinite(v):
+                    raise ValueError(f"term {i + 1} ({eff}) params.{k}: expected a finite number, got {v!r}")
+            if "sensor" in td and not isinstance(td["sensor"], str):
+                raise ValueError(f"term {i + 1} ({eff}) sensor: expected a string, got {td['sensor']!r}")
+            if eff != "linear" and eff not in makers:
                 raise ValueError(f"thermal model term {i + 1} has effect {eff!r}, which no "
                                  f"candidate provides (known: linear, {', '.join(makers)})")
-            if len(td.get("coef", [])) != len(term.names):
+            try:
+                if eff == "linear":
+                    if "sensor" not in td:
+                        raise KeyError("sensor")
+                    term: Term = LinearTerm(td["sensor"], float(p.get("smooth_s", 0.0)),
+                                            notch_s=float(p.get("notch_s", 0.0)))
+                else:
+                    term = makers[eff].make_term(td.get("sensor"), p)
+            except KeyError as e:
+                raise ValueError(f"term {i + 1} ({eff}): missing key {e}") from None
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"term {i + 1} ({eff}): {e}") from None
+            tc = td.get("coef", [])
+            if not isinstance(tc, list) or len(tc) != len(term.names):
                 raise ValueError(f"thermal model term {i + 1} ({eff}) needs {len(term.names)} "
-                                 f"coefficient(s), has {len(td.get('coef', []))}")
+                                 f"coefficient(s), has {len(tc) if isinstance(tc, list) else repr(tc)}")
             terms.append(term)
-            coef += [float(c) for c in td["coef"]]
-        return cls(terms, np.array(coef), float(d["intercept_um"]), list(d.get("notes", [])),
-                   str(d.get("source", "fit")), d.get("rises_from") or None)
+            coef += [_finite(c, f"term {i + 1} ({eff}) coef[{j}]") for j, c in enumerate(tc)]
+        notes, rises_from = d.get("notes", []), d.get("rises_from") or None
+        if not isinstance(notes, list):
+            raise ValueError(f"notes: expected a list, got {notes!r}")
+        if rises_from is not None and not isinstance(rises_from, str):
+            raise ValueError(f"rises_from: expected a sensor name, got {rises_from!r}")
+        return cls(terms, np.array(coef), _finite(d["intercept_um"], "intercept_um"), list(notes),
+                   str(d.get("source", "fit")), rises_from)
+
+
+def _finite(v: Any, key: str) -> float:
+    from lathed.config import finite   # an int past a float's range too
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not finite(v):
+        raise ValueError(f"{key}: expected a finite number, got {v!r}")
+    return float(v)
 
 
 def eq14_model(path: str | Path | None = None) -> ThermalModel:

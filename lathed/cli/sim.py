@@ -10,7 +10,7 @@ from pathlib import Path
 from lathed.cli import positive
 from lathed.client import DaemonUnavailable, RemoteError, default_socket
 from lathed.lathectl import _fmt_value, print_json
-from lathed.sim.program import MAX_DEPTH_MM   # no numpy: lathectl starts without it
+from lathed.sim.program import MAX_DEPTH_MM, MAX_OUTAGE_S   # no numpy: lathectl starts without it
 
 
 # lathed.sim.thermal.EFFECTS, named here so lathectl starts without numpy and scipy (a test keeps them equal)
@@ -114,6 +114,15 @@ def _status_text(r: dict) -> str:
     return "\n".join(lines)
 
 
+def outage_seconds(text: str) -> float:
+    """argparse type: an outage's length, 0 < s <= MAX_OUTAGE_S (float() took -5, nan and 1e12)."""
+    v = positive(text)
+    if v > MAX_OUTAGE_S:
+        raise argparse.ArgumentTypeError(f"{text} s is longer than an outage the simulator takes "
+                                         f"(at most {MAX_OUTAGE_S:g} s)")
+    return v
+
+
 def register(sub) -> None:
     p = sub.add_parser("sim", help="drive the built-in simulator")
     p.add_argument("--sim-socket", help="the simulator's control socket (default: sim.sock beside lathed's)")
@@ -122,7 +131,7 @@ def register(sub) -> None:
     d.add_argument("value", type=depth_value, help="mm, or 'program'")
     o = s.add_parser("outage", help="take a peer down and bring it back")
     o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
-    o.add_argument("seconds", type=float)
+    o.add_argument("seconds", type=outage_seconds)
     st = s.add_parser("status", help="the simulator's state")
     for c in (d, o, st):
         c.add_argument("--json", action="store_true", help="print the simulator's reply as JSON")

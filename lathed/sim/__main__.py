@@ -37,7 +37,7 @@ from lathed.analysis.process_damping import FlankWear
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
-from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, parse_cut
+from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, MAX_OUTAGE_S, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.mtconnect_agent import MTConnectAgent
@@ -283,7 +283,12 @@ class Simulator:
                 self.lathe.depth_override_mm = d
             return {"depth_mm": self.lathe.depth_mm}
         if cmd == "outage":
-            peer, seconds = args.get("peer"), float(args.get("seconds", 10))
+            peer, seconds = args.get("peer"), args.get("seconds", 10)
+            # float() took "-5", nan and 1e12: a peer down for ever, or back before it went
+            if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) \
+                    or not 0 < seconds <= MAX_OUTAGE_S:
+                raise ValueError(f"seconds must be a number in (0, {MAX_OUTAGE_S:g}], got {seconds!r}")
+            seconds = float(seconds)
             fns = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
                    "serial": self._serial_outage}
             if self.mill_peer:

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, override, config)
+MAX_OUTAGE_S = 3600.0  # longest peer outage `lathectl sim outage` takes: an hour down is not a test of a retry
 
 
 @dataclass(frozen=True)
