@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from lathed import __version__
 from lathed import cli as cli_pkg
-from lathed.cli import EX_UNAVAILABLE
+from lathed.cli import EX_UNAVAILABLE, count
 from lathed.client import DaemonUnavailable, RemoteError, call, default_db, subscribe
 
 
@@ -228,9 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("plugins", help="loaded and failed plugins")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_plugins)
-    from lathed.cli.records import _positive_int   # here: lathed.cli.records imports this module
     s = sub.add_parser("events", help="recent recorded events")
-    s.add_argument("--limit", type=_positive_int, default=30)   # --db took 0 and -3 (SQL LIMIT -3: all)
+    s.add_argument("--limit", type=count, default=30)   # --db took 0 and -3 (SQL LIMIT -3: all)
     s.add_argument("--kind")
     s.add_argument("--source")
     s.add_argument("--follow", "-f", action="store_true", help="then print each new event as it is recorded")

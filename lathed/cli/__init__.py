@@ -20,6 +20,17 @@ def positive(text: str) -> float:
     return v
 
 
+def count(text: str) -> int:
+    """argparse type: a whole number >= 1 (a limit, a number of sensors)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be at least 1")
+    return v
+
+
 SPINDLE_RPM_MAX = 100_000.0    # beyond any machine-tool spindle (lathed.plausible's r/min bound)
 
 

@@ -2,6 +2,7 @@
 run, find the effects the static regression lacks, report before/after."""
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -9,7 +10,7 @@ from pathlib import Path
 
 from typing import TYPE_CHECKING
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, count, fail
 
 if TYPE_CHECKING:
     from lathed.analysis.thermal import Analysis, ThermalData
@@ -31,18 +32,32 @@ def register_analyze(sub) -> None:
     held.add_argument("--test", metavar="TEST.csv", help="another run to report errors on, from a cold start "
                                                          "or continuing TRAIN's time_s "
                                                          "(default: held-out blocks of TRAIN)")
-    held.add_argument("--split", metavar="F", type=float,
+    held.add_argument("--split", metavar="F", type=_fraction,
                       help="fit on the first F of TRAIN by time (0 < F < 1), report on the rest")
     p.add_argument("--model", metavar="CURRENT.toml", help="the model in use, compared on the same rows "
                                                            "(default: the linear regression the loop starts from)")
-    p.add_argument("--max-sensors", type=int, default=8, metavar="N",
+    p.add_argument("--max-sensors", type=count, default=8, metavar="N",
                    help="at most N temperature sensors in the model (default 8)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="OUT.png", help="growth with each model's prediction, and residuals")
     p.set_defaults(func=run)
 
 
+def _fraction(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"{v:g}: expected a fraction 0 < F < 1")
+    return v
+
+
 def _warn_rejected(path: str, rep: LoadReport) -> None:
+    if rep.ignored_columns:
+        # a misspelled spindle_rpm would change the fit without a word
+        print(f"lathectl: warning: {path}:1: column(s) {', '.join(map(repr, rep.ignored_columns))} ignored "
+              "(known: time_s, spindle_rpm, displacement_um, t_<place>_c)", file=sys.stderr)
     if rep.rejected:
         parts = ", ".join(f"{n} {r} (first at line {rep.first_line[r]})" for r, n in rep.rejected.most_common())
         print(f"lathectl: warning: {sum(rep.rejected.values())} row(s) of {path} rejected: {parts}",
@@ -98,8 +113,6 @@ def run(args) -> int:
             current = load_model(args.model)
         except (OSError, ValueError, KeyError) as e:
             return fail(f"cannot load thermal model {args.model}: {e}", EX_DATAERR)
-    if args.max_sensors < 1:
-        return fail(f"--max-sensors must be at least 1, got {args.max_sensors}", EX_DATAERR)
     reference_note = None
     if args.split is not None:
         try:

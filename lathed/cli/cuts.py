@@ -13,7 +13,7 @@ import sys
 import time
 
 from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
-from lathed.cli.records import _positive_int
+from lathed.cli import count
 from lathed.client import call
 from lathed.lathectl import print_json, remote
 
@@ -169,7 +169,7 @@ def register(sub) -> None:
     p.add_argument("--since", type=_since, metavar="WHEN", help="only cuts since: a duration back (2h, 30min) "
                                                                  "or a date/time (2026-11-23T08:00)")
     # type=int took 0 and -1: out[-0:] is every cut, out[1:] all but the oldest
-    p.add_argument("--limit", type=_positive_int, default=100, help="the newest N cuts (default 100; --csv: all)")
+    p.add_argument("--limit", type=count, default=100, help="the newest N cuts (default 100; --csv: all)")
     out = p.add_mutually_exclusive_group()
     out.add_argument("--json", action="store_true")
     out.add_argument("--csv", nargs="?", const="-", metavar="FILE",

@@ -13,7 +13,7 @@ import json
 import math
 import sys
 
-from lathed.cli import EX_CANTCREAT
+from lathed.cli import EX_CANTCREAT, count
 from lathed.client import DaemonUnavailable
 from lathed.lathectl import add_db_argument, print_json, read_db, remote, remote_or_db
 
@@ -72,7 +72,7 @@ def register(sub) -> None:
                                    "applied, and the post-process inspection joined to each.")
     p.add_argument("--abnormal", action="store_true", help="only parts cut under abnormal vibration")
     p.add_argument("--queue", action="store_true", help="only parts waiting for sampling inspection")
-    p.add_argument("--limit", type=_positive_int, default=100)
+    p.add_argument("--limit", type=count, default=100)
     add_db_argument(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_parts)
@@ -135,7 +135,7 @@ def register(sub) -> None:
     p = sub.add_parser("export", help="export records as CSV (all of them, oldest first)")
     p.add_argument("what", choices=("events", "parts", "inspections", "experiments"))
     p.add_argument("--out", metavar="FILE.csv", help="write here instead of standard output")
-    p.add_argument("--limit", type=_positive_int, help="only the newest N rows (default: every row)")
+    p.add_argument("--limit", type=count, help="only the newest N rows (default: every row)")
     add_db_argument(p)
     p.add_argument("--json", action="store_true", help="JSON lines, one object per row, instead of CSV")
     p.set_defaults(func=cmd_export)
@@ -297,14 +297,6 @@ def _print_recommendation(rec: dict) -> None:
 EXPORT_PAGE = 10_000   # rows per request: the daemon's reply and ours stay small, however many there are
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{v} must be at least 1")
-    return v
 
 
 def _pages(fetch, limit: int | None):
