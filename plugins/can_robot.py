@@ -31,6 +31,7 @@ Frames of unknown id are counted and ignored; frames that do not decode
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 from collections import Counter
 from pathlib import Path
@@ -105,6 +106,12 @@ class CanRobot(Driver):
             # ValueError: cantools goes by the name's extension and knows no such format (a .json),
             # which came out as "failed to start" with a path inside cantools
             raise section.error("dbc", f"{self.dbc_path} is not a DBC file ({str(e).splitlines()[0]})") from None
+        # cantools keeps the last of two messages on one frame id (a warning on stderr only):
+        # the first's signals would never be decoded
+        ids = [int(i) for i in re.findall(r"^\s*BO_\s+(\d+)\s", self.dbc_path.read_text(errors="replace"), re.M)]
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            raise section.error("dbc", f"{self.dbc_path} defines frame id {twice[0]} (0x{twice[0]:X}) twice")
         have = {s.name for m in self.db.messages for s in m.signals}
         missing = [s for s in REQUIRED if s not in have]
         if missing:

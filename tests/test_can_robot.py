@@ -99,6 +99,17 @@ def test_a_file_that_is_not_a_dbc_is_one_line_naming_it(tmp_path, name, text, wh
     assert "\n" not in str(e.value)
 
 
+def test_two_messages_on_one_frame_id_are_refused(tmp_path):
+    # cantools keeps the second (a warning on stderr): j1..j3 would never be decoded
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[1] / "etc" / "robot_arm.dbc").read_text()
+    assert "BO_ 257 " in text
+    (tmp_path / "dup.dbc").write_text(text.replace("BO_ 257 ", "BO_ 256 ", 1))
+    with pytest.raises(ConfigError, match=r"\[machine.robot\] dbc: .*dup.dbc defines frame id 256 \(0x100\) twice"):
+        CanRobot("robot", Section(str(tmp_path / "t.toml"), "machine.robot",
+                                  {"interface": "virtual", "channel": "x", "dbc": "dup.dbc"}))
+
+
 def test_virtual_bus_silent_then_back():
     channel = f"robot-test-{os.getpid()}"
 
