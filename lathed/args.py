@@ -17,7 +17,7 @@ import math
 from typing import Any
 
 from lathed.config import _REQUIRED, Section, _range_text, finite
-from lathed.control import RequestError
+from lathed.control import ArgumentError, RequestError
 
 MAX_TEXT = 256        # names, tools, materials, inspectors: one line of text
 MAX_ITEMS = 64        # entries of a list or map argument
@@ -41,7 +41,7 @@ class Args(Section):
         super().__init__("", cmd, data)
 
     def error(self, key: str | None, problem: str) -> RequestError:
-        return RequestError(f"{self.table}: {key}: {problem}" if key else f"{self.table}: {problem}")
+        return ArgumentError(f"{self.table}: {key}: {problem}" if key else f"{self.table}: {problem}")
 
     def _raw(self, key: str, default: Any) -> Any:
         self._read.add(key)

@@ -16,7 +16,11 @@ class DaemonUnavailable(Exception):
 
 
 class RemoteError(Exception):
-    pass
+    """The daemon's one-line refusal; ``usage``: of an argument (a usage error)."""
+
+    def __init__(self, message: str, usage: bool = False):
+        super().__init__(message)
+        self.usage = usage
 
 
 def default_runtime_dir() -> Path:
@@ -99,7 +103,7 @@ def subscribe(args: dict[str, Any], sock_path: str | Path | None = None, timeout
                 raise DaemonUnavailable(f"lathed on {path} sent a line that is not JSON: {line[:80]!r}") from None
             if first:
                 if not msg.get("ok"):
-                    raise RemoteError(msg.get("error", "unknown error"))
+                    raise RemoteError(msg.get("error", "unknown error"), bool(msg.get("usage")))
                 yield msg["result"]
                 first = False
             elif "push" in msg:
@@ -138,5 +142,7 @@ def call(cmd: str, args: dict[str, Any] | None = None, sock_path: str | Path | N
     except ValueError:
         raise DaemonUnavailable(f"lathed on {path} sent a reply that is not JSON: {buf[:80]!r}") from None
     if not isinstance(reply, dict) or not reply.get("ok"):
-        raise RemoteError(reply.get("error", "unknown error") if isinstance(reply, dict) else repr(reply)[:200])
+        if not isinstance(reply, dict):
+            raise RemoteError(repr(reply)[:200])
+        raise RemoteError(reply.get("error", "unknown error"), bool(reply.get("usage")))
     return reply.get("result")

@@ -46,6 +46,11 @@ class RequestError(Exception):
     """A request the daemon understood but cannot carry out; sent back as the error."""
 
 
+class ArgumentError(RequestError):
+    """A request whose argument is wrong (``Args``): a usage error, said as one (``usage``:
+    lathectl exits 2 for it, 1 for a request the daemon's state refuses)."""
+
+
 class Stream:
     """A handler's result that keeps the connection (``subscribe``): ``first`` is
     sent as the reply, then :meth:`run` writes lines until it returns. It returns
@@ -254,7 +259,7 @@ class ControlServer:
         try:
             return {"ok": True, "result": await handler(args)}
         except RequestError as e:
-            return {"ok": False, "error": str(e)}
+            return {"ok": False, "error": str(e), **({"usage": True} if isinstance(e, ArgumentError) else {})}
         except Exception as e:   # a handler bug is reported to the client and logged; the daemon goes on
             log.exception("control_handler_failed", cmd=req["cmd"])
             return {"ok": False, "error": f"internal error in {req['cmd']}: {type(e).__name__}: {e}"}

@@ -286,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         return EX_UNAVAILABLE
     except RemoteError as e:
         print(f"lathectl: lathed refused: {e}", file=sys.stderr)
-        return 1
+        return 2 if e.usage else 1      # a wrong argument is a usage error, as argparse's
     except BrokenPipeError:
         return 0
     except KeyboardInterrupt:   # the way out of --follow and watch

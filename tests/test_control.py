@@ -69,7 +69,25 @@ def assert_refused(reply: dict, logs: list[dict], *wanted: str) -> None:
     ({"cmd": "recommend", "args": {"material": 7}}, ["recommend: material: expected a string"]),
 ])
 def test_wrong_argument_types_get_one_line_errors(daemon, req, wanted):
-    assert_refused(*ask(daemon, req), *wanted)
+    reply, logs = ask(daemon, req)
+    assert_refused(reply, logs, *wanted)
+    assert reply["usage"] is True       # lathectl exits 2 for it, as for its own argument errors
+
+
+@pytest.mark.parametrize("usage, code", [(True, 2), (False, 1)])
+def test_a_refusal_that_is_not_the_arguments_is_no_usage_error(daemon, monkeypatch, capsys, usage, code):
+    reply, _ = ask(daemon, {"cmd": "inspect", "args": {"part": "999999", "ra_um": 1.0}})
+    assert reply["ok"] is False and "usage" not in reply, reply
+    # lathectl: 2 for an argument the daemon refused, 1 for what its state refuses
+    from lathed.cli import records
+    from lathed.client import RemoteError
+    from lathed.lathectl import main
+
+    def refuse(*a, **k):
+        raise RemoteError("inspect: ra_um: expected a finite number" if usage else "no part 999999", usage)
+    monkeypatch.setattr(records, "remote", refuse)
+    assert main(["inspect", "999999", "--ra", "1"]) == code
+    assert capsys.readouterr().err.startswith("lathectl: lathed refused: ")
 
 
 def test_unknown_arguments_are_named_not_ignored(daemon):
