@@ -175,6 +175,12 @@ class Daemon:
         notify("STOPPING=1")
         log.info("stopping")
         await self._finish_cuts()
+        # what the next shift inherits: an X offset is the machine's, kept (the spindle is
+        # warm now), but nobody follows the spindle's cooling until lathed runs again
+        left = self.supervisor.offsets_left()
+        if left:
+            log.warning("offsets_left", offsets_um=left, why="kept on the machine; they go stale as the spindle "
+                        "cools (the next start phases them from there)")
         # A driver stuck in a blocking read in a worker thread must not keep
         # the process alive: acknowledged records are already committed, so
         # past the grace period we leave (systemd would SIGKILL us anyway).
@@ -194,7 +200,7 @@ class Daemon:
             if self.sim_process is not None:
                 from lathed.sim.launch import stop
                 await stop(self.sim_process)
-            self.supervisor.record("daemon_stopped", "lathed", {})
+            self.supervisor.record("daemon_stopped", "lathed", {"offsets_left_um": left} if left else {})
             self._step = "closing the store"
             await asyncio.to_thread(self.store.close)
         finally:   # stopped in time: the guard must not fire later in a process that lives on

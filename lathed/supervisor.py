@@ -351,6 +351,17 @@ class Supervisor:
                 out += [f"{name} {a}" for a in getattr(r.obj, "actions", ()) if released(a) is not None]
         return out
 
+    def offsets_left(self) -> dict[str, float]:
+        """The offsets the connected machines hold (lathed's thermal compensation): they stay
+        on the control when lathed stops, and go stale as the spindle cools."""
+        out = {}
+        for name, r in self.runners.items():
+            if r.state == "connected" and "offset_x_um" in getattr(r.obj, "actions", ()):
+                v = r.obj.current("offset_x_um")
+                if v is not None:
+                    out[name] = v
+        return out
+
     async def release_held(self) -> None:
         """Every action a machine still holds from lathed's commands back to its program's
         value, through the guard (``release``); a write that fails or hangs is logged and

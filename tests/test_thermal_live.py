@@ -83,6 +83,15 @@ def test_compensation_is_phased_in_as_the_spindle_warms(sim_daemon):
     m = meas[-1]["payload"]
     assert m["machine"] == "lathe" and m["displacement_um"] > 0 and round(m["rpm"]) in (1500, 2000, 2500)
     assert set(m["temps_c"]) == {"front_bearing", "rear_bearing", "motor", "room"}
+    # the offset stays on the machine when lathed stops: said, and recorded with the stop
+    last = thermal(d, "status")["applied_offset_um"]
+    assert d.stop() == 0
+    import sqlite3
+    con = sqlite3.connect(f"file:{d.paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)
+    (payload,), = con.execute("SELECT payload FROM events WHERE kind = 'daemon_stopped'").fetchall()
+    con.close()
+    assert json.loads(payload)["offsets_left_um"]["lathe"] == pytest.approx(last, abs=0.6), payload
+    assert '"offsets_left"' in d.cfg.with_suffix(".log").read_text()
 
 
 NEED = MIN_REFIT_ROWS          # 63: 50 rows for the residual loop's 5 held-out blocks + the newest 20 %
