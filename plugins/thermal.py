@@ -9,7 +9,7 @@ write it to the CNC as an X offset (numeric core: lathed.analysis.thermal).
     tolerance_um = 2.0         # act when the offset lags the prediction by more than this
     rate_um_s = 2.0            # phase the offset in at most this fast
     step = "1s"                # how often the prediction is evaluated
-    sign = -1.0                # offset = sign * growth since the tool was touched off
+    sign = -1.0                # -1 or 1: offset = sign * growth since the tool was touched off
 
 The growth is compensated since the tool was touched off. The touch-off (the
 temperatures, time and speed of that moment, the prediction then, and the
@@ -68,6 +68,10 @@ class ThermalAnalyzer(Analyzer):
         self.rate = section.getfloat("rate_um_s", 2.0, above=0, maxval=1000)
         self.step = section.getduration("step", 1.0, minval=0.05, maxval=600)
         self.sign = section.getfloat("sign", -1.0, minval=-1.0, maxval=1.0)
+        if self.sign not in (-1.0, 1.0):
+            # the offset's direction against the growth; 0.3 would compensate 30 % without a word
+            raise section.error("sign", f"expected -1 or 1 (the offset's direction against the growth), "
+                                        f"got {self.sign:g}")
         if self.model_path:
             p = Path(self.model_path)
             if not p.is_absolute():

@@ -115,3 +115,13 @@ def test_a_malformed_model_file_is_one_line_naming_the_key(tmp_path, capsys, edi
     args = SimpleNamespace(train=str(csv), test=None, model=str(path), max_sensors=2, split=None)
     assert run(args) == 65
     assert capsys.readouterr().err == f"lathectl: cannot load thermal model {path}: {problem}\n"
+
+
+@pytest.mark.parametrize("sign", [0.3, 0.0, -0.5])
+def test_sign_is_a_direction_not_a_scale(sign):
+    # 0.3 passed the [-1, 1] range and compensated 30 % of the growth without a word
+    with pytest.raises(ConfigError, match=r"\[analyzer.thermal\] sign: expected -1 or 1 \(the offset's direction"):
+        ThermalAnalyzer("thermal", Section("f.toml", "analyzer.thermal", {"input": "temps", "machine": "lathe",
+                                                                          "sign": sign}))
+    assert ThermalAnalyzer("thermal", Section("f.toml", "analyzer.thermal",
+                                              {"input": "temps", "machine": "lathe", "sign": 1.0})).sign == 1.0
