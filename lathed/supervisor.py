@@ -359,7 +359,7 @@ class Supervisor:
             if r.state == "connected" and "offset_x_um" in getattr(r.obj, "actions", ()):
                 v = r.obj.current("offset_x_um")
                 if v is not None:
-                    out[name] = v
+                    out[name] = round(v, 2)     # a float32 register's -4.670000076 is -4.67 µm
         return out
 
     async def release_held(self) -> None:
