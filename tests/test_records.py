@@ -312,6 +312,16 @@ def abnormal_part(f: BusFeed, count: int):
     f.lathe(part_count=count)
 
 
+async def running_to_abnormal_part_2(r, bus):
+    """The records analyzer running, fed part 1's start and an abnormal part 2: (its task, the feed)."""
+    task = asyncio.create_task(r.run())
+    await turns(lambda: bus._subs.get("lathe"))
+    f = BusFeed(bus)
+    f.lathe(part_count=1, program_state=1)
+    abnormal_part(f, 2)
+    return task, f
+
+
 def written(path) -> tuple[list, list, list]:
     import sqlite3
     con = sqlite3.connect(path)
@@ -330,11 +340,7 @@ def test_a_stop_while_a_part_commits_leaves_no_abnormal_part_out_of_the_sampling
     taken, release = hold_first_part_commit(store)
 
     async def main():
-        task = asyncio.create_task(r.run())
-        await turns(lambda: bus._subs.get("lathe"))
-        f = BusFeed(bus)
-        f.lathe(part_count=1, program_state=1)
-        abnormal_part(f, 2)
+        task, f = await running_to_abnormal_part_2(r, bus)
         assert await asyncio.to_thread(taken.wait, 5)     # part 2 is being committed...
         task.cancel()                                      # ...when the daemon stops
         await asyncio.gather(task, return_exceptions=True)
@@ -352,11 +358,7 @@ def test_a_stalled_commit_holds_up_neither_the_bus_nor_the_parts_behind_it(tmp_p
     taken, release = hold_first_part_commit(store)
 
     async def main():
-        task = asyncio.create_task(r.run())
-        await turns(lambda: bus._subs.get("lathe"))
-        f = BusFeed(bus)
-        f.lathe(part_count=1, program_state=1)
-        abnormal_part(f, 2)
+        task, f = await running_to_abnormal_part_2(r, bus)
         assert await asyncio.to_thread(taken.wait, 5)     # part 2's commit stalls
         for _ in range(3):                                 # seconds of a machine polled at 10 Hz meanwhile
             for q in range(500):
@@ -384,11 +386,7 @@ def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_recor
                  "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
 
     async def main():
-        task = asyncio.create_task(r.run())
-        await turns(lambda: bus._subs.get("lathe"))
-        f = BusFeed(bus)
-        f.lathe(part_count=1, program_state=1)
-        abnormal_part(f, 2)
+        task, f = await running_to_abnormal_part_2(r, bus)
         assert await asyncio.to_thread(log.heard("part_not_written").wait, 5)
         event, kw = next(line for line in log.lines if line[0] == "part_not_written")
         assert kw["part_no"] == 2 and "chatter alarm" in kw["reason"] and "disk is full" in kw["error"]

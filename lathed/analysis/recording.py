@@ -293,11 +293,12 @@ def _read_csv(raw: bytes, src: str, channel: int, rate_hz: float | None) -> Sign
     if not body:
         raise RecordingError(f"{src}: CSV has a header but no data rows")
     want = [col] if t_col is None else [t_col, col]
-    _check_fields(body, body_start, delim, len(names), src)
+    joined = "\n".join(body)
+    _check_fields(body, joined, body_start, delim, len(names), src)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)     # rows that are all comments: said below
-            arr = np.loadtxt(io.StringIO("\n".join(body)), delimiter=None if delim == " " else delim,
+            arr = np.loadtxt(io.StringIO(joined), delimiter=None if delim == " " else delim,
                              usecols=want, ndmin=2)
     except (ValueError, IndexError):
         _locate_csv_error(body, body_start, delim, want, names, src)
@@ -358,12 +359,12 @@ def _is_number(s: str) -> bool:
         return False
 
 
-def _check_fields(body, start, delim, n, src) -> None:
+def _check_fields(body, joined, start, delim, n, src) -> None:
     """Every row has the header's fields: a row with more is not read right (the columns
     taken by position would be someone else's).  One count over the text where it can."""
     if delim == " " or n < 1:
         return
-    if sum(ln.count(delim) for ln in body) == len(body) * (n - 1):
+    if joined.count(delim) == len(body) * (n - 1):
         return
     for i, row in enumerate(csv.reader(body, delimiter=delim)):
         if row and not row[0].lstrip().startswith("#") and len(row) != n:
