@@ -252,7 +252,8 @@ class Daemon:
             # the configured sinks, not the running ones: a sink that failed to start or is
             # disabled would otherwise lose its unforwarded backlog (none running: all of it)
             sinks = record_sinks(self.cfg, self.loader)
-            cutoff = time.time() - self.settings.keep_days * 86400.0
+            # by the store's clock: a wall clock set ahead must not age every record at once
+            cutoff = self.store.clock.now() - self.settings.keep_days * 86400.0
             try:
                 removed = await asyncio.to_thread(self.store.prune, cutoff, sinks)
             except Exception as e:      # the store says why; keep every record and try again later

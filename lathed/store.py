@@ -242,11 +242,42 @@ MIGRATIONS: list[tuple[int, str]] = [
            json_extract(payload, '$.model') AS model,
            json_extract(payload, '$.tool_number') AS tool_number
     FROM events WHERE kind = 'cut';
+    """),    (6, """
+    -- The store's own clock, which retention ages rows by (StoreClock): it runs with
+    -- lathed, so a wall clock set ahead does not age every record at once, nor one set
+    -- back (an RTC reset at boot) make fresh records look years old.
+    CREATE TABLE store_clock (
+        id      INTEGER PRIMARY KEY CHECK (id = 1),
+        store_t REAL NOT NULL,
+        wall_t  REAL NOT NULL
+    );
+    ALTER TABLE outbox ADD COLUMN age_t REAL;
+    UPDATE outbox SET age_t = (SELECT t FROM events WHERE id = outbox.row_id) WHERE tbl = 'events';
+    UPDATE outbox SET age_t = (SELECT end_t FROM workpieces WHERE id = outbox.row_id) WHERE tbl = 'workpieces';
+    UPDATE outbox SET age_t = (SELECT t FROM inspections WHERE id = outbox.row_id) WHERE tbl = 'inspections';
+    UPDATE outbox SET age_t = (SELECT t FROM sampling_queue WHERE id = outbox.row_id) WHERE tbl = 'sampling_queue';
+    UPDATE outbox SET age_t = (SELECT t FROM experiments WHERE id = outbox.row_id) WHERE tbl = 'experiments';
+    DROP TRIGGER events_outbox;
+    CREATE TRIGGER events_outbox AFTER INSERT ON events BEGIN INSERT INTO outbox(tbl, row_id, age_t)
+    VALUES ('events', NEW.id, (SELECT store_t FROM store_clock)); END;
+    DROP TRIGGER workpieces_outbox;
+    CREATE TRIGGER workpieces_outbox AFTER INSERT ON workpieces BEGIN INSERT INTO outbox(tbl, row_id, age_t)
+    VALUES ('workpieces', NEW.id, (SELECT store_t FROM store_clock)); END;
+    DROP TRIGGER inspections_outbox;
+    CREATE TRIGGER inspections_outbox AFTER INSERT ON inspections BEGIN INSERT INTO outbox(tbl, row_id, age_t)
+    VALUES ('inspections', NEW.id, (SELECT store_t FROM store_clock)); END;
+    DROP TRIGGER sampling_queue_outbox;
+    CREATE TRIGGER sampling_queue_outbox AFTER INSERT ON sampling_queue BEGIN INSERT INTO outbox(tbl, row_id, age_t)
+    VALUES ('sampling_queue', NEW.id, (SELECT store_t FROM store_clock)); END;
+    DROP TRIGGER experiments_outbox;
+    CREATE TRIGGER experiments_outbox AFTER INSERT ON experiments BEGIN INSERT INTO outbox(tbl, row_id, age_t)
+    VALUES ('experiments', NEW.id, (SELECT store_t FROM store_clock)); END;
     """),
 ]
 
-# The time a record row is aged by, for retention.
-AGE_COLUMN = {"events": "t", "workpieces": "end_t", "inspections": "t", "sampling_queue": "t", "experiments": "t"}
+# The wall time a stopped daemon's downtime counts for on the store clock at most: a longer
+# gap may be a clock set ahead while it was down, and must not age every record at once.
+MAX_STOPPED_S = 7 * 86400.0
 PRUNE_CHUNK = 2000
 
 # SQLite primary result codes that say the storage failed, not the record:
@@ -336,14 +367,52 @@ class StoreError(Exception):
     """The store could not take a record; the message says why."""
 
 
+class StoreClock:
+    """The time retention ages records by: the wall clock where it behaves, lathed's own
+    running time where it jumps.  While lathed runs it advances with the monotonic clock,
+    so a wall clock set ahead (every record would look old at once) or back (an RTC reset
+    at boot, records stamped years ago) moves nothing.  Across a stop it resumes where it
+    was plus the wall time the stop took, counted from 0 to ``MAX_STOPPED_S``: a clock
+    found behind counts none, one found far ahead counts a week; either way records are
+    kept longer, never deleted sooner.  Persisted by the writer in every transaction."""
+
+    def __init__(self, saved: tuple[float, float] | None, newest: float | None,
+                 wall=time.time, monotonic=time.monotonic) -> None:
+        self._monotonic = monotonic
+        now = wall()
+        self.stopped_s: float | None = None      # the wall time the stop took, as found
+        if saved is None:
+            base = now
+        else:
+            self.stopped_s = now - saved[1]
+            base = saved[0] + min(max(self.stopped_s, 0.0), MAX_STOPPED_S)
+            if not 0.0 <= self.stopped_s <= MAX_STOPPED_S:
+                log.warning("store_clock_gap", stopped_s=round(self.stopped_s, 1),
+                            counted_s=round(base - saved[0], 1),
+                            why="the wall clock moved back, or further ahead than a stop of "
+                                f"{MAX_STOPPED_S / 86400:g} days, while lathed was stopped: retention "
+                                "counts the stop as this much")
+            if newest is not None:       # never behind a row it stamped (saved with them, but be sure)
+                base = max(base, newest)
+        self._base, self._t0 = base, monotonic()
+
+    def now(self) -> float:
+        return self._base + (self._monotonic() - self._t0)
+
+
 class Store:
-    def __init__(self, path: str | Path, machine_id: str = "lathed"):
+    def __init__(self, path: str | Path, machine_id: str = "lathed", wall=time.time, monotonic=time.monotonic):
         self.path = Path(path)
         self.machine_id = machine_id
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
         self._wcon = connect(self.path)
         _private(self.path)
         self.schema_version = migrate(self._wcon)
+        saved = self._wcon.execute("SELECT store_t, wall_t FROM store_clock").fetchone()
+        self.clock = StoreClock(None if saved is None else (saved[0], saved[1]),
+                                self._wcon.execute("SELECT max(age_t) FROM outbox").fetchone()[0], wall, monotonic)
+        self._wall = wall
+        self._save_clock()
         self._rcon = connect(self.path)
         self._rlock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
@@ -451,6 +520,7 @@ class Store:
         storage = False    # a record failed for the storage itself (full, I/O), not for its content
         try:
             self._wcon.execute("BEGIN")
+            self._save_clock()        # the rows of this transaction are aged from this reading
             for sql, params, fut in batch:
                 try:
                     if isinstance(sql, list):     # statements that stand or fall together
@@ -498,6 +568,11 @@ class Store:
                     self.failed += 1
                     self._note_error(_one_line(err))
         self._settle_all(results)
+
+    def _save_clock(self) -> None:
+        self._wcon.execute("INSERT INTO store_clock(id, store_t, wall_t) VALUES (1, ?, ?) ON CONFLICT(id) DO "
+                           "UPDATE SET store_t = excluded.store_t, wall_t = excluded.wall_t",
+                           (self.clock.now(), self._wall()))
 
     @staticmethod
     def _settle_all(results: list) -> None:
@@ -604,44 +679,37 @@ class Store:
         return self.query("SELECT count(*) AS n FROM forward_refused WHERE sink = ?", (sink,))[0]["n"]
 
     def prune(self, before_t: float, sinks: list[str]) -> dict[str, int]:
-        """Delete record rows older than ``before_t`` that every sink in ``sinks``
-        has forwarded (all of them when there is no sink), with their outbox
-        entries, in one transaction per chunk. Candidates are found on the
-        read connection, walking the outbox in id (insertion) order and
-        stopping at the first chunk with nothing old enough, so the writer
-        only ever runs deletes by primary key; after each chunk it waits as
+        """Delete record rows aged (``age_t``, the store clock's reading when they were
+        written) before ``before_t`` that every sink in ``sinks`` has forwarded (all of
+        them when there is no sink), with their outbox entries, in one transaction per
+        chunk. Candidates are found on the read connection, walking the outbox in id
+        (insertion) order and stopping at the first chunk with nothing old enough, so
+        the writer only ever runs deletes by primary key; after each chunk it waits as
         long as the chunk took. Returns rows removed per table."""
         safe = min((self.progress(s) for s in sinks), default=None)
         if safe is None:
             safe = self.query("SELECT max(id) AS m FROM outbox")[0]["m"] or 0
-        removed = {t: 0 for t in AGE_COLUMN}
+        removed = {t: 0 for t in FORWARDED}
         after = 0
         while True:
             started = time.monotonic()
-            entries = self.query("SELECT id, tbl, row_id FROM outbox WHERE id > ? AND id <= ? ORDER BY id LIMIT ?",
-                                 (after, safe, PRUNE_CHUNK))
+            entries = self.query("SELECT id, tbl, row_id, age_t FROM outbox WHERE id > ? AND id <= ? "
+                                 "ORDER BY id LIMIT ?", (after, safe, PRUNE_CHUNK))
             if not entries:
                 break
             after = entries[-1]["id"]
             old: dict[str, list[tuple[int, int]]] = {}
-            by_table: dict[str, list[tuple[int, int]]] = {}
             for e in entries:
-                by_table.setdefault(e["tbl"], []).append((e["id"], e["row_id"]))
-            for tbl, pairs in by_table.items():
-                col = AGE_COLUMN[tbl]
-                rows = {r["id"] for r in self.query(
-                    f"SELECT id FROM {tbl} WHERE {col} < ? AND id IN ({','.join('?' * len(pairs))})",
-                    (before_t, *(rid for _, rid in pairs)))}
-                old[tbl] = [(oid, rid) for oid, rid in pairs if rid in rows]
-            if not any(old.values()):
-                break       # insertion order follows time: nothing older further on
+                if e["age_t"] is not None and e["age_t"] < before_t:
+                    old.setdefault(e["tbl"], []).append((e["id"], e["row_id"]))
+            if not old:
+                break       # the store clock never runs back: nothing older further on
             stmts = []
             for tbl, pairs in old.items():
-                if pairs:
-                    marks = ",".join("?" * len(pairs))
-                    stmts.append((f"DELETE FROM outbox WHERE id IN ({marks})", tuple(o for o, _ in pairs)))
-                    stmts.append((f"DELETE FROM {tbl} WHERE id IN ({marks})", tuple(r for _, r in pairs)))
-                    removed[tbl] += len(pairs)
+                marks = ",".join("?" * len(pairs))
+                stmts.append((f"DELETE FROM outbox WHERE id IN ({marks})", tuple(o for o, _ in pairs)))
+                stmts.append((f"DELETE FROM {tbl} WHERE id IN ({marks})", tuple(r for _, r in pairs)))
+                removed[tbl] += len(pairs)
             self.submit(stmts, ()).result()
             # as long again idle: live records are committed between chunks, not behind them
             time.sleep(min(time.monotonic() - started, 0.25))
@@ -698,7 +766,9 @@ class Store:
                 "failed": self.failed, "queued": self._q.qsize(), "last_error": self.last_error,
                 "last_error_t": self.last_error_t, "failing": self.failing or not self.writer_alive,
                 "failing_since": self.failing_since if self.failing else None, "recovered_t": self.recovered_t,
-                "writer_alive": self.writer_alive, "writer_error": self.writer_error}
+                "writer_alive": self.writer_alive, "writer_error": self.writer_error,
+                # retention's clock against the wall clock: not 0 once the wall clock has jumped
+                "clock_minus_wall_s": round(self.clock.now() - self._wall(), 1)}
 
 
 def _private(db: Path) -> None:

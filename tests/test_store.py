@@ -121,21 +121,43 @@ def test_non_finite_numbers_are_recorded_as_null_so_the_views_still_read(tmp_pat
     s.close()
 
 
+class Clocks:
+    """A wall clock and a monotonic clock the test moves; the store clock runs with the second."""
+
+    def __init__(self, wall: float = 1_790_000_000.0) -> None:
+        self.wall_t, self.mono_t = wall, 1000.0
+
+    def wall(self) -> float:
+        return self.wall_t
+
+    def mono(self) -> float:
+        return self.mono_t
+
+    def run(self, s: float) -> None:
+        self.wall_t += s
+        self.mono_t += s
+
+    def store(self, path, **kw) -> Store:
+        return Store(path, wall=self.wall, monotonic=self.mono, **kw)
+
+
 def test_retention_deletes_only_old_records_every_sink_has_forwarded(tmp_path, monkeypatch):
     monkeypatch.setattr(storemod, "PRUNE_CHUNK", 7)      # several chunks
-    s = Store(tmp_path / "a.db", machine_id="cell-r")
+    clocks = Clocks()
+    s = clocks.store(tmp_path / "a.db", machine_id="cell-r")
     day = 86400.0
     for k in range(40):                                  # 40 old events, then 10 recent ones
         s.record_future("tick", "w", {"k": k}, t=1000.0 + k).result(10)
     part = "00000000-0000-0000-0000-00000000000a"
     s.insert("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1050.0, "end_t": 1060.0,
                             "outcome": "finished", "chatter_alarms": 0, "abnormal": 0}).result(10)
+    clocks.run(10 * day)
     for k in range(10):
         s.record_future("tick", "w", {"k": 100 + k}, t=10 * day + k).result(10)
     # sink "central" forwarded the first 30 outbox entries; "backup" only 20
     s.set_progress("central", 30).result(10)
     s.set_progress("backup", 20).result(10)
-    removed = s.prune(5 * day, ["central", "backup"])
+    removed = s.prune(s.clock.now() - 5 * day, ["central", "backup"])
     assert removed["events"] == 20 and removed["workpieces"] == 0
     ks = [r["payload"]["k"] for r in s.events(100, "tick", None, 0)]
     assert sorted(ks) == list(range(20, 40)) + list(range(100, 110))
@@ -145,10 +167,10 @@ def test_retention_deletes_only_old_records_every_sink_has_forwarded(tmp_path, m
     last = s.query("SELECT max(id) AS m FROM outbox")[0]["m"]
     s.set_progress("central", last).result(10)
     s.set_progress("backup", last).result(10)
-    removed = s.prune(5 * day, ["central", "backup"])
+    removed = s.prune(s.clock.now() - 5 * day, ["central", "backup"])
     assert removed == {"events": 20, "workpieces": 1, "inspections": 0, "sampling_queue": 0, "experiments": 0}
     assert sorted(r["payload"]["k"] for r in s.events(100, "tick", None, 0)) == list(range(100, 110))
-    assert s.pending("backup", 100) == [] and s.prune(5 * day, ["central", "backup"])["events"] == 0
+    assert s.pending("backup", 100) == [] and s.prune(s.clock.now() - 5 * day, ["central", "backup"])["events"] == 0
     s.close()
 
 
@@ -156,8 +178,9 @@ def test_retention_without_sinks_and_with_a_sink_that_never_forwarded(tmp_path):
     s = Store(tmp_path / "a.db")
     for k in range(5):
         s.record_future("tick", "w", {"k": k}, t=1.0).result(10)
-    assert s.prune(100.0, ["central"])["events"] == 0     # not yet forwarded: kept
-    assert s.prune(100.0, [])["events"] == 5               # no sink: the age alone decides
+    later = s.clock.now() + 1.0
+    assert s.prune(later, ["central"])["events"] == 0     # not yet forwarded: kept
+    assert s.prune(later, [])["events"] == 5               # no sink: the age alone decides
     s.close()
 
 
@@ -329,10 +352,12 @@ host = "broker.plant"
 ''')
     cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=False)
     assert "analyzer.central" in plan.skipped and not plan.analyzers
-    s = Store(tmp_path / "a.db")
+    clocks = Clocks()
+    s = clocks.store(tmp_path / "a.db")
     d = daemonmod.Daemon(cfg, settings, loader, plan, sim, s)
     for k in range(5):
-        s.record_future("tick", "w", {"k": k}, t=time.time() - 3 * 86400).result(10)
+        s.record_future("tick", "w", {"k": k}).result(10)
+    clocks.run(3 * 86400)
     s.set_progress("broker", 5).result(10)            # forwarded before it was disabled
     real, passes = s.prune, []
     pruned = threading.Event()
@@ -351,5 +376,100 @@ host = "broker.plant"
     asyncio.run(one_pass())
     assert passes[:1] == [(["broker", "central"], 0)]       # central never forwarded: nothing goes
     s.set_progress("central", 2).result(10)
-    assert real(time.time() - 86400, ["broker", "central"])["events"] == 2
+    assert real(s.clock.now() - 86400, ["broker", "central"])["events"] == 2
+    s.close()
+
+
+def _prune_pass(tmp_path, store: Store, keep_days: float) -> dict:
+    """One retention pass of a daemon (no sinks) over ``store``; its last_prune."""
+    from lathed import daemon as daemonmod
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(f'[daemon]\nstate_dir = "{tmp_path}/state"\nruntime_dir = "{tmp_path}/run"\n'
+                   f'[store]\nkeep_days = {keep_days}\n[sensor.t]\nplugin = "ds18b20_serial"\nport = "/dev/null"\n')
+    cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=False)
+    d = daemonmod.Daemon(cfg, settings, loader, plan, sim, store)
+    d.settings.prune_every = 0.0
+
+    async def one_pass():
+        task = asyncio.create_task(d._prune())
+        while d.last_prune is None:
+            await asyncio.sleep(0)     # the pass runs in a thread: yield until it has reported
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(asyncio.wait_for(one_pass(), 10))
+    return d.last_prune
+
+
+def test_a_wall_clock_set_ahead_ages_no_record(tmp_path, monkeypatch):
+    # the PC's clock jumps 400 days ahead (a dead RTC battery, then a wrong NTP answer, or a
+    # typo in `date`): aged by the wall clock, every record was older than keep_days at once
+    import time
+    clocks = Clocks(wall=time.time())
+    s = clocks.store(tmp_path / "a.db")
+    for k in range(5):
+        s.record_future("tick", "w", {"k": k}).result(10)
+    clocks.run(3600.0)
+    clocks.wall_t += 400 * 86400.0
+    monkeypatch.setattr(time, "time", clocks.wall)
+    assert _prune_pass(tmp_path, s, keep_days=30)["removed"]["events"] == 0
+    assert _count(tmp_path / "a.db", "tick") == 5
+    assert s.stats()["clock_minus_wall_s"] == -400 * 86400.0
+    s.close()
+
+
+def test_records_written_while_the_clock_was_behind_are_not_deleted_when_it_is_set_right(tmp_path, monkeypatch):
+    # a reboot with the RTC reset to 2000: records are stamped 2000 until NTP sets the clock
+    # right; aged by their stamps they were deleted at the next pass, minutes old
+    import time
+    right = time.time()
+    clocks = Clocks(wall=right)
+    s = clocks.store(tmp_path / "a.db")
+    s.record_future("tick", "w", {"k": 0}).result(10)
+    s.close()
+    clocks.wall_t = 946_684_800.0                  # 2000-01-01
+    s = clocks.store(tmp_path / "a.db")            # the stop counts nothing: the clock is behind
+    monkeypatch.setattr(time, "time", clocks.wall)
+    for k in range(1, 6):
+        s.record_future("tick", "w", {"k": k}).result(10)
+    assert s.events(1, "tick", None, 0)[0]["t"] == 946_684_800.0
+    clocks.run(120.0)
+    clocks.wall_t = right + 180.0                  # NTP sets it right
+    assert _prune_pass(tmp_path, s, keep_days=1)["removed"]["events"] == 0
+    assert _count(tmp_path / "a.db", "tick") == 6
+    s.close()
+
+
+def test_the_store_clock_counts_a_stop_up_to_a_week(tmp_path):
+    day = 86400.0
+    clocks = Clocks()
+    s = clocks.store(tmp_path / "a.db")
+    t0 = s.clock.now()
+    clocks.run(60.0)
+    clocks.wall_t += 30 * day                      # a jump while running counts nothing
+    assert s.clock.now() == pytest.approx(t0 + 60.0)
+    s.close()
+    for stopped, counted in ((3 * day, 3 * day), (400 * day, 7 * day), (-2 * day, 0.0)):
+        before = Store(tmp_path / "a.db", wall=clocks.wall, monotonic=clocks.mono)
+        was = before.clock.now()
+        before.close()
+        clocks.wall_t += stopped
+        after = clocks.store(tmp_path / "a.db")
+        assert after.clock.now() == pytest.approx(was + counted, abs=1e-6), stopped
+        after.close()
+
+
+def test_version_5_database_ages_its_rows_by_their_record_time(tmp_path):
+    con = sqlite3.connect(tmp_path / "old.db", isolation_level=None)
+    for v, sql in MIGRATIONS[:5]:
+        for stmt in storemod.statements(sql):
+            con.execute(stmt)
+    con.execute("PRAGMA user_version=5")
+    con.execute("INSERT INTO events(uuid, t, source, kind, payload) VALUES ('u-old', 1000.0, 'x', 'k', '{}')")
+    con.execute("INSERT INTO workpieces(uuid, machine_id, machine, start_t, end_t, outcome, chatter_alarms, "
+                "abnormal) VALUES ('p-old', 'm', 'lathe', 10.0, 2000.0, 'finished', 0, 0)")
+    con.close()
+    s = Store(tmp_path / "old.db")
+    assert {r["tbl"]: r["age_t"] for r in s.query("SELECT tbl, age_t FROM outbox")} == \
+        {"events": 1000.0, "workpieces": 2000.0}
+    assert s.prune(1500.0, [])["events"] == 1 and s.prune(1500.0, [])["workpieces"] == 0
     s.close()
