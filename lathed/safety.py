@@ -22,6 +22,7 @@ class Limits:
     rpm_rate_max: float = math.inf  # r/min per s between successive commands
     offset_max_um: float = 0.0    # |offset| bound; 0: offsets refused
     offset_rate_max_um_s: float = math.inf
+    offset_step_max_um: float = math.inf   # largest change from the machine's present offset in one command
 
     @classmethod
     def from_section(cls, sec: Section) -> Limits:
@@ -33,6 +34,7 @@ class Limits:
             rpm_rate_max=sec.getfloat("spindle_rpm_rate_max", math.inf, above=0.0),
             offset_max_um=sec.getfloat("offset_max_um", 0.0, minval=0.0, maxval=10_000.0),
             offset_rate_max_um_s=sec.getfloat("offset_rate_max_um_s", math.inf, above=0.0),
+            offset_step_max_um=sec.getfloat("offset_step_max_um", math.inf, above=0.0),
         )
         if lim.rpm_max and lim.rpm_min > lim.rpm_max:
             raise sec.error("spindle_rpm_min", f"{lim.rpm_min:g} is above spindle_rpm_max {lim.rpm_max:g}")
@@ -94,6 +96,10 @@ class SafetyGuard:
                 return "offset commands are not allowed on this machine (offset_max_um not set)"
             if abs(v) > lim.offset_max_um:
                 return f"offset {v:g} µm beyond ±{lim.offset_max_um:g} µm"
+            # against the machine's present offset: the pace bound below knows only the commands
+            # this daemon sent, so the first one after a start would otherwise jump unbounded
+            if ref is not None and abs(v - ref) > lim.offset_step_max_um:
+                return f"offset step {abs(v - ref):g} µm exceeds {lim.offset_step_max_um:g}"
             rate_max = lim.offset_rate_max_um_s
             unit = "µm/s"
         if last is not None and not cmd.release and math.isfinite(rate_max):

@@ -86,6 +86,15 @@ def test_offsets_bounded_and_phased_in():
     assert g.check(cmd("offset_x_um", 5)) is None
 
 
+def test_an_offset_step_is_bounded_from_the_machines_present_offset():
+    # the first command after a start has no pace reference (nothing sent yet): a jump
+    # from the offset the control holds is refused all the same
+    g, _ = guard(offset_step_max_um=10)
+    assert g.check(cmd("offset_x_um", 45), current=-4.67) == "offset step 49.67 µm exceeds 10"
+    assert g.check(cmd("offset_x_um", 3), current=-4.67) is None
+    assert g.check(cmd("offset_x_um", 45)) is None          # no present value known: the range only
+
+
 def test_unknown_machine_and_action():
     g, _ = guard()
     assert g.check(cmd("spindle_rpm", 1000, machine="mill")) == "no limits configured for machine 'mill'"
