@@ -380,3 +380,13 @@ def test_an_empty_string_is_taken_where_it_is_the_default_or_allowed():
     assert s.getstr("tool", "") == "" and s.getstr("a", empty=True) == "" and s.getstr("c", "x", choices=("", "x")) == ""
     with pytest.raises(ConfigError, match=r"^f: \[t\] a: expected a non-empty string, got ''$"):
         s.getstr("a", "default")
+
+
+def test_retry_initial_above_retry_max_is_refused_naming_both(tmp_path):
+    # was taken and capped without a word: every wait was retry_max
+    text = BASE.replace("port = 15020", 'port = 15020\nretry_initial = "10s"\nretry_max = "2s"', 1)
+    assert check_inproc(tmp_path, text) == ("FILE: [machine.lathe] retry_initial: 10 s is above retry_max 2 s, "
+                                            "which caps every wait; give retry_initial <= retry_max")
+    prepare_ok = BASE.replace("port = 15020", 'port = 15020\nretry_initial = "2s"\nretry_max = "2s"', 1)
+    (tmp_path / "lathed.toml").write_text(prepare_ok)
+    prepare(tmp_path / "lathed.toml", strict=True)       # equal: a constant wait, allowed
