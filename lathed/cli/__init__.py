@@ -51,6 +51,17 @@ def mode(text: str):
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def once(pairs: list, option: str) -> dict | None:
+    """NAME=V options as a dict; a name given twice is one line on stderr and None, for
+    exit 2 (the last one would be kept without a word)."""
+    seen = [n for n, _ in pairs]
+    twice = sorted({n for n in seen if seen.count(n) > 1})
+    if twice:
+        print(f"lathectl: {option} {twice[0]} given twice", file=sys.stderr)
+        return None
+    return dict(pairs)
+
+
 def fail(msg: str, code: int) -> int:
     """One line on stderr naming what is wrong; the exit code to return."""
     print(f"lathectl: {msg}", file=sys.stderr)
