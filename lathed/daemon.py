@@ -382,6 +382,8 @@ class Daemon:
         kind, source = a.getstr("kind", None), a.getstr("source", None)
         since_id = a.getint("since_id", 0)
         a.check_unused()
+        if kind is not None and (why := await offload(self.store.unknown_kind, [kind])):
+            raise a.error("kind", why)
         return await offload(self.store.events, limit, kind, source, since_id)
 
 

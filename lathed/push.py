@@ -110,6 +110,8 @@ class PushHub:
         views = _expand(a, "views", views, sorted(self.view_fns), "{!r} has no view; analyzers with one: ")
         if (kinds or sources) and not events:
             raise a.error("kinds" if kinds else "sources", "narrows events: give events = true too")
+        if kinds and (why := await asyncio.to_thread(self.store.unknown_kind, kinds)):
+            raise a.error("kinds", why)      # a misspelt kind would follow nothing, forever
         if not (samples or vibration or views or states or events):
             raise a.error(None, "nothing asked for: give samples, vibration, views, states or events")
         if len(self.subscribers) >= self.max_subscribers:

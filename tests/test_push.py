@@ -31,6 +31,9 @@ def inproc(tmp_path_factory):
     ({"views": ["thermal"]}, "subscribe: views[0]: 'thermal' has no view"),
     ({"events": True, "rate_hz": 100}, "subscribe: rate_hz: 100 is out of range"),
     ({"kinds": ["chatter_alarm"]}, "subscribe: kinds: narrows events: give events = true too"),
+    # followed nothing, forever
+    ({"events": True, "kinds": ["chatter_alram"]}, "subscribe: kinds: 'chatter_alram' is not a kind of event "
+                                                   "(did you mean 'chatter_alarm'?); known: alarm_cleared, "),
     ({}, "subscribe: nothing asked for"),
     ({"states": True, "colour": "red"}, "subscribe: unknown argument 'colour'"),
 ])

@@ -9,6 +9,10 @@ import sys
 EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, EX_CANTCREAT = 65, 66, 69, 73
 
 
+class UsageError(Exception):
+    """A bad argument found past the parser (against a stopped daemon's store): one line, exit 2."""
+
+
 def positive(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:
