@@ -577,6 +577,9 @@ class ModbusCNC(Driver):
             return None
         return v[0]
 
+    def quantities(self) -> frozenset[str]:
+        return frozenset(self.registers)      # every register is read and published
+
     def current(self, action: str) -> float | None:
         if action == "spindle_rpm":
             if "spindle_rpm_cmd" in self.registers:
