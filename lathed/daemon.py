@@ -139,7 +139,13 @@ class Daemon:
                  **{n: "analyzer" for n in self.supervisor.analyzer_runners}}
         views = {n: r.obj.live_view for n, r in self.supervisor.analyzer_runners.items()
                  if callable(getattr(r.obj, "live_view", None))}
-        self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers)
+        runners = self.supervisor.runners
+
+        def quantities(name: str) -> frozenset[str] | None:
+            fn = getattr(runners[name].obj, "quantities", None) if name in runners else None
+            return fn() if callable(fn) else None     # a driver's, where its config fixes them
+        self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers,
+                            quantities)
         self.control.register("subscribe", self.push.subscribe)
         try:
             await self.control.start()
@@ -383,6 +389,8 @@ class Daemon:
         kind, source = a.getstr("kind", None), a.getstr("source", None)
         since_id = a.getint("since_id", 0)
         a.check_unused()
+        if kind is not None and (why := await offload(self.store.unknown_kind, [kind])):
+            raise a.error("kind", why)
         return await offload(self.store.events, limit, kind, source, since_id)
 
 

@@ -125,6 +125,11 @@ class Driver:
         """The machine's present value of what ``action`` commands, if known."""
         return None
 
+    def quantities(self) -> frozenset[str] | None:
+        """Every quantity it can publish as a sample, where its config fixes them (a register
+        map), so ``watch`` can refuse one that would never come; None: any may appear."""
+        return None
+
     def status(self) -> dict[str, Any]:
         """Extra fields for ``lathectl status``."""
         return {}

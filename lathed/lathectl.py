@@ -18,7 +18,7 @@ from typing import Any, Callable
 
 from lathed import __version__
 from lathed import cli as cli_pkg
-from lathed.cli import EX_UNAVAILABLE, count
+from lathed.cli import EX_UNAVAILABLE, UsageError, count
 from lathed.client import DaemonUnavailable, RemoteError, call, default_db, subscribe
 
 
@@ -178,7 +178,9 @@ def cmd_events(args: argparse.Namespace) -> int:
         return 0
 
     def read(con):
-        from lathed.store import read_events
+        from lathed.store import read_events, unknown_kind
+        if args.kind is not None and (why := unknown_kind(con, [args.kind])):
+            raise UsageError(f"--kind: {why}")
         return read_events(con, args.limit, args.kind, args.source)
     rows = remote_or_db(args, "events", "events", {"limit": args.limit, "kind": args.kind, "source": args.source},
                         read)
@@ -287,6 +289,9 @@ def main(argv: list[str] | None = None) -> int:
     except RemoteError as e:
         print(f"lathectl: lathed refused: {e}", file=sys.stderr)
         return 2 if e.usage else 1      # a wrong argument is a usage error, as argparse's
+    except UsageError as e:
+        print(f"lathectl: {e}", file=sys.stderr)
+        return 2
     except BrokenPipeError:
         return 0
     except KeyboardInterrupt:   # the way out of --follow and watch

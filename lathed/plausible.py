@@ -56,6 +56,11 @@ UNIT_DEFAULTS: dict[str, Bounds] = {
     "%": Bounds(-1000.0, 1000.0),
     "s": Bounds(0.0, 1e9),
 }
+# Units lathed knows that bound nothing: a count, code or flag (no unit), a feed, a frequency.
+# A unit in neither (a typo, "rpm" for "r/min") would leave its quantity finite-only without
+# a word, so a driver whose units come from the config refuses it (unit_problem).
+UNBOUNDED_UNITS = ("", "mm/rev", "Hz")
+KNOWN_UNITS = (*UNIT_DEFAULTS, *UNBOUNDED_UNITS)
 CONFIRM = 3
 
 
@@ -84,13 +89,28 @@ class Plausibility:
         sec.check_unused()
         return cls(rules, confirm)
 
+    def rule(self, quantity: str) -> Bounds | None:
+        """The quantity's own rule: exact name, then the first glob that matches."""
+        rule = self.rules.get(quantity)
+        if rule is None:
+            rule = next((b for pat, b in self.rules.items() if fnmatch.fnmatchcase(quantity, pat)), None)
+        return rule
+
+    def unit_problem(self, quantity: str, unit: str, table: str) -> str | None:
+        """Why a configured unit cannot be taken (None: it can): one lathed does not know
+        gets no bounds, unless the quantity's rule (in [``table``]) gives its min and max."""
+        rule = self.rule(quantity)
+        if unit in KNOWN_UNITS or rule is not None and rule.lo > -INF and rule.hi < INF:
+            return None
+        return (f"{unit!r} is not a unit lathed knows, so {quantity} would be checked only for being finite; "
+                f"known: {', '.join(u for u in KNOWN_UNITS if u)} or none (or give {quantity} its min and max "
+                f"in [{table}])")
+
     def bounds(self, quantity: str, unit: str) -> Bounds | None:
         """The quantity's rule (exact name, then the first glob that matches) merged
         over its unit's defaults; None: no bounds, finite is enough."""
         base = UNIT_DEFAULTS.get(unit)
-        rule = self.rules.get(quantity)
-        if rule is None:
-            rule = next((b for pat, b in self.rules.items() if fnmatch.fnmatchcase(quantity, pat)), None)
+        rule = self.rule(quantity)
         if rule is None:
             return base
         if base is None:

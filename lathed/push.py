@@ -63,9 +63,11 @@ class PushHub:
     vibration sensor watched, one events poller, cached status and views."""
 
     def __init__(self, bus: Bus, store, names: dict[str, str], status: Callable[[], dict],
-                 views: dict[str, Callable[[], dict | None]], max_subscribers: int):
+                 views: dict[str, Callable[[], dict | None]], max_subscribers: int,
+                 quantities: Callable[[str], frozenset[str] | None] = lambda name: None):
         self.bus, self.store = bus, store
         self.names = names                  # instance name -> "machine" | "sensor" | "analyzer"
+        self.quantities = quantities        # name -> every quantity it can publish (None: not fixed)
         self.status = status
         self.view_fns = views               # analyzers that draw something of their own
         self.max_subscribers = max_subscribers
@@ -105,11 +107,18 @@ class PushHub:
             if not _wild(src) and src not in self.names:
                 raise a.error(f"samples[{i}]", f"no machine, sensor or analyzer named {src!r}; "
                                                f"known: {', '.join(sorted(self.names))}")
+            # a quantity its config does not give would never come: the watch waited forever
+            have = None if _wild(src) else self.quantities(src)
+            if have is not None and not any(fnmatch.fnmatchcase(x, q) for x in have):
+                raise a.error(f"samples[{i}]", f"{src!r} publishes no quantity {q!r}; it publishes: "
+                                               f"{', '.join(sorted(have))}")
         sensors = sorted(n for n, c in self.names.items() if c == "sensor")
         vibration = _expand(a, "vibration", vibration, sensors, "no sensor named {!r}; sensors: ")
         views = _expand(a, "views", views, sorted(self.view_fns), "{!r} has no view; analyzers with one: ")
         if (kinds or sources) and not events:
             raise a.error("kinds" if kinds else "sources", "narrows events: give events = true too")
+        if kinds and (why := await asyncio.to_thread(self.store.unknown_kind, kinds)):
+            raise a.error("kinds", why)      # a misspelt kind would follow nothing, forever
         if not (samples or vibration or views or states or events):
             raise a.error(None, "nothing asked for: give samples, vibration, views, states or events")
         if len(self.subscribers) >= self.max_subscribers:

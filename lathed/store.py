@@ -15,6 +15,7 @@ which sinks forward, each keeping its progress in ``forward_progress``.
 from __future__ import annotations
 
 import asyncio
+import difflib
 import json
 import math
 import os
@@ -361,6 +362,47 @@ def migrate(con: sqlite3.Connection) -> int:
 
 
 EVENT_SQL = "INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALUES (?,?,?,?,?,?)"
+
+# Every kind of event lathed and its built-in plugins record (tests/test_store.py reads the code's
+# record calls against it, so a new kind cannot be left out). A third-party plugin's kinds are
+# known once recorded: event_kinds() adds the store's.
+KINDS = frozenset({
+    "daemon_started", "daemon_stopped", "stop_waited", "config_reloaded", "config_reload_refused",
+    "store_pruned", "forward_refused",
+    *(f"{c}_{w}" for c in ("machine", "sensor", "analyzer") for w in ("fault", "recovered")),
+    "command_sent", "command_refused", "command_failed", "speed_not_released", "override_found_held",
+    "implausible_value", "alarm_raised", "alarm_cleared", "mtconnect_gap", "part_counter_reset",
+    "chatter_alarm", "chatter_cleared", "unusable_vibration_rate", "cut",
+    "suppression_action", "suppression_proposed", "suppression_mode", "suppression_exhausted",
+    "suppression_advice", "suppression_advice_lifted", "suppression_cures_forgotten", "spindle_not_following",
+    "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",
+    "stability_refit_not_adopted",
+    "compensation", "thermal_measurement", "thermal_refit", "thermal_touchoff", "thermal_model_unreadable",
+    "part_completed", "part_abnormal", "part_inspected",
+})
+
+
+def event_kinds(con: sqlite3.Connection) -> set[str]:
+    """KINDS and every kind in the store: one index seek per kind, not a scan of the events."""
+    rows = con.execute("WITH RECURSIVE k(kind) AS (SELECT min(kind) FROM events UNION ALL "
+                       "SELECT (SELECT min(kind) FROM events WHERE kind > k.kind) FROM k WHERE k.kind IS NOT NULL) "
+                       "SELECT kind FROM k WHERE kind IS NOT NULL").fetchall()
+    return set(KINDS) | {r[0] for r in rows}
+
+
+def unknown_kind(con: sqlite3.Connection, kinds: list[str]) -> str | None:
+    """Why ``kinds`` cannot narrow events (a misspelt kind matched nothing, and said nothing):
+    None when every one is known."""
+    bad = [k for k in kinds if k not in KINDS]
+    if not bad:
+        return None
+    known = event_kinds(con)
+    bad = [k for k in bad if k not in known]
+    if not bad:
+        return None
+    near = difflib.get_close_matches(bad[0], known, 1)
+    return (f"{bad[0]!r} is not a kind of event{f' (did you mean {near[0]!r}?)' if near else ''}; "
+            f"known: {', '.join(sorted(known))}")
 
 
 class StoreError(Exception):
@@ -757,6 +799,10 @@ class Store:
         oldest first; kind and source are one name or a list of names (any of them)."""
         with self._rlock:
             return read_events(self._rcon, limit, kind, source, since_id, oldest)
+
+    def unknown_kind(self, kinds: list[str]) -> str | None:
+        with self._rlock:
+            return unknown_kind(self._rcon, kinds)
 
     def last_event_id(self) -> int:
         return self.query("SELECT coalesce(max(id), 0) AS id FROM events")[0]["id"]

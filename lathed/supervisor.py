@@ -80,8 +80,11 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                 raise inst.framework.error("limits", "safety limits apply to machines only")
             if inst.category == "machine":
                 limits = Limits.from_section(inst.framework.getsection("limits", required=False))
-            inst.framework.getduration("retry_initial", 0.5, minval=0.01, maxval=60)
-            inst.framework.getduration("retry_max", 10.0, minval=0.01, maxval=3600)
+            first = inst.framework.getduration("retry_initial", 0.5, minval=0.01, maxval=60)
+            cap = inst.framework.getduration("retry_max", 10.0, minval=0.01, maxval=3600)
+            if first > cap:     # the backoff caps every wait at retry_max: the first would be cut to it
+                raise inst.framework.error("retry_initial", f"{first:g} s is above retry_max {cap:g} s, which "
+                                                            "caps every wait; give retry_initial <= retry_max")
             obj = cls(inst.name, inst.section)
             inst.section.check_unused()
             if inst.category == "machine" and getattr(obj, "role", None) != "machine":

@@ -265,6 +265,9 @@ class CanRobot(Driver):
                 raise TimeoutError(f"robot silent on {self.interface} {self.channel} for {self.timeout:g} s "
                                    "(controller off or CAN cable pulled?)")
 
+    def quantities(self) -> frozenset[str]:
+        return frozenset(s.name for m in self.db.messages for s in m.signals) - {"counter"}
+
     def current(self, action: str) -> float | None:
         return None
 

@@ -245,6 +245,10 @@ class DS18B20Serial(Driver):
                 raise TimeoutError(f"no valid reading from {self.port} for {self.stale_after:g} s "
                                    "(Arduino hung or sensors disconnected?)")
 
+    def quantities(self) -> frozenset[str] | None:
+        # without a sensors list, a probe plugged in later is published under its own name
+        return None if self.expected is None else frozenset(f"t_{n}" for n in self.expected)
+
     def status(self) -> dict:
         now = time.time()
         return {"accepted": self.accepted, "rejected": dict(self.rejected), "lines": self.lines,

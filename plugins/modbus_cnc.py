@@ -27,7 +27,8 @@ supervisor's backoff spaces its tries out.
 
 A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
 uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
-or "little"), ``scale`` (value = raw * scale), ``unit``, ``writable``
+or "little"), ``scale`` (value = raw * scale), ``unit`` (one lathed.plausible knows, which sets
+its plausible bounds, or any with min and max in ``[machine.lathe.plausible]``), ``writable``
 (default false; only for the registers lathed writes, below), ``poll`` (its own read period; registers with the same
 period are read together, in as few requests as the protocol allows),
 ``read_on`` (``["chatter.cutting", "chatter.cut_contact"]``: read it at once
@@ -83,6 +84,7 @@ from lathed.command import Command
 from lathed.config import Section
 from lathed.driver import Driver
 from lathed.machine import MachineModel
+from lathed.plausible import Plausibility
 
 DT = AsyncModbusTcpClient.DATATYPE
 TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2),
@@ -144,7 +146,7 @@ class Register:
 WRITABLE = (*ACTION_REGISTERS.values(), "spindle_override_pct", "heartbeat")
 
 
-def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
+def read_register_map(sec: Section, default_poll: float, plausible: Plausibility | None = None) -> dict[str, Register]:
     regs = {}
     for key in sec.keys():   # subsections() passes over the rest: `foo = 3` was silently ignored
         if not sec.has_section(key):
@@ -164,6 +166,9 @@ def read_register_map(sec: Section, default_poll: float) -> dict[str, Register]:
         bad = [t for t in reg.read_on if t.count(".") != 1 or not all(t.split("."))]
         if bad:
             raise sub.error("read_on", f"{bad[0]!r} is not source.quantity (e.g. \"chatter.cut_contact\")")
+        if plausible is not None and (why := plausible.unit_problem(reg.name, reg.unit,
+                                                                     sec.table.rsplit(".", 1)[0] + ".plausible")):
+            raise sub.error("unit", why)
         if reg.scale == 0:
             raise sub.error("scale", "must not be 0")
         if reg.address + reg.count > 65536:
@@ -222,7 +227,7 @@ class ModbusCNC(Driver):
         self.unit = section.getint("unit", 1, minval=0, maxval=247)
         self.poll = section.getduration("poll", 0.1, minval=0.01, maxval=60)
         self.timeout = section.getduration("timeout", 1.0, minval=0.05, maxval=60)
-        self.registers = read_register_map(section.getsection("registers"), self.poll)
+        self.registers = read_register_map(section.getsection("registers"), self.poll, self.plausible)
         slowest = max(r.poll for r in self.registers.values())
         self.stale_after = section.getduration("stale_after", max(2.0, 3 * slowest), minval=0.05)
         if self.stale_after <= slowest:
@@ -571,6 +576,9 @@ class ModbusCNC(Driver):
         if v is None or self.client is None or time.time() - v[1] > self.stale_after:
             return None
         return v[0]
+
+    def quantities(self) -> frozenset[str]:
+        return frozenset(self.registers)      # every register is read and published
 
     def current(self, action: str) -> float | None:
         if action == "spindle_rpm":

@@ -280,6 +280,9 @@ class MTConnect(Driver):
             self.errors["unreadable"] += 1
             return None
 
+    def quantities(self) -> frozenset[str]:
+        return frozenset(self.items.values())
+
     def current(self, action: str) -> float | None:
         """The spindle's speed as the agent last reported it (shown by status; no action takes it)."""
         v = self.values.get("spindle_rpm") if action == "spindle_rpm" else None

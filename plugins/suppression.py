@@ -14,10 +14,10 @@ lathed.analysis.speed_selection, lathed.analysis.speed_variation).
     diameter_mm = 30.0           # workpiece diameter, for torque and removal rate
     x_axis = "radius"            # the x_mm register is the tool tip's radius (or "diameter"):
                                  # the part's diameter read from it at every poll (default off: diameter_mm)
-    max_rpm = 6000.0             # the spindle's envelope
+    max_rpm = 6000.0             # the spindle's envelope (min_rpm 100, below it)
     max_speed_ratio = 1.3        # never more than this times the programmed speed (tool life)
     peak_torque_nm = 35.8
-    base_rpm = 1500.0
+    base_rpm = 1500.0            # torque flat up to here, constant power above; at most max_rpm
     accel_rpm_s = 3000.0
     settle_revs = 20.0           # revolutions at a new speed before judging again
     avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
@@ -178,6 +178,15 @@ class SuppressionAnalyzer(Analyzer):
             peak_torque_nm=section.getfloat("peak_torque_nm", 35.8, above=0),
             base_rpm=section.getfloat("base_rpm", 1500.0, above=0),
             accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
+        lim = self.limits
+        if lim.min_rpm >= lim.max_rpm:      # no speed would be within reach: every alarm exhausted
+            raise section.error("min_rpm", f"{lim.min_rpm:g} r/min is not below max_rpm {lim.max_rpm:g} r/min")
+        if lim.base_rpm > lim.max_rpm:
+            # the torque is flat up to base_rpm: above max_rpm it only inflates the power, which no
+            # speed in reach uses, so the number would be taken and mean nothing (or be a swap)
+            raise section.error("base_rpm", f"{lim.base_rpm:g} r/min is above max_rpm {lim.max_rpm:g} r/min; "
+                                            "a spindle with its peak torque over its whole range (constant "
+                                            "torque) has base_rpm = max_rpm")
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
         self.avoid = section.getbool("avoid", False)

@@ -100,6 +100,9 @@ class VibrationTCP(Driver):
             self.ctx.bus.publish(Block(self.name, "acceleration", float(rate), t0, seq, data, float(rpm)))
             self.ctx.bus.publish(Sample(self.name, "rms", math.sqrt(float(data @ data) / n), "m/s²", t0))
 
+    def quantities(self) -> frozenset[str]:
+        return frozenset({"rms"})      # the waveform itself is a block (subscribe's vibration), not a sample
+
     def status(self) -> dict:
         return {"rate_hz": self.rate_hz, "frames": self.frames, "lost_samples": self.lost_samples,
                 "refused_frames": dict(self.refused_frames)}

@@ -123,6 +123,13 @@ def test_clipping_reported(files, capsys):
     ("bare.csv", ["--rpm", "2000"], 65, "give --rate"),
     ("badcell.csv", ["--rpm", "2000"], 65, "line 3, column 'a': 'x2' is not a number"),
     ("bare.csv", ["--rpm", "2000", "--rate", "51200", "--detector", "nope"], 2, "unknown chatter detector"),
+    # both were taken without a word: --var means something in a .mat or TDMS file only, and a
+    # --param given twice kept the last
+    ("chatter_f32.wav", ["--rpm", "2000", "--var", "accel"], 2,
+     "chatter_f32.wav: --var names a variable of a .mat file or a channel of a TDMS file; a WAV file has none"),
+    ("stable.csv", ["--rpm", "2000", "--var", "accel"], 2, "a CSV file has none"),
+    ("chatter_f32.wav", ["--rpm", "2000", "--param", "threshold=2", "--param", "threshold=50"], 2,
+     "--param threshold given twice"),
 ])
 def test_bad_input_one_line(files, capsys, name, argv, code, msg):
     d, _, _ = files
@@ -130,6 +137,17 @@ def test_bad_input_one_line(files, capsys, name, argv, code, msg):
     assert got == code
     assert msg in err and err.startswith("lathectl: ") and err.count("\n") == 1
     assert "Traceback" not in err and out == ""
+
+
+def test_var_names_the_mat_files_variable_and_a_wav_reference_is_read_without_it(files, capsys, tmp_path):
+    from scipy.io import savemat
+    d, _, _ = files
+    rate, x = wavfile.read(d / "chatter_f32.wav")
+    savemat(tmp_path / "cut.mat", {"accel": x.astype(float), "other": np.arange(3.0)})
+    code, out, err = _cli([str(tmp_path / "cut.mat"), "--var", "accel", "--rate", str(rate), "--rpm", "2000",
+                           "--reference", str(d / "stable_24.wav"), "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)["verdict"] == "chatter"
 
 
 def test_rpm_must_be_positive(files, capsys):

@@ -380,3 +380,30 @@ def test_an_empty_string_is_taken_where_it_is_the_default_or_allowed():
     assert s.getstr("tool", "") == "" and s.getstr("a", empty=True) == "" and s.getstr("c", "x", choices=("", "x")) == ""
     with pytest.raises(ConfigError, match=r"^f: \[t\] a: expected a non-empty string, got ''$"):
         s.getstr("a", "default")
+
+
+def test_retry_initial_above_retry_max_is_refused_naming_both(tmp_path):
+    # was taken and capped without a word: every wait was retry_max
+    text = BASE.replace("port = 15020", 'port = 15020\nretry_initial = "10s"\nretry_max = "2s"', 1)
+    assert check_inproc(tmp_path, text) == ("FILE: [machine.lathe] retry_initial: 10 s is above retry_max 2 s, "
+                                            "which caps every wait; give retry_initial <= retry_max")
+    prepare_ok = BASE.replace("port = 15020", 'port = 15020\nretry_initial = "2s"\nretry_max = "2s"', 1)
+    (tmp_path / "lathed.toml").write_text(prepare_ok)
+    prepare(tmp_path / "lathed.toml", strict=True)       # equal: a constant wait, allowed
+
+
+def test_a_register_unit_lathed_does_not_know_is_refused_naming_register_unit_and_known(tmp_path):
+    # "rpm" was taken, and the speed then had no plausible bounds: a 1e9 r/min read reached the bus
+    text = BASE.replace('spindle_rpm = { address = 2, type = "float32" }',
+                        'spindle_rpm = { address = 2, type = "float32", unit = "rpm" }', 1)
+    assert check_inproc(tmp_path, text) == (
+        "FILE: [machine.lathe.registers.spindle_rpm] unit: 'rpm' is not a unit lathed knows, so spindle_rpm would "
+        "be checked only for being finite; known: °C, r/min, mm, µm, deg, m/s², %, s, mm/rev, Hz or none (or give "
+        "spindle_rpm its min and max in [machine.lathe.plausible])")
+    # a unit of one's own is taken where its bounds are given (a pressure lathed has no default for)
+    own = BASE + ('coolant_bar = { address = 9, type = "float32", unit = "bar" }\n'
+                  '[machine.lathe.plausible]\ncoolant_bar = { min = 0, max = 100 }\n')
+    (tmp_path / "lathed.toml").write_text(own)
+    prepare(tmp_path / "lathed.toml", strict=True)
+    half = own.replace("min = 0, max = 100", "max = 100")
+    assert check_inproc(tmp_path, half).startswith("FILE: [machine.lathe.registers.coolant_bar] unit: 'bar' is not")

@@ -44,6 +44,15 @@ def assert_refused(reply: dict, logs: list[dict], *wanted: str) -> None:
     assert not bad, bad
 
 
+def test_a_misspelt_event_kind_is_refused_naming_the_known_ones(daemon):
+    # it listed no events, without a word
+    reply, logs = ask(daemon, {"cmd": "events", "args": {"kind": "chatter_alram"}})
+    assert reply["ok"] is False and reply["usage"] is True and "\n" not in reply["error"], reply
+    assert reply["error"].startswith("events: kind: 'chatter_alram' is not a kind of event (did you mean "
+                                     "'chatter_alarm'?); known: alarm_cleared, "), reply
+    assert ask(daemon, {"cmd": "events", "args": {"kind": "chatter_alarm"}})[0]["ok"] is True
+
+
 # -- D9: wrong argument types -------------------------------------------------------
 @pytest.mark.parametrize("req, wanted", [
     ({"cmd": "events", "args": {"since_id": "abc"}}, ["events: since_id: expected an integer", "'abc'"]),

@@ -27,10 +27,19 @@ def inproc(tmp_path_factory):
 @pytest.mark.parametrize("args, wanted", [
     ({"samples": ["lathe"]}, "subscribe: samples[0]: 'lathe' is not SOURCE/QUANTITY"),
     ({"samples": ["spindle/*"]}, "subscribe: samples[0]: no machine, sensor or analyzer named 'spindle'"),
+    # a quantity the driver's config does not give: lathectl watch waited for it forever
+    ({"samples": ["lathe/spindle_rpm", "lathe/nosuch"]},
+     "subscribe: samples[1]: 'lathe' publishes no quantity 'nosuch'; it publishes: alarm_code, "),
+    ({"samples": ["lathe/rpm*"]}, "subscribe: samples[0]: 'lathe' publishes no quantity 'rpm*'; it publishes: "),
+    ({"samples": ["vib/acceleration"]}, "subscribe: samples[0]: 'vib' publishes no quantity 'acceleration'; "
+                                        "it publishes: rms"),
     ({"vibration": ["lathe"]}, "subscribe: vibration[0]: no sensor named 'lathe'"),
     ({"views": ["thermal"]}, "subscribe: views[0]: 'thermal' has no view"),
     ({"events": True, "rate_hz": 100}, "subscribe: rate_hz: 100 is out of range"),
     ({"kinds": ["chatter_alarm"]}, "subscribe: kinds: narrows events: give events = true too"),
+    # followed nothing, forever
+    ({"events": True, "kinds": ["chatter_alram"]}, "subscribe: kinds: 'chatter_alram' is not a kind of event "
+                                                   "(did you mean 'chatter_alarm'?); known: alarm_cleared, "),
     ({}, "subscribe: nothing asked for"),
     ({"states": True, "colour": "red"}, "subscribe: unknown argument 'colour'"),
 ])
@@ -39,6 +48,16 @@ def test_bad_subscriptions_are_refused_in_one_line(inproc, args, wanted):
     assert reply["ok"] is False
     assert reply["error"].startswith(wanted), reply["error"]
     assert "\n" not in reply["error"]
+    assert inproc.daemon.push.subscribers == set()
+
+
+def test_a_quantity_that_may_still_come_is_watched(inproc):
+    """A register not read yet (the machine is off), a probe a sensor without a ``sensors``
+    list may report later, an analyzer's (not declared): taken, as they may come."""
+    reply = inproc.handle(json.dumps({"cmd": "subscribe", "args": {
+        "samples": ["lathe/spindle_*", "temps/t_spare", "watch/chatter_index", "*/nosuch"]}}).encode())
+    assert reply["ok"] is True, reply
+    reply["result"].close()
     assert inproc.daemon.push.subscribers == set()
 
 

@@ -156,6 +156,25 @@ def test_no_daemon_exits_69(tmp_path, monkeypatch):
     assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69
 
 
+def test_a_misspelt_kind_on_a_stopped_daemons_store_is_one_usage_line(tmp_path, capsys):
+    # it listed "(no events)", exit 0, as if none had happened
+    from lathed.lathectl import main
+    from lathed.store import Store
+    s = Store(tmp_path / "lathed.db")
+    s.record_future("robot_gripper_slip", "arm", {"n": 1}).result()     # a plugin's own kind
+    s.close()
+    argv = ["--socket", str(tmp_path / "none.sock"), "events", "--db", str(tmp_path / "lathed.db")]
+    assert main([*argv, "--kind", "chatter_alram"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lathectl: --kind: 'chatter_alram' is not a kind of event (did you mean "
+                          "'chatter_alarm'?); known: alarm_cleared, ")
+    assert err.count("\n") == 1 and "robot_gripper_slip" in err
+    assert main([*argv, "--kind", "robot_gripper_slip"]) == 0
+    assert "robot_gripper_slip" in capsys.readouterr().out
+    assert main([*argv, "--kind", "chatter_alarm"]) == 0          # known, none recorded yet
+    assert "(no events)" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("argv, msg", [
     (["inspect", "2", "--value", "x=1", "--value", "x=2"], "lathectl: --value x given twice"),
     (["experiment", "add", "--tool", "T1", "--material", "C45", "--run", "1", "--levels", "speed=1",

@@ -473,3 +473,49 @@ def test_version_5_database_ages_its_rows_by_their_record_time(tmp_path):
         {"events": 1000.0, "workpieces": 2000.0}
     assert s.prune(1500.0, [])["events"] == 1 and s.prune(1500.0, [])["workpieces"] == 0
     s.close()
+
+
+def _recorded_kinds() -> tuple[set[str], list[str]]:
+    """The kinds the code records: first arguments of record(), record_future(),
+    event_statement() and the drivers' _record(); f"{category}_fault" as its tail."""
+    import ast
+    from pathlib import Path
+    root = Path(__file__).resolve().parent.parent
+    kinds, other = set(), []
+    for p in [*(root / "lathed").rglob("*.py"), *(root / "plugins").glob("*.py")]:
+        for n in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if not (isinstance(n, ast.Call) and n.args):
+                continue
+            name = n.func.attr if isinstance(n.func, ast.Attribute) else getattr(n.func, "id", None)
+            if name not in ("record", "record_future", "event_statement", "_record"):
+                continue
+            a = n.args[0]
+            if isinstance(a, ast.Constant) and isinstance(a.value, str):
+                kinds.add(a.value)
+            elif isinstance(a, ast.JoinedStr) and isinstance(a.values[-1], ast.Constant):
+                kinds |= {f"{c}{a.values[-1].value}" for c in ("machine", "sensor", "analyzer")}
+            else:
+                other.append(f"{p.relative_to(root)}:{n.lineno}")
+    return kinds, other
+
+
+def test_every_kind_the_code_records_is_a_known_kind():
+    # lathectl events --kind refuses a kind not known (a misspelt one listed nothing, without a word)
+    kinds, _ = _recorded_kinds()
+    assert len(kinds) > 40
+    assert kinds - storemod.KINDS == set()
+
+
+def test_a_kind_is_known_from_the_code_or_the_store_and_an_unknown_one_is_named(tmp_path):
+    s = Store(tmp_path / "a.db")
+    try:
+        assert s.unknown_kind(["chatter_alarm"]) is None          # known before any was recorded
+        why = s.unknown_kind(["chatter_alarm", "chatter_alram"])
+        assert why.startswith("'chatter_alram' is not a kind of event (did you mean 'chatter_alarm'?); known: "
+                              "alarm_cleared, ")
+        assert "chatter_alarm" in why and "\n" not in why
+        s.record_future("robot_gripper_slip", "arm", {}).result()  # a third-party plugin's kind
+        assert s.unknown_kind(["robot_gripper_slip"]) is None
+        assert "robot_gripper_slip" in s.unknown_kind(["nope"])
+    finally:
+        s.close()

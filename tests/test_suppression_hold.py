@@ -202,6 +202,20 @@ def test_a_speed_variation_that_would_swing_past_the_speed_cap_is_a_config_error
     make(strategy="variation", ssv_amplitude=0.3)
 
 
+def test_a_base_speed_above_the_top_speed_is_refused_and_constant_torque_is_base_equal_max(make):
+    # was taken: the torque is flat to base_rpm, so above max_rpm the number only inflated the power
+    # no speed in reach uses (or was max and base swapped)
+    with pytest.raises(ConfigError, match=r"^t.toml: \[analyzer.suppress\] base_rpm: 8000 r/min is above max_rpm "
+                       r"6000 r/min; a spindle with its peak torque over its whole range \(constant torque\) "
+                       r"has base_rpm = max_rpm$"):
+        make(base_rpm=8000.0)
+    with pytest.raises(ConfigError, match=r"^t.toml: \[analyzer.suppress\] min_rpm: 6000 r/min is not below "
+                       r"max_rpm 6000 r/min$"):
+        make(min_rpm=6000.0)
+    h = make(base_rpm=6000.0)
+    assert h.an.limits.torque_available(6000.0) == pytest.approx(h.an.limits.peak_torque_nm)
+
+
 # -- in the running daemon -----------------------------------------------------------------
 
 def test_the_running_daemon_holds_and_shows_the_advice(tmp_path):

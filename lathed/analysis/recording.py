@@ -27,10 +27,12 @@ _PCM, _FLOAT, _EXTENSIBLE = 1, 3, 0xFFFE
 
 
 class RecordingError(Exception):
-    def __init__(self, message: str, missing: bool = False, unavailable: bool = False) -> None:
+    def __init__(self, message: str, missing: bool = False, unavailable: bool = False,
+                 usage: bool = False) -> None:
         super().__init__(message)
         self.missing = missing
         self.unavailable = unavailable     # a reader the install lacks (an extra)
+        self.usage = usage                 # an option that does not apply to this file
 
 
 @dataclass
@@ -64,11 +66,15 @@ def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None
         raise RecordingError(f"cannot read {p}: {e.strerror}", missing=True) from None
     if not raw.strip():
         raise RecordingError(f"{p} is empty")
-    if raw[:4] == b"TDSm" or p.suffix.lower() == ".tdms":
+    fmt = _format(p, raw)
+    if var is not None and fmt in ("WAV", "CSV"):     # it was ignored without a word
+        raise RecordingError(f"{p}: --var names a variable of a .mat file or a channel of a TDMS file; "
+                             f"a {fmt} file has none (its signal is chosen with --channel)", usage=True)
+    if fmt == "TDMS":
         sig = _read_tdms(raw, str(p), channel, rate_hz, var)
-    elif p.suffix.lower() == ".mat" or raw[:6] == b"MATLAB":
+    elif fmt == "MAT":
         sig = _read_mat(raw, str(p), channel, rate_hz, var)
-    elif raw[:4] == b"RIFF" or p.suffix.lower() == ".wav":
+    elif fmt == "WAV":
         sig = _read_wav(raw, str(p), channel)
         if rate_hz is not None and abs(rate_hz - sig.rate_hz) > 1e-6 * sig.rate_hz:
             sig.notes.append(f"--rate {rate_hz:g} ignored: the WAV header says {sig.rate_hz:g} Hz")
@@ -76,6 +82,27 @@ def read_signal(path: str | Path, channel: int = 0, rate_hz: float | None = None
         sig = _read_csv(raw, str(p), channel, rate_hz)
     _check_values(sig)
     return sig
+
+
+def _format(p: Path, head: bytes) -> str:
+    """TDMS, MAT, WAV or CSV, from the file's first bytes or its name."""
+    suffix = p.suffix.lower()
+    if head[:4] == b"TDSm" or suffix == ".tdms":
+        return "TDMS"
+    if suffix == ".mat" or head[:6] == b"MATLAB":
+        return "MAT"
+    return "WAV" if head[:4] == b"RIFF" or suffix == ".wav" else "CSV"
+
+
+def takes_var(path: str | Path) -> bool:
+    """Whether ``read_signal`` takes a ``var`` for this file (a .mat or TDMS file)."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            head = f.read(8)
+    except OSError:
+        return False          # read_signal says what is wrong with it
+    return _format(p, head) in ("TDMS", "MAT")
 
 
 # -- WAV -----------------------------------------------------------------------------

@@ -9,6 +9,10 @@ import sys
 EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, EX_CANTCREAT = 65, 66, 69, 73
 
 
+class UsageError(Exception):
+    """A bad argument found past the parser (against a stopped daemon's store): one line, exit 2."""
+
+
 def positive(text: str) -> float:
     """argparse type: a finite number > 0."""
     try:
@@ -49,6 +53,17 @@ def mode(text: str):
         return parse_mode(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def once(pairs: list, option: str) -> dict | None:
+    """NAME=V options as a dict; a name given twice is one line on stderr and None, for
+    exit 2 (the last one would be kept without a word)."""
+    seen = [n for n, _ in pairs]
+    twice = sorted({n for n in seen if seen.count(n) > 1})
+    if twice:
+        print(f"lathectl: {option} {twice[0]} given twice", file=sys.stderr)
+        return None
+    return dict(pairs)
 
 
 def fail(msg: str, code: int) -> int:

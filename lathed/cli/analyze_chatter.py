@@ -25,7 +25,7 @@ import json
 import math
 import sys
 
-from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, positive, spindle_rpm
+from lathed.cli import EX_CANTCREAT, EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, once, positive, spindle_rpm
 
 # numpy and the detectors are imported when the command runs: lathectl's other
 # commands start without them (the names below are checked against the registry)
@@ -113,24 +113,28 @@ def run(args, extra_detectors: dict | None = None) -> int:
     import numpy as np
 
     from lathed.analysis.detectors import DETECTORS, make_detector
-    from lathed.analysis.recording import RecordingError, read_signal
+    from lathed.analysis.recording import RecordingError, read_signal, takes_var
     from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
 
     if not (args.rpm > 0 and math.isfinite(args.rpm)):
         _err(f"spindle speed must be > 0 r/min, got {args.rpm} (--rpm)")
         return 2
+    params = once(getattr(args, "param", None) or [], "--param")
+    if params is None:
+        return 2
     try:
         var = getattr(args, "var", None)
         sig = read_signal(args.file, args.channel, args.rate, var)
-        ref = read_signal(args.reference, args.channel, args.rate, var) if args.reference else None
+        # --var names FILE's variable: a reference of another format (a WAV) is read without it
+        ref = (read_signal(args.reference, args.channel, args.rate, var if takes_var(args.reference) else None)
+               if args.reference else None)
     except RecordingError as e:
         _err(str(e))
-        return EX_NOINPUT if e.missing else EX_UNAVAILABLE if e.unavailable else EX_DATAERR
+        return 2 if e.usage else EX_NOINPUT if e.missing else EX_UNAVAILABLE if e.unavailable else EX_DATAERR
     if not VIB_RATE_MIN <= sig.rate_hz <= VIB_RATE_MAX:
         _err(f"sample rate {sig.rate_hz:g} Hz is outside the {VIB_RATE_MIN:g}..{VIB_RATE_MAX:g} Hz of an "
              f"accelerometer recording ({args.file})")
         return EX_DATAERR
-    params = dict(getattr(args, "param", None) or [])
     try:
         det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors, **params)
     except ValueError as e:

@@ -13,7 +13,7 @@ import json
 import math
 import sys
 
-from lathed.cli import EX_CANTCREAT, count
+from lathed.cli import EX_CANTCREAT, count, once
 from lathed.client import DaemonUnavailable
 from lathed.lathectl import add_db_argument, print_json, read_db, remote, remote_or_db
 
@@ -177,19 +177,8 @@ def cmd_parts(args: argparse.Namespace) -> int:
     return 0
 
 
-def _once(pairs: list, option: str) -> dict | None:
-    """NAME=V options as a dict; a name given twice is one line, exit 2 (the last one
-    would be kept without a word)."""
-    seen = [n for n, _ in pairs]
-    twice = sorted({n for n in seen if seen.count(n) > 1})
-    if twice:
-        print(f"lathectl: {option} {twice[0]} given twice", file=sys.stderr)
-        return None
-    return dict(pairs)
-
-
 def cmd_inspect(args: argparse.Namespace) -> int:
-    values = _once(args.value, "--value")
+    values = once(args.value, "--value")
     if values is None:
         return 2
     part = remote(args, "inspect", {"part": args.part, "ra_um": args.ra, "diameter_error_um": args.diameter_error,
@@ -204,7 +193,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_experiment_add(args: argparse.Namespace) -> int:
-    settings = _once(args.setting, "--setting")
+    settings = once(args.setting, "--setting")
     if settings is None:
         return 2
     unknown = set(settings) - set(args.levels)
