@@ -243,6 +243,11 @@ MIGRATIONS: list[tuple[int, str]] = [
            json_extract(payload, '$.tool_number') AS tool_number
     FROM events WHERE kind = 'cut';
     """),
+    (6, """
+    -- why a part was not watched whole (lathed was not running, the records analyzer
+    -- restarting, a counter reset): NULL where it was; outcome 'unobserved': not at all
+    ALTER TABLE workpieces ADD COLUMN unwatched TEXT;
+    """),
 ]
 
 # The time a record row is aged by, for retention.
