@@ -4,7 +4,9 @@ it measured afterwards ("two-time quality detection").
 :class:`PartTracker` turns the lathe's samples (part counter, program state,
 cutting conditions) and the analyzers' samples (chatter index and alarm,
 thermal compensation) into one :class:`Part` per workpiece. A part cut under
-abnormal vibration is flagged so it goes to sampling inspection. The queries
+abnormal vibration is flagged so it goes to sampling inspection, and so is a
+part not watched whole: parts the counter says were made while nothing
+watched (:class:`Gap`) are recorded one by one as not observed. The queries
 below join each part with its inspection. No asyncio here: the records
 plugin drives this from the bus.
 """
@@ -14,8 +16,12 @@ import json
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
+from lathed.machine import MAX_LATE_PARTS
+
 # program_state register values (lathed/sim/registers.py)
 IDLE, RUNNING, ALARM = 0, 1, 2
+# why parts were not watched (Part.unwatched); the plugin gives the causes of a gap in its watch
+RESET = "part counter reset on the control"
 
 
 @dataclass
@@ -25,7 +31,7 @@ class Part:
     end_t: float | None = None
     part_no: int | None = None
     program: int | None = None
-    outcome: str = "finished"            # finished | aborted | partial (start not seen)
+    outcome: str = "finished"            # finished | aborted | partial (watched in part) | unobserved
     max_chatter_index: float | None = None
     chatter_threshold: float | None = None
     chatter_alarms: int = 0
@@ -38,10 +44,21 @@ class Part:
     material: str | None = None
     tools: str | None = None             # turret tools that cut it, in order ("1,2"): tool_number register
     reasons: list[str] = field(default_factory=list)
+    unwatched: str | None = None         # why it was not watched whole: it cannot be judged normal
 
     @property
     def abnormal(self) -> bool:
         return bool(self.reasons)
+
+    @property
+    def queued(self) -> bool:
+        """For sampling inspection: cut under abnormal vibration, or not watched whole."""
+        return self.abnormal or self.unwatched is not None
+
+    def queue_reason(self) -> str:
+        seen = [] if self.unwatched is None else [
+            f"{'not observed' if self.outcome == 'unobserved' else 'not watched whole'}: {self.unwatched}"]
+        return "; ".join(self.reasons + seen)
 
     def row(self) -> dict[str, Any]:
         d = asdict(self)
@@ -50,12 +67,35 @@ class Part:
         return d
 
 
+@dataclass
+class Gap:
+    """Steps of the part counter nobody watched: one unobserved Part each, made
+    between ``from_t`` (the last reading before) and ``to_t`` (the first after)."""
+    machine: str
+    reason: str
+    from_t: float
+    to_t: float
+    part_no_first: int
+    count: int
+    at_least: bool              # after a counter reset: parts made before it may be missing too
+    parts: list[Part]           # none beyond MAX_LATE_PARTS: a reset or another controller, not parts
+
+    def payload(self) -> dict[str, Any]:
+        return {"machine": self.machine, "count": self.count, "part_no_first": self.part_no_first,
+                "part_no_last": self.part_no_first + self.count - 1, "from_t": self.from_t, "to_t": self.to_t,
+                "reason": self.reason, "at_least": self.at_least, "recorded": len(self.parts)}
+
+
 class PartTracker:
     """Feed it samples in bus order; it returns the parts they complete.
 
     A part starts when the program runs and ends when the part counter
     steps (finished) or the program stops first (aborted, kept only if it
     cut). The part in progress when tracking began is marked ``partial``.
+    Steps of the counter not seen one by one (a reading that jumps by two or
+    more, or one after :meth:`resume`, or a counter reset) are no part's end:
+    the part being cut takes the first of them, the rest come as a
+    :class:`Gap` of unobserved parts, in the list of parts returned.
     The cut is seen by the depth register where the machine has one, else by
     the chatter analyzer's cut state (``cutting``: spindle load or vibration):
     the part's speed and feed are those when its first cut began.  Its depth is
@@ -81,13 +121,28 @@ class PartTracker:
         self.part: Part | None = None
         self._partial = True
         self._cut = False             # the part in progress has cut
+        self._count_t: float | None = None       # when part_count was last read
+        self._gap: tuple[str, float] | None = None   # (why, since when) nothing was watched
 
-    def _open(self, t: float) -> None:
+    def resume(self, reason: str, t: float, count: int | None = None) -> None:
+        """Nothing was watched for ``reason`` since part_count was last read (or ``t``, when
+        ``count``, the last part count recorded, was); ``count`` is for a tracker that has read
+        none. The next part_count reading tells the parts made meanwhile; the part being cut
+        was not watched whole."""
+        if self.count is None:
+            self.count = count
+        if self._gap is None:
+            # from the last reading of the count: a step later than that was not seen
+            self._gap = (reason, t if self._count_t is None else self._count_t)
+        if self.part is not None and self.part.unwatched is None:
+            self.part.unwatched = reason
+
+    def _open(self, t: float, unwatched: str | None = None) -> None:
         self.part = Part(self.machine, start_t=t, program=self.program, tool=self.tool,
                          material=self.material, chatter_threshold=self.threshold,
-                         compensation_um=self.compensation)
+                         compensation_um=self.compensation, unwatched=unwatched)
         self._cut = False
-        if self._partial:
+        if self._partial or unwatched is not None:
             self.part.outcome = "partial"
             self._partial = False
         if self.alarm_on:   # an alarm still standing from the last part covers this one too
@@ -115,8 +170,8 @@ class PartTracker:
             tool = f" with tool {self.tool_number}" if self.tool_number is not None else ""
             p.reasons.append(f"chatter alarm during the cut{hz}{tool}: cut under abnormal vibration")
 
-    def feed_sample(self, source: str, quantity: str, value: float, t: float) -> list[Part]:
-        done: list[Part] = []
+    def feed_sample(self, source: str, quantity: str, value: float, t: float) -> list[Part | Gap]:
+        done: list[Part | Gap] = []
         if source == self.machine:
             self._machine(quantity, value, t, done)
         elif source == self.chatter:
@@ -130,19 +185,9 @@ class PartTracker:
                 self.part.compensation_um = value
         return done
 
-    def _machine(self, q: str, v: float, t: float, done: list[Part]) -> None:
+    def _machine(self, q: str, v: float, t: float, done: list) -> None:
         if q == "part_count":
-            n = int(v)
-            if self.count is not None and n > self.count:
-                p = self._close(t, None)
-                if p is not None:
-                    p.part_no = n
-                    done.append(p)
-                if self.state != IDLE:
-                    self._open(t)
-            elif self.count is None and self.state != IDLE:
-                self._open(t)
-            self.count = n          # a counter reset (n < count) just rebases
+            self._count(int(v), t, done)
         elif q == "program_state":
             s = int(v)
             if s == IDLE and self.state != IDLE:
@@ -170,6 +215,45 @@ class PartTracker:
             if self.part is not None and v > 0:
                 self._cutting(self.part)
                 self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
+
+    def _count(self, n: int, t: float, done: list) -> None:
+        c, gap = self.count, self._gap
+        since = self._count_t if gap is None else gap[1]
+        self.count, self._count_t, self._gap = n, t, None
+        reason, reset = (None if gap is None else gap[0]), False
+        if c is not None and n < c:
+            if n == 0 and gap is None:
+                return          # the reset seen as it happened: the part being cut goes on
+            # the parts counted since the reset (to 0) were not seen made
+            c, reset, reason = 0, True, "; ".join(filter(None, (reason, RESET)))
+        if c is not None and n > c:
+            if reason is None and n - c == 1:    # the step seen: the part being cut is finished
+                p = self._close(t)
+                if p is not None:
+                    p.part_no = n
+                    done.append(p)
+                if self.state != IDLE:
+                    self._open(t)
+                return
+            reason = reason or f"part_count stepped by {n - c} between two readings"
+            self._unseen(c, n, since if since is not None else t, t, reason, reset, done)
+        if (c is None or reason is not None) and self.part is None and self.state != IDLE:
+            self._open(t, reason)   # its start was not seen
+
+    def _unseen(self, c: int, n: int, since: float, t: float, reason: str, reset: bool, done: list) -> None:
+        """Steps c+1..n made between ``since`` and ``t``, none seen: never merged into one part."""
+        first = c + 1
+        p = self._close(t)
+        if p is not None:       # the part being cut ended at the first of them, unwatched
+            p.part_no, p.outcome, p.unwatched = first, "partial", p.unwatched or reason
+            done.append(p)
+            first += 1
+        if first <= n:
+            count = n - first + 1
+            parts = [] if count > MAX_LATE_PARTS else [
+                Part(self.machine, start_t=since, end_t=t, part_no=no, outcome="unobserved", tool=self.tool,
+                     material=self.material, unwatched=reason) for no in range(first, n + 1)]
+            done.append(Gap(self.machine, reason, since, t, first, count, reset, parts))
 
     def _cutting(self, p: Part) -> None:
         if not self._cut:
@@ -213,6 +297,7 @@ _PARTS = """
 SELECT w.id, w.uuid, w.machine_id, w.machine, w.part_no, w.program, w.start_t, w.end_t, w.outcome,
        w.max_chatter_index, w.chatter_threshold, w.chatter_alarms, w.chatter_frequency_hz,
        w.compensation_um, w.rpm, w.depth_mm, w.feed_mm_rev, w.tool, w.material, w.tools, w.abnormal, w.reason,
+       w.unwatched, q.reason AS queued_reason,
        q.t AS queued_t, i.t AS inspected_t, i.ra_um, i.diameter_error_um, i.measured, i.inspector
 FROM workpieces w
 LEFT JOIN sampling_queue q ON q.part_uuid = w.uuid

@@ -274,6 +274,11 @@ MIGRATIONS: list[tuple[int, str]] = [
     CREATE TRIGGER experiments_outbox AFTER INSERT ON experiments BEGIN INSERT INTO outbox(tbl, row_id, age_t)
     VALUES ('experiments', NEW.id, (SELECT store_t FROM store_clock)); END;
     """),
+    (6, """
+    -- why a part was not watched whole (lathed was not running, the records analyzer
+    -- restarting, a counter reset): NULL where it was; outcome 'unobserved': not at all
+    ALTER TABLE workpieces ADD COLUMN unwatched TEXT;
+    """),
 ]
 
 # The wall time a stopped daemon's downtime counts for on the store clock at most: a longer

@@ -39,11 +39,19 @@ RETRY_S = (1.0, 60.0)   # a failed part write is tried again after 1 s, doubling
 
 @dataclass
 class Unwritten:
-    """A finished part not yet committed: its row, sampling queue entry and event."""
-    part: records.Part
-    row: dict[str, Any]          # with its uuid: a retry writes the same record
+    """A finished part, or a gap's unobserved parts, not yet committed: rows,
+    sampling queue entries and event."""
+    parts: list[records.Part]
+    rows: list[dict[str, Any]]   # with their uuids: a retry writes the same records
     t: float                     # when it finished, its time in the sampling queue
+    gap: records.Gap | None = None
     fut: Future | None = None    # its write, queued in the store
+
+    @classmethod
+    def of(cls, item: records.Part | records.Gap, t: float) -> Unwritten:
+        parts = item.parts if isinstance(item, records.Gap) else [item]
+        return cls(parts, [{"uuid": str(uuidlib.uuid4()), **p.row()} for p in parts], t,
+                   item if isinstance(item, records.Gap) else None)
 
     @property
     def due(self) -> bool:
@@ -66,6 +74,8 @@ class Records(Analyzer):
                                            self.tool or None, self.material or None, self.suppress)
         self.parts_written = 0
         self.abnormal_written = 0
+        self.unobserved_written = 0
+        self._watched = False         # run() has watched before: a restart, not a daemon start
         # finished parts not yet committed, oldest first: written in order by _write_parts, kept
         # over a failed write (disk full) and a restart, retried until the store takes them
         self.unwritten: deque[Unwritten] = deque()
@@ -93,15 +103,15 @@ class Records(Analyzer):
                                      name=self.name)
         writer = asyncio.create_task(self._write_parts(), name=f"analyzer:{self.name}:writer")
         try:
+            await self._resume()
             while True:
                 msg = await sub.get()
                 if writer.done():
                     writer.result()       # its fault is this analyzer's: reported, restarted
                 if isinstance(msg, Sample):
                     # the bus is not held up by a commit (a slow fsync): the writer takes the parts
-                    for part in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
-                        self.unwritten.append(Unwritten(part, {"uuid": str(uuidlib.uuid4()), **part.row()},
-                                                        time.time()))
+                    for item in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
+                        self.unwritten.append(Unwritten.of(item, time.time()))
                         self._finished.set()
         finally:
             self.ctx.bus.unsubscribe(sub)
@@ -112,6 +122,25 @@ class Records(Analyzer):
                 if u.due:
                     self._submit(u)
             await asyncio.gather(writer, return_exceptions=True)
+
+    async def _resume(self) -> None:
+        """Tell the tracker nothing was watched until now: the part counter's next reading
+        gives the parts made meanwhile, recorded as not observed rather than merged."""
+        if self._watched:
+            self.tracker.resume("records analyzer restarting", time.time())
+            return
+        self._watched = True
+        # a daemon start: the last count recorded is the last part's number in the store
+        last = None
+        try:
+            rows = await asyncio.to_thread(
+                self.ctx.store.query, "SELECT part_no, end_t FROM workpieces WHERE machine = ? "
+                "AND part_no IS NOT NULL ORDER BY id DESC LIMIT 1", (self.machine,))
+            last = rows[0] if rows else None
+        except Exception as e:     # unread, the parts made while lathed was down are not counted: said
+            self.ctx.log.warning("last_part_unread", error=f"{type(e).__name__}: {e}")
+        self.tracker.resume("lathed was not running", last["end_t"] if last else time.time(),
+                            last["part_no"] if last else None)
 
     async def _write_parts(self) -> None:
         """Commit the finished parts in order, each as one transaction; a failed write
@@ -136,22 +165,34 @@ class Records(Analyzer):
                 continue
             wait, self.last_write_error = RETRY_S[0], None
             self.unwritten.popleft()
-            self.parts_written += 1
-            if u.part.abnormal:
+            self.parts_written += len(u.parts)
+            if u.gap is not None:
+                self.unobserved_written += len(u.parts)
+                self.ctx.log.warning("part_unobserved", first_part=pid if u.parts else None, **u.gap.payload())
+            elif u.parts[0].abnormal:
                 self.abnormal_written += 1
-                self.ctx.log.warning("part_abnormal", part=pid, reason=u.row["reason"])
+                self.ctx.log.warning("part_abnormal", part=pid, reason=u.rows[0]["reason"])
 
     def _submit(self, u: Unwritten) -> None:
-        """Queue the part's row, and for an abnormal part its sampling queue entry and
-        event, as one write: all or none, so no abnormal part goes uninspected."""
-        store, part, row = self.ctx.store, u.part, u.row
-        stmts = [store.row_statement("workpieces", row)]
-        if part.abnormal:
-            stmts.append(store.row_statement("sampling_queue", {"t": u.t, "part_uuid": row["uuid"],
-                                                                "reason": row["reason"]}))
+        """Queue the parts' rows, their sampling queue entries (a part cut under abnormal
+        vibration or not watched whole) and the event, as one write: all or none, so no
+        such part goes uninspected."""
+        store = self.ctx.store
+        stmts = []
+        for part, row in zip(u.parts, u.rows):
+            stmts.append(store.row_statement("workpieces", row))
+            if part.queued:
+                stmts.append(store.row_statement("sampling_queue", {"t": u.t, "part_uuid": row["uuid"],
+                                                                    "reason": part.queue_reason()}))
+        # the event names the (first) part's row id, known only as the row is inserted
+        if u.gap is not None:
+            payload = u.gap.payload()
+            stmts.append((EVENT_SQL, lambda pid: store.event_statement(
+                "part_unobserved", self.name, {"first_part": pid if u.parts else None, **payload})[1]))
+        elif u.parts[0].abnormal:
+            part, row = u.parts[0], u.rows[0]
             payload = {"part_no": part.part_no, "machine": part.machine, "reason": row["reason"],
                        "max_chatter_index": part.max_chatter_index}
-            # the event names the part's row id, known only as the row is inserted
             stmts.append((EVENT_SQL, lambda pid: store.event_statement(
                 "part_abnormal", self.name, {"part": pid, **payload})[1]))
         try:
@@ -159,16 +200,19 @@ class Records(Analyzer):
         except Exception as e:          # the store is closed: a failed write like any other
             u.fut = Future()
             u.fut.set_exception(e)
-        # the log keeps the part while the store does not (the writer tries again)
+        # the log keeps the parts while the store does not (the writer tries again)
+        said = u.gap.payload() if u.gap is not None else u.rows[0]
         u.fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.error(
-            "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **row))
+            "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **said))
 
     def status(self) -> dict[str, Any]:
         p = self.tracker.part
         pending = len(self.unwritten)
-        return {"parts": self.parts_written, "abnormal": self.abnormal_written, "unwritten": pending,
+        return {"parts": self.parts_written, "abnormal": self.abnormal_written,
+                "unobserved": self.unobserved_written, "unwritten": pending,
                 "write_failures": self.write_failures, "last_write_error": self.last_write_error,
                 "summary": f"{self.parts_written} parts, {self.abnormal_written} abnormal"
+                           + (f", {self.unobserved_written} not observed" if self.unobserved_written else "")
                            + (f"; {pending} not yet written, retrying: {self.last_write_error}"
                               if pending and self.last_write_error else "")
                            + (f"; part in progress since {time.strftime('%H:%M:%S', time.localtime(p.start_t))}"

@@ -350,7 +350,8 @@ def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
                                                         "chatter_frequency_hz": 197.0, "depth_mm": 3.0})
         await store.record("config_reloaded", "lathed", {"changed": []})
         await store.add("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1.0, "end_t": 2.0,
-                                       "outcome": "finished", "chatter_alarms": 1, "abnormal": 1})
+                                       "outcome": "partial", "chatter_alarms": 1, "abnormal": 1,
+                                       "unwatched": "lathed was not running"})
         await store.add("inspections", {"t": 3.0, "part_uuid": part, "ra_um": 4.2, "measured": {"roundness_um": 3.0}})
         await _until_drained(_sink(store, port=broker.port, cell="hall-2"))
 
@@ -367,7 +368,8 @@ def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
     assert alarm["units"] == {"rpm": "r/min", "chatter_frequency_hz": "Hz", "depth_mm": "mm"}
     assert [m["seq"] for m in sorted(got.values(), key=lambda m: m["seq"])] == [1, 2, 3, 4]
     wp = got["lathed/hall-2/lathe/records/workpieces"]
-    assert (wp["table"], wp["uuid"], wp["t"], wp["row"]["outcome"]) == ("workpieces", part, 2.0, "finished")
+    assert (wp["table"], wp["uuid"], wp["t"], wp["row"]["outcome"], wp["row"]["unwatched"]) == \
+        ("workpieces", part, 2.0, "partial", "lathed was not running")
     insp = got["lathed/hall-2/cell-a/records/inspections"]
     assert insp["row"]["measured"] == {"roundness_um": 3.0} and insp["units"] == {"ra_um": "µm"}
     assert insp["time"] == "1970-01-01T00:00:03.000Z"

@@ -75,8 +75,8 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
             await asyncio.wrap_future(store.record_future("tick", "w", {"seq": i, "arr": [1, 2]}))
         part = "00000000-0000-0000-0000-000000000001"
         await store.add("workpieces", {"uuid": part, "machine": "lathe", "start_t": 1.0, "end_t": 2.0,
-                                       "outcome": "finished", "chatter_alarms": 1, "abnormal": 1,
-                                       "reason": "chatter"})
+                                       "outcome": "partial", "chatter_alarms": 1, "abnormal": 1,
+                                       "reason": "chatter", "unwatched": "records analyzer restarting"})
         await store.add("sampling_queue", {"t": 2.0, "part_uuid": part, "reason": "chatter"})
         await store.add("inspections", {"t": 3.0, "part_uuid": part, "ra_um": 4.2, "diameter_error_um": -30.0,
                                         "measured": {"roundness_um": 3.0}, "inspector": "anna"})
@@ -103,6 +103,8 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
         assert con.execute("SELECT rpm_after, sent FROM suppression_actions").fetchall() == [(3250.0, True)]
         assert con.execute("SELECT rpm_start, rpm_end, depth_mm, outcome, cured FROM cuts").fetchall() == \
             [(2500.0, 3250.0, 3.0, "chatter", True)]
+        assert con.execute("SELECT outcome, unwatched FROM workpieces").fetchall() == \
+            [("partial", "records analyzer restarting")]    # a column a later migration added
         ra, measured = con.execute("SELECT ra_um, measured FROM inspections").fetchone()
         assert ra == 4.2 and measured == {"roundness_um": 3.0}   # jsonb, not text
     store.close()

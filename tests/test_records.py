@@ -170,6 +170,78 @@ def test_without_a_depth_register_the_part_takes_the_deepest_spindle_load_estima
     assert f.done[-1].depth_mm == 1.0
 
 
+def test_a_counter_jump_between_two_readings_is_parts_not_observed_not_one_part():
+    """The lathe's link was down for three parts: the part being cut takes the first
+    step, the other two are a gap of unobserved parts; the next part's start was not seen."""
+    f = Feed(tracker())
+    f.lathe(part_count=1, program_state=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=2)
+    since = f.t                              # the count last read, before part 3's cut
+    f.cut(3.0, 2500, 2.7, alarm=1.0)         # part 3 chatters, then the link goes down
+    f.lathe(part_count=5)
+    partial, three, gap = f.done
+    assert (three.part_no, three.outcome, three.abnormal) == (3, "partial", True)
+    assert three.unwatched == "part_count stepped by 3 between two readings" and three.queued
+    assert "not watched whole" in three.queue_reason() and "chatter alarm" in three.queue_reason()
+    assert isinstance(gap, records.Gap) and (gap.part_no_first, gap.count, gap.at_least) == (4, 2, False)
+    assert [(p.part_no, p.outcome, p.start_t, p.end_t, p.abnormal, p.queued) for p in gap.parts] == [
+        (4, "unobserved", since, f.t, False, True), (5, "unobserved", since, f.t, False, True)]
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=6)
+    six = f.done[-1]
+    assert (six.part_no, six.outcome, six.unwatched) == (6, "partial", "part_count stepped by 3 between two readings")
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=7)
+    assert (f.done[-1].outcome, f.done[-1].unwatched, f.done[-1].queued) == ("finished", None, False)
+
+
+def test_a_counter_reset_seen_goes_on_and_one_not_seen_is_parts_not_observed():
+    f = Feed(tracker())
+    f.lathe(part_count=57, program_state=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=0)                    # reset by the operator, mid-part: the part goes on
+    f.lathe(part_count=1)
+    assert [(p.part_no, p.outcome, p.unwatched) for p in f.done] == [(1, "partial", None)]
+    g = Feed(tracker())
+    g.lathe(part_count=40, program_state=1)
+    g.cut(1.0, 1500, 0.2)
+    g.lathe(part_count=3)                    # reset, and three parts made, between two readings
+    one, gap = g.done
+    assert (one.part_no, one.outcome, one.unwatched) == (1, "partial", records.RESET)
+    assert (gap.part_no_first, gap.count, gap.at_least, gap.reason) == (2, 2, True, records.RESET)
+    assert gap.payload()["part_no_last"] == 3 and gap.payload()["recorded"] == 2
+
+
+def test_a_jump_beyond_any_production_is_told_not_written_part_by_part():
+    f = Feed(tracker())
+    f.lathe(part_count=5, program_state=1)
+    f.lathe(part_count=5 + records.MAX_LATE_PARTS + 2)   # another controller on the link
+    _, gap = f.done
+    assert gap.count == records.MAX_LATE_PARTS + 1 and gap.parts == [] and gap.payload()["recorded"] == 0
+
+
+def test_after_a_gap_in_the_watch_the_next_reading_tells_the_parts_made_meanwhile():
+    f = Feed(tracker())
+    f.tr.resume("lathed was not running", 500.0, count=3)     # the last part recorded: no. 3 at t 500
+    f.lathe(part_count=3, program_state=1)   # none made meanwhile: the part on the machine is partial
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=4)
+    f.cut(1.0, 1500, 0.2)
+    f.tr.resume("records analyzer restarting", 0.0)    # mid-part 5: not watched whole
+    for n in (5, 6, 7):                      # part 6's start may have been in the gap too
+        f.lathe(part_count=n)
+        f.cut(1.0, 1500, 0.2)
+    assert [(p.part_no, p.outcome, p.unwatched) for p in f.done] == [
+        (4, "partial", "lathed was not running"), (5, "partial", "records analyzer restarting"),
+        (6, "partial", "records analyzer restarting"), (7, "finished", None)]
+    g = Feed(tracker())
+    g.tr.resume("lathed was not running", 500.0, count=3)
+    g.lathe(program_state=1, part_count=5)
+    (gap,) = g.done
+    assert (gap.part_no_first, gap.count, gap.from_t, gap.to_t) == (4, 2, 500.0, g.t)
+
+
 def test_machine_alarm_during_a_part_flags_it():
     f = Feed(tracker())
     f.lathe(part_count=0, program_state=1)
@@ -404,3 +476,144 @@ def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_recor
     parts, queued, events = written(tmp_path / "r.db")
     assert [(no, ab) for _, no, ab, _ in parts] == [(2, 1)]
     assert {u for *_, u in parts} == queued and events == [parts[0][0]]
+
+
+# -- parts the records analyzer did not see made: recorded as not observed, never merged ------------
+
+def rows(path) -> list[tuple]:
+    """(part_no, outcome, unwatched, queued reason) of every part, in order; and the part_unobserved events."""
+    import sqlite3
+    con = sqlite3.connect(path)
+    try:
+        cols = {r[1] for r in con.execute("PRAGMA table_info(workpieces)")}
+        unwatched = "w.unwatched" if "unwatched" in cols else "NULL"
+        parts = con.execute(f"SELECT w.part_no, w.outcome, {unwatched}, q.reason FROM workpieces w "
+                            "LEFT JOIN sampling_queue q ON q.part_uuid = w.uuid ORDER BY w.id").fetchall()
+        events = [json.loads(p) for (p,) in
+                  con.execute("SELECT payload FROM events WHERE kind = 'part_unobserved' ORDER BY id")]
+    finally:
+        con.close()
+    return parts, events
+
+
+def test_parts_made_while_the_records_analyzer_restarts_are_recorded_not_merged(tmp_path):
+    """The analyzer fails mid-part; the supervisor restarts it; meanwhile the lathe finishes that
+    part and two more. Each is a row of its own: the one it was watching, partial; the two it
+    never saw, unobserved; all three queued for inspection, and one event says so."""
+    from lathed.supervisor import Runner
+    store, bus, r, _ = records_analyzer(tmp_path)
+    f = BusFeed(bus)
+    real = r.tracker.feed_sample
+
+    def feed(source, q, v, t):
+        if q == "fault":
+            raise RuntimeError("a bug in the records analyzer")
+        return real(source, q, v, t)
+    r.tracker.feed_sample = feed
+
+    def record(kind, source, payload=None):
+        if kind == "analyzer_fault":           # unsubscribed now, restarted after this: the gap
+            for n in (4, 5, 6):
+                f.lathe(part_count=n)
+    runner = Runner("analyzer", "records", r, 0.0, 0.0, record)
+
+    async def main():
+        task = asyncio.create_task(runner.loop())
+        await turns(lambda: bus._subs.get("lathe"))
+        f.lathe(part_count=1, program_state=1)
+        for n in (2, 3):
+            f.cut(1.0, 1500, 0.2)
+            f.lathe(part_count=n)
+        f.cut(1.0, 1500, 0.2)                  # part 4 being cut...
+        f.lathe(fault=1)                       # ...when the analyzer fails
+        await turns(lambda: runner.failures and bus._subs.get("lathe"))    # running again
+        f.lathe(part_count=6)                  # its first reading after the restart
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=7)
+        await turns(lambda: r.tracker.count == 7)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
+    parts, events = rows(tmp_path / "r.db")
+    assert [(no, outcome) for no, outcome, *_ in parts] == [
+        (2, "partial"), (3, "finished"), (4, "partial"), (5, "unobserved"), (6, "unobserved"), (7, "partial")]
+    gap = [p for p in parts if p[0] in (4, 5, 6, 7)]
+    assert all(why == "records analyzer restarting" and queued for _, _, why, queued in gap), gap
+    assert parts[1][2:] == (None, None)        # watched whole and calm: not queued
+    assert [(e["count"], e["part_no_first"], e["part_no_last"], e["reason"]) for e in events] == [
+        (2, 5, 6, "records analyzer restarting")]
+
+
+def lathed_down_for_parts_4_to_6(tmp_path, t0: float = 1000.0):
+    """lathed stops after part 3; the lathe makes parts 4 to 6 in the hour before lathed starts
+    again and sees part 7 made. Its store's path."""
+    store, bus, r, _ = records_analyzer(tmp_path)
+
+    async def first_run():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.t = t0
+        f.lathe(part_count=1, program_state=1)
+        for n in (2, 3):
+            f.cut(1.0, 1500, 0.2)
+            f.lathe(part_count=n)
+        await turns(lambda: r.tracker.count == 3)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        return f.t
+    t = asyncio.run(first_run())
+    store.close()
+
+    store, bus, r, _ = records_analyzer(tmp_path)    # the next start, on the same store
+
+    async def second_run():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.t = t + 3600.0
+        f.lathe(part_count=6, program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=7)
+        await turns(lambda: r.tracker.count == 7)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(second_run())
+    store.close()
+    return tmp_path / "r.db"
+
+
+def test_parts_made_while_lathed_was_not_running_are_recorded_at_its_start(tmp_path):
+    parts, events = rows(lathed_down_for_parts_4_to_6(tmp_path))
+    assert [(no, outcome) for no, outcome, *_ in parts] == [
+        (2, "partial"), (3, "finished"), (4, "unobserved"), (5, "unobserved"), (6, "unobserved"), (7, "partial")]
+    assert all(why == "lathed was not running" and queued for no, _, why, queued in parts if no >= 4)
+    (e,) = events
+    assert (e["count"], e["part_no_first"], e["part_no_last"], e["reason"]) == (3, 4, 6, "lathed was not running")
+    assert e["to_t"] - e["from_t"] == pytest.approx(3600.0, abs=1.0)
+
+
+def test_a_jump_beyond_any_production_is_an_event_and_the_analyzer_goes_on(tmp_path):
+    store, bus, r, log = records_analyzer(tmp_path)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=5, program_state=1)
+        f.lathe(part_count=5 + records.MAX_LATE_PARTS + 2)
+        assert await asyncio.to_thread(log.heard("part_unobserved").wait, 5)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=5 + records.MAX_LATE_PARTS + 3)
+        await turns(lambda: r.tracker.count == 5 + records.MAX_LATE_PARTS + 3)
+        assert not task.done() and r.status()["unobserved"] == 0
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
+    parts, events = rows(tmp_path / "r.db")
+    assert [(no, outcome) for no, outcome, *_ in parts] == [
+        (6, "partial"), (5 + records.MAX_LATE_PARTS + 3, "partial")]
+    (e,) = events
+    assert (e["count"], e["recorded"], e["first_part"]) == (records.MAX_LATE_PARTS + 1, 0, None)

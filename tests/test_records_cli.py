@@ -191,3 +191,27 @@ def test_a_name_given_twice_is_refused_not_overwritten(argv, msg, tmp_path, caps
         code = e.code
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and msg in err, err
+
+
+def test_parts_made_while_lathed_was_down_are_listed_not_observed_and_queued(tmp_path, capsys):
+    from lathed.cli.records import _t
+    from tests.test_records import lathed_down_for_parts_4_to_6
+    db = lathed_down_for_parts_4_to_6(tmp_path, t0=1_700_000_000.0)
+    code = lathectl.main(["--socket", str(tmp_path / "none.sock"), "parts", "--db", str(db)])
+    out = capsys.readouterr().out
+    lines = {int(ln.split()[1]): ln for ln in out.splitlines()[1:]}     # by part number
+    assert code == 0 and sorted(lines) == [2, 3, 4, 5, 6, 7]
+    made = f"made {_t(1_700_000_001.3)} - {_t(1_700_003_601.4)}"    # the last part seen; the first reading after
+    for no in (4, 5, 6):      # no chatter figures: nothing was watched, not "0 alarms"
+        assert lines[no].split()[5:12] == ["unobserved", "-", "-", "-", "-", "-", "-"], lines[no]
+        assert lines[no].endswith(f"NOT OBSERVED (lathed was not running), {made}; "
+                                  "QUEUED for sampling inspection"), lines[no]
+    assert lines[7].endswith("NOT WATCHED WHOLE (lathed was not running); QUEUED for sampling inspection")
+    assert lines[3].split()[5] == "finished" and lines[3].endswith("  -")
+    lathectl.main(["--socket", str(tmp_path / "none.sock"), "parts", "--db", str(db), "--queue", "--json"])
+    queued = json.loads(capsys.readouterr().out)
+    assert [(p["part_no"], p["outcome"], p["queued_reason"]) for p in queued if p["part_no"] >= 4] == [
+        (4, "unobserved", "not observed: lathed was not running"),
+        (5, "unobserved", "not observed: lathed was not running"),
+        (6, "unobserved", "not observed: lathed was not running"),
+        (7, "partial", "not watched whole: lathed was not running")]

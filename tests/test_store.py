@@ -44,7 +44,7 @@ def test_version_4_database_gains_the_turret_tool_in_its_parts_and_views(tmp_pat
     assert s.schema_version == MIGRATIONS[-1][0]
     assert s.query("SELECT outcome, tool_number FROM cuts") == [{"outcome": "chatter", "tool_number": 2}]
     assert s.query("SELECT kind, tool_number FROM chatter_events") == [{"kind": "chatter_alarm", "tool_number": 2}]
-    assert "tools" in {n for n, _ in s.columns("workpieces")}
+    assert {"tools", "unwatched"} <= {n for n, _ in s.columns("workpieces")}
     s.close()
 
 

@@ -159,7 +159,7 @@ def cmd_parts(args: argparse.Namespace) -> int:
     if not rows:
         print("(no parts)")
         return 0
-    print(f"{'part':>5} {'no':>5} {'prog':>5} {'ended':<14} {'outcome':<8} {'tools':<5} {'r/min':>6} {'depth':>5} "
+    print(f"{'part':>5} {'no':>5} {'prog':>5} {'ended':<14} {'outcome':<10} {'tools':<5} {'r/min':>6} {'depth':>5} "
           f"{'chatter':>8} {'alarms':>6} {'comp µm':>7}  {'Ra µm':>6} {'dD µm':>6}  state")
     for r in rows:
         if r["inspected_t"] is not None:
@@ -168,11 +168,15 @@ def cmd_parts(args: argparse.Namespace) -> int:
             state = "QUEUED for sampling inspection"
         else:
             state = "-"
+        if r.get("unwatched"):
+            # not judged by its vibration: the interval is the one it was made in, not its cut
+            state = (f"NOT OBSERVED ({r['unwatched']}), made {_t(r['start_t'])} - {_t(r['end_t'])}"
+                     if r["outcome"] == "unobserved" else f"NOT WATCHED WHOLE ({r['unwatched']})") + f"; {state}"
         if r["abnormal"]:
             state = f"ABNORMAL: {r['reason']}; {state}"
         print(f"{r['id']:>5} {_f(r['part_no'], 'd'):>5} {_f(r['program'], 'd'):>5} {_t(r['end_t']):<14} "
-              f"{r['outcome']:<8} {r.get('tools') or '-':<5} {_f(r['rpm'], '.0f'):>6} {_f(r['depth_mm'], '.2g'):>5} "
-              f"{_f(r['max_chatter_index']):>8} {r['chatter_alarms']:>6} {_f(r['compensation_um'], '.1f'):>7}  "
+              f"{r['outcome']:<10} {r.get('tools') or '-':<5} {_f(r['rpm'], '.0f'):>6} {_f(r['depth_mm'], '.2g'):>5} "
+              f"{_f(r['max_chatter_index']):>8} {'-' if r['outcome'] == 'unobserved' else r['chatter_alarms']:>6} {_f(r['compensation_um'], '.1f'):>7}  "
               f"{_f(r['ra_um'], '.2f'):>6} {_f(r['diameter_error_um'], '.1f'):>6}  {state}")
     return 0
 

@@ -78,7 +78,7 @@ SUPPRESSION_MODES = ("auto", "manual", "off")
 SEVERITY = {"chatter_alarm": 800, "chatter_cleared": 300, "suppression_action": 500,
             "suppression_advice": 700,   # the speed is held and the chatter goes on: the operator must act
             "suppression_proposed": 500, "suppression_mode": 300, "compensation": 200, "thermal_touchoff": 300,
-            "thermal_refit": 200, "part_abnormal": 700, "part_inspected": 200, "alarm_raised": 800,
+            "thermal_refit": 200, "part_abnormal": 700, "part_unobserved": 700, "part_inspected": 200, "alarm_raised": 800,
             "alarm_cleared": 300, "command_refused": 700, "command_failed": 800, "implausible_value": 600}
 
 GOOD = ua.StatusCode(ua.StatusCodes.Good)

@@ -260,11 +260,11 @@ function drawRecords() {
   if (!recordsDirty) return;   // rebuilt only when an event, a part or the filter changes
   recordsDirty = false;
   const ev = shownEvents().slice(-150).reverse();
-  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
+  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal|unobserved/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
   const only = $("#abnormal-only").checked;
   $("#parts tbody").innerHTML = S.parts.filter((p) => !only || p.abnormal).slice().reverse().map((p) =>
     `<tr class="${p.abnormal ? "abnormal" : ""}"><td>${p.id} <small>#${fmt(p.part_no, 0)}</small></td><td>${p.end_t ? hhmmss(p.end_t) : "-"}</td>
-     <td>${fmt(p.max_chatter_index, 2)}</td><td>${fmt(p.compensation_um, 1)}</td><td>${esc(p.reason || "")}</td>
+     <td>${fmt(p.max_chatter_index, 2)}</td><td>${fmt(p.compensation_um, 1)}</td><td>${esc(p.queued_reason || p.reason || "")}</td>
      <td>${p.inspected_t ? `Ra ${fmt(p.ra_um, 2)} Ø ${fmt(p.diameter_error_um, 1)} (${esc(p.inspector || "")})` : (p.queued_t ? "to inspect" : "")}</td></tr>`).join("");
 }
 function detail(p) {
