@@ -274,7 +274,7 @@ MIGRATIONS: list[tuple[int, str]] = [
     CREATE TRIGGER experiments_outbox AFTER INSERT ON experiments BEGIN INSERT INTO outbox(tbl, row_id, age_t)
     VALUES ('experiments', NEW.id, (SELECT store_t FROM store_clock)); END;
     """),
-    (6, """
+    (7, """
     -- why a part was not watched whole (lathed was not running, the records analyzer
     -- restarting, a counter reset): NULL where it was; outcome 'unobserved': not at all
     ALTER TABLE workpieces ADD COLUMN unwatched TEXT;
@@ -383,7 +383,7 @@ KINDS = frozenset({
     "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",
     "stability_refit_not_adopted",
     "compensation", "thermal_measurement", "thermal_refit", "thermal_touchoff", "thermal_model_unreadable",
-    "part_completed", "part_abnormal", "part_inspected",
+    "part_completed", "part_abnormal", "part_unobserved", "part_inspected",
 })
 
 
