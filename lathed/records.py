@@ -123,6 +123,10 @@ class PartTracker:
         self._cut = False             # the part in progress has cut
         self._count_t: float | None = None       # when part_count was last read
         self._gap: tuple[str, float] | None = None   # (why, since when) nothing was watched
+        # a part closed by the program's stop, and its outcome before: held for the counter's
+        # next reading, which finishes it if it steps (a counter polled slower than the
+        # program state, or read after it in the poll, steps after the stop)
+        self._stopped: tuple[Part, str] | None = None
 
     def resume(self, reason: str, t: float, count: int | None = None) -> None:
         """Nothing was watched for ``reason`` since part_count was last read (or ``t``, when
@@ -191,10 +195,12 @@ class PartTracker:
         elif q == "program_state":
             s = int(v)
             if s == IDLE and self.state != IDLE:
+                outcome = None if self.part is None else self.part.outcome
                 p = self._close(t, "aborted")
                 if p is not None:
-                    done.append(p)
+                    self._stopped = (p, outcome)
             elif s != IDLE and self.state == IDLE and self.count is not None:
+                done += self.flush()     # no step since the stop: it was aborted
                 self._partial = False
                 self._open(t)
             if s == ALARM and self.part is not None and self.state != ALARM:
@@ -216,7 +222,22 @@ class PartTracker:
                 self._cutting(self.part)
                 self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
 
+    def flush(self) -> list[Part]:
+        """The part the program's stop closed, as it stands (aborted), if the counter has not
+        been read since: the daemon is stopping, or the next program starts."""
+        held, self._stopped = self._stopped, None
+        return [] if held is None else [held[0]]
+
     def _count(self, n: int, t: float, done: list) -> None:
+        if self._stopped is not None:
+            p, outcome = self._stopped
+            if self._gap is None and self.count is not None and n == self.count + 1:
+                self._stopped = None
+                p.outcome, p.part_no = outcome, n     # the counter stepped: the part was finished
+                done.append(p)
+                self.count, self._count_t = n, t
+                return
+            done += self.flush()
         c, gap = self.count, self._gap
         since = self._count_t if gap is None else gap[1]
         self.count, self._count_t, self._gap = n, t, None

@@ -118,6 +118,7 @@ class Records(Analyzer):
             writer.cancel()
             # stopping (or restarting): queued now, the parts are committed by the store's close
             # (or awaited by the next run); before any await, which a second cancel would cut short
+            self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.flush())
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)

@@ -99,6 +99,23 @@ def test_program_stop_aborts_a_part_that_cut_and_drops_one_that_did_not():
     assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("aborted", None), ("finished", 5)]
 
 
+def test_a_counter_that_steps_after_the_program_stop_finishes_the_part():
+    # a counter polled slower than the program state (1 s against 200 ms), or read after it in
+    # the same poll, steps after the program has stopped: the part was finished, not aborted
+    f = Feed(tracker())
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=0)
+    assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4)]     # held for the counter
+    f.lathe(part_count=5)
+    f.lathe(program_state=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=0)
+    f.lathe(part_count=5)                    # read, not stepped: the operator stopped it
+    assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("finished", 5), ("aborted", None)]
+
+
 def vibration_cut(f: Feed, rpm: float, index: float, alarm: float = 0.0) -> None:
     """A cut on a machine with no depth register: the chatter analyzer's cut state says it."""
     f.lathe(spindle_rpm=rpm, feed_mm_rev=0.3)
@@ -617,3 +634,23 @@ def test_a_jump_beyond_any_production_is_an_event_and_the_analyzer_goes_on(tmp_p
         (6, "partial"), (5 + records.MAX_LATE_PARTS + 3, "partial")]
     (e,) = events
     assert (e["count"], e["recorded"], e["first_part"]) == (records.MAX_LATE_PARTS + 1, 0, None)
+
+
+def test_a_part_the_program_stop_closed_is_written_when_lathed_stops_before_the_counter_is_read(tmp_path):
+    store, bus, r, _ = records_analyzer(tmp_path)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=1)
+        f.lathe(spindle_rpm=2000, feed_mm_rev=0.3, depth_of_cut_mm=2.0)
+        f.lathe(depth_of_cut_mm=0.0)
+        f.lathe(program_state=0)
+        await turns(lambda: r.tracker._stopped is not None)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
+    parts, _ = rows(tmp_path / "r.db")
+    assert [(no, outcome) for no, outcome, *_ in parts] == [(None, "aborted")]
