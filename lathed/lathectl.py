@@ -43,15 +43,20 @@ def read_db(args: argparse.Namespace, what: str, read: Callable[[Any], Any], dow
         raise down
     import sqlite3
 
-    from lathed.store import connect
+    from lathed.store import MIGRATIONS, connect
+    version = latest = MIGRATIONS[-1][0]
     try:
         con = connect(db, readonly=True)
         try:
+            version = con.execute("PRAGMA user_version").fetchone()[0]
             result = read(con)
         finally:
             con.close()
     except sqlite3.Error as e:
-        raise DaemonUnavailable(f"lathed is not running, and {db} cannot be read: {e}") from None
+        # read-only, an older store cannot be upgraded here: a query may need a column it lacks
+        old = (f" (schema version {version}, older than this lathectl's {latest}: start lathed once to "
+               "upgrade it)") if version < latest else ""
+        raise DaemonUnavailable(f"lathed is not running, and {db} cannot be read: {e}{old}") from None
     print(f"lathectl: lathed is not running; {what} read from {db}", file=sys.stderr)
     return result
 

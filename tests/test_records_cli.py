@@ -156,6 +156,25 @@ def test_no_daemon_exits_69(tmp_path, monkeypatch):
     assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69
 
 
+def test_a_stopped_daemons_store_of_an_older_schema_is_one_line_not_a_missing_column(tmp_path, capsys):
+    # after an upgrade, before lathed has started once: "no such column: w.unwatched"
+    import sqlite3
+    from lathed.lathectl import main
+    from lathed.store import MIGRATIONS, statements
+    con = sqlite3.connect(tmp_path / "lathed.db", isolation_level=None)
+    for _, sql in MIGRATIONS[:5]:
+        for stmt in statements(sql):
+            con.execute(stmt)
+    con.execute("PRAGMA user_version=5")
+    con.close()
+    assert main(["--socket", str(tmp_path / "none.sock"), "parts", "--db", str(tmp_path / "lathed.db")]) == 69
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith(f"(schema version 5, older than this lathectl's "
+                                                   f"{MIGRATIONS[-1][0]}: start lathed once to upgrade it)\n"), err
+    # what the old schema has is still read
+    assert main(["--socket", str(tmp_path / "none.sock"), "events", "--db", str(tmp_path / "lathed.db")]) == 0
+
+
 def test_a_misspelt_kind_on_a_stopped_daemons_store_is_one_usage_line(tmp_path, capsys):
     # it listed "(no events)", exit 0, as if none had happened
     from lathed.lathectl import main
