@@ -29,7 +29,7 @@ from lathed.looplag import LagStats, watch
 from lathed.push import PushHub
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
-from lathed.store import Store
+from lathed.store import MIGRATIONS, Store, connect
 from lathed.supervisor import Plan, Supervisor, build, record_sinks
 
 log = structlog.get_logger("lathed")
@@ -394,6 +394,24 @@ class Daemon:
         return await offload(self.store.events, limit, kind, source, since_id)
 
 
+def open_store(db: Path, name: str) -> Store:
+    """The record store, upgraded to this version's schema.  An upgrade rewrites tables
+    (the outbox's ages: seconds per ten million records), so systemd is told it may take
+    an hour: killed at the start timeout, each try would roll back and start again."""
+    latest = MIGRATIONS[-1][0]
+    if db.is_file():
+        con = connect(db, readonly=True)
+        try:
+            version = con.execute("PRAGMA user_version").fetchone()[0]
+        finally:
+            con.close()
+        if version < latest:
+            log.info("store_upgrading", store=str(db), schema_from=version, schema_to=latest)
+            notify(f"STATUS=upgrading the record store {db} from schema {version} to {latest}\n"
+                   f"EXTEND_TIMEOUT_USEC={int(3600e6)}")
+    return Store(db, machine_id=name)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="lathed", description="Monitoring and control daemon for CNC lathes.")
     p.add_argument("--config", "-c", default=os.environ.get("LATHED_CONFIG", "/etc/lathed/lathed.toml"),
@@ -438,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
         return EX_CANTCREAT
     db = settings.state_dir / "lathed.db"
     try:
-        store = Store(db, machine_id=settings.name)
+        store = open_store(db, settings.name)
     except (OSError, sqlite3.Error) as e:
         print(f"lathed: cannot open the record store {db}: {e}", file=sys.stderr)
         return EX_CANTCREAT

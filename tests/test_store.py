@@ -519,3 +519,27 @@ def test_a_kind_is_known_from_the_code_or_the_store_and_an_unknown_one_is_named(
         assert "robot_gripper_slip" in s.unknown_kind(["nope"])
     finally:
         s.close()
+
+
+def test_a_schema_upgrade_at_start_tells_systemd_it_may_take_long(tmp_path, monkeypatch):
+    # a big store's upgrade outlasting the start timeout would be killed, rolled back and tried
+    # again at each restart: the daemon would never start
+    import socket
+    from lathed.daemon import open_store
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(tmp_path / "notify"))
+    sock.setblocking(False)
+    monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify"))
+    con = sqlite3.connect(tmp_path / "old.db", isolation_level=None)
+    for v, sql in MIGRATIONS[:5]:
+        for stmt in storemod.statements(sql):
+            con.execute(stmt)
+    con.execute("PRAGMA user_version=5")
+    con.close()
+    open_store(tmp_path / "old.db", "cell").close()
+    said = sock.recv(4096).decode()
+    assert f"from schema 5 to {MIGRATIONS[-1][0]}" in said and "EXTEND_TIMEOUT_USEC=3600000000" in said
+    open_store(tmp_path / "old.db", "cell").close()          # upgraded: nothing to say
+    with pytest.raises(BlockingIOError):
+        sock.recv(4096)
+    sock.close()
