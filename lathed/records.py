@@ -123,10 +123,10 @@ class PartTracker:
         self._cut = False             # the part in progress has cut
         self._count_t: float | None = None       # when part_count was last read
         self._gap: tuple[str, float] | None = None   # (why, since when) nothing was watched
-        # a part closed by the program's stop, and its outcome before: held for the counter's
-        # next reading, which finishes it if it steps (a counter polled slower than the
-        # program state, or read after it in the poll, steps after the stop)
-        self._stopped: tuple[Part, str] | None = None
+        # the part open when the program stopped (whether it cut, when it stopped): held for the
+        # counter's next reading, which finishes it if it steps (a counter polled slower than
+        # the program state, or read after it in the poll, steps after the stop)
+        self._stopped: tuple[Part, bool, float] | None = None
 
     def resume(self, reason: str, t: float, count: int | None = None) -> None:
         """Nothing was watched for ``reason`` since part_count was last read (or ``t``, when
@@ -194,11 +194,8 @@ class PartTracker:
             self._count(int(v), t, done)
         elif q == "program_state":
             s = int(v)
-            if s == IDLE and self.state != IDLE:
-                outcome = None if self.part is None else self.part.outcome
-                p = self._close(t, "aborted")
-                if p is not None:
-                    self._stopped = (p, outcome)
+            if s == IDLE and self.state != IDLE and self.part is not None:
+                self._stopped, self.part = (self.part, self._cut, t), None
             elif s != IDLE and self.state == IDLE and self.count is not None:
                 done += self.flush()     # no step since the stop: it was aborted
                 self._partial = False
@@ -225,16 +222,23 @@ class PartTracker:
     def flush(self) -> list[Part]:
         """The part the program's stop closed, as it stands (aborted), if the counter has not
         been read since: the daemon is stopping, or the next program starts."""
+        return self._close_stopped("aborted")
+
+    def _close_stopped(self, outcome: str | None) -> list[Part]:
         held, self._stopped = self._stopped, None
-        return [] if held is None else [held[0]]
+        if held is None:
+            return []
+        self.part, self._cut = held[0], held[1]
+        p = self._close(held[2], outcome)
+        return [] if p is None else [p]
 
     def _count(self, n: int, t: float, done: list) -> None:
         if self._stopped is not None:
-            p, outcome = self._stopped
             if self._gap is None and self.count is not None and n == self.count + 1:
-                self._stopped = None
-                p.outcome, p.part_no = outcome, n     # the counter stepped: the part was finished
-                done.append(p)
+                # the counter stepped: the part was finished (cut or not, as a step in the watch is)
+                for p in self._close_stopped(None):
+                    p.part_no = n
+                    done.append(p)
                 self.count, self._count_t = n, t
                 return
             done += self.flush()

@@ -114,6 +114,10 @@ def test_a_counter_that_steps_after_the_program_stop_finishes_the_part():
     f.lathe(program_state=0)
     f.lathe(part_count=5)                    # read, not stepped: the operator stopped it
     assert [(p.outcome, p.part_no) for p in f.done] == [("partial", 4), ("finished", 5), ("aborted", None)]
+    f.lathe(program_state=1)                 # a part whose cut nothing saw: its step still counts,
+    f.lathe(program_state=0)                 # or the next start would call it not observed
+    f.lathe(part_count=6)
+    assert [(p.outcome, p.part_no) for p in f.done][3:] == [("finished", 6)]
 
 
 def vibration_cut(f: Feed, rpm: float, index: float, alarm: float = 0.0) -> None:
