@@ -420,14 +420,18 @@ class StoreClock:
     so a wall clock set ahead (every record would look old at once) or back (an RTC reset
     at boot, records stamped years ago) moves nothing.  Across a stop it resumes where it
     was plus the wall time the stop took, counted from 0 to ``MAX_STOPPED_S``: a clock
-    found behind counts none, one found far ahead counts a week; either way records are
-    kept longer, never deleted sooner.  Persisted by the writer in every transaction."""
+    found behind counts none (records kept longer), one found ahead ages them by at most
+    a week.  A store upgraded to it resumes from its newest record's time.  Persisted by
+    the writer in every transaction."""
 
     def __init__(self, saved: tuple[float, float] | None, newest: float | None,
                  wall=time.time, monotonic=time.monotonic) -> None:
         self._monotonic = monotonic
         now = wall()
         self.stopped_s: float | None = None      # the wall time the stop took, as found
+        if saved is None and newest is not None:
+            # upgraded to the clock: the wall clock now may be the jumped one it is for
+            saved = (newest, newest)
         if saved is None:
             base = now
         else:
@@ -456,8 +460,11 @@ class Store:
         _private(self.path)
         self.schema_version = migrate(self._wcon)
         saved = self._wcon.execute("SELECT store_t, wall_t FROM store_clock").fetchone()
+        # the clock stamps in id order: its newest row is the last; rows migrated to it, any
+        newest = self._wcon.execute("SELECT max(age_t) FROM outbox" if saved is None else
+                                    "SELECT age_t FROM outbox ORDER BY id DESC LIMIT 1").fetchone()
         self.clock = StoreClock(None if saved is None else (saved[0], saved[1]),
-                                self._wcon.execute("SELECT max(age_t) FROM outbox").fetchone()[0], wall, monotonic)
+                                None if newest is None else newest[0], wall, monotonic)
         self._wall = wall
         self._save_clock()
         self._rcon = connect(self.path)

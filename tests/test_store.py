@@ -543,3 +543,27 @@ def test_a_schema_upgrade_at_start_tells_systemd_it_may_take_long(tmp_path, monk
     with pytest.raises(BlockingIOError):
         sock.recv(4096)
     sock.close()
+
+
+@pytest.mark.parametrize("wall_at_upgrade, resumes_at", [(400 * 86400.0, 7 * 86400.0), (-20 * 365 * 86400.0, 0.0)])
+def test_a_store_upgraded_to_the_clock_resumes_from_its_newest_record(tmp_path, wall_at_upgrade, resumes_at):
+    # the first start after the upgrade took the wall clock as it found it: a year ahead, it
+    # aged every record at once; behind (an RTC reset), new rows sat years before the old ones
+    t_last = 1_790_000_000.0
+    con = sqlite3.connect(tmp_path / "old.db", isolation_level=None)
+    for v, sql in MIGRATIONS[:5]:
+        for stmt in storemod.statements(sql):
+            con.execute(stmt)
+    con.execute("PRAGMA user_version=5")
+    for k in range(10):
+        con.execute("INSERT INTO events(uuid, t, source, kind, payload) VALUES (?, ?, 'x', 'tick', '{}')",
+                    (f"u{k}", t_last - (9 - k) * 86400.0))
+    con.close()
+    clocks = Clocks(wall=t_last + wall_at_upgrade)
+    s = clocks.store(tmp_path / "old.db")
+    assert s.clock.now() == pytest.approx(t_last + resumes_at)
+    assert s.prune(s.clock.now() - 30 * 86400.0, [])["events"] == 0
+    s.record_future("tick", "w", {}).result(10)
+    ages = [r["age_t"] for r in s.query("SELECT age_t FROM outbox ORDER BY id")]
+    assert ages == sorted(ages)
+    s.close()
