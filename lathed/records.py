@@ -13,6 +13,7 @@ plugin drives this from the bus.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
@@ -22,6 +23,8 @@ from lathed.machine import MAX_LATE_PARTS
 IDLE, RUNNING, ALARM = 0, 1, 2
 # why parts were not watched (Part.unwatched); the plugin gives the causes of a gap in its watch
 RESET = "part counter reset on the control"
+# No machine makes a part faster (a bound on a counter's jump before a cycle has been watched)
+MIN_CYCLE_S = 1.0
 
 
 @dataclass
@@ -127,6 +130,8 @@ class PartTracker:
         # counter's next reading, which finishes it if it steps (a counter polled slower than
         # the program state, or read after it in the poll, steps after the stop)
         self._stopped: tuple[Part, bool, float] | None = None
+        self._shortest: float | None = None      # the shortest cycle of a part watched whole
+        self._out: list[Part] = []               # parts closed outside a counter or state sample
 
     def resume(self, reason: str, t: float, count: int | None = None) -> None:
         """Nothing was watched for ``reason`` since part_count was last read (or ``t``, when
@@ -187,6 +192,8 @@ class PartTracker:
             self.compensation = value
             if self.part is not None:
                 self.part.compensation_um = value
+        if self._out:
+            done[:0], self._out = self._out, []
         return done
 
     def _machine(self, q: str, v: float, t: float, done: list) -> None:
@@ -195,9 +202,11 @@ class PartTracker:
         elif q == "program_state":
             s = int(v)
             if s == IDLE and self.state != IDLE and self.part is not None:
+                done += self.flush()
                 self._stopped, self.part = (self.part, self._cut, t), None
             elif s != IDLE and self.state == IDLE and self.count is not None:
-                done += self.flush()     # no step since the stop: it was aborted
+                # the part the stop left stays held: the next program may start before a counter
+                # polled slower is read; its first cut is later than that (see _cutting)
                 self._partial = False
                 self._open(t)
             if s == ALARM and self.part is not None and self.state != ALARM:
@@ -228,16 +237,19 @@ class PartTracker:
         held, self._stopped = self._stopped, None
         if held is None:
             return []
+        running = self.part, self._cut        # the next program's part, where one has started
         self.part, self._cut = held[0], held[1]
         p = self._close(held[2], outcome)
+        self.part, self._cut = running
         return [] if p is None else [p]
 
     def _count(self, n: int, t: float, done: list) -> None:
-        if self._stopped is not None:
-            if self._gap is None and self.count is not None and n == self.count + 1:
+        if self._stopped is not None and self._gap is None:
+            if self.count is not None and n == self.count + 1:
                 # the counter stepped: the part was finished (cut or not, as a step in the watch is)
                 for p in self._close_stopped(None):
                     p.part_no = n
+                    self._timed(p)
                     done.append(p)
                 self.count, self._count_t = n, t
                 return
@@ -247,8 +259,8 @@ class PartTracker:
         self.count, self._count_t, self._gap = n, t, None
         reason, reset = (None if gap is None else gap[0]), False
         if c is not None and n < c:
-            if n == 0 and gap is None:
-                return          # the reset seen as it happened: the part being cut goes on
+            if gap is None and (n == 0 or since is None or n > self._most_parts(t - since)):
+                return          # reset or set on the control as it was watched: the part being cut goes on
             # the parts counted since the reset (to 0) were not seen made
             c, reset, reason = 0, True, "; ".join(filter(None, (reason, RESET)))
         if c is not None and n > c:
@@ -256,19 +268,41 @@ class PartTracker:
                 p = self._close(t)
                 if p is not None:
                     p.part_no = n
+                    self._timed(p)
                     done.append(p)
                 if self.state != IDLE:
                     self._open(t)
                 return
+            if since is not None and n - c > self._most_parts(t - since):
+                # faster than parts are made (a counter set, a bad read): no parts, but said
+                done += self.flush()
+                done.append(Gap(self.machine, f"part_count went from {c} to {n} in {t - since:.3g} s, faster "
+                                f"than parts are made: taken as the counter set on the control, no parts "
+                                "recorded", since, t, c + 1, n - c, reset, []))
+                return
             reason = reason or f"part_count stepped by {n - c} between two readings"
             self._unseen(c, n, since if since is not None else t, t, reason, reset, done)
+        done += self.flush()        # a part the stop left that no step took: aborted
         if (c is None or reason is not None) and self.part is None and self.state != IDLE:
             self._open(t, reason)   # its start was not seen
+
+    def _timed(self, p: Part) -> None:
+        """A part watched whole: its cycle bounds how fast parts can be made."""
+        if p.outcome == "finished" and p.unwatched is None and p.end_t > p.start_t:
+            self._shortest = min(self._shortest or math.inf, p.end_t - p.start_t)
+
+    def _most_parts(self, dt: float) -> int:
+        """The most parts a machine can make in ``dt`` s: at half its shortest cycle watched,
+        or MIN_CYCLE_S before one is."""
+        cycle = MIN_CYCLE_S if self._shortest is None else 0.5 * self._shortest
+        return int(dt / cycle) + 1
 
     def _unseen(self, c: int, n: int, since: float, t: float, reason: str, reset: bool, done: list) -> None:
         """Steps c+1..n made between ``since`` and ``t``, none seen: never merged into one part."""
         first = c + 1
         p = self._close(t)
+        if p is None and self._stopped is not None:     # the part the program's stop left
+            p = next(iter(self._close_stopped(None)), None)
         if p is not None:       # the part being cut ended at the first of them, unwatched
             p.part_no, p.outcome, p.unwatched = first, "partial", p.unwatched or reason
             done.append(p)
@@ -284,6 +318,7 @@ class PartTracker:
         if not self._cut:
             self._cut = True
             p.rpm, p.feed_mm_rev = self.rpm, self.feed
+            self._out += self.flush()       # the next part cuts: no step came for the one before
         self._tool(p)
 
     def _tool(self, p: Part) -> None:

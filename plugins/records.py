@@ -102,6 +102,7 @@ class Records(Analyzer):
         sub = self.ctx.bus.subscribe(self.machine, self.chatter, self.thermal, self.suppress, maxsize=4096,
                                      name=self.name)
         writer = asyncio.create_task(self._write_parts(), name=f"analyzer:{self.name}:writer")
+        stopping = False
         try:
             await self._resume()
             while True:
@@ -113,12 +114,16 @@ class Records(Analyzer):
                     for item in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
                         self.unwritten.append(Unwritten.of(item, time.time()))
                         self._finished.set()
+        except asyncio.CancelledError:
+            stopping = True           # the daemon stops (a fault restarts run() with the tracker kept)
+            raise
         finally:
             self.ctx.bus.unsubscribe(sub)
             writer.cancel()
             # stopping (or restarting): queued now, the parts are committed by the store's close
             # (or awaited by the next run); before any await, which a second cancel would cut short
-            self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.flush())
+            if stopping:      # the part the program's stop left: as it stands, not lost
+                self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.flush())
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)

@@ -200,6 +200,7 @@ def test_a_counter_jump_between_two_readings_is_parts_not_observed_not_one_part(
     f.lathe(part_count=2)
     since = f.t                              # the count last read, before part 3's cut
     f.cut(3.0, 2500, 2.7, alarm=1.0)         # part 3 chatters, then the link goes down
+    f.t += 20.0
     f.lathe(part_count=5)
     partial, three, gap = f.done
     assert (three.part_no, three.outcome, three.abnormal) == (3, "partial", True)
@@ -227,6 +228,7 @@ def test_a_counter_reset_seen_goes_on_and_one_not_seen_is_parts_not_observed():
     g = Feed(tracker())
     g.lathe(part_count=40, program_state=1)
     g.cut(1.0, 1500, 0.2)
+    g.t += 30.0
     g.lathe(part_count=3)                    # reset, and three parts made, between two readings
     one, gap = g.done
     assert (one.part_no, one.outcome, one.unwatched) == (1, "partial", records.RESET)
@@ -234,10 +236,63 @@ def test_a_counter_reset_seen_goes_on_and_one_not_seen_is_parts_not_observed():
     assert gap.payload()["part_no_last"] == 3 and gap.payload()["recorded"] == 2
 
 
+def test_a_count_that_moves_faster_than_parts_are_made_is_a_counter_set_not_parts():
+    # a counter set from 500 to 480 while watched was read as a reset and 480 parts made; a bad
+    # read (500, 0, 500 in three polls) as 499: each queued for inspection
+    f = Feed(tracker())
+    f.lathe(part_count=500, program_state=1)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=480)
+    f.lathe(part_count=0)
+    f.lathe(part_count=480)
+    (gap,) = f.done
+    assert gap.parts == [] and gap.count == 480 and "faster than parts are made" in gap.reason
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(part_count=481)                  # the part being cut went on
+    assert (f.done[-1].part_no, f.done[-1].outcome) == (481, "partial")
+    f.t += 100.0                             # a cycle watched whole: 100 s; 3 parts need 150 s
+    f.lathe(part_count=482)
+    f.t += 60.0
+    f.lathe(part_count=485)
+    assert f.done[-1].parts == [] and f.done[-1].count == 3
+
+
+def test_the_next_program_may_start_before_the_counter_steps_for_the_part_before():
+    # the part before was written aborted, and the next one's first instants finished in its place
+    f = Feed(tracker())
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=0)
+    f.lathe(program_state=1)                 # the bar fed, the next cycle started
+    f.lathe(part_count=5)                    # the counter, read a second late, steps for part 5
+    f.cut(2.0, 2000, 0.2)
+    f.lathe(part_count=6)
+    assert [(p.part_no, p.outcome, p.depth_mm) for p in f.done] == [
+        (4, "partial", None), (5, "finished", 1.0), (6, "finished", 2.0)]
+
+
+def test_a_part_the_stop_left_takes_the_first_step_of_a_gap_not_a_row_of_its_own():
+    # it was written aborted at the analyzer's restart, and its step again as a part not observed
+    f = Feed(tracker())
+    f.lathe(part_count=3, program_state=1)
+    f.lathe(part_count=4)
+    f.cut(1.0, 1500, 0.2)
+    f.lathe(program_state=0)
+    f.tr.resume("records analyzer restarting", f.t)
+    f.t += 60.0
+    f.lathe(part_count=6)
+    assert [(p.part_no, p.outcome, p.unwatched) for p in f.done[1:2]] == [
+        (5, "partial", "records analyzer restarting")]
+    (gap,) = f.done[2:]
+    assert [(p.part_no, p.outcome) for p in gap.parts] == [(6, "unobserved")]
+
+
 def test_a_jump_beyond_any_production_is_told_not_written_part_by_part():
     f = Feed(tracker())
     f.lathe(part_count=5, program_state=1)
-    f.lathe(part_count=5 + records.MAX_LATE_PARTS + 2)   # another controller on the link
+    f.t += 30_000.0                          # link down long enough, but another controller came back
+    f.lathe(part_count=5 + records.MAX_LATE_PARTS + 2)
     _, gap = f.done
     assert gap.count == records.MAX_LATE_PARTS + 1 and gap.parts == [] and gap.payload()["recorded"] == 0
 
@@ -623,6 +678,7 @@ def test_a_jump_beyond_any_production_is_an_event_and_the_analyzer_goes_on(tmp_p
         await turns(lambda: bus._subs.get("lathe"))
         f = BusFeed(bus)
         f.lathe(part_count=5, program_state=1)
+        f.t += 30_000.0
         f.lathe(part_count=5 + records.MAX_LATE_PARTS + 2)
         assert await asyncio.to_thread(log.heard("part_unobserved").wait, 5)
         f.cut(1.0, 1500, 0.2)
@@ -658,3 +714,39 @@ def test_a_part_the_program_stop_closed_is_written_when_lathed_stops_before_the_
     store.close()
     parts, _ = rows(tmp_path / "r.db")
     assert [(no, outcome) for no, outcome, *_ in parts] == [(None, "aborted")]
+
+
+def test_a_part_the_stop_left_is_one_row_across_a_records_analyzer_restart(tmp_path):
+    # the restart wrote it aborted, and the counter's step after it again as a part not observed
+    from lathed.supervisor import Runner
+    store, bus, r, _ = records_analyzer(tmp_path)
+    f = BusFeed(bus)
+    real = r.tracker.feed_sample
+
+    def feed(source, q, v, t):
+        if q == "fault":
+            raise RuntimeError("a bug in the records analyzer")
+        return real(source, q, v, t)
+    r.tracker.feed_sample = feed
+    runner = Runner("analyzer", "records", r, 0.0, 0.0, lambda *a, **k: None)
+
+    async def main():
+        task = asyncio.create_task(runner.loop())
+        await turns(lambda: bus._subs.get("lathe"))
+        f.lathe(part_count=1, program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=2)
+        f.cut(1.0, 1500, 0.2)                  # part 3 cut...
+        f.lathe(program_state=0)               # ...the program ends; the counter (slower) not yet read
+        f.lathe(fault=1)                       # the analyzer fails now
+        await turns(lambda: runner.failures and bus._subs.get("lathe"))
+        f.lathe(part_count=3)                  # the counter's step for that part, after the restart
+        await turns(lambda: r.tracker.count == 3 and not r.unwritten)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
+    parts, events = rows(tmp_path / "r.db")
+    assert [(no, outcome, unwatched) for no, outcome, unwatched, _ in parts] == [
+        (2, "partial", "lathed was not running"), (3, "partial", "records analyzer restarting")]
+    assert events == []
