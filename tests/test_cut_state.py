@@ -328,4 +328,5 @@ def test_the_dwell_keys_are_checked(conf, error):
     from lathed.config import ConfigError, Section
     from lathed_plugins.chatter import ChatterAnalyzer
     with pytest.raises(ConfigError, match=re.escape(f"t.toml: [analyzer.chatter] {error}")):
-        ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", {"input": "accel", "machine": "lathe", **conf}))
+        ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter",
+                                           {"input": "accel", "machine": "lathe", **conf}))
