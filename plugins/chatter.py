@@ -5,6 +5,8 @@
     input = "accel"            # the vibration sensor instance
     machine = "lathe"          # whose speed (and cut state registers) frame the analysis
     cut_from = ["load", "vibration"]   # what says the tool is in the cut (see below)
+    dwell_axes = ["x_mm", "z_mm"]      # the axes' position registers: a dwell is not the cut's end
+    dwell_max = "2s"                   # (with "feed") longest a dwell holds the cut open
     detector = "sync_cusum"    # any built-in or plugin detector
     tool = "T0101"             # recorded with every chatter event
     material = "C45"
@@ -31,6 +33,17 @@ A cut the feed started is cutting air until the tool reaches the stock: the
 chip's contact (another source seeing it, or the vibration stepping up
 ``contact_ratio`` x over the air for 20 ms) restarts the baseline, once; a
 cut so light that neither shows keeps the baseline learned on the approach.
+A dwell (G04: the feed stops with the tool in the work, the spindle turning; a
+feed hold) drops the feed, the chip thins to nothing within a revolution, the
+load and the vibration fall: every source says "not cutting" mid-pass.  With
+``dwell_axes`` (the machine's position registers, polled with the feed) the cut
+is held open while every axis stands where the feed left it, up to
+``dwell_max``: the feed or the chip back within it is the same cut (the cure
+held, the baseline kept, one record); an axis moving off the feed's path (a
+retract) ends it at once, dated when the chip was last seen, as does
+``dwell_max`` (a feed hold left on).  The detector is not fed the dwell; the
+join at its end is told to it as an impulse, so the re-entry's ring does not
+count.  Needs "feed" in ``cut_from``.
 The cut state is published as ``cutting`` (1/0) and shown in the status.  For
 each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
@@ -60,7 +73,7 @@ import math
 import time
 
 from lathed import hookimpl
-from lathed.analysis.cut_state import SOURCES, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.cut_state import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
 from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, JudgedIndex, make_detector
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
@@ -98,6 +111,18 @@ class ChatterAnalyzer(Analyzer):
         if bad or not self.cut_from:
             raise section.error("cut_from", f"expected a non-empty list of {', '.join(SOURCES)}; "
                                             f"got {self.cut_from!r}")
+        self.dwell_axes = section.getlist("dwell_axes", [])
+        if self.dwell_axes and "feed" not in self.cut_from:
+            raise section.error("dwell_axes", 'a dwell is told from the cutting-feed signal: needs "feed" in '
+                                              f"cut_from (got {self.cut_from!r})")
+        self.dwell_max = section.getduration("dwell_max", 2.0, minval=0.1, maxval=60.0)
+        if "dwell_max" in section and not self.dwell_axes:
+            raise section.error("dwell_max", "a dwell is told by the axes standing: needs dwell_axes (the "
+                                             "machine's position registers, e.g. [\"x_mm\", \"z_mm\"])")
+        self.feed_stop = FeedStop(self.dwell_axes) if self.dwell_axes else None
+        self._held: float | None = None        # a dwell: the time the chip was last seen, the cut held
+        self._rejoin = False                   # the dwell over: the detector's next block joins it
+        self.dwells = 0
         self.load_cut = LoadCutDetector(section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0))
         self.contact_ratio = section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0)
         self.vib_cut: VibrationCutDetector | None = None
@@ -179,8 +204,12 @@ class ChatterAnalyzer(Analyzer):
         elif s.quantity == "tool_number":
             self.tool_number = int(s.value)     # the turret position cutting: recorded with the alarm
         elif s.quantity == "cutting_feed":
+            if self.feed_stop is not None:
+                self.feed_stop.feed(s.value != 0, s.t)
             if "feed" in self.seen:
                 self._source("feed", s.value != 0, s.t)
+        elif self.feed_stop is not None and s.quantity in self.feed_stop.axes:
+            self.feed_stop.position(s.quantity, s.value, s.t)
         elif s.quantity == "depth_of_cut_mm":
             if s.value > 0:
                 self.depth_mm = s.value
@@ -194,11 +223,25 @@ class ChatterAnalyzer(Analyzer):
             if self.cutting and set_load is not None:
                 # the static cutting force, for load_scaled (the detector ignores it otherwise)
                 set_load(self.load_cut.cutting_load(s.value, self.rpm))
+        self._dwell_over(s.t)
 
     def _source(self, name: str, on: bool, t: float) -> None:
         """One source's verdict; the cut is on while any source sees the chip."""
         self.seen[name] = on
         cutting = any(self.seen.values())
+        if self._held is not None:
+            if cutting:
+                # the feed or the chip back with the tool where the feed left it: the same pass
+                self._held, self._rejoin = None, True
+                self.state = "watching" if self.detector is not None and self.detector.learned else "learning"
+                self.ctx.log.info("dwell_over", source=name)
+            return
+        if self.cutting and not cutting and self.feed_stop is not None and self.feed_stop.standing:
+            # the feed stopped with the axes standing: a dwell, unless they move or it lasts
+            self._held, self.state = t, "dwell"
+            self.dwells += 1
+            self.ctx.log.info("dwell", source=name)
+            return
         if cutting and not self.cutting:
             if self._rebuild:             # reloaded parameters shape this cut's windows
                 self.detector, self._rebuild = None, False
@@ -206,16 +249,35 @@ class ChatterAnalyzer(Analyzer):
             self.cut_by = name
             self.chip_by = None if name == "feed" else name
         elif self.cutting and not cutting:
-            if self.detector is not None and self.detector.alarm:
-                self._cleared("cut ended")
-            self.state = "idle"
-            self.cut_by = self.chip_by = None
+            self._end(t, name)
+            return
         elif self.cutting and on and name != "feed" and self.chip_by is None:
             self._contact(name, t)
         if cutting != self.cutting:
             self.cutting = cutting
             self.ctx.bus.publish(Sample(self.name, "cutting", 1.0 if cutting else 0.0, "", t))
             self.ctx.log.info("cut_state", cutting=cutting, source=name)
+
+    def _end(self, t: float, source: str) -> None:
+        """The cut is over: the chip was last seen at ``t``."""
+        if self.detector is not None and self.detector.alarm:
+            self._cleared("cut ended")
+        self.state = "idle"
+        self.cut_by = self.chip_by = None
+        self._held, self._rejoin = None, False
+        self.cutting = False
+        self.ctx.bus.publish(Sample(self.name, "cutting", 0.0, "", t))
+        self.ctx.log.info("cut_state", cutting=False, source=source)
+
+    def _dwell_over(self, now: float) -> None:
+        """A held cut ends when an axis leaves the feed's path (the tool retracting) or after
+        dwell_max (a feed hold left on), dated when the chip was last seen."""
+        if self._held is None:
+            return
+        if self.feed_stop.left:
+            self._end(self._held, "axes")
+        elif now - self._held >= self.dwell_max:
+            self._end(self._held, "dwell_max")
 
     def _learn_afresh(self) -> None:
         """A new cut, or the chip in a cut the feed started in air: learn the baseline anew."""
@@ -236,11 +298,13 @@ class ChatterAnalyzer(Analyzer):
 
     def _on_block(self, b: Block) -> None:
         data = b.data
+        self._dwell_over(b.t0)
         if "vibration" in self.seen or "feed" in self.seen:
             if self.vib_cut is None or self.vib_cut.rate != b.rate_hz:
                 self.vib_cut = VibrationCutDetector(b.rate_hz, contact_ratio=self.contact_ratio)
             at = self.vib_cut.process(data)
             if (at is not None and self.vib_cut.cutting and self.cutting and self.chip_by is not None
+                    and self._held is None
                     and self.vib_cut.entry_jump >= IMPULSE_JUMP
                     and hasattr(self.detector, "impulse")):     # a plugin's detector may lack it
                 # in the cut already: the tool's release from a light chip (the feed or the load
@@ -248,18 +312,18 @@ class ChatterAnalyzer(Analyzer):
                 self.detector.impulse(at, b.rpm if b.rpm else (self.rpm or 60.0))
             if at is not None and "vibration" in self.seen:
                 on = bool(self.vib_cut.cutting)
-                was, air = self.cutting, self.cutting and self.chip_by is None
+                was, air = self.cutting, self.cutting and (self.chip_by is None or self._held is not None)
                 self._source("vibration", on, b.t0 + at / b.rate_hz)
                 if on and (not was or air):
                     data = data[at:]          # the revolution before the chip is air, not the cut
-            elif self.cutting and self.chip_by is None:
+            elif self.cutting and self.chip_by is None and self._held is None:
                 # the chip in a cut the feed started: a light one's step, or an entry's
                 chip = self.vib_cut.contact if at is None or not self.vib_cut.cutting else at
                 if chip is not None:
                     self._contact("vibration", b.t0 + chip / b.rate_hz)
                     data = data[chip:]
-        if not self.cutting or len(data) == 0:
-            return
+        if not self.cutting or self._held is not None or len(data) == 0:
+            return           # a dwell's blocks are not the cut's
         rpm = b.rpm if b.rpm else self.rpm
         if not rpm or rpm <= 0:
             return
@@ -287,6 +351,11 @@ class ChatterAnalyzer(Analyzer):
             self.state = "learning"
             self._cut_rpm = rpm
         self._cut_revs += len(data) / b.rate_hz * rpm / 60.0
+        if self._rejoin and hasattr(self.detector, "impulse"):    # a plugin's detector may lack it
+            # the pass goes on after a dwell the detector did not see: its revolution difference
+            # spans the join, and the chip's re-entry rings the structure
+            self.detector.impulse(0, rpm)
+        self._rejoin = False
         was = self.detector.alarm
         windows = self.detector.process(data, rpm)
         now = time.time()
@@ -364,7 +433,7 @@ class ChatterAnalyzer(Analyzer):
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
                 "alarms": self.alarms, "windows": self.windows, "unusable_blocks": self.unusable_blocks,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
-                "chip_seen_by": self.chip_by,
+                "chip_seen_by": self.chip_by, "dwells": self.dwells,
                 "summary": f"{self.state}" + (f" (cut seen by {self.cut_by}" + (
                     "" if self.chip_by in (None, self.cut_by) else f", chip by {self.chip_by}") + ")"
                     if self.cut_by else "")

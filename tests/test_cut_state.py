@@ -1,10 +1,12 @@
 """Cut state without a depth register: from the vibration and from the spindle load."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
-from lathed.analysis.cut_state import LoadCutDetector, SlidingQuantile, VibrationCutDetector
+from lathed.analysis.cut_state import FeedStop, LoadCutDetector, SlidingQuantile, VibrationCutDetector
 from lathed.analysis.regen import Segment as S, simulate_cut
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, SimLathe
 from lathed.sim.program import Cut
@@ -151,3 +153,180 @@ def test_air_and_a_speed_change_are_no_contact():
     rec = simulate_cut([S(1.0, 2000, 0.0), S(0.5, 2600, 0.0, 0.3), S(0.5, 2600, 0.0)], modes=LATHE_MODES,
                        kf_n_per_m2=LATHE_KF, seed=3)
     assert contact_events(rec.signal) == ([], [])
+
+
+def test_a_feed_stop_with_the_axes_standing_is_a_dwell():
+    """A pass along Z (1 mm a 100 ms poll, X standing): the feed stops between two polls, the
+    tool where the feed left it, the axes standing after: a dwell, until an axis moves."""
+    fs = FeedStop(["x_mm", "z_mm"])
+    for i in range(4):
+        fs.feed(True, i * 0.1)
+        fs.position("x_mm", 14.0, i * 0.1)
+        fs.position("z_mm", -1.0 * i, i * 0.1)
+    assert not fs.standing and not fs.left           # feeding: no stop yet
+    fs.feed(False, 0.4)
+    fs.position("x_mm", 14.0, 0.4)
+    fs.position("z_mm", -3.6, 0.4)                   # stopped 60 % of the way to the next poll
+    assert fs.standing
+    for t in (0.5, 0.6, 0.7):
+        fs.feed(False, t)
+        fs.position("x_mm", 14.004, t)               # a thermal offset's step: still standing
+        fs.position("z_mm", -3.6, t)
+        assert fs.standing
+    fs.feed(False, 0.8)
+    fs.position("x_mm", 16.0, 0.8)                   # the retract
+    assert fs.left and not fs.standing
+    fs.feed(True, 0.9)                               # the next move under feed: judged afresh
+    assert not fs.left and not fs.standing
+
+
+@pytest.mark.parametrize("feed_first", [True, False])
+def test_a_retract_seen_in_the_feeds_own_poll_is_the_tool_leaving(feed_first):
+    """The pass ends, the tool retracts and stands clear before the next poll: the first
+    reading after the feed stopped is off the feed's path, whichever of the poll's samples
+    comes first (a driver publishes a poll's registers in its own order)."""
+    fs = FeedStop(["x_mm", "z_mm"])
+    for i in range(3):
+        fs.feed(True, i * 0.1)
+        fs.position("x_mm", 14.0, i * 0.1)
+        fs.position("z_mm", -1.0 * i, i * 0.1)
+    if feed_first:
+        fs.feed(False, 0.3)
+    fs.position("x_mm", 16.0, 0.3)
+    fs.position("z_mm", -2.5, 0.3)
+    if not feed_first:
+        fs.feed(False, 0.3)
+    assert fs.left
+    fs.position("x_mm", 16.0, 0.4)
+    assert fs.left and not fs.standing
+
+
+def test_the_axes_moving_as_the_feed_goes_on_again_are_no_retract():
+    """The dwell's end: the poll that finds the axes moving again has the feed on; its position
+    samples may come before the feed's, and are not taken for the tool leaving."""
+    fs = FeedStop(["x_mm", "z_mm"])
+    for i in range(3):
+        fs.feed(True, i * 0.1)
+        fs.position("x_mm", 14.0, i * 0.1)
+        fs.position("z_mm", -1.0 * i, i * 0.1)
+    for t in (0.3, 0.4):
+        fs.position("x_mm", 14.0, t)
+        fs.position("z_mm", -2.2, t)
+        fs.feed(False, t)
+    fs.position("x_mm", 14.0, 0.5)
+    fs.position("z_mm", -2.9, 0.5)                   # moving: the feed is on again ...
+    assert fs.standing and not fs.left
+    fs.feed(True, 0.5)                               # ... as its sample of the same poll says
+    assert not fs.left and not fs.standing
+    fs.position("x_mm", 14.0, 0.6)
+    fs.position("z_mm", -3.9, 0.6)
+    fs.feed(False, 0.65)                             # a later poll with the feed off: had it stayed
+    fs.position("x_mm", 14.0, 0.7)                   # off at 0.5, the move would be the tool leaving
+    assert fs.standing
+
+
+def test_a_feed_stop_on_an_axis_never_read_under_feed_is_no_dwell():
+    """No reading under feed, no path to judge the stop by: not taken for a dwell (the cut ends
+    as without the axes)."""
+    fs = FeedStop(["x_mm", "z_mm"])
+    fs.feed(True, 0.0)
+    fs.position("x_mm", 14.0, 0.0)
+    fs.feed(False, 0.1)
+    fs.position("x_mm", 14.0, 0.1)
+    fs.position("z_mm", -3.0, 0.1)
+    assert fs.left and not fs.standing
+
+
+def _dwell_run(program: list[str], parts: int, dwell_axes: bool, dwell_max: str = "2s", seed: int = 0):
+    """The simulated lathe's program (no daemon: its vibration in 20 ms frames, its registers
+    polled every 100 ms as the Modbus driver does) into the chatter analyzer with the shipped
+    cut_from; returns the published (quantity, value, sample time, sim time), the lathe, the analyzer."""
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Block, Bus, Sample
+    from lathed.config import Section
+    from lathed.sim.program import parse_cut
+    from lathed_plugins.chatter import ChatterAnalyzer
+    conf = {"input": "accel", "machine": "lathe", "cut_from": ["feed", "load", "vibration"]}
+    if dwell_axes:
+        conf.update(dwell_axes=["x_mm", "y_mm"], dwell_max=dwell_max)
+    an = ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", conf))
+    lathe = SimLathe(program=tuple(parse_cut(c) for c in program), load_s=0.5, retract_s=0.2, seed=seed)
+    out = []
+    bus = Bus()
+    publish = bus.publish
+
+    def seen(m):
+        if isinstance(m, Sample) and m.quantity in ("cutting", "chatter_alarm"):
+            out.append((m.quantity, m.value, m.t, lathe.t))
+        return publish(m)
+    bus.publish = seen
+    an.ctx = AnalyzerContext(bus, structlog.get_logger("test"), lambda kind, payload=None: None,
+                             None, None, None, lambda name: None, ".")
+    poll, k = 0.037, 0
+    while len(lathe.parts) <= parts or lathe.phase_t < 0.4:      # the last end seen, the next pass not begun
+        x = lathe.step(FRAME)
+        while lathe.t >= poll:
+            for q, v in lathe.registers().items():
+                an._on_machine(Sample("lathe", q, float(v), "", poll))
+            poll += 0.1
+        an._on_block(Block("accel", "acceleration", RATE, lathe.t - FRAME / RATE, k * FRAME, x.astype(float),
+                           lathe.block_rpm))
+        k += 1
+    return out, lathe, an
+
+
+def _cuts(out) -> list[tuple[float, float, float]]:
+    """(start, end, the sim time the end was published) of each cut."""
+    states = [(v, t, at) for q, v, t, at in out if q == "cutting"]
+    return [(a[1], b[1], b[2]) for a, b in zip(states[::2], states[1::2])]
+
+
+@pytest.mark.parametrize("program, seed", [
+    (["2000,1.0,0.3,30,dwell=1", "1500,1.0,0.3,20"], 0),
+    (["2000,1.0,0.3,30,dwell=1", "1500,1.0,0.3,20"], 1),
+    (["2000,1.0,0.3,30,dwell=1", "1500,1.0,0.3,20"], 2),
+    # a finishing pass (the feed alone sees its chip) and a roughing one, each with a dwell
+    (["3000,0.3,0.1,8,dwell=0.3", "1200,1.0,0.3,20,dwell=1"], 0)])
+def test_a_dwell_is_not_the_end_of_the_cut(program, seed):
+    """A dwell halfway along a stable pass: the feed, the load and the vibration all say "no
+    chip" there.  With the axes' registers the pass is one cut: its end is not published before
+    the retract, the re-entry raises no alarm, and the passes' real ends are seen as soon as
+    without them (the next pass's feed comes on 0.7 s after the retract, well inside dwell_max).
+    Without them the dwell ends the cut: two cuts for the one pass."""
+    out, lathe, an = _dwell_run(program, 2, dwell_axes=True, seed=seed)
+    cuts = _cuts(out)
+    assert len(cuts) == 2 and an.dwells == sum("dwell=" in c for c in program), cuts
+    assert not any(v for q, v, *_ in out if q == "chatter_alarm")
+    for (start, end, told), p in zip(cuts, lathe.parts):
+        assert start <= p.cut_start_s + 0.05 and p.cut_end_s < end
+        assert told - p.cut_end_s < 0.35, (told, p.cut_end_s)      # the retract: at once, as without a hold
+    before, lathe, _ = _dwell_run(program, 1, dwell_axes=False, seed=seed)
+    assert [c[1] < lathe.parts[0].dwell_end_s for c in _cuts(before)] == [True, False]
+
+
+def test_a_dwell_longer_than_dwell_max_ends_the_cut_then():
+    """A feed stop that lasts (a feed hold left on, a 3 s dwell) holds the cut dwell_max, then
+    ends it, dated when the chip was last seen; the pass's rest is a cut of its own."""
+    out, lathe, an = _dwell_run(["2000,1.0,0.3,30,dwell=3"], 1, dwell_axes=True, dwell_max="1s")
+    p = lathe.parts[0]
+    cuts = _cuts(out)
+    assert len(cuts) == 2 and an.dwells == 1, cuts
+    (start, end, told), (start2, end2, _) = cuts
+    assert p.dwell_start_s < end < p.dwell_start_s + 0.3            # the chip's end
+    assert told - end == pytest.approx(1.0, abs=0.12)               # held dwell_max
+    assert p.dwell_end_s - FRAME / RATE <= start2 < p.dwell_end_s + 0.2 and end2 > p.cut_end_s
+
+
+@pytest.mark.parametrize("conf, error", [
+    ({"dwell_max": "2s"}, 'dwell_max: a dwell is told by the axes standing: needs dwell_axes'),
+    ({"dwell_axes": ["x_mm"], "cut_from": ["load", "vibration"]},
+     'dwell_axes: a dwell is told from the cutting-feed signal: needs "feed" in cut_from'),
+    ({"dwell_axes": ["x_mm"], "cut_from": ["feed"], "dwell_max": "0s"}, "dwell_max: '0s' is out of range")])
+def test_the_dwell_keys_are_checked(conf, error):
+    from lathed.config import ConfigError, Section
+    from lathed_plugins.chatter import ChatterAnalyzer
+    with pytest.raises(ConfigError, match=re.escape(f"t.toml: [analyzer.chatter] {error}")):
+        ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter",
+                                           {"input": "accel", "machine": "lathe", **conf}))

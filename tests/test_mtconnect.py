@@ -170,8 +170,10 @@ def test_a_lathe_read_over_mtconnect_raises_chatter_alarms_and_flags_parts_live(
 
     port = free_port()
     items = "".join(f'{k} = "{v}"\n' for k, v in ITEMS.items())
+    # no cutting-feed signal over this agent: nor a dwell told from it
     chatter = re.sub(r"cut_from = \[[^]]*\]", 'cut_from = ["load", "vibration"]',
-                     default_table("chatter").replace('machine = "lathe"', 'machine = "mt"'))
+                     re.sub(r"^dwell_\w+ = .*\n", "", default_table("chatter"), flags=re.M)
+                     .replace('machine = "lathe"', 'machine = "mt"'))
     records = "\n".join(line for line in default_table("records").replace('machine = "lathe"', 'machine = "mt"')
                         .splitlines() if not line.startswith(("thermal", "suppress")))
     cfg, paths = sim_config(tmp_path, extra=f'\n[machine.mt]\nplugin = "mtconnect"\nurl = "http://127.0.0.1:{port}"\n'

@@ -99,3 +99,52 @@ def test_the_turrets_second_tool_is_a_boring_bar_with_its_own_limit():
     assert tools == {(0, 1), (1, 2)}
     assert turning.b_lim_mm > 2.3 and 0.5 < bar.b_lim_mm < 0.7
     assert turning.visible_at_s is None and bar.visible_at_s is not None     # 0.9 mm chatters on the bar
+
+
+def test_a_dwell_stops_the_feed_with_the_tool_in_the_work():
+    """dwell=S: halfway along the pass the feed stands S seconds (G04), the spindle turning.
+    The chip is what the tool advanced over the last revolution, so it thins to nothing within
+    one (sparkout): the load falls to the spindle's own, the vibration to the air's; the
+    control's cutting-feed signal is off (Fanuc's CUT), the axes stand, the tool is in the work.
+    Then the pass goes on, the chip growing back over a revolution."""
+    import numpy as np
+    import pytest
+
+    from lathed.sim.lathe import IDLE_LOAD_PCT
+    from lathed.sim.program import parse_cut
+    cut = parse_cut("2000,1.0,0.3,20,dwell=0.5")
+    assert cut == Cut(2000, 1.0, 0.3, 20, dwell_s=0.5) and parse_cut("2000,1").dwell_s == 0.0
+    for bad in ("2000,1,dwell=0", "2000,1,dwell=61", "2000,1,dwell=long"):
+        with pytest.raises(ValueError, match=r"dwell= takes"):
+            parse_cut(bad)
+    lathe = SimLathe(program=(cut,), load_s=0.2, retract_s=0.2)
+    chips = []
+    run = lathe.cutter.run
+    lathe.cutter.run = lambda *a: chips.append(run(*a)) or chips[-1]
+    steps = []        # (time at the step's end, registers, load, vibration rms, deepest chip)
+    while len(lathe.parts) < 2:
+        n = len(chips)
+        x = lathe.step(1024)
+        h = max(float(np.max(b.h_m)) for b in chips[n:])
+        steps.append((lathe.t, lathe.registers(), lathe.load_pct, float(np.std(x)), h))
+    rec = lathe.parts[0]
+    assert rec.dwell_end_s - rec.dwell_start_s == pytest.approx(0.5, abs=0.021)
+    # the pass is its length at its feed, plus the dwell
+    assert rec.cut_end_s - rec.cut_start_s == pytest.approx(20 / (0.3 * 2000 / 60) + 0.5, abs=0.05)
+    rev = 60 / 2000
+    air = [s for s in steps if s[1]["depth_of_cut_mm"] == 0 and s[0] < rec.cut_start_s]
+    cutting = [s for s in steps if rec.cut_start_s + 0.1 < s[0] < rec.dwell_start_s]
+    dwell = [s for s in steps if rec.dwell_start_s + 3 * rev < s[0] <= rec.dwell_end_s]   # sparkout: 3 revs
+    after = [s for s in steps if rec.dwell_end_s + 2 * rev < s[0] < rec.cut_end_s]
+    assert len(dwell) > 15 and cutting and after and air
+    air_rms = float(np.median([s[3] for s in air]))
+    for t, regs, load, rms, h in dwell:
+        assert regs["cutting_feed"] == 0 and regs["depth_of_cut_mm"] == 1.0       # in the work, not feeding
+        assert (regs["x_mm"], regs["y_mm"]) == (14.0, pytest.approx(10.0))        # the axes stand mid-pass
+        assert load < IDLE_LOAD_PCT + 0.05 and h < 1e-6 and rms < 1.3 * air_rms   # no chip to speak of
+    for t, regs, load, rms, h in cutting + after:
+        assert regs["cutting_feed"] == 1 and load > IDLE_LOAD_PCT + 15 and h > 2e-4
+    # the chip thins over the revolution after the stop, not at once: a step there rings the structure
+    first = [s for s in steps if rec.dwell_start_s + 0.01 < s[0] <= rec.dwell_start_s + rev + 0.01]
+    assert first and all(IDLE_LOAD_PCT + 1 < s[2] < cutting[-1][2] - 1 for s in first), first
+    assert max(s[3] for s in steps if rec.dwell_start_s < s[0] <= rec.dwell_end_s) < max(s[3] for s in cutting)

@@ -271,6 +271,50 @@ def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_liv
         d.stop()
 
 
+def test_a_dwell_mid_pass_holds_the_cure_live(tmp_path):
+    """A 3 mm pass at 2000 r/min chatters and is cured by an override; halfway along it the feed
+    stops for 1 s (G04), the tool in the work: the cutting-feed signal, the spindle load and
+    the vibration all say "no chip".  The shipped chatter table (dwell_axes: the control's X
+    and Z registers standing) holds the cut over it: the cure is not released before the
+    pass's end, the rest of the pass raises no alarm (no re-entry false alarm, no chatter at the
+    speed that chattered), one cut record a pass; the retract still releases the override before
+    the next pass (1 mm at 1500 r/min) begins.  Before, the dwell ended the cut: the override
+    went back to 100 % under the chip and the pass's rest chattered again, two cut records."""
+    cfg, paths = override_config(tmp_path, '["2000,3.0,0.3,30,dwell=1", "1500,1.0,0.3,20"]')
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 5, timeout=90, interval=0.3,
+                   what="five parts")
+        parts = [p for p in sim_call(paths["sim"], "status", {"parts": 16})["parts"]
+                 if p["cut_end_s"] is not None and p["cut_start_wall"] is not None]
+        deep = [p for p in parts if p["depth_mm"] == 3.0]
+        assert len(deep) >= 2, parts
+
+        def wall(p, sim_t):
+            return p["cut_start_wall"] + sim_t - p["cut_start_s"]
+        cuts = [e["payload"] for e in events(d, "cut")]
+        alarms = [e["payload"]["sample_t"] for e in events(d, "chatter_alarm")]
+        released = [e["t"] for e in spindle_commands(d) if e["payload"]["reason"].startswith("released")]
+        for p in deep:
+            start, stop, end = (wall(p, p[k]) for k in ("dwell_start_s", "dwell_end_s", "cut_end_s"))
+            # one cut for the pass, over its dwell
+            mine = [c for c in cuts if c["start_t"] < end and c["end_t"] > wall(p, p["cut_start_s"])]
+            assert len(mine) == 1 and mine[0]["start_t"] < start and mine[0]["end_t"] > stop, mine
+            assert mine[0]["outcome"] == "chatter" and mine[0]["rpm_end"] != 2000.0, mine
+            # cured once before the dwell, never released under the chip
+            assert [w["override_pct"] for w in p["speed_writes"]] and p["speed_writes"][0]["sim_t"] < p["dwell_start_s"]
+            assert not [t for t in released if wall(p, p["cut_start_s"]) < t < end], (p, released)
+            assert not [t for t in alarms if start < t < end + 0.3], (p, alarms)
+        # the retract releases it: each light pass cut at its own speed
+        light = [c for c in cuts if (c["depth_mm"] or 0) < 2.0]
+        assert light and all(abs(c["rpm_start"] - 1500) < 15 for c in light), light
+        assert d.item("analyzers", "chatter")["dwells"] >= 2
+    finally:
+        d.stop()
+
+
 def _stored(paths, kind: str) -> list[dict]:
     import sqlite3
     con = sqlite3.connect(f"file:{paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)

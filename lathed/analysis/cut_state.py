@@ -19,7 +19,10 @@ here turns one of them into cutting / not cutting:
              air (``VibrationCutDetector.contact``), smaller than an entry.
 
 The chatter analyzer ORs the sources a machine's config names: the first to
-see the chip starts the cut, the cut ends when none sees it.  No asyncio here.
+see the chip starts the cut, the cut ends when none sees it.  A dwell (G04)
+with the tool in the work drops the feed, and the chip with it, so every
+source says "not cutting" while the pass is not over: ``FeedStop`` tells it
+from the pass's end by the axes' positions.  No asyncio here.
 """
 from __future__ import annotations
 
@@ -225,3 +228,98 @@ class LoadCutDetector:
             idle = self._idle[band]
         self.cutting = load_pct >= idle + self.margin
         return self.cutting
+
+
+# An axis this far off where the cutting feed left it has left the work: a retract clears the
+# stock by 0.5 mm or more, while a standing axis's reading moves by microns (servo lag, a
+# thermal offset's step of at most 10 um).
+AXIS_TOL_MM = 0.1
+
+
+class FeedStop:
+    """Where the cutting feed stopped: in the work (a dwell, G04, at a groove's bottom or a
+    shoulder; a feed hold), every axis standing where the feed left it, or at the pass's end,
+    the tool moving away (a rapid retract).  From the cutting-feed signal and the axes'
+    position registers, read in the same polls (one time stamp a poll, in any order).
+
+    While the feed is on, an axis's last two readings give its rate under feed.  Its first
+    reading after the feed stopped must lie on the way the feed was taking it (between its
+    last reading under feed and where the feed would have taken it by then, give or take
+    ``tol_mm``), each later one within ``tol_mm`` of that: ``standing``.  An axis read
+    otherwise, or not read under feed (no path to judge by), is the tool leaving: ``left``,
+    until the feed comes on again, once the feed's reading of that poll (or a later poll)
+    says it is still off: the axes move when the feed goes on again too."""
+
+    def __init__(self, axes: list[str], tol_mm: float = AXIS_TOL_MM) -> None:
+        self.axes = list(axes)
+        self.tol = float(tol_mm)
+        self.off_t: float | None = None        # the first reading of the feed off after it was on
+        self._moved_t: float | None = None     # the first reading off the feed's path
+        self._feed_t = self._last_t = -math.inf   # the feed's last reading (off), any last reading
+        self._on = False
+        self._recent: dict[str, list[tuple[float, float]]] = {a: [] for a in self.axes}
+        self._path: dict[str, list[tuple[float, float]]] = {}    # the last two readings under feed
+        self._rest: dict[str, float] = {}                        # where each axis stood after
+
+    @property
+    def left(self) -> bool:
+        """An axis moved off the feed's path with the feed off in that poll or after."""
+        m = self._moved_t
+        return m is not None and (self._feed_t >= m or self._last_t > m)
+
+    @property
+    def standing(self) -> bool:
+        """The feed stopped in this pass and no axis has moved off its path since."""
+        return self.off_t is not None and not self.left
+
+    def feed(self, on: bool, t: float) -> None:
+        self._last_t = max(self._last_t, t)
+        if on:
+            if not self._on:                    # a new move under feed: its own path
+                self.off_t, self._moved_t = None, None
+                self._path.clear()
+                self._rest.clear()
+                # a reading of the same poll that came before the feed's is under feed
+                self._recent = {a: [r for r in rs if r[0] >= t] for a, rs in self._recent.items()}
+            self._on = True
+        else:
+            self._feed_t = t
+            if not self._on:
+                return
+            self._on, self.off_t = False, t
+            for axis, readings in self._recent.items():
+                # a reading of the same poll that came before the feed's is after the stop
+                self._path[axis] = [r for r in readings if r[0] < t][-2:]
+                if not self._path[axis]:
+                    self._moved(t)              # never read under feed: nothing to judge by
+                for r in readings:
+                    if r[0] >= t:
+                        self._judge(axis, *r)
+
+    def position(self, axis: str, value: float, t: float) -> None:
+        if axis not in self._recent:
+            return
+        self._last_t = max(self._last_t, t)
+        self._recent[axis] = (self._recent[axis] + [(t, value)])[-3:]
+        if self.off_t is not None:
+            self._judge(axis, t, value)
+
+    def _judge(self, axis: str, t: float, value: float) -> None:
+        if axis in self._rest:
+            moved = abs(value - self._rest[axis]) > self.tol
+        else:
+            path = self._path.get(axis, [])
+            if not path:
+                moved = True
+            else:
+                t1, v1 = path[-1]
+                rate = (v1 - path[0][1]) / (t1 - path[0][0]) if len(path) == 2 and t1 > path[0][0] else 0.0
+                reach = v1 + rate * max(0.0, t - t1)
+                moved = not min(v1, reach) - self.tol <= value <= max(v1, reach) + self.tol
+            self._rest[axis] = value
+        if moved:
+            self._moved(t)
+
+    def _moved(self, t: float) -> None:
+        if self._moved_t is None:
+            self._moved_t = t

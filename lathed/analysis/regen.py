@@ -9,6 +9,12 @@ the part, so a larger y thins the chip):
 *in spindle angle* (the delay follows speed changes exactly; at constant speed
 it is T = 60/n).  In the cut s(t) = y(t); out of the cut (h <= 0, or over the
 flat of an interrupted surface) no material is removed and s(t) = s(t-T) + h0.
+``h0`` is what the tool advanced over the last revolution: where the feed
+stops with the tool in the work (a dwell, G04) the caller passes that (0 once
+the tool has stood a revolution), so the chip is only the last revolution's
+surface against the tool's present place, and it thins to nothing within a
+few revolutions as the structure's deflection relaxes (sparkout), the tool
+rubbing or out of contact.  Only a depth of 0 is the tool clear of the part.
 The force Kf*b*h (plus a small random cutting-process part that makes a stable
 cut sound like one) is zero out of the cut, which bounds chatter.
 Optionally (``flank``, off by default) the worn flank land ploughs the wavy
@@ -313,7 +319,8 @@ class RegenerativeTurning:
     def run(self, n_samples: int, rpm: float, depth_mm: float, feed_mm_rev: float,
             diameter_mm: float | None = None) -> SimBlock:
         """Advance ``n_samples`` at a constant speed, depth and feed (``diameter_mm``:
-        the part's, for the cutting speed the flank land sees; default the constructor's)."""
+        the part's, for the cutting speed the flank land sees; default the constructor's).
+        A feed of 0 with a depth is a dwell: the tool stands in the work."""
         if not rpm > 0:
             raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
         if depth_mm < 0 or feed_mm_rev < 0:
@@ -329,7 +336,7 @@ class RegenerativeTurning:
         h = np.empty(n)
         inc = np.zeros(n, dtype=bool)
 
-        if b_m == 0.0 or h0 == 0.0:
+        if b_m == 0.0:
             # Tool clear of the part: free vibration; the next pass meets fresh material.
             z = self._free_run(n)
             xs = (self._free.v @ z).real

@@ -364,7 +364,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cut", action="append", default=[], metavar=CUT_FORM,
                    help="the cut program, one part per --cut, repeated in turn; css=M_MIN: a facing pass at "
                         "that constant surface speed (G96), RPM its clamp; tool=2: cut with the turret's "
-                        "boring bar (default: the paper's six parts and a G96 face)")
+                        "boring bar; dwell=S: the feed stops S seconds halfway along the pass (G04) "
+                        "(default: the paper's six parts and a G96 face)")
     p.add_argument("--load-s", type=float, default=LOAD_S, help="seconds to load a part")
     p.add_argument("--retract-s", type=float, default=RETRACT_S, help="seconds to retract and unload")
     args = p.parse_args(argv)

@@ -2,7 +2,8 @@
 
 A simulator of physics, not of a particular controller: the spindle follows
 its commanded speed within an acceleration limit; the program turns parts
-one after another (load, approach at feed, cut along the part, retract); the cut's vibration
+one after another (load, approach at feed, cut along the part, a dwell where
+the program has one, retract); the cut's vibration
 comes from the regenerative chip-thickness model (lathed.analysis.regen), so
 a depth above the stability limit really chatters (with a worn tool,
 ``flank``, chatter just above it stays mild); the spindle warms with
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -165,6 +166,8 @@ class PartRecord:
     b_lim_mm: float | None = None     # limiting depth at the speed the cut started at
     cut_start_s: float | None = None
     cut_end_s: float | None = None
+    dwell_start_s: float | None = None    # the pass's dwell (G04): the feed stood from ... to
+    dwell_end_s: float | None = None
     visible_at_s: float | None = None
     waviness_um: list[float] = field(default_factory=list)   # first revolutions' rms
     speed_writes: list[dict] = field(default_factory=list)   # {"sim_t", "rpm"[, "wall_t"]}
@@ -181,6 +184,9 @@ RETRACT_S = 1.0    # tool retracted, part measured (probe cycle), unloaded
 # A pass's G01 starts this far clear of the stock (the CAM's approach clearance): the control
 # is in cutting feed that long before the chip, cutting air (the cutting_feed register says 1)
 APPROACH_MM = 0.5
+# Samples cut at one feed while the chip thins or grows after a dwell's stop or start (0.6 ms:
+# short against the tool post's 1.6 ms period, so the chip's ramp does not ring it as steps)
+RAMP_SAMPLES = 32
 
 
 class SimLathe:
@@ -206,6 +212,11 @@ class SimLathe:
         self.load_s, self.retract_s = load_s, retract_s
         self.approach_mm = approach_mm
         self.approach_left_mm = 0.0
+        self.dwell_left_s = 0.0                  # a dwell (G04) standing: its time left
+        # spindle angles the feed stood between in this pass (the end inf while it stands):
+        # the chip is what the tool advanced over the last revolution
+        self._still: tuple[float, float] | None = None
+        self._block_theta = (0.0, 0.0)          # the spindle angle over the step's samples
         self.thermal = SpindleThermal(room_c=room_c, seed=seed)
         self._rng = np.random.default_rng(seed + 1)
         self.t = 0.0
@@ -327,7 +338,20 @@ class SimLathe:
             if self.approach_left_mm <= 0.0:
                 self.phase, self.phase_t, self.approach_left_mm = "cut", 0.0, 0.0
         elif self.phase == "cut":
+            if self.dwell_left_s > 0.0:
+                # G04: the feed stands, the tool in the work, the spindle turning
+                self.dwell_left_s -= dt
+                if self.dwell_left_s <= 0.0:
+                    self._still = (self._still[0], self._block_theta[1])   # on from the next step
+                    self.record.dwell_end_s = (self.n_samples + round(dt * self.rate_hz)) / self.rate_hz
+                return
             self.y_mm += self.part.feed_mm_rev * self.rpm / 60.0 * dt
+            half = self.part.length_mm / 2
+            if self.part.dwell_s and self._still is None and self.y_mm >= half:
+                # the dwell at the pass's middle, from this step's end
+                self.y_mm, self.dwell_left_s = half, self.part.dwell_s
+                self._still = (self._block_theta[1], math.inf)
+                self.record.dwell_start_s = (self.n_samples + round(dt * self.rate_hz)) / self.rate_hz
             if self.y_mm >= self.part.length_mm:
                 self.phase, self.phase_t = "retract", 0.0
                 # probe cycle: the spindle's thermal growth as a touch probe sees it
@@ -339,6 +363,7 @@ class SimLathe:
             self.cycle_start = self.t
             self.part_index += 1
             self.rpm_override = None
+            self._still = None
             self.phase, self.phase_t, self.y_mm = "load", 0.0, 0.0
             self._new_part()
 
@@ -351,16 +376,43 @@ class SimLathe:
         step = self.accel_rpm_s * dt
         self.rpm = target if abs(target - self.rpm) <= step else self.rpm + math.copysign(step, target - self.rpm)
         was = self.phase
+        cutter = self.cutter
+        self._block_theta = (cutter.theta, cutter.theta + 2 * math.pi * max(self.rpm, 60.0) / 60.0 * dt)
         self._advance_program(dt)
         depth = self.depth_mm if self.phase == "cut" else 0.0
         # the speed these samples are cut at: a vibration frame carries this one, not the
         # speed before the step (one ramp step stale) nor the commanded one
         self.block_rpm = self.rpm
-        block = self.cutter.run(n, max(self.rpm, 60.0), depth, self.part.feed_mm_rev, self.diameter_mm)
+        block = self._cut(n, max(self.rpm, 60.0), depth)
         self._load(depth, block)
         self._watch(was, n, block)
         self.thermal.step(dt * self.time_scale, self.rpm)
         return np.asarray(block.accel, dtype=np.float32)
+
+    def _cut(self, n: int, rpm: float, depth: float) -> SimBlock:
+        """The step's samples, cut.  The chip is what the tool advanced over the last revolution:
+        where the feed stopped or went on within it (a dwell), the chip thins to nothing or grows
+        back along that revolution, so the step is cut in pieces short against the structure's
+        periods (RAMP_SAMPLES) and the force follows the chip smoothly, not in the step's stairs."""
+        feed = self.part.feed_mm_rev
+        th0, th1 = self._block_theta
+        still = self._still
+        if still is None or not any(th0 - 2 * math.pi < edge < th1 for edge in still):
+            return self.cutter.run(n, rpm, depth, feed * self._moving_share(th0, th1), self.diameter_mm)
+        dth = (th1 - th0) / n
+        pieces = [self.cutter.run(min(RAMP_SAMPLES, n - i), rpm, depth,
+                                  feed * self._moving_share(th0 + i * dth, th0 + min(i + RAMP_SAMPLES, n) * dth),
+                                  self.diameter_mm) for i in range(0, n, RAMP_SAMPLES)]
+        return SimBlock(*(np.concatenate([getattr(p, f.name) for p in pieces]) for f in fields(SimBlock)))
+
+    def _moving_share(self, th0: float, th1: float) -> float:
+        """The share of the last revolution (to the middle of th0..th1) the feed moved in."""
+        if self._still is None:
+            return 1.0
+        stop, go = self._still
+        mid = (th0 + th1) / 2
+        stood = max(0.0, min(mid, go) - max(mid - 2 * math.pi, stop))
+        return max(0.0, 1.0 - stood / (2 * math.pi))      # (the angles' rounding: never below 0)
 
     def _load(self, depth_mm: float, block: SimBlock) -> None:
         """Spindle load as a drive reports it: cutting torque (Kt b h r, the chip
@@ -419,7 +471,8 @@ class SimLathe:
             "offset_x_um": self.offset_x_um,
             "depth_of_cut_mm": self.depth_mm if cutting else 0.0,
             "feed_mm_rev": self.part.feed_mm_rev,
-            "cutting_feed": 1 if feeding else 0,      # the control's cutting-feed signal (Fanuc CUT)
+            # the control's cutting-feed signal (Fanuc CUT): off in a dwell (G04), the axes standing
+            "cutting_feed": 1 if feeding and self.dwell_left_s <= 0.0 else 0,
             # G96 until a written S word ends it for the part (G97); an override does not
             "css_active": 1 if self.part.css_m_min and self.rpm_override is None else 0,
             "alarm_code": 0,

@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass
 
 MAX_DEPTH_MM = 10.0   # deepest pass the simulated lathe takes (program, override, config)
+MAX_DWELL_S = 60.0    # longest dwell (G04) in a pass: a feed held longer is a stopped program
 MAX_OUTAGE_S = 3600.0  # longest peer outage `lathectl sim outage` takes: an hour down is not a test of a retry
 
 
@@ -17,7 +18,8 @@ class Cut:
     """One part of the program: a turning pass along the bar at ``rpm`` (G97), or, with
     ``css_m_min``, a facing pass at constant surface speed (G96): the tool moves in from
     the bar's diameter by ``length_mm`` (radially), the speed follows the diameter
-    (1000 V / (pi D)) and ``rpm`` is the speed clamp (G50 S)."""
+    (1000 V / (pi D)) and ``rpm`` is the speed clamp (G50 S).  ``dwell_s``: halfway along
+    the pass the feed stops for that long (G04), the tool in the work, then goes on."""
     rpm: float
     depth_mm: float
     feed_mm_rev: float = 0.3
@@ -25,6 +27,9 @@ class Cut:
     diameter_mm: float = 30.0
     css_m_min: float = 0.0
     tool: int = 1                 # the turret position cutting (lathed.sim.lathe.tool_modes)
+    # a dwell (G04) at the pass's middle: the feed stops this long with the tool in the work
+    # and the spindle turning (a groove's bottom, a shoulder), then the pass goes on
+    dwell_s: float = 0.0
 
     def program_rpm(self, travel_mm: float) -> float:
         """The speed the program asks for with the tool ``travel_mm`` into the pass."""
@@ -39,16 +44,17 @@ class Cut:
         return self.diameter_mm - 2.0 * min(travel_mm, self.length_mm)
 
 
-FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N]"
+FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S]"
 TOOLS = (1, 2)        # the simulated turret's positions (their dynamics: lathed.sim.lathe.tool_modes)
 
 
 def parse_cut(text: str) -> Cut:
-    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N]``: one part of a cut
-    program; with ``css=`` a facing pass at that surface speed (G96), RPM its clamp;
-    ``tool=`` the turret position that cuts it (1, the default, or 2)."""
+    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S]``: one part of
+    a cut program; with ``css=`` a facing pass at that surface speed (G96), RPM its clamp;
+    ``tool=`` the turret position that cuts it (1, the default, or 2); ``dwell=`` seconds
+    the feed stops halfway along the pass (G04), the tool in the work."""
     items = [x.strip() for x in text.split(",")]
-    css, tool = 0.0, 1
+    css, tool, dwell = 0.0, 1, 0.0
     while items and "=" in items[-1]:
         key, _, value = items.pop().partition("=")
         if key == "css":
@@ -61,15 +67,22 @@ def parse_cut(text: str) -> Cut:
                 raise ValueError(f"cut {text!r}: tool= is a turret position of the simulated lathe: "
                                  f"{', '.join(map(str, TOOLS))}")
             tool = int(value)
+        elif key == "dwell":
+            try:
+                dwell = float(value)
+            except ValueError:
+                raise ValueError(f"cut {text!r}: dwell= takes seconds") from None
+            if not 0 < dwell <= MAX_DWELL_S:
+                raise ValueError(f"cut {text!r}: dwell= takes 0..{MAX_DWELL_S:g} s")
         else:
-            raise ValueError(f"cut {text!r}: unknown {key}=; allowed: css=, tool=")
+            raise ValueError(f"cut {text!r}: unknown {key}=; allowed: css=, tool=, dwell=")
     try:
         vals = [float(x) for x in items]
     except ValueError:
         raise ValueError(f"cut {text!r}: expected {FORM} as numbers") from None
     if not 2 <= len(vals) <= 4:
         raise ValueError(f"cut {text!r}: expected {FORM}")
-    c = Cut(*vals, css_m_min=css, tool=tool)
+    c = Cut(*vals, css_m_min=css, tool=tool, dwell_s=dwell)
     if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
             and 0 < c.length_mm <= 1000 and math.isfinite(css)):
         raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "
