@@ -80,8 +80,9 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                 raise inst.framework.error("limits", "safety limits apply to machines only")
             if inst.category == "machine":
                 limits = Limits.from_section(inst.framework.getsection("limits", required=False))
-            first = inst.framework.getduration("retry_initial", 0.5, minval=0.01, maxval=60)
             cap = inst.framework.getduration("retry_max", 10.0, minval=0.01, maxval=3600)
+            # the default at most the cap: a short retry_max alone is not an error
+            first = inst.framework.getduration("retry_initial", min(0.5, cap), minval=0.01, maxval=60)
             if first > cap:     # the backoff caps every wait at retry_max: the first would be cut to it
                 raise inst.framework.error("retry_initial", f"{first:g} s is above retry_max {cap:g} s, which "
                                                             "caps every wait; give retry_initial <= retry_max")
@@ -134,6 +135,18 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                 problem = _reference_problem(plan, ref, category, need)
                 if problem:
                     plan.errors.append(f"{cfg.path}: [analyzer.{name}] {key}: {problem}")
+        # an offset phased in faster than the machine's guard passes is refused at every write
+        pace = getattr(an, "offset_pace", lambda: None)()
+        for m in an.machines() if pace is not None else ():
+            lim, (per_write, per_s) = plan.limits.get(m), pace
+            if lim is not None and per_write > lim.offset_step_max_um:
+                plan.errors.append(f"{cfg.path}: [analyzer.{name}]: moves the offset up to {per_write:g} µm a write, "
+                                   f"more than [machine.{m}.limits] offset_step_max_um {lim.offset_step_max_um:g}: "
+                                   "every such write would be refused")
+            elif lim is not None and per_s > lim.offset_rate_max_um_s:
+                plan.errors.append(f"{cfg.path}: [analyzer.{name}]: moves the offset up to {per_s:g} µm/s, "
+                                   f"more than [machine.{m}.limits] offset_rate_max_um_s "
+                                   f"{lim.offset_rate_max_um_s:g}: such writes would be refused")
     # and a driver may listen only to instances that exist (a read_on trigger)
     for name, (inst, drv) in plan.drivers.items():
         for src, (table, key) in getattr(drv, "listens", dict)().items():

@@ -172,11 +172,13 @@ class SuppressionAnalyzer(Analyzer):
         # the X axis tells the diameter being cut (a profile, another part) where diameter_mm is one number
         self.x_axis = section.getstr("x_axis", "", choices=("", "radius", "diameter"))
         self.x_radius_m: float | None = None     # the tool tip's radius, from the x_mm register
+        max_rpm = section.getfloat("max_rpm", 6000.0, above=0)
         self.limits = SpindleLimits(
-            max_rpm=section.getfloat("max_rpm", 6000.0, above=0),
+            max_rpm=max_rpm,
             min_rpm=section.getfloat("min_rpm", 100.0, minval=0),
             peak_torque_nm=section.getfloat("peak_torque_nm", 35.8, above=0),
-            base_rpm=section.getfloat("base_rpm", 1500.0, above=0),
+            # the default at most the top speed: a slow spindle's max_rpm alone is not an error
+            base_rpm=section.getfloat("base_rpm", min(1500.0, max_rpm), above=0),
             accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
         lim = self.limits
         if lim.min_rpm >= lim.max_rpm:      # no speed would be within reach: every alarm exhausted

@@ -105,6 +105,10 @@ class ThermalAnalyzer(Analyzer):
     def machines(self) -> list[str]:
         return [self.machine]
 
+    def offset_pace(self) -> tuple[float, float]:
+        """The most the offset moves: per write (rate x step) and per second."""
+        return self.rate * self.step, self.rate
+
     def refers(self) -> dict[str, tuple[str, str, str | None]]:
         # the offset is not needed: on a read-only machine (MTConnect) the analyzer predicts only
         return {"input": (self.input, "sensor", "temperature")}

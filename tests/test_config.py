@@ -357,6 +357,19 @@ def test_an_analyzer_key_must_name_an_instance_of_the_right_kind(tmp_path, edit,
     assert str(e.value) == f"{cfg}: {line}"
 
 
+@pytest.mark.parametrize("edit, line", [
+    # every write was refused by the guard, recorded command_refused each time, and nothing compensated
+    (('rate_um_s = 2.0\n', 'rate_um_s = 2.0\nstep = "10s"\n'),
+     "[analyzer.thermal]: moves the offset up to 20 µm a write, more than [machine.lathe.limits] "
+     "offset_step_max_um 10: every such write would be refused"),
+    (('rate_um_s = 2.0\n', 'rate_um_s = 8.0\n'),
+     "[analyzer.thermal]: moves the offset up to 8 µm/s, more than [machine.lathe.limits] "
+     "offset_rate_max_um_s 5: such writes would be refused"),
+])
+def test_a_thermal_pace_the_machines_guard_refuses_is_a_config_error(tmp_path, edit, line):
+    test_an_analyzer_key_must_name_an_instance_of_the_right_kind(tmp_path, edit, line)
+
+
 def test_a_plugin_that_fails_to_load_fails_the_check(tmp_path):
     # --check-config printed a warning and "ok", exit 0, though the daemon would run without it
     missing = tmp_path / "nonexistent"
@@ -390,6 +403,9 @@ def test_retry_initial_above_retry_max_is_refused_naming_both(tmp_path):
     prepare_ok = BASE.replace("port = 15020", 'port = 15020\nretry_initial = "2s"\nretry_max = "2s"', 1)
     (tmp_path / "lathed.toml").write_text(prepare_ok)
     prepare(tmp_path / "lathed.toml", strict=True)       # equal: a constant wait, allowed
+    # a short retry_max alone: retry_initial's default is at most it, not an error
+    (tmp_path / "lathed.toml").write_text(BASE.replace("port = 15020", 'port = 15020\nretry_max = "0.25s"', 1))
+    prepare(tmp_path / "lathed.toml", strict=True)
 
 
 def test_a_register_unit_lathed_does_not_know_is_refused_naming_register_unit_and_known(tmp_path):

@@ -214,6 +214,8 @@ def test_a_base_speed_above_the_top_speed_is_refused_and_constant_torque_is_base
         make(min_rpm=6000.0)
     h = make(base_rpm=6000.0)
     assert h.an.limits.torque_available(6000.0) == pytest.approx(h.an.limits.peak_torque_nm)
+    # a slow spindle's max_rpm alone: the base speed's default is at most it, not an error
+    assert make(max_rpm=1200.0).an.limits.base_rpm == 1200.0
 
 
 # -- in the running daemon -----------------------------------------------------------------
