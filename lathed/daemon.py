@@ -113,6 +113,7 @@ class Daemon:
         self.exit_code = 0
         self.bus = Bus()
         self.store = store
+        store.declared_kinds = loader.event_kinds()     # known to --kind before the first is recorded
         self.control = ControlServer(settings.socket_path, settings.control_max_clients,
                                      settings.control_idle_timeout, settings.control_request_timeout,
                                      settings.control_operator_groups)

@@ -49,3 +49,10 @@ def lathed_chatter_detectors() -> dict[str, Any]:
 def lathed_thermal_candidates() -> list[Any]:
     """Extra candidate effects for the thermal residual loop, each with the
     interface of :class:`lathed.analysis.thermal.Candidate`."""
+
+
+@hookspec
+def lathed_event_kinds() -> list[str]:
+    """Kinds of event this plugin's drivers and analyzers record beyond lathed's own
+    (``lathed.store.KINDS``): ``lathectl events --kind`` and event subscriptions take
+    them before the first is recorded, and refuse a misspelt one."""

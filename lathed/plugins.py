@@ -139,6 +139,12 @@ class PluginLoader:
                     provided.append(tname)
             if getattr(module, "lathed_thermal_candidates", None):
                 provided.append("thermal candidates")
+            if (kinds := getattr(module, "lathed_event_kinds", None)) is not None:
+                declared = kinds() or []
+                if not isinstance(declared, (list, tuple, set)) or not all(isinstance(k, str) and k
+                                                                           for k in declared):
+                    raise TypeError(f"lathed_event_kinds must return a list of names, got {declared!r}")
+                provided.append("event kinds")
             info.provides = provided
         except BaseException:
             self.pm.unregister(module)
@@ -156,6 +162,9 @@ class PluginLoader:
 
     def chatter_detectors(self) -> dict[str, Any]:
         return self.types("lathed_chatter_detectors")
+
+    def event_kinds(self) -> set[str]:
+        return {k for lst in self.pm.hook.lathed_event_kinds() for k in (lst or [])}
 
     def thermal_candidates(self) -> list[Any]:
         return [c for lst in self.pm.hook.lathed_thermal_candidates() for c in (lst or [])]

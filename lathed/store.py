@@ -395,13 +395,13 @@ def event_kinds(con: sqlite3.Connection) -> set[str]:
     return set(KINDS) | {r[0] for r in rows}
 
 
-def unknown_kind(con: sqlite3.Connection, kinds: list[str]) -> str | None:
+def unknown_kind(con: sqlite3.Connection, kinds: list[str], declared: set[str] = frozenset()) -> str | None:
     """Why ``kinds`` cannot narrow events (a misspelt kind matched nothing, and said nothing):
-    None when every one is known."""
-    bad = [k for k in kinds if k not in KINDS]
+    None when every one is known (``declared``: the loaded plugins' own kinds)."""
+    bad = [k for k in kinds if k not in KINDS and k not in declared]
     if not bad:
         return None
-    known = event_kinds(con)
+    known = event_kinds(con) | declared
     bad = [k for k in bad if k not in known]
     if not bad:
         return None
@@ -467,6 +467,7 @@ class Store:
                                 None if newest is None else newest[0], wall, monotonic)
         self._wall = wall
         self._save_clock()
+        self.declared_kinds: set[str] = set()    # the loaded plugins' own kinds of event (the daemon sets them)
         self._rcon = connect(self.path)
         self._rlock = threading.Lock()
         self._q: queue.Queue = queue.Queue()
@@ -814,7 +815,7 @@ class Store:
 
     def unknown_kind(self, kinds: list[str]) -> str | None:
         with self._rlock:
-            return unknown_kind(self._rcon, kinds)
+            return unknown_kind(self._rcon, kinds, self.declared_kinds)
 
     def last_event_id(self) -> int:
         return self.query("SELECT coalesce(max(id), 0) AS id FROM events")[0]["id"]

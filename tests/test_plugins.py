@@ -99,6 +99,33 @@ def test_detector_and_candidate_hooks_reach_the_loader(tmp_path):
     assert loader.thermal_candidates() == ["candidate-a", "candidate-b"]
 
 
+def test_a_plugins_own_event_kinds_are_known_before_the_first_is_recorded(tmp_path):
+    # `events --kind robot_gripper_slip` (and a subscription following it) was refused until one
+    # had been recorded: a plugin's own kinds were known only from the store
+    from lathed import daemon as daemonmod
+    from lathed.store import Store
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    (plugins / "gripper.py").write_text(
+        "from lathed import hookimpl\n"
+        "@hookimpl\ndef lathed_event_kinds():\n    return ['robot_gripper_slip']\n")
+    (plugins / "bad_kinds.py").write_text(
+        "from lathed import hookimpl\n@hookimpl\ndef lathed_event_kinds():\n    return 'robot_slip'\n")
+    loader = load_all([plugins])
+    assert loader.event_kinds() == {"robot_gripper_slip"}
+    (bad,) = [p for p in loader.plugins if p.name == "bad_kinds"]
+    assert "lathed_event_kinds must return a list of names" in bad.error
+    cfg = tmp_path / "lathed.toml"
+    cfg.write_text(f'[daemon]\nstate_dir = "{tmp_path}/state"\nruntime_dir = "{tmp_path}/run"\n'
+                   f'plugin_dirs = ["{plugins}"]\n[sensor.t]\nplugin = "ds18b20_serial"\nport = "/dev/null"\n')
+    cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=False)
+    store = Store(tmp_path / "a.db")
+    daemonmod.Daemon(cfg, settings, loader, plan, sim, store)
+    assert store.unknown_kind(["robot_gripper_slip"]) is None
+    assert "did you mean 'robot_gripper_slip'" in store.unknown_kind(["robot_gripper_slp"])
+    store.close()
+
+
 def test_daemon_lists_failed_plugins_and_runs_dropin(sim_daemon, tmp_path):
     d_dir = tmp_path / "dropins"
     d_dir.mkdir()
