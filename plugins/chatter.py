@@ -43,7 +43,8 @@ held, the baseline kept, one record); an axis moving off the feed's path (a
 retract) ends it at once, dated when the chip was last seen, as does
 ``dwell_max`` (a feed hold left on).  The detector is not fed the dwell; the
 join at its end is told to it as an impulse, so the re-entry's ring does not
-count.  Needs "feed" in ``cut_from``.
+count.  The dwell is published as ``dwell`` (1, then 0): suppression's cut
+record judges no speed on it.  Needs "feed" in ``cut_from``.
 The cut state is published as ``cutting`` (1/0) and shown in the status.  For
 each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
@@ -234,12 +235,15 @@ class ChatterAnalyzer(Analyzer):
                 # the feed or the chip back with the tool where the feed left it: the same pass
                 self._held, self._rejoin = None, True
                 self.state = "watching" if self.detector is not None and self.detector.learned else "learning"
+                self.ctx.bus.publish(Sample(self.name, "dwell", 0.0, "", t))
                 self.ctx.log.info("dwell_over", source=name)
             return
         if self.cutting and not cutting and self.feed_stop is not None and self.feed_stop.standing:
             # the feed stopped with the axes standing: a dwell, unless they move or it lasts
             self._held, self.state = t, "dwell"
             self.dwells += 1
+            # no chip: suppression's cut record judges no speed stable over it
+            self.ctx.bus.publish(Sample(self.name, "dwell", 1.0, "", t))
             self.ctx.log.info("dwell", source=name)
             return
         if cutting and not self.cutting:

@@ -722,6 +722,9 @@ class SuppressionAnalyzer(Analyzer):
         if s.quantity == "cut_contact":      # the chip, after an approach at feed in air
             self.cut.contact(s.t)
             return
+        if s.quantity == "dwell":            # the feed stopped mid-pass, or went on
+            self.cut.dwell(s.t, s.value > 0.5)
+            return
         if s.quantity != "chatter_alarm":
             return
         alarm = s.value > 0.5

@@ -103,6 +103,7 @@ class CutTracker:
         self.feed_mm_rev: float | None = None
         self.tool_number: int | None = None   # the machine's tool register (set by the owner)
         self.advice: str | None = None     # suppression held the speed: why, what would cure it
+        self._dwell = False                # the feed stopped mid-pass: no chip, nothing judged
 
     @property
     def active(self) -> bool:
@@ -114,6 +115,7 @@ class CutTracker:
         self.actions, self.revs, self.alarms, self.first_alarm = [], 0.0, 0, None
         self.alarm = False
         self.advice = None
+        self._dwell = False
         self._last = None if rpm is None else (t, rpm)
 
     def contact(self, t: float) -> None:
@@ -131,11 +133,18 @@ class CutTracker:
             d = (t - t0) * n0 / 60.0
             self.revs += d
             s.revs += d
-            if t0 >= s.judge_from_t:
+            if t0 >= s.judge_from_t and not self._dwell:
                 s.judged_revs += d
         if t >= self.stretches[-1].judge_from_t:
             self.stretches[-1].rpms.append(rpm)
         self._last = (t, rpm)
+
+    def dwell(self, t: float, on: bool) -> None:
+        """The feed stopped mid-pass (a dwell: no chip, no windows), or went on: revolutions
+        without a chip judge no speed stable, and remembered cures are learned from stable ones."""
+        if self._last is not None:
+            self.speed(t, self._last[1])      # the revolutions up to now, as they were
+        self._dwell = on
 
     def chatter(self, t: float, alarm: bool, frequency_hz: float | None) -> None:
         if not self.active:
