@@ -122,7 +122,10 @@ class ChatterAnalyzer(Analyzer):
                                              "machine's position registers, e.g. [\"x_mm\", \"z_mm\"])")
         self.feed_stop = FeedStop(self.dwell_axes) if self.dwell_axes else None
         self._held: float | None = None        # a dwell: the time the chip was last seen, the cut held
+        self._held_clock = "machine"           # whose time stamps _held is on: "machine" or "block"
         self._rejoin = False                   # the dwell over: the detector's next block joins it
+        # a dwell rejoined before every axis was read in the feed's poll: (held, source, t) until then
+        self._rejoined: tuple[float, str, float] | None = None
         self.dwells = 0
         self.load_cut = LoadCutDetector(section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0))
         self.contact_ratio = section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0)
@@ -211,6 +214,12 @@ class ChatterAnalyzer(Analyzer):
                 self._source("feed", s.value != 0, s.t)
         elif self.feed_stop is not None and s.quantity in self.feed_stop.axes:
             self.feed_stop.position(s.quantity, s.value, s.t)
+            if self._rejoined is not None and (self.feed_stop.away or not self.feed_stop.resuming):
+                held, name, t = self._rejoined
+                self._rejoined = None
+                if self.feed_stop.away:         # read after the feed's sample: the next pass after all
+                    self._end(held, "axes")
+                    self._source(name, True, t)
         elif s.quantity == "depth_of_cut_mm":
             if s.value > 0:
                 self.depth_mm = s.value
@@ -224,23 +233,32 @@ class ChatterAnalyzer(Analyzer):
             if self.cutting and set_load is not None:
                 # the static cutting force, for load_scaled (the detector ignores it otherwise)
                 set_load(self.load_cut.cutting_load(s.value, self.rpm))
-        self._dwell_over(s.t)
+        self._dwell_over(s.t, "machine")
 
     def _source(self, name: str, on: bool, t: float) -> None:
         """One source's verdict; the cut is on while any source sees the chip."""
         self.seen[name] = on
         cutting = any(self.seen.values())
         if self._held is not None:
-            if cutting:
+            if not cutting:
+                return
+            if self.feed_stop.away:
+                # the feed back with the tool elsewhere (retract, shift and approach within a
+                # poll): the pass ended at the dwell, this is the next one
+                self._end(self._held, "axes")
+            else:
                 # the feed or the chip back with the tool where the feed left it: the same pass
+                if self.feed_stop.resuming:     # an axis of this poll still to be read
+                    self._rejoined = (self._held, name, t)
                 self._held, self._rejoin = None, True
                 self.state = "watching" if self.detector is not None and self.detector.learned else "learning"
                 self.ctx.bus.publish(Sample(self.name, "dwell", 0.0, "", t))
                 self.ctx.log.info("dwell_over", source=name)
-            return
+                return
         if self.cutting and not cutting and self.feed_stop is not None and self.feed_stop.standing:
             # the feed stopped with the axes standing: a dwell, unless they move or it lasts
             self._held, self.state = t, "dwell"
+            self._held_clock = "block" if name == "vibration" else "machine"
             self.dwells += 1
             # no chip: suppression's cut record judges no speed stable over it
             self.ctx.bus.publish(Sample(self.name, "dwell", 1.0, "", t))
@@ -264,6 +282,9 @@ class ChatterAnalyzer(Analyzer):
 
     def _end(self, t: float, source: str) -> None:
         """The cut is over: the chip was last seen at ``t``."""
+        if self._held is not None:
+            self.ctx.bus.publish(Sample(self.name, "dwell", 0.0, "", t))
+        self._rejoined = None
         if self.detector is not None and self.detector.alarm:
             self._cleared("cut ended")
         self.state = "idle"
@@ -273,14 +294,16 @@ class ChatterAnalyzer(Analyzer):
         self.ctx.bus.publish(Sample(self.name, "cutting", 0.0, "", t))
         self.ctx.log.info("cut_state", cutting=False, source=source)
 
-    def _dwell_over(self, now: float) -> None:
+    def _dwell_over(self, now: float, clock: str) -> None:
         """A held cut ends when an axis leaves the feed's path (the tool retracting) or after
-        dwell_max (a feed hold left on), dated when the chip was last seen."""
+        dwell_max (a feed hold left on), dated when the chip was last seen.  ``now`` is on the
+        ``clock`` of the stream it came with: dwell_max is timed on the hold's own (the
+        accelerometer's clock may be off the host's)."""
         if self._held is None:
             return
         if self.feed_stop.left:
             self._end(self._held, "axes")
-        elif now - self._held >= self.dwell_max:
+        elif clock == self._held_clock and now - self._held >= self.dwell_max:
             self._end(self._held, "dwell_max")
 
     def _learn_afresh(self) -> None:
@@ -302,7 +325,7 @@ class ChatterAnalyzer(Analyzer):
 
     def _on_block(self, b: Block) -> None:
         data = b.data
-        self._dwell_over(b.t0)
+        self._dwell_over(b.t0, "block")
         if "vibration" in self.seen or "feed" in self.seen:
             if self.vib_cut is None or self.vib_cut.rate != b.rate_hz:
                 self.vib_cut = VibrationCutDetector(b.rate_hz, contact_ratio=self.contact_ratio)

@@ -237,6 +237,98 @@ def test_a_feed_stop_on_an_axis_never_read_under_feed_is_no_dwell():
     assert fs.left and not fs.standing
 
 
+@pytest.mark.parametrize("axes_first", [True, False])
+def test_the_feed_back_on_with_the_tool_elsewhere_is_the_next_pass(axes_first):
+    """A groove's dwell, then retract, shift and the next plunge within one poll: the feed is
+    on again with the axes mm away; it was taken for the same pass (the cure held into the
+    next).  Back where it stood, or on the feed's way on from there, it is the same pass."""
+    for back_at, away in ((11.6, False), (10.7, False), (15.5, True)):
+        fs = FeedStop(["x_mm", "z_mm"])
+        for i in range(3):                             # plunging X at 1 mm a poll, Z standing
+            fs.feed(True, i * 0.1)
+            fs.position("x_mm", 14.0 - i, i * 0.1)
+            fs.position("z_mm", -10.0, i * 0.1)
+        for t in (0.3, 0.4):
+            fs.feed(False, t)
+            fs.position("x_mm", 11.6, t)
+            fs.position("z_mm", -10.0, t)
+        assert fs.standing
+        z = -13.0 if away else -10.0
+        if axes_first:
+            fs.position("x_mm", back_at, 0.5)
+            fs.position("z_mm", z, 0.5)
+        fs.feed(True, 0.5)
+        assert fs.resuming is not axes_first
+        if not axes_first:
+            fs.position("x_mm", back_at, 0.5)
+            fs.position("z_mm", z, 0.5)
+        assert not fs.resuming and fs.away is away, (back_at, away)
+
+
+def test_a_dwell_then_the_next_plunge_within_a_poll_are_two_cuts():
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus, Sample
+    from lathed.config import Section
+    from lathed_plugins.chatter import ChatterAnalyzer
+    for axes_first in (True, False):
+        conf = {"input": "accel", "machine": "lathe", "cut_from": ["feed"], "dwell_axes": ["x_mm", "z_mm"]}
+        an = ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", conf))
+        bus, out = Bus(), []
+        publish = bus.publish
+        bus.publish = lambda m: (out.append((m.quantity, m.value, round(m.t, 2)))
+                                 if isinstance(m, Sample) else None, publish(m))[1]
+        an.ctx = AnalyzerContext(bus, structlog.get_logger("test"), lambda *a, **k: None,
+                                 None, None, None, lambda n: None, ".")
+        t = 0.0
+
+        def poll(feed, x, z):
+            nonlocal t
+            samples = [("x_mm", x), ("z_mm", z)]
+            samples = samples + [("cutting_feed", feed)] if axes_first else [("cutting_feed", feed)] + samples
+            for q, v in samples:
+                an._on_machine(Sample("lathe", q, v, "", t))
+            t = round(t + 0.1, 3)
+        for i in range(6):
+            poll(1, 15 - i, -10.0)                   # plunge 1
+        for _ in range(3):
+            poll(0, 10.0, -10.0)                     # G04 at the bottom
+        for i in range(6):
+            poll(1, 15.5 - i, -13.0)                 # retract, shift, approach between two polls: plunge 2
+        cuts = [(v, ts) for q, v, ts in out if q == "cutting"]
+        assert cuts == [(1.0, 0.0), (0.0, 0.6), (1.0, 0.9)], (axes_first, out)
+
+
+def test_a_dwell_is_timed_on_the_clock_that_began_it():
+    """The accelerometer's clock 3 s off the host's: a dwell the feed began (host time) was
+    ended at once by the first vibration block's time stamp (dwell_max 2 s)."""
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Block, Bus, Sample
+    from lathed.config import Section
+    from lathed_plugins.chatter import ChatterAnalyzer
+    conf = {"input": "accel", "machine": "lathe", "cut_from": ["feed"], "dwell_axes": ["x_mm", "z_mm"]}
+    an = ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", conf))
+    bus, out = Bus(), []
+    publish = bus.publish
+    bus.publish = lambda m: (out.append((m.quantity, m.value)) if isinstance(m, Sample) else None, publish(m))[1]
+    an.ctx = AnalyzerContext(bus, structlog.get_logger("test"), lambda *a, **k: None,
+                             None, None, None, lambda n: None, ".")
+    rng = np.random.default_rng(0)
+    for k in range(20):
+        t = k * 0.1
+        an._on_machine(Sample("lathe", "x_mm", 14.0, "", t))
+        an._on_machine(Sample("lathe", "z_mm", -min(t, 1.0) * 5, "", t))
+        an._on_machine(Sample("lathe", "cutting_feed", 1.0 if t < 1.0 else 0.0, "", t))
+        an._on_block(Block("accel", "acceleration", RATE, t + 3.0, k * FRAME, rng.normal(0, 1, FRAME), 2000.0))
+    assert ("dwell", 1.0) in out and ("cutting", 0.0) not in out, out
+    for k in range(20, 35):
+        an._on_machine(Sample("lathe", "cutting_feed", 0.0, "", k * 0.1))
+    assert out[-2:] == [("dwell", 0.0), ("cutting", 0.0)]      # dwell_max on the host's clock
+
+
 def _dwell_run(program: list[str], parts: int, dwell_axes: bool, dwell_max: str = "2s", seed: int = 0):
     """The simulated lathe's program (no daemon: its vibration in 20 ms frames, its registers
     polled every 100 ms as the Modbus driver does) into the chatter analyzer with the shipped

@@ -260,6 +260,12 @@ class FeedStop:
         self._recent: dict[str, list[tuple[float, float]]] = {a: [] for a in self.axes}
         self._path: dict[str, list[tuple[float, float]]] = {}    # the last two readings under feed
         self._rest: dict[str, float] = {}                        # where each axis stood after
+        # the feed back on after a stop: each axis's first reading of that poll must be where it
+        # stood, or on the feed's way on from there; else the tool went elsewhere between polls
+        # (retract, shift, re-approach faster than a poll): the next pass, not the same one
+        self._resume_t: float | None = None
+        self._resume_from: dict[str, tuple[float, float, float]] = {}   # axis: (stood, rate, since)
+        self.away = False
 
     @property
     def left(self) -> bool:
@@ -272,21 +278,42 @@ class FeedStop:
         """The feed stopped in this pass and no axis has moved off its path since."""
         return self.off_t is not None and not self.left
 
+    @property
+    def resuming(self) -> bool:
+        """The feed is back on and an axis has not been read in that poll yet."""
+        return self._resume_t is not None
+
     def feed(self, on: bool, t: float) -> None:
         self._last_t = max(self._last_t, t)
         if on:
             if not self._on:                    # a new move under feed: its own path
+                self._resume_t, self.away, self._resume_from = None, False, {}
+                if self.off_t is not None:
+                    self._resume_t = t
+                    for axis in self.axes:
+                        path = self._path.get(axis, [])
+                        rate = ((path[-1][1] - path[0][1]) / (path[-1][0] - path[0][0])
+                                if len(path) == 2 and path[-1][0] > path[0][0] else 0.0)
+                        stood = self._rest.get(axis, path[-1][1] if path else None)
+                        if stood is not None:
+                            self._resume_from[axis] = (stood, rate, self._feed_t)
                 self.off_t, self._moved_t = None, None
                 self._path.clear()
                 self._rest.clear()
                 # a reading of the same poll that came before the feed's is under feed
                 self._recent = {a: [r for r in rs if r[0] >= t] for a, rs in self._recent.items()}
+                for axis, readings in self._recent.items():
+                    for r in readings:
+                        self._judge_resume(axis, *r)
+                if not self._resume_from:
+                    self._resume_t = None
             self._on = True
         else:
             self._feed_t = t
             if not self._on:
                 return
             self._on, self.off_t = False, t
+            self.away, self._resume_t, self._resume_from = False, None, {}    # a new stop: judged anew
             for axis, readings in self._recent.items():
                 # a reading of the same poll that came before the feed's is after the stop
                 self._path[axis] = [r for r in readings if r[0] < t][-2:]
@@ -303,6 +330,18 @@ class FeedStop:
         self._recent[axis] = (self._recent[axis] + [(t, value)])[-3:]
         if self.off_t is not None:
             self._judge(axis, t, value)
+        elif self._resume_t is not None and t >= self._resume_t:
+            self._judge_resume(axis, t, value)
+
+    def _judge_resume(self, axis: str, t: float, value: float) -> None:
+        if axis not in self._resume_from:
+            return
+        stood, rate, since = self._resume_from.pop(axis)
+        reach = stood + rate * max(0.0, t - since)     # the feed resumed after its last reading off
+        if not min(stood, reach) - self.tol <= value <= max(stood, reach) + self.tol:
+            self.away = True
+        if not self._resume_from:
+            self._resume_t = None
 
     def _judge(self, axis: str, t: float, value: float) -> None:
         if axis in self._rest:
