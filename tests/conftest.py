@@ -4,6 +4,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import random
 import re
 import signal
 import socket
@@ -30,9 +31,19 @@ BIN = Path(sys.executable).parent
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A port free now, below the kernel's ephemeral range (32768-60999 here): the peer binds it
+    later, and in between a port from that range can be taken as the source of any connection
+    or by a server binding port 0 (a CI run's cell simulator then never served its mill)."""
+    with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+        low = int(f.read().split()[0])
+    for port in random.Random().sample(range(10000, max(low, 10200)), 200):
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port in 10000-{low - 1} on 127.0.0.1")
 
 
 def wait_until(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
