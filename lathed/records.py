@@ -230,7 +230,7 @@ class PartTracker:
 
     def flush(self) -> list[Part]:
         """The part the program's stop closed, as it stands (aborted), if the counter has not
-        been read since: the daemon is stopping, or the next program starts."""
+        stepped since: the daemon is stopping, or the next part cuts."""
         return self._close_stopped("aborted")
 
     def _close_stopped(self, outcome: str | None) -> list[Part]:

@@ -572,13 +572,10 @@ def rows(path) -> list[tuple]:
     return parts, events
 
 
-def test_parts_made_while_the_records_analyzer_restarts_are_recorded_not_merged(tmp_path):
-    """The analyzer fails mid-part; the supervisor restarts it; meanwhile the lathe finishes that
-    part and two more. Each is a row of its own: the one it was watching, partial; the two it
-    never saw, unobserved; all three queued for inspection, and one event says so."""
+def failing_on_fault(r, record):
+    """A supervisor runner (no retry delay) for the records analyzer, which fails at a "fault"
+    sample (a bug in it): the supervisor then records ``analyzer_fault`` and restarts it."""
     from lathed.supervisor import Runner
-    store, bus, r, _ = records_analyzer(tmp_path)
-    f = BusFeed(bus)
     real = r.tracker.feed_sample
 
     def feed(source, q, v, t):
@@ -586,12 +583,21 @@ def test_parts_made_while_the_records_analyzer_restarts_are_recorded_not_merged(
             raise RuntimeError("a bug in the records analyzer")
         return real(source, q, v, t)
     r.tracker.feed_sample = feed
+    return Runner("analyzer", "records", r, 0.0, 0.0, record)
+
+
+def test_parts_made_while_the_records_analyzer_restarts_are_recorded_not_merged(tmp_path):
+    """The analyzer fails mid-part; the supervisor restarts it; meanwhile the lathe finishes that
+    part and two more. Each is a row of its own: the one it was watching, partial; the two it
+    never saw, unobserved; all three queued for inspection, and one event says so."""
+    store, bus, r, _ = records_analyzer(tmp_path)
+    f = BusFeed(bus)
 
     def record(kind, source, payload=None):
         if kind == "analyzer_fault":           # unsubscribed now, restarted after this: the gap
             for n in (4, 5, 6):
                 f.lathe(part_count=n)
-    runner = Runner("analyzer", "records", r, 0.0, 0.0, record)
+    runner = failing_on_fault(r, record)
 
     async def main():
         task = asyncio.create_task(runner.loop())
@@ -718,17 +724,9 @@ def test_a_part_the_program_stop_closed_is_written_when_lathed_stops_before_the_
 
 def test_a_part_the_stop_left_is_one_row_across_a_records_analyzer_restart(tmp_path):
     # the restart wrote it aborted, and the counter's step after it again as a part not observed
-    from lathed.supervisor import Runner
     store, bus, r, _ = records_analyzer(tmp_path)
     f = BusFeed(bus)
-    real = r.tracker.feed_sample
-
-    def feed(source, q, v, t):
-        if q == "fault":
-            raise RuntimeError("a bug in the records analyzer")
-        return real(source, q, v, t)
-    r.tracker.feed_sample = feed
-    runner = Runner("analyzer", "records", r, 0.0, 0.0, lambda *a, **k: None)
+    runner = failing_on_fault(r, lambda *a, **k: None)
 
     async def main():
         task = asyncio.create_task(runner.loop())
