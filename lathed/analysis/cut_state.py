@@ -234,6 +234,9 @@ class LoadCutDetector:
 # stock by 0.5 mm or more, while a standing axis's reading moves by microns (servo lag, a
 # thermal offset's step of at most 10 um).
 AXIS_TOL_MM = 0.1
+# A poll's time stamp is when it was asked for, not when each register was read: under load
+# tens of ms apart, which at a feed of 10 mm/s is more than AXIS_TOL_MM along the feed's way
+POLL_JITTER_S = 0.05
 
 
 class FeedStop:
@@ -338,7 +341,8 @@ class FeedStop:
             return
         stood, rate, since = self._resume_from.pop(axis)
         reach = stood + rate * max(0.0, t - since)     # the feed resumed after its last reading off
-        if not min(stood, reach) - self.tol <= value <= max(stood, reach) + self.tol:
+        slack = self.tol + abs(rate) * POLL_JITTER_S
+        if not min(stood, reach) - slack <= value <= max(stood, reach) + slack:
             self.away = True
         if not self._resume_from:
             self._resume_t = None
@@ -354,7 +358,8 @@ class FeedStop:
                 t1, v1 = path[-1]
                 rate = (v1 - path[0][1]) / (t1 - path[0][0]) if len(path) == 2 and t1 > path[0][0] else 0.0
                 reach = v1 + rate * max(0.0, t - t1)
-                moved = not min(v1, reach) - self.tol <= value <= max(v1, reach) + self.tol
+                slack = self.tol + abs(rate) * POLL_JITTER_S
+                moved = not min(v1, reach) - slack <= value <= max(v1, reach) + slack
             self._rest[axis] = value
         if moved:
             self._moved(t)
