@@ -249,14 +249,15 @@ class MqttSink(Analyzer):
             try:
                 await asyncio.gather(*sends)    # every PUBACK of the batch...
                 self._check(client)
+                # counted at the acknowledgement, so a reader who sees the progress saved sees the count
+                self.published += len(batch)
+                self.last_publish_t = time.time()
                 # ... before the progress moves: a crash before this line only sends the batch again
                 await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             except BaseException:
                 for t in (*sends, ahead):
                     t.cancel()
                 raise
-            self.published += len(batch)
-            self.last_publish_t = time.time()
             batch = await ahead
 
     @staticmethod
