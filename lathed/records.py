@@ -124,7 +124,7 @@ class PartTracker:
         self.part: Part | None = None
         self._partial = True
         self._cut = False             # the part in progress has cut
-        self._count_t: float | None = None       # when part_count was last read
+        self.count_t: float | None = None        # when part_count was last read
         self._gap: tuple[str, float] | None = None   # (why, since when) nothing was watched
         # the part open when the program stopped (whether it cut, when it stopped): held for the
         # counter's next reading, which finishes it if it steps (a counter polled slower than
@@ -138,11 +138,11 @@ class PartTracker:
         ``count``, the last part count recorded, was); ``count`` is for a tracker that has read
         none. The next part_count reading tells the parts made meanwhile; the part being cut
         was not watched whole."""
-        if self.count is None:
-            self.count = count
+        if self.count is None and count is not None:      # recorded at t, as good as read then
+            self.count, self.count_t = count, t
         if self._gap is None:
             # from the last reading of the count: a step later than that was not seen
-            self._gap = (reason, t if self._count_t is None else self._count_t)
+            self._gap = (reason, t if self.count_t is None else self.count_t)
         if self.part is not None and self.part.unwatched is None:
             self.part.unwatched = reason
 
@@ -251,12 +251,12 @@ class PartTracker:
                     p.part_no = n
                     self._timed(p)
                     done.append(p)
-                self.count, self._count_t = n, t
+                self.count, self.count_t = n, t
                 return
             done += self.flush()
         c, gap = self.count, self._gap
-        since = self._count_t if gap is None else gap[1]
-        self.count, self._count_t, self._gap = n, t, None
+        since = self.count_t if gap is None else gap[1]
+        self.count, self.count_t, self._gap = n, t, None
         reason, reset = (None if gap is None else gap[0]), False
         if c is not None and n < c:
             if gap is None and (n == 0 or since is None or n > self._most_parts(t - since)):

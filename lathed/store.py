@@ -279,6 +279,19 @@ MIGRATIONS: list[tuple[int, str]] = [
     -- restarting, a counter reset): NULL where it was; outcome 'unobserved': not at all
     ALTER TABLE workpieces ADD COLUMN unwatched TEXT;
     """),
+    (8, """
+    -- the records analyzer's last reading of each machine's part counter: a step that finished
+    -- no part (stepped by hand while idle) is in no part's row, and the next start counted it as
+    -- a part made while lathed was down. held: the part the program's stop left was written
+    -- aborted at lathed's stop, before the counter stepped for it: that step is the part's own.
+    -- Local state, not a record: not forwarded.
+    CREATE TABLE last_part_count (
+        machine TEXT PRIMARY KEY,
+        count   INTEGER NOT NULL,
+        t       REAL NOT NULL,
+        held    INTEGER NOT NULL
+    );
+    """),
 ]
 
 # The wall time a stopped daemon's downtime counts for on the store clock at most: a longer

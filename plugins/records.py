@@ -35,6 +35,8 @@ from lathed.store import EVENT_SQL
 EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
 RETRY_S = (1.0, 60.0)   # a failed part write is tried again after 1 s, doubling up to a minute
+COUNTER_SQL = ("INSERT INTO last_part_count(machine, count, t, held) VALUES (?,?,?,?) "
+               "ON CONFLICT(machine) DO UPDATE SET count = excluded.count, t = excluded.t, held = excluded.held")
 
 
 @dataclass
@@ -82,6 +84,7 @@ class Records(Analyzer):
         self.write_failures = 0
         self.last_write_error: str | None = None
         self._finished: asyncio.Event | None = None
+        self._saved: int | None = None     # the part count as last saved
         self._registered = False
 
     def inputs(self) -> list[str]:
@@ -114,6 +117,8 @@ class Records(Analyzer):
                     for item in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
                         self.unwritten.append(Unwritten.of(item, time.time()))
                         self._finished.set()
+                    if self.tracker.count != self._saved:
+                        self._save_count()
         except asyncio.CancelledError:
             stopping = True           # the daemon stops (a fault restarts run() with the tracker kept)
             raise
@@ -127,6 +132,8 @@ class Records(Analyzer):
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)
+            if stopping:
+                self._save_count()
             await asyncio.gather(writer, return_exceptions=True)
 
     async def _resume(self) -> None:
@@ -136,17 +143,20 @@ class Records(Analyzer):
             self.tracker.resume("records analyzer restarting", time.time())
             return
         self._watched = True
-        # a daemon start: the last count recorded is the last part's number in the store
+        # a daemon start: the count last read, else (a store older than last_part_count) the last
+        # part's number in the store
         last = None
         try:
             rows = await asyncio.to_thread(
-                self.ctx.store.query, "SELECT part_no, end_t FROM workpieces WHERE machine = ? "
-                "AND part_no IS NOT NULL ORDER BY id DESC LIMIT 1", (self.machine,))
+                self.ctx.store.query, "SELECT count, t, held, 0 AS older FROM last_part_count WHERE machine = ? "
+                "UNION ALL SELECT * FROM (SELECT part_no, end_t, 0, 1 FROM workpieces WHERE machine = ? "
+                "AND part_no IS NOT NULL ORDER BY id DESC LIMIT 1) ORDER BY older LIMIT 1",
+                (self.machine, self.machine))
             last = rows[0] if rows else None
         except Exception as e:     # unread, the parts made while lathed was down are not counted: said
             self.ctx.log.warning("last_part_unread", error=f"{type(e).__name__}: {e}")
-        self.tracker.resume("lathed was not running", last["end_t"] if last else time.time(),
-                            last["part_no"] if last else None)
+        self.tracker.resume("lathed was not running", last["t"] if last else time.time(),
+                            last["count"] if last else None)
 
     async def _write_parts(self) -> None:
         """Commit the finished parts in order, each as one transaction; a failed write
@@ -210,6 +220,23 @@ class Records(Analyzer):
         said = u.gap.payload() if u.gap is not None else u.rows[0]
         u.fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.error(
             "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **said))
+
+    def _save_count(self) -> None:
+        """The part counter as last read, for the next start to count from (queued before any
+        await: at a stop, the store's close commits it). Unsaved, the next start may take a
+        step already seen for a part made while lathed was down: said."""
+        tr = self.tracker
+        self._saved = tr.count
+        if tr.count is None:
+            return
+        try:
+            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, tr.count, tr.count_t, 0))
+        except Exception as e:          # the store is closed
+            fut = Future()
+            fut.set_exception(e)
+        count = tr.count
+        fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.warning(
+            "part_count_not_saved", count=count, error=f"{type(f.exception()).__name__}: {f.exception()}"))
 
     def status(self) -> dict[str, Any]:
         p = self.tracker.part

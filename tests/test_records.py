@@ -748,3 +748,66 @@ def test_a_part_the_stop_left_is_one_row_across_a_records_analyzer_restart(tmp_p
     assert [(no, outcome, unwatched) for no, outcome, unwatched, _ in parts] == [
         (2, "partial", "lathed was not running"), (3, "partial", "records analyzer restarting")]
     assert events == []
+
+
+def stopped_and_started(tmp_path, before, after):
+    """lathed runs ``before(feed)``, stops, and starts again on the same store a minute later to
+    run ``after(feed)``: the rows and part_unobserved events it wrote."""
+    t = 1000.0
+    for feed in (before, after):
+        store, bus, r, _ = records_analyzer(tmp_path)
+
+        async def run():
+            task = asyncio.create_task(r.run())
+            await turns(lambda: bus._subs.get("lathe"))
+            f = BusFeed(bus)
+            f.t = t
+            feed(f)
+            await turns(lambda: r.tracker.count == f.count and not bus._subs["lathe"][0]._items)
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            return f.t
+        t = asyncio.run(run()) + 60.0
+        store.close()
+    return rows(tmp_path / "r.db")
+
+
+def test_a_count_step_while_idle_is_not_reported_again_at_the_next_start(tmp_path):
+    # the last count seen was not kept: the next start took the step for a part made while down
+    def before(f):
+        f.lathe(part_count=1, program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(program_state=0)
+        f.lathe(part_count=2)                  # the step after the stop: part 2 finished
+        f.lathe(part_count=3)                  # the operator steps the counter, nothing running
+        f.count = 3
+
+    def after(f):
+        f.lathe(part_count=3, program_state=0)
+        f.lathe(program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=4)
+        f.count = 4
+    parts, events = stopped_and_started(tmp_path, before, after)
+    assert [(no, outcome) for no, outcome, *_ in parts] == [(2, "partial"), (4, "finished")]
+    assert events == []
+
+
+def test_the_count_is_kept_as_it_is_read_not_only_at_the_stop(tmp_path):
+    # a power cut skips the stop: a count kept only there would be older than the parts written since
+    store, bus, r, _ = records_analyzer(tmp_path)
+
+    async def main():
+        task = asyncio.create_task(r.run())
+        await turns(lambda: bus._subs.get("lathe"))
+        f = BusFeed(bus)
+        f.lathe(part_count=1, program_state=0)
+        f.lathe(part_count=2)                  # stepped by hand
+        await turns(lambda: r.tracker.count == 2)
+        await asyncio.wrap_future(store.submit("SELECT 1", ()))     # committed in order: the count before it
+        assert store.query("SELECT machine, count, held FROM last_part_count") == [
+            {"machine": "lathe", "count": 2, "held": 0}]
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
