@@ -125,6 +125,9 @@ class PartTracker:
         self._partial = True
         self._cut = False             # the part in progress has cut
         self.count_t: float | None = None        # when part_count was last read
+        # the part the program's stop left was written aborted at lathed's stop, before the
+        # counter stepped for it: the counter's next step is that part's, not one made unwatched
+        self.held_written = False
         self._gap: tuple[str, float] | None = None   # (why, since when) nothing was watched
         # the part open when the program stopped (whether it cut, when it stopped): held for the
         # counter's next reading, which finishes it if it steps (a counter polled slower than
@@ -133,13 +136,13 @@ class PartTracker:
         self._shortest: float | None = None      # the shortest cycle of a part watched whole
         self._out: list[Part] = []               # parts closed outside a counter or state sample
 
-    def resume(self, reason: str, t: float, count: int | None = None) -> None:
+    def resume(self, reason: str, t: float, count: int | None = None, held_written: bool = False) -> None:
         """Nothing was watched for ``reason`` since part_count was last read (or ``t``, when
-        ``count``, the last part count recorded, was); ``count`` is for a tracker that has read
-        none. The next part_count reading tells the parts made meanwhile; the part being cut
-        was not watched whole."""
+        ``count``, the last part count recorded, was); ``count`` and ``held_written`` (see
+        :meth:`stop`) are for a tracker that has read none. The next part_count reading tells
+        the parts made meanwhile; the part being cut was not watched whole."""
         if self.count is None and count is not None:      # recorded at t, as good as read then
-            self.count, self.count_t = count, t
+            self.count, self.count_t, self.held_written = count, t, held_written
         if self._gap is None:
             # from the last reading of the count: a step later than that was not seen
             self._gap = (reason, t if self.count_t is None else self.count_t)
@@ -233,6 +236,13 @@ class PartTracker:
         stepped since: the daemon is stopping, or the next part cuts."""
         return self._close_stopped("aborted")
 
+    def stop(self) -> list[Part]:
+        """lathed stops: :meth:`flush`, and the counter's next step (read at the next start,
+        ``held_written`` given to :meth:`resume`) is the written part's own."""
+        parts = self.flush()
+        self.held_written = self.held_written or bool(parts)
+        return parts
+
     def _close_stopped(self, outcome: str | None) -> list[Part]:
         held, self._stopped = self._stopped, None
         if held is None:
@@ -255,6 +265,9 @@ class PartTracker:
                 return
             done += self.flush()
         c, gap = self.count, self._gap
+        if self.held_written and c is not None and n > c:
+            c += 1      # the part written aborted at lathed's stop is that step's: not a part unobserved
+        self.held_written = False
         since = self.count_t if gap is None else gap[1]
         self.count, self.count_t, self._gap = n, t, None
         reason, reset = (None if gap is None else gap[0]), False

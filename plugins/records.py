@@ -84,7 +84,7 @@ class Records(Analyzer):
         self.write_failures = 0
         self.last_write_error: str | None = None
         self._finished: asyncio.Event | None = None
-        self._saved: int | None = None     # the part count as last saved
+        self._saved: tuple | None = None   # the part counter as last saved (count, held_written)
         self._registered = False
 
     def inputs(self) -> list[str]:
@@ -117,7 +117,7 @@ class Records(Analyzer):
                     for item in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
                         self.unwritten.append(Unwritten.of(item, time.time()))
                         self._finished.set()
-                    if self.tracker.count != self._saved:
+                    if (self.tracker.count, self.tracker.held_written) != self._saved:
                         self._save_count()
         except asyncio.CancelledError:
             stopping = True           # the daemon stops (a fault restarts run() with the tracker kept)
@@ -128,7 +128,7 @@ class Records(Analyzer):
             # stopping (or restarting): queued now, the parts are committed by the store's close
             # (or awaited by the next run); before any await, which a second cancel would cut short
             if stopping:      # the part the program's stop left: as it stands, not lost
-                self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.flush())
+                self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.stop())
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)
@@ -156,7 +156,7 @@ class Records(Analyzer):
         except Exception as e:     # unread, the parts made while lathed was down are not counted: said
             self.ctx.log.warning("last_part_unread", error=f"{type(e).__name__}: {e}")
         self.tracker.resume("lathed was not running", last["t"] if last else time.time(),
-                            last["count"] if last else None)
+                            last["count"] if last else None, bool(last and last["held"]))
 
     async def _write_parts(self) -> None:
         """Commit the finished parts in order, each as one transaction; a failed write
@@ -226,11 +226,11 @@ class Records(Analyzer):
         await: at a stop, the store's close commits it). Unsaved, the next start may take a
         step already seen for a part made while lathed was down: said."""
         tr = self.tracker
-        self._saved = tr.count
+        self._saved = (tr.count, tr.held_written)
         if tr.count is None:
             return
         try:
-            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, tr.count, tr.count_t, 0))
+            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, tr.count, tr.count_t, int(tr.held_written)))
         except Exception as e:          # the store is closed
             fut = Future()
             fut.set_exception(e)

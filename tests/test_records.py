@@ -772,6 +772,27 @@ def stopped_and_started(tmp_path, before, after):
     return rows(tmp_path / "r.db")
 
 
+def test_a_part_the_stop_left_is_one_row_across_a_lathed_restart(tmp_path):
+    # written aborted at lathed's stop, and the counter's step after it again as a part not observed
+    def before(f):
+        f.lathe(part_count=1, program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=2)
+        f.cut(1.0, 1500, 0.2)                  # part 3 cut, the program ends, lathed stops
+        f.lathe(program_state=0)               # before the counter (slower) is read
+        f.count = 2
+
+    def after(f):
+        f.lathe(part_count=3, program_state=0)   # the step for part 3
+        f.lathe(program_state=1)
+        f.cut(1.0, 1500, 0.2)
+        f.lathe(part_count=4)
+        f.count = 4
+    parts, events = stopped_and_started(tmp_path, before, after)
+    assert [(no, outcome) for no, outcome, *_ in parts] == [(2, "partial"), (None, "aborted"), (4, "finished")]
+    assert events == []
+
+
 def test_a_count_step_while_idle_is_not_reported_again_at_the_next_start(tmp_path):
     # the last count seen was not kept: the next start took the step for a part made while down
     def before(f):
