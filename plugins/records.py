@@ -48,6 +48,9 @@ class Unwritten:
     t: float                     # when it finished, its time in the sampling queue
     gap: records.Gap | None = None
     fut: Future | None = None    # its write, queued in the store
+    # the part counter as read when it finished (count, time, held), saved in its transaction:
+    # saved ahead of it, a part lost with the process would be counted as seen at the next start
+    counter: tuple | None = None
 
     @classmethod
     def of(cls, item: records.Part | records.Gap, t: float) -> Unwritten:
@@ -84,7 +87,7 @@ class Records(Analyzer):
         self.write_failures = 0
         self.last_write_error: str | None = None
         self._finished: asyncio.Event | None = None
-        self._saved: tuple | None = None   # the part counter as last saved (count, held_written)
+        self._saved: tuple | None = None   # the part counter as last saved (count, time, held)
         self._registered = False
 
     def inputs(self) -> list[str]:
@@ -117,8 +120,7 @@ class Records(Analyzer):
                     for item in self.tracker.feed_sample(msg.source, msg.quantity, msg.value, msg.t):
                         self.unwritten.append(Unwritten.of(item, time.time()))
                         self._finished.set()
-                    if (self.tracker.count, self.tracker.held_written) != self._saved:
-                        self._save_count()
+                    self._save_count()
         except asyncio.CancelledError:
             stopping = True           # the daemon stops (a fault restarts run() with the tracker kept)
             raise
@@ -129,11 +131,10 @@ class Records(Analyzer):
             # (or awaited by the next run); before any await, which a second cancel would cut short
             if stopping:      # the part the program's stop left: as it stands, not lost
                 self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.stop())
+                self._save_count()
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)
-            if stopping:
-                self._save_count()
             await asyncio.gather(writer, return_exceptions=True)
 
     async def _resume(self) -> None:
@@ -181,6 +182,7 @@ class Records(Analyzer):
                 continue
             wait, self.last_write_error = RETRY_S[0], None
             self.unwritten.popleft()
+            self._save_count()     # a step read while the part was written
             self.parts_written += len(u.parts)
             if u.gap is not None:
                 self.unobserved_written += len(u.parts)
@@ -200,6 +202,8 @@ class Records(Analyzer):
             if part.queued:
                 stmts.append(store.row_statement("sampling_queue", {"t": u.t, "part_uuid": row["uuid"],
                                                                     "reason": part.queue_reason()}))
+        if u.counter is not None:
+            stmts.append((COUNTER_SQL, (self.machine, *u.counter)))
         # the event names the (first) part's row id, known only as the row is inserted
         if u.gap is not None:
             payload = u.gap.payload()
@@ -222,21 +226,27 @@ class Records(Analyzer):
             "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **said))
 
     def _save_count(self) -> None:
-        """The part counter as last read, for the next start to count from (queued before any
-        await: at a stop, the store's close commits it). Unsaved, the next start may take a
-        step already seen for a part made while lathed was down: said."""
+        """The part counter as last read, for the next start to count from. Never ahead of
+        the parts' rows: with parts not yet written it goes in the last one's transaction
+        (or, that one queued, after the writer has committed them all); a save that fails
+        leaves the next start counting a step already seen as a part not observed: said."""
         tr = self.tracker
-        self._saved = (tr.count, tr.held_written)
-        if tr.count is None:
+        state = None if tr.count is None else (tr.count, tr.count_t, int(tr.held_written))
+        if state is None or state == self._saved:
             return
+        if self.unwritten:
+            last = self.unwritten[-1]
+            if last.due:
+                last.counter, self._saved = state, state
+            return
+        self._saved = state
         try:
-            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, tr.count, tr.count_t, int(tr.held_written)))
+            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, *state))
         except Exception as e:          # the store is closed
             fut = Future()
             fut.set_exception(e)
-        count = tr.count
         fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.warning(
-            "part_count_not_saved", count=count, error=f"{type(f.exception()).__name__}: {f.exception()}"))
+            "part_count_not_saved", count=state[0], error=f"{type(f.exception()).__name__}: {f.exception()}"))
 
     def status(self) -> dict[str, Any]:
         p = self.tracker.part

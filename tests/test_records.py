@@ -832,3 +832,30 @@ def test_the_count_is_kept_as_it_is_read_not_only_at_the_stop(tmp_path):
         await asyncio.gather(task, return_exceptions=True)
     asyncio.run(main())
     store.close()
+
+
+def test_the_count_is_never_saved_ahead_of_a_part_not_yet_written(tmp_path, monkeypatch):
+    # saved as read, the count ran ahead of a part whose row was refused (or still queued): a
+    # process lost then left a count that said the part's step was seen, and the part was gone
+    import lathed_plugins.records as plugin
+    monkeypatch.setattr(plugin, "RETRY_S", (0.001, 0.01), raising=False)
+    store, bus, r, log = records_analyzer(tmp_path)
+    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON workpieces "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+
+    async def main():
+        task, f = await running_to_abnormal_part_2(r, bus)
+        assert await asyncio.to_thread(log.heard("part_not_written").wait, 5)
+        f.lathe(part_count=3)                  # stepped by hand while part 2 waits to be written
+        await turns(lambda: r.tracker.count == 3)
+        await asyncio.wrap_future(store.submit("SELECT 1", ()))
+        # as the process would leave it, lost now: part 1's count, so part 2 is counted at the next start
+        assert [c["count"] for c in store.query("SELECT count FROM last_part_count")] == [1]
+        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))   # space again
+        assert await asyncio.to_thread(log.heard("part_abnormal").wait, 5)
+        await asyncio.wrap_future(store.submit("SELECT 1", ()))
+        assert [c["count"] for c in store.query("SELECT count FROM last_part_count")] == [3]
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    asyncio.run(main())
+    store.close()
