@@ -381,13 +381,17 @@ class ModbusCNC(Driver):
             del _LINKS[self.link.device]
 
     async def _read_group(self, plan) -> None:
-        now = time.time()
         for start, count, members in plan:
             try:
                 # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
                 # cancellation that lands as the read completes, and the poll goes on
                 async with self._turn(), asyncio.timeout(self.timeout + 1):
+                    asked = time.time()
                     rr = await self.client.read_holding_registers(start, count=count, device_id=self.unit)
+                    # the controller read them between the request and the answer: stamped
+                    # then, not when the poll was due (a loaded host, a shared RTU bus, an
+                    # earlier block of the group put whole polls' worth of time in between)
+                    now = (asked + time.time()) / 2
             except (asyncio.TimeoutError, ModbusIOException) as e:
                 self.errors["timeout"] += 1
                 raise TimeoutError(f"no answer from unit {self.unit} at {self.where} within {self.timeout:g} s "

@@ -135,6 +135,41 @@ def test_tcp_fills_the_model_and_writes_only_declared_registers():
     asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
 
 
+def test_a_reading_is_stamped_when_the_controller_answered_not_when_the_poll_was_due():
+    """A slow answer to a group's first block (a loaded host, a shared RTU bus): the second
+    block's values are the controller's after it, and stamped so; they were stamped with the
+    time the poll was due, a slow answer's worth early (a dwell's axes read "before" the feed)."""
+    port = free_port()
+    mill = SimCycleMachine(MILL_PROGRAM)
+    peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, mill.write)
+    d = driver(tcp(port))
+
+    async def check(d, events):
+        await until(lambda: d.polls > 3, what="polls")
+        read, holding, gate = d.client.read_holding_registers, asyncio.Event(), asyncio.Event()
+
+        async def slow_first_block(start, **kw):
+            rr = await read(start, **kw)
+            if start == 0 and not gate.is_set():
+                holding.set()
+                await gate.wait()
+            return rr
+        d.client.read_holding_registers = slow_first_block
+        await holding.wait()
+        sub = d.ctx.bus.subscribe("m")
+        await asyncio.sleep(0.3)              # the controller's answer is this slow
+        answered = time.time()
+        gate.set()
+        held = {}
+        while len(held) < 2:                  # the held poll's samples, first of each
+            m = await sub.get()
+            if m.quantity in ("spindle_rpm", "alarm_code"):
+                held.setdefault(m.quantity, m.t)
+        assert held["alarm_code"] >= answered                      # read after the answer
+        assert answered - 0.3 <= held["spindle_rpm"] <= answered   # between asking and the answer
+    asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
+
+
 def test_simulated_controller_answers_as_a_real_one():
     """The simulator's server, seen from a plain Modbus client: it serves the
     machine's values, refuses writes to read-only registers and values the
