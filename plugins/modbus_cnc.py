@@ -381,17 +381,14 @@ class ModbusCNC(Driver):
             del _LINKS[self.link.device]
 
     async def _read_group(self, plan) -> None:
+        read, asked = [], None
         for start, count, members in plan:
             try:
                 # asyncio.timeout, not wait_for: on 3.11 wait_for can swallow a
                 # cancellation that lands as the read completes, and the poll goes on
                 async with self._turn(), asyncio.timeout(self.timeout + 1):
-                    asked = time.time()
+                    asked = asked or time.time()
                     rr = await self.client.read_holding_registers(start, count=count, device_id=self.unit)
-                    # the controller read them between the request and the answer: stamped
-                    # then, not when the poll was due (a loaded host, a shared RTU bus, an
-                    # earlier block of the group put whole polls' worth of time in between)
-                    now = (asked + time.time()) / 2
             except (asyncio.TimeoutError, ModbusIOException) as e:
                 self.errors["timeout"] += 1
                 raise TimeoutError(f"no answer from unit {self.unit} at {self.where} within {self.timeout:g} s "
@@ -404,6 +401,13 @@ class ModbusCNC(Driver):
                 self.errors["refused"] += 1
                 raise ModbusException(f"read of registers {start}..{start + count - 1} refused by unit "
                                       f"{self.unit}: {rr} (register map wrong for this controller?)")
+            read.append((start, members, rr))
+        # the controller read them between the first request and the last answer: stamped
+        # then, not when the poll was due (a loaded host, a shared RTU bus put up to a poll's
+        # worth of time in between); one stamp a poll, whose readings go together (a dwell's
+        # axes against the feed's state)
+        now = (asked + time.time()) / 2
+        for start, members, rr in read:
             for r in members:
                 off = r.address - start
                 v = r.decode(rr.registers[off:off + r.count])
