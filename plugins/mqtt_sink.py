@@ -244,17 +244,22 @@ class MqttSink(Analyzer):
                 batch = await asyncio.to_thread(store.pending, self.name, self.batch)
                 continue
             sends = [asyncio.create_task(self._send(client, window, *self.record_message(*e))) for e in batch]
+            counted = False
             # read the next batch while the broker acknowledges this one
             ahead = asyncio.create_task(asyncio.to_thread(store.pending, self.name, self.batch, batch[-1][0]))
             try:
                 await asyncio.gather(*sends)    # every PUBACK of the batch...
                 self._check(client)
-                # counted at the acknowledgement, so a reader who sees the progress saved sees the count
+                # counted at the acknowledgement, so a reader who sees the progress saved sees the
+                # count; uncounted below if the progress is not saved, as the batch goes again
                 self.published += len(batch)
+                counted = True
                 self.last_publish_t = time.time()
                 # ... before the progress moves: a crash before this line only sends the batch again
                 await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
             except BaseException:
+                if counted:
+                    self.published -= len(batch)
                 for t in (*sends, ahead):
                     t.cancel()
                 raise

@@ -115,11 +115,16 @@ class PostgresSink(Analyzer):
                     await asyncio.wait_for(self._send(con, inserts, batch), self.timeout)
                 except self.row_refused:
                     await asyncio.wait_for(self._send_each(con, inserts, batch), self.timeout)
-                # Counted at the central commit, so a reader who sees the progress saved sees the count.
+                # Counted at the central commit, so a reader who sees the progress saved sees the
+                # count; uncounted if the progress is not saved, as the batch goes again.
                 self.forwarded += len(batch)
                 self.last_forward_t = time.time()
-                # After the central commit: a crash here only causes a resend, which the keys absorb.
-                await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
+                try:
+                    # After the central commit: a crash here only causes a resend, which the keys absorb.
+                    await asyncio.wrap_future(store.set_progress(self.name, batch[-1][0]))
+                except BaseException:
+                    self.forwarded -= len(batch)
+                    raise
 
     async def _schema(self, con: psycopg.AsyncConnection) -> dict[str, tuple[sql.Composed, list[str]]]:
         """Create or extend the central tables from the local schema; returns the inserts."""

@@ -375,6 +375,28 @@ def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
     assert insp["time"] == "1970-01-01T00:00:03.000Z"
 
 
+def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path):
+    """Acknowledged by the broker, its progress refused locally (disk full): the sink fails
+    and the batch goes again at its restart, so it is not counted as published yet."""
+    broker = Broker(tmp_path / "broker")
+    broker.start()
+    store = Store(tmp_path / "a.db", machine_id="cell-p")
+    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON forward_progress "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    sink = _sink(store, port=broker.port)
+    try:
+        async def main():
+            await store.record("tick", "w", {"seq": 0})
+            with pytest.raises(sqlite3.DatabaseError, match="disk is full"):
+                await asyncio.wait_for(sink.run(), 10)
+
+        asyncio.run(main())
+        assert store.backlog("mqtt") == 1 and sink.published == 0
+    finally:
+        store.close()
+        broker.stop()
+
+
 def test_a_message_the_broker_discards_is_not_marked_sent(tmp_path):
     """An ACL that lets the sink connect but not publish: MQTT 5's PUBACK says
     so, the records stay in the backlog, and the cause is named."""

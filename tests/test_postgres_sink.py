@@ -110,6 +110,27 @@ def test_forwards_every_table_once_and_resend_is_idempotent(tmp_path, pg_dsn):  
     store.close()
 
 
+def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path, pg_dsn):  # noqa: F811
+    """Committed centrally, its progress refused locally (disk full): the sink fails, the batch
+    goes again at its restart, and is counted once."""
+    store = Store(tmp_path / "a.db", machine_id="cell-a")
+    for i in range(3):
+        store.record_future("tick", "w", {"seq": i}).result(5)
+    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON forward_progress "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    sink = _sink(pg_dsn, store)
+
+    async def main():
+        with pytest.raises(sqlite3.DatabaseError, match="disk is full"):
+            await asyncio.wait_for(sink.run(), 20)
+        assert sink.forwarded == 0 and store.backlog(sink.name) == 3
+        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))    # space again
+        await _drain(sink, store)
+        assert sink.forwarded == 3
+    asyncio.run(main())
+    store.close()
+
+
 def test_a_row_the_server_refuses_is_set_aside_and_the_rest_goes_on(tmp_path, pg_dsn):  # noqa: F811
     # PostgreSQL's text and jsonb cannot hold NUL; SQLite can: a string read off a
     # machine's registers may carry one.
