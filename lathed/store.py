@@ -284,12 +284,15 @@ MIGRATIONS: list[tuple[int, str]] = [
     -- no part (stepped by hand while idle) is in no part's row, and the next start counted it as
     -- a part made while lathed was down. held: the part the program's stop left was written
     -- aborted at lathed's stop, before the counter stepped for it: that step is the part's own.
-    -- Local state, not a record: not forwarded.
+    -- run, seq: which records analyzer run saved it, in what order (a retried write's save
+    -- never overwrites a later one). Local state, not a record: not forwarded.
     CREATE TABLE last_part_count (
         machine TEXT PRIMARY KEY,
         count   INTEGER NOT NULL,
         t       REAL NOT NULL,
-        held    INTEGER NOT NULL
+        held    INTEGER NOT NULL,
+        run     TEXT NOT NULL,
+        seq     INTEGER NOT NULL
     );
     """),
 ]

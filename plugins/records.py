@@ -35,8 +35,14 @@ from lathed.store import EVENT_SQL
 EXPORTS = tuple(records.EXPORT_TABLES)
 MAX_UM = 1e6     # a measured roughness or diameter error beyond a metre is a typo, not a part
 RETRY_S = (1.0, 60.0)   # a failed part write is tried again after 1 s, doubling up to a minute
-COUNTER_SQL = ("INSERT INTO last_part_count(machine, count, t, held) VALUES (?,?,?,?) "
-               "ON CONFLICT(machine) DO UPDATE SET count = excluded.count, t = excluded.t, held = excluded.held")
+# the counter's last reading, saved only once every part not yet written when it was read is
+# in the store (a save ahead of one, the process lost, would leave its step counted as seen
+# and the part gone), and never over a later save of the same run (queued writes retried)
+COUNTER_SQL = ("INSERT INTO last_part_count(machine, count, t, held, run, seq) SELECT ?,?,?,?,?,? "
+               "WHERE (SELECT count(*) FROM workpieces WHERE uuid IN ({})) = ? "
+               "ON CONFLICT(machine) DO UPDATE SET count = excluded.count, t = excluded.t, "
+               "held = excluded.held, run = excluded.run, seq = excluded.seq "
+               "WHERE excluded.run <> last_part_count.run OR excluded.seq > last_part_count.seq")
 
 
 @dataclass
@@ -48,9 +54,6 @@ class Unwritten:
     t: float                     # when it finished, its time in the sampling queue
     gap: records.Gap | None = None
     fut: Future | None = None    # its write, queued in the store
-    # the part counter as read when it finished (count, time, held), saved in its transaction:
-    # saved ahead of it, a part lost with the process would be counted as seen at the next start
-    counter: tuple | None = None
 
     @classmethod
     def of(cls, item: records.Part | records.Gap, t: float) -> Unwritten:
@@ -88,6 +91,8 @@ class Records(Analyzer):
         self.last_write_error: str | None = None
         self._finished: asyncio.Event | None = None
         self._saved: tuple | None = None   # the part counter as last saved (count, time, held)
+        self._resave = False               # ... maybe not taken: parts were still to be written
+        self._run, self._seq = str(uuidlib.uuid4()), 0
         self._registered = False
 
     def inputs(self) -> list[str]:
@@ -131,10 +136,10 @@ class Records(Analyzer):
             # (or awaited by the next run); before any await, which a second cancel would cut short
             if stopping:      # the part the program's stop left: as it stands, not lost
                 self.unwritten.extend(Unwritten.of(p, time.time()) for p in self.tracker.stop())
-                self._save_count()
             for u in self.unwritten:
                 if u.due:
                     self._submit(u)
+            self._save_count(force=self._resave)     # after them: taken once they are in
             await asyncio.gather(writer, return_exceptions=True)
 
     async def _resume(self) -> None:
@@ -182,7 +187,8 @@ class Records(Analyzer):
                 continue
             wait, self.last_write_error = RETRY_S[0], None
             self.unwritten.popleft()
-            self._save_count()     # a step read while the part was written
+            if not self.unwritten:
+                self._save_count(force=self._resave)     # read while parts were to be written
             self.parts_written += len(u.parts)
             if u.gap is not None:
                 self.unobserved_written += len(u.parts)
@@ -202,8 +208,6 @@ class Records(Analyzer):
             if part.queued:
                 stmts.append(store.row_statement("sampling_queue", {"t": u.t, "part_uuid": row["uuid"],
                                                                     "reason": part.queue_reason()}))
-        if u.counter is not None:
-            stmts.append((COUNTER_SQL, (self.machine, *u.counter)))
         # the event names the (first) part's row id, known only as the row is inserted
         if u.gap is not None:
             payload = u.gap.payload()
@@ -225,23 +229,24 @@ class Records(Analyzer):
         u.fut.add_done_callback(lambda f: not f.cancelled() and f.exception() is not None and self.ctx.log.error(
             "part_not_written", error=f"{type(f.exception()).__name__}: {f.exception()}", **said))
 
-    def _save_count(self) -> None:
-        """The part counter as last read, for the next start to count from. Never ahead of
-        the parts' rows: with parts not yet written it goes in the last one's transaction
-        (or, that one queued, after the writer has committed them all); a save that fails
-        leaves the next start counting a step already seen as a part not observed: said."""
+    def _save_count(self, force: bool = False) -> None:
+        """The part counter as last read, for the next start to count from, queued after the
+        writes of the parts not yet written and taken only once they are all in the store
+        (else saved again when the writer has written them). A save that fails leaves the
+        next start counting a step already seen as a part not observed: said."""
         tr = self.tracker
-        state = None if tr.count is None else (tr.count, tr.count_t, int(tr.held_written))
-        if state is None or state == self._saved:
+        if tr.count is None or (not force and (tr.count, tr.count_t, int(tr.held_written)) == self._saved):
             return
-        if self.unwritten:
-            last = self.unwritten[-1]
-            if last.due:
-                last.counter, self._saved = state, state
+        self._saved = state = (tr.count, tr.count_t, int(tr.held_written))
+        if any(u.due for u in self.unwritten):      # the writer has them still to queue
+            self._resave = True
             return
-        self._saved = state
+        uuids = [row["uuid"] for u in self.unwritten for row in u.rows]
+        self._resave = bool(uuids)     # a write queued before it may fail and be retried after
+        self._seq += 1
         try:
-            fut = self.ctx.store.submit(COUNTER_SQL, (self.machine, *state))
+            fut = self.ctx.store.submit(COUNTER_SQL.format(",".join("?" * len(uuids)) or "NULL"),
+                                        (self.machine, *state, self._run, self._seq, *uuids, len(uuids)))
         except Exception as e:          # the store is closed
             fut = Future()
             fut.set_exception(e)
