@@ -125,6 +125,11 @@ class Driver:
         """The machine's present value of what ``action`` commands, if known."""
         return None
 
+    def interlock(self, cmd: Command) -> str | None:
+        """Why the machine must not take ``cmd`` now, from its own state (the safety guard
+        refuses it then); None: nothing the driver knows of stands against it."""
+        return None
+
     def quantities(self) -> frozenset[str] | None:
         """Every quantity it can publish as a sample, where its config fixes them (a register
         map), so ``watch`` can refuse one that would never come; None: any may appear."""

@@ -51,7 +51,7 @@ class SafetyGuard:
         self._last: dict[tuple[str, str], tuple[float, float]] = {}   # (machine, action) -> (value, t)
 
     def check(self, cmd: Command, current: float | None = None,
-              runs_at: tuple[float, str] | None = None) -> str | None:
+              runs_at: tuple[float, str] | None = None, interlock: str | None = None) -> str | None:
         """None if the command may be sent, else the reason it may not.
 
         ``current`` is the machine's present value of the commanded quantity
@@ -62,6 +62,8 @@ class SafetyGuard:
         ``runs_at``: (the speed the machine will run for this value, why it differs),
         where the driver knows (an S word times the operator's override): held to the
         range too, for the range bounds the spindle, not the word written.
+        ``interlock``: why the machine must take no such command now, from its own state (a
+        thread being cut: the driver's ``interlock``), which refuses it, a release too.
         """
         lim = self.limits.get(cmd.machine)
         if lim is None:
@@ -71,6 +73,8 @@ class SafetyGuard:
         v = cmd.value
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             return f"{cmd.action} value {v!r} is not a finite number"
+        if interlock is not None:
+            return interlock
         now = self._clock()
         last = self._last.get((cmd.machine, cmd.action))
         ref = current if current is not None else (last[0] if last else None)

@@ -403,7 +403,11 @@ class Supervisor:
         async with lock:
             if reason is None:
                 runs_at = getattr(drv, "runs_at", lambda c: None)(cmd)
-                reason = self.guard.check(cmd, drv.current(cmd.action), runs_at)
+                try:
+                    interlock = getattr(drv, "interlock", lambda c: None)(cmd)
+                except Exception as e:     # a driver's bug: its machine takes nothing it cannot vouch for
+                    interlock = f"machine {cmd.machine}'s interlock could not be read: {_one_line(e)}"
+                reason = self.guard.check(cmd, drv.current(cmd.action), runs_at, interlock)
             payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
                        "reason": cmd.reason, "by": cmd.source, **cmd.context}
             if reason is not None:

@@ -579,6 +579,22 @@ class ModbusCNC(Driver):
             return None
         return float(cmd.value) * ovr / 100.0, f"with the control's spindle override at {ovr:g} %"
 
+    def interlock(self, cmd: Command) -> str | None:
+        """A thread being cut (the map's ``threading`` register: 1 from a thread's first pass
+        to its last, or a rigid tap's): no speed and no offset may change, a release neither;
+        the passes must follow one helix at one speed (the control's lag follows the speed),
+        and an offset would step the flank. Not read lately, a thread may be on: the same."""
+        if "threading" not in self.registers:
+            return None
+        v = self._fresh("threading")
+        if v is None:
+            return (f"machine {self.name}'s threading signal not read within {self.stale_after:g} s: "
+                    f"a thread may be being cut")
+        if v >= 0.5:
+            return (f"machine {self.name} is cutting a thread (threading = 1): its speed and offsets "
+                    f"must not change until the thread's last pass")
+        return None
+
     def _fresh(self, name: str) -> float | None:
         v = self.values.get(name)
         if v is None or self.client is None or time.time() - v[1] > self.stale_after:

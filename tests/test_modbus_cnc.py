@@ -171,6 +171,25 @@ def test_a_reading_is_stamped_when_the_controller_answered_not_when_the_poll_was
     asyncio.run(asyncio.wait_for(_run_against(peer, mill, d, check), 30))
 
 
+def test_a_thread_being_cut_interlocks_every_command():
+    """The map's threading register (1 from a thread's first pass to its last): every command
+    is refused while it is 1, and while it has not been read lately; a map without it has no
+    interlock (the README says what a machine must provide)."""
+    regs = {**REGS, "threading": {"address": 17, "type": "uint16"}}
+    d = driver({**tcp(502), "registers": regs})
+    d.client = object()                       # connected: _fresh reads the values
+    speed = Command(machine="m", action="spindle_rpm", value=1500.0, reason="test", source="t")
+    assert "threading signal not read within" in d.interlock(speed)
+    d.values["threading"] = (1, time.time())
+    assert "is cutting a thread (threading = 1)" in d.interlock(speed)
+    assert "is cutting a thread" in d.interlock(dataclasses.replace(speed, release=True))
+    d.values["threading"] = (0, time.time())
+    assert d.interlock(speed) is None
+    d.values["threading"] = (0, time.time() - 2 * d.stale_after)
+    assert "not read within" in d.interlock(speed)
+    assert driver(tcp(502)).interlock(speed) is None
+
+
 def test_simulated_controller_answers_as_a_real_one():
     """The simulator's server, seen from a plain Modbus client: it serves the
     machine's values, refuses writes to read-only registers and values the
@@ -519,6 +538,21 @@ def _supervised(ctl, rpm_max, act, **limits):
 
 def _speed(rpm, reason="t"):
     return Command(machine="m", action="spindle_rpm", value=rpm, reason=reason, source="suppress")
+
+
+def test_an_interlock_that_fails_refuses_the_command():
+    """A driver whose interlock raises (a plugin's bug) cannot vouch for its machine's state:
+    the command is refused and recorded with the cause, never sent."""
+    async def broken_interlock(sup, d):
+        def interlock(cmd):
+            raise KeyError("threading")
+        d.interlock = interlock
+        return await sup.command(_speed(1650.0))
+    ctl = OverrideControl()
+    r, records = _supervised(ctl, 2000.0, broken_interlock)
+    assert not r["sent"] and r["reason"].startswith("machine m's interlock could not be read: KeyError: 'threading'")
+    assert [k for k, _, _ in records if k.startswith("command_")] == ["command_refused"]
+    assert ctl.override == 100.0
 
 
 def test_a_release_passes_the_guard_as_any_command():

@@ -66,6 +66,17 @@ def test_a_release_is_bounded_by_the_range_only():
     assert g.check(replace(back, value=7000.0), current=3400) == "spindle speed 7000 r/min outside [300, 6000]"
 
 
+def test_an_interlock_refuses_every_command_a_release_too():
+    # a thread being cut: no speed, no offset, not even the way back, may change under it
+    from dataclasses import replace
+    g, _ = guard()
+    why = "machine lathe is cutting a thread (threading = 1)"
+    assert g.check(cmd("spindle_rpm", 1500), current=1000, interlock=why) == why
+    assert g.check(replace(cmd("spindle_rpm", 1000), release=True), current=1500, interlock=why) == why
+    assert g.check(cmd("offset_x_um", 2.0), current=0.0, interlock=why) == why
+    assert g.check(cmd("spindle_rpm", 1500), current=1000, interlock=None) is None
+
+
 def test_rate_bound_between_commands():
     g, clock = guard()
     c = cmd("spindle_rpm", 1500)

@@ -86,6 +86,30 @@ def test_a_facing_pass_in_a_program_is_checked():
         parse_cut("2000,1,speed=3")
 
 
+def test_a_threading_pass_sets_the_controls_threading_signal_for_its_cycle():
+    import pytest
+
+    from lathed.sim.program import parse_cut
+    assert parse_cut("2000,0.3,1.5,40,thread=1.5") == parse_cut("2000,0.3,thread=1.5") == Cut(
+        2000, 0.3, 1.5, 40, thread=True)
+    for text, why in (("2000,0.3,1.0,thread=1.5", "a thread's feed is its pitch: 1 against thread=1.5"),
+                      ("2000,0.3,thread=fine", "thread= takes the pitch in mm"),
+                      ("2000,0.3,thread=3", "thread= takes a pitch of 0..2 mm"),
+                      ("2000,0.3,dwell=1,thread=1", "a threading pass takes no css= \\(G96\\) or dwell=")):
+        with pytest.raises(ValueError, match=why):
+            parse_cut(text)
+    lathe = SimLathe(program=tuple(parse_cut(c) for c in ("2000,1.0,0.3,10", "2000,0.3,1.5,10,thread=1.5")),
+                     load_s=0.2, retract_s=0.2)
+    seen = set()
+    while len(lathe.parts) < 3:
+        lathe.step(2048)
+        r = lathe.registers()
+        seen.add((lathe.part_index, lathe.phase, r["threading"], r["feed_mm_rev"]))
+    assert {(i, t, f) for i, _, t, f in seen} == {(0, 0, 0.3), (1, 1, 1.5), (2, 0, 0.3)}
+    assert {"load", "cut", "retract"} <= {ph for i, ph, *_ in seen if i == 1}
+    assert [p.thread for p in lathe.parts] == [False, True, False]
+
+
 def test_the_turrets_second_tool_is_a_boring_bar_with_its_own_limit():
     from lathed.sim.program import parse_cut
     lathe = SimLathe(program=tuple(parse_cut(c) for c in ("2000,1.0,0.3,10", "2000,0.9,0.3,10,tool=2")),

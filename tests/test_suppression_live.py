@@ -315,6 +315,35 @@ def test_a_dwell_mid_pass_holds_the_cure_live(tmp_path):
         d.stop()
 
 
+def test_no_speed_is_written_while_a_thread_is_cut_live(tmp_path):
+    """A threading pass (the control's threading signal on for its cycle) and a turning pass,
+    both 3 mm at 2000 r/min, which chatters: the turning pass is cured, the thread is not
+    (a speed changed between or within its passes cuts them off one helix). Each speed asked
+    in the thread, remembered at its entry or for an alarm, is refused by the guard and
+    recorded with the cause; the machine never gets one."""
+    cfg, paths = sim_config(tmp_path, analyzers=ANALYZERS,
+                            simulator='program = ["2000,3.0,0.3,20,thread=0.3", "2000,3.0,0.3,20"]\n'
+                                      'load_s = 0.3\nretract_s = 0.2\n')
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 5, timeout=90, interval=0.3,
+                   what="five parts")
+        parts = [p for p in sim_call(paths["sim"], "status", {"parts": 16})["parts"] if p["cut_end_s"] is not None]
+        threads, turned = [p for p in parts if p["thread"]], [p for p in parts if not p["thread"]]
+        assert len(threads) >= 2 and len(turned) >= 2, parts
+        assert all(p["speed_writes"] == [] for p in threads), threads
+        assert any(p["speed_writes"] for p in turned), turned
+        refused = [e["payload"] for e in events(d, "command_refused")]
+        assert refused and all("is cutting a thread (threading = 1)" in r["refused"] for r in refused), refused
+        assert {r["by"] for r in refused} == {"suppress"}
+        acts = [e["payload"] for e in events(d, "suppression_action") if not e["payload"]["sent"]]
+        assert acts and all("cutting a thread" in a["refused"] for a in acts), acts
+    finally:
+        d.stop()
+
+
 def _stored(paths, kind: str) -> list[dict]:
     import sqlite3
     con = sqlite3.connect(f"file:{paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)

@@ -163,6 +163,7 @@ class PartRecord:
     rpm: float                    # programmed (a G96 pass: its speed at entry)
     depth_mm: float
     css_m_min: float = 0.0        # a G96 pass's surface speed (no visible-chatter instant is timed)
+    thread: bool = False          # a threading pass (the control's threading signal on)
     b_lim_mm: float | None = None     # limiting depth at the speed the cut started at
     cut_start_s: float | None = None
     cut_end_s: float | None = None
@@ -246,7 +247,7 @@ class SimLathe:
 
     def _new_part(self) -> None:
         self.parts.append(PartRecord(self.part_index, self.part.program_rpm(0.0), self.depth_mm,
-                                     self.part.css_m_min))
+                                     self.part.css_m_min, self.part.thread))
 
     @property
     def record(self) -> PartRecord:
@@ -475,6 +476,8 @@ class SimLathe:
             "cutting_feed": 1 if feeding and self.dwell_left_s <= 0.0 else 0,
             # G96 until a written S word ends it for the part (G97); an override does not
             "css_active": 1 if self.part.css_m_min and self.rpm_override is None else 0,
+            # a threading part's whole cycle, its load to its retract (a PMC bit over G76)
+            "threading": 1 if self.part.thread else 0,
             "alarm_code": 0,
             "tool_number": self.part.tool,
             "probe_displacement_um": self.probe_displacement_um,

@@ -19,7 +19,10 @@ class Cut:
     ``css_m_min``, a facing pass at constant surface speed (G96): the tool moves in from
     the bar's diameter by ``length_mm`` (radially), the speed follows the diameter
     (1000 V / (pi D)) and ``rpm`` is the speed clamp (G50 S).  ``dwell_s``: halfway along
-    the pass the feed stops for that long (G04), the tool in the work, then goes on."""
+    the pass the feed stops for that long (G04), the tool in the work, then goes on.
+    ``thread``: a threading pass (G76/G92), its feed the pitch: the control's threading
+    signal is on for its cycle. Only the signal is the control's: the chip is cut as a
+    turning pass's (no flank-only chip, no regeneration between a thread's passes)."""
     rpm: float
     depth_mm: float
     feed_mm_rev: float = 0.3
@@ -30,6 +33,7 @@ class Cut:
     # a dwell (G04) at the pass's middle: the feed stops this long with the tool in the work
     # and the spindle turning (a groove's bottom, a shoulder), then the pass goes on
     dwell_s: float = 0.0
+    thread: bool = False
 
     def program_rpm(self, travel_mm: float) -> float:
         """The speed the program asks for with the tool ``travel_mm`` into the pass."""
@@ -44,17 +48,18 @@ class Cut:
         return self.diameter_mm - 2.0 * min(travel_mm, self.length_mm)
 
 
-FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S]"
+FORM = "RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S][,thread=PITCH_MM]"
 TOOLS = (1, 2)        # the simulated turret's positions (their dynamics: lathed.sim.lathe.tool_modes)
 
 
 def parse_cut(text: str) -> Cut:
-    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S]``: one part of
-    a cut program; with ``css=`` a facing pass at that surface speed (G96), RPM its clamp;
-    ``tool=`` the turret position that cuts it (1, the default, or 2); ``dwell=`` seconds
-    the feed stops halfway along the pass (G04), the tool in the work."""
+    """``RPM,DEPTH_MM[,FEED_MM_REV[,LENGTH_MM]][,css=M_MIN][,tool=N][,dwell=S][,thread=PITCH_MM]``:
+    one part of a cut program; with ``css=`` a facing pass at that surface speed (G96), RPM its
+    clamp; ``tool=`` the turret position that cuts it (1, the default, or 2); ``dwell=`` seconds
+    the feed stops halfway along the pass (G04), the tool in the work; ``thread=`` a threading
+    pass of that pitch (its feed)."""
     items = [x.strip() for x in text.split(",")]
-    css, tool, dwell = 0.0, 1, 0.0
+    css, tool, dwell, pitch = 0.0, 1, 0.0, None
     while items and "=" in items[-1]:
         key, _, value = items.pop().partition("=")
         if key == "css":
@@ -74,15 +79,28 @@ def parse_cut(text: str) -> Cut:
                 raise ValueError(f"cut {text!r}: dwell= takes seconds") from None
             if not 0 < dwell <= MAX_DWELL_S:
                 raise ValueError(f"cut {text!r}: dwell= takes 0..{MAX_DWELL_S:g} s")
+        elif key == "thread":
+            try:
+                pitch = float(value)
+            except ValueError:
+                raise ValueError(f"cut {text!r}: thread= takes the pitch in mm") from None
+            if not 0 < pitch <= 2:
+                raise ValueError(f"cut {text!r}: thread= takes a pitch of 0..2 mm")
         else:
-            raise ValueError(f"cut {text!r}: unknown {key}=; allowed: css=, tool=, dwell=")
+            raise ValueError(f"cut {text!r}: unknown {key}=; allowed: css=, tool=, dwell=, thread=")
     try:
         vals = [float(x) for x in items]
     except ValueError:
         raise ValueError(f"cut {text!r}: expected {FORM} as numbers") from None
     if not 2 <= len(vals) <= 4:
         raise ValueError(f"cut {text!r}: expected {FORM}")
-    c = Cut(*vals, css_m_min=css, tool=tool, dwell_s=dwell)
+    if pitch is not None:
+        if len(vals) >= 3 and vals[2] != pitch:
+            raise ValueError(f"cut {text!r}: a thread's feed is its pitch: {vals[2]:g} against thread={pitch:g}")
+        if css or dwell:
+            raise ValueError(f"cut {text!r}: a threading pass takes no css= (G96) or dwell=")
+        vals = [*vals[:2], pitch, *vals[3:]]
+    c = Cut(*vals, css_m_min=css, tool=tool, dwell_s=dwell, thread=pitch is not None)
     if not (60 <= c.rpm <= 20_000 and 0 <= c.depth_mm <= MAX_DEPTH_MM and 0 < c.feed_mm_rev <= 2
             and 0 < c.length_mm <= 1000 and math.isfinite(css)):
         raise ValueError(f"cut {text!r}: outside 60..20000 r/min, 0..{MAX_DEPTH_MM:g} mm deep, "

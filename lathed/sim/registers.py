@@ -36,8 +36,12 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     # puts it back to 100 % when the count has not changed for HEARTBEAT_TIMEOUT_S (the daemon
     # died or lost the link); armed by the first write
     "heartbeat":             (34, "uint16", True, ""),
+    # 1 while a thread is cut, from its cycle's first pass to its last (Fanuc's THRD, F2.3, is
+    # on only in the threading blocks: a PMC bit over the whole G76/G92 cycle; rigid tapping
+    # likewise): no speed or offset may change in it
+    "threading":             (35, "uint16", False, ""),
 }
-N_REGISTERS = 35
+N_REGISTERS = 36
 HEARTBEAT_TIMEOUT_S = 1.5   # three of the driver's default 500 ms beats
 
 # The mill (Modbus TCP) and the grinder (Modbus RTU on a pseudo-terminal,
