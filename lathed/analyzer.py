@@ -21,7 +21,8 @@ class AnalyzerContext:
                  command: Callable[[Command], Awaitable[dict]],
                  register_control: Callable[[str, Callable[[dict], Awaitable[Any]]], None],
                  store, machine_status: Callable[[str], dict | None], config_dir, plugins=None,
-                 release: Callable[[str, str, str], Awaitable[dict | None]] | None = None):
+                 release: Callable[[str, str, str], Awaitable[dict | None]] | None = None,
+                 interlock: Callable[[str, str], str | None] | None = None):
         self.bus = bus
         self.log = log
         self.record = record                  # record(kind, payload) -> None
@@ -34,6 +35,9 @@ class AnalyzerContext:
         # await release(machine, action, source): the action back to what the machine's program
         # sets, where a command's effect outlasts the cut (a spindle override); None: nothing to do
         self.release = release or _no_release
+        # interlock(machine, action): why the machine takes no such command now (a thread being
+        # cut), else None; an analysis asks so as not to ask in vain (the guard refuses anyway)
+        self.interlock = interlock or (lambda machine, action: None)
 
 
 async def _no_release(machine: str, action: str, source: str) -> None:

@@ -26,6 +26,8 @@ from lathed.driver import Driver, DriverContext
 from lathed.plugins import PluginLoader, _one_line
 from lathed.safety import Limits, SafetyGuard
 
+OWED_RELEASE_POLL_S = 0.1   # how often a release an interlock held back asks again (a register poll)
+
 log = structlog.get_logger("lathed.supervisor")
 
 
@@ -278,6 +280,8 @@ class Supervisor:
         self.analyzer_runners: dict[str, Runner] = {}
         self._cmd_locks: dict[str, asyncio.Lock] = {}
         self.sent = asyncio.Event()      # set at every command sent (a stop waiting for a release)
+        # releases a machine's interlock held back (a thread being cut): sent when it clears
+        self._owed: dict[tuple[str, str], asyncio.Task] = {}
         self._register_control = register_control
         for name, (inst, drv) in plan.drivers.items():
             drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name),
@@ -287,7 +291,8 @@ class Supervisor:
         for name, (inst, an) in plan.analyzers.items():
             an.ctx = AnalyzerContext(bus, log.bind(analyzer=name), self._recorder(name), self.command,
                                      self._control_registrar(name), store, self.machine_status,
-                                     cfg.path.parent, plugins=plan.loader, release=self.release)
+                                     cfg.path.parent, plugins=plan.loader, release=self.release,
+                                     interlock=self.interlock)
             self.analyzer_runners[name] = Runner("analyzer", name, an, *self._retry(inst), self.record)
 
     def _control_registrar(self, analyzer: str):
@@ -355,6 +360,11 @@ class Supervisor:
         # analyses left held on a machine beyond its cut (a spindle override) goes back
         await cancel_and_wait([r.task for r in self.analyzer_runners.values() if r.task])
         await self.release_held()
+        await cancel_and_wait(list(self._owed.values()))
+        left = self.held()
+        if left:
+            log.warning("override_left_held", held=left, why="its release was refused or failed (a thread being "
+                        "cut holds every command); the control's heartbeat watchdog, where mapped, takes it back")
         await cancel_and_wait([r.task for r in self.runners.values() if r.task])
 
     def held(self) -> list[str]:
@@ -413,7 +423,10 @@ class Supervisor:
             if reason is not None:
                 log.warning("command_refused", command=cmd.describe(), why=reason)
                 self.record("command_refused", cmd.source, {**payload, "refused": reason})
-                return {"sent": False, "reason": reason}
+                held_back = interlock is not None and reason == interlock
+                if held_back and cmd.release:
+                    self._owe_release(cmd)
+                return {"sent": False, "reason": reason, **({"interlock": True} if held_back else {})}
             send = asyncio.ensure_future(self._send(cmd, drv, payload))
             try:
                 return await asyncio.shield(send)
@@ -438,6 +451,43 @@ class Supervisor:
         self.record("command_sent", cmd.source, payload)
         self.sent.set()
         return {"sent": True, "reason": None, **(detail or {})}
+
+    def interlock(self, machine: str, action: str) -> str | None:
+        """Why ``machine`` would refuse ``action`` now by its own state (its driver's
+        interlock), else None; the guard still checks every command."""
+        runner = self.runners.get(machine)
+        if runner is None:
+            return None
+        try:
+            return getattr(runner.obj, "interlock", lambda c: None)(Command(machine, action, 0.0, "lathed"))
+        except Exception as e:
+            return f"machine {machine}'s interlock could not be read: {_one_line(e)}"
+
+    def _owe_release(self, cmd: Command) -> None:
+        """A release the machine's interlock refused (a thread begun before it): held back,
+        not dropped (the override would stay on for the parts after), and sent once the
+        interlock clears; a stop waiting for the cut's end waits for it too."""
+        key = (cmd.machine, cmd.action)
+        if key in self._owed and not self._owed[key].done():
+            return
+        log.warning("release_deferred", machine=cmd.machine, action=cmd.action,
+                    why="the machine's interlock holds every command; sent when it clears")
+        self._owed[key] = asyncio.create_task(self._release_when_clear(cmd), name=f"release:{cmd.machine}")
+
+    async def _release_when_clear(self, cmd: Command) -> None:
+        probe = Command(cmd.machine, cmd.action, cmd.value, cmd.source, reason=cmd.reason, release=True)
+        while True:
+            await asyncio.sleep(OWED_RELEASE_POLL_S)
+            runner = self.runners.get(cmd.machine)
+            if runner is None or runner.state != "connected":
+                continue
+            try:
+                if runner.obj.interlock(probe) is None:
+                    break
+            except Exception:          # refused by command() with the cause, as below
+                break
+        del self._owed[(cmd.machine, cmd.action)]
+        await self.release(cmd.machine, cmd.action, cmd.source, reason=cmd.reason)
 
     async def release(self, machine: str, action: str, source: str,
                       reason: str = "released: back to the programmed speed") -> dict | None:

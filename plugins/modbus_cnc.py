@@ -233,6 +233,14 @@ class ModbusCNC(Driver):
         if self.stale_after <= slowest:
             raise section.error("stale_after", f"must be longer than the slowest poll ({slowest:g} s), "
                                                "or every value of that group is always stale")
+        thr = self.registers.get("threading")
+        fastest = min(r.poll for r in self.registers.values())
+        if thr is not None and thr.poll > fastest:
+            # a thread begun between two slow readings would take commands for up to a poll
+            raise section.error("registers", f"threading is polled every {thr.poll:g} s: poll it with the "
+                                             f"fastest group ({fastest:g} s), it holds every command back")
+        # how old a threading reading may be for a command to pass: two polls and an answer's wait
+        self.threading_max_age = 2 * fastest + self.timeout
         self.groups = poll_groups(self.registers)
         # trigger -> the read plan of the registers it reads at once
         self.read_on = {t: read_plan([r for r in self.registers.values() if t in r.read_on])
@@ -586,12 +594,15 @@ class ModbusCNC(Driver):
         and an offset would step the flank. Not read lately, a thread may be on: the same."""
         if "threading" not in self.registers:
             return None
-        v = self._fresh("threading")
-        if v is None:
-            return (f"machine {self.name}'s threading signal not read within {self.stale_after:g} s: "
+        read = self.values.get("threading")
+        if read is None or self.client is None:
+            return f"machine {self.name}'s threading signal not read yet: a thread may be being cut"
+        v, t = read
+        if time.time() - t > self.threading_max_age:
+            return (f"machine {self.name}'s threading signal not read within {self.threading_max_age:g} s: "
                     f"a thread may be being cut")
-        if v >= 0.5:
-            return (f"machine {self.name} is cutting a thread (threading = 1): its speed and offsets "
+        if v != 0:      # anything but 0 (a PLC's TRUE as -1, a scaled bit, the whole F2 byte)
+            return (f"machine {self.name} is cutting a thread (threading = {v:g}): its speed and offsets "
                     f"must not change until the thread's last pass")
         return None
 

@@ -230,6 +230,7 @@ class SuppressionAnalyzer(Analyzer):
         self._follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
         self._follow_told = False              # ... and the cut's spindle was said not to follow
         self._commanded = False                # a speed was sent in this cut: released at its end
+        self.held_back: str | None = None      # the machine's interlock refused this cut's speed (a thread)
         self._shallower_since: float | None = None   # the cut held with advice is shallower since
         self.cuts_recorded = 0
         self.grid = None    # the lobes over the spindle's range, computed once at start
@@ -447,6 +448,7 @@ class SuppressionAnalyzer(Analyzer):
         if self.in_cut and not was:
             self.policy = self._policy()    # a new cut: bans and budget start afresh
             self.pending = None
+            self.held_back = None
             self._cut_started(time.time() if t is None else t)
         if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
@@ -462,7 +464,10 @@ class SuppressionAnalyzer(Analyzer):
                 # (through the guard; nothing to do where the next S word takes over)
                 self._commanded = False
                 r = await self.ctx.release(self.machine, "spindle_rpm", self.name)
-                if r is not None and not r["sent"]:
+                if r is not None and not r["sent"] and r.get("interlock"):
+                    # a thread begun: held back by the supervisor, sent at the thread's end
+                    self.ctx.log.info("speed_release_deferred", machine=self.machine, why=r["reason"])
+                elif r is not None and not r["sent"]:
                     # the next parts run at the override until someone resets it: said loudly
                     payload = {"machine": self.machine, "why": r["reason"]}
                     self.ctx.log.error("speed_not_released", **payload)
@@ -732,7 +737,7 @@ class SuppressionAnalyzer(Analyzer):
         if alarm and not self.chat["alarm"]:
             self.alarm_wall_t = s.t
         self.chat["alarm"], self.chat["t"] = alarm, s.t
-        if self.mode == "off" or self.policy is None or self.rpm is None:
+        if self.mode == "off" or self.policy is None or self.rpm is None or self.held_back is not None:
             return
         d = self.policy.observe(time.monotonic(), self.rpm, alarm, self.chat["frequency"] if alarm else None,
                                 self.chat["index"], self.chat["threshold"])
@@ -776,12 +781,22 @@ class SuppressionAnalyzer(Analyzer):
                    # the stability model whose lobes chose the speed (a cut keeps the one it began with)
                    "model": self.policy_model if self.policy is not None else self.model_name}
         if d.variation is not None:
-            self._start_ssv(d)
-            result = {"sent": True, "reason": "modulating"}
+            # the modulation's first speed, asked here: refused, nothing modulates
+            result = await self.ctx.command(Command(self.machine, "spindle_rpm", float(
+                np.asarray(d.variation.profile(0.0, d.rpm_before))), source,
+                reason=f"speed variation ({d.variation.kind})"))
+            if result["sent"]:
+                self._start_ssv(d)
+                result = {**result, "reason": "modulating"}
+            self._commanded = self._commanded or not result.get("interlock")
         else:
             result = await self.ctx.command(Command(self.machine, "spindle_rpm", float(d.rpm_after), source,
                                                     reason=f"chatter suppression ({d.strategy})",
                                                     context={"strategy": d.strategy}))
+        if result.get("interlock"):
+            # a thread being cut: its speed holds to its last pass; this cut asks nothing more
+            self.held_back = result["reason"]
+        elif d.variation is None:
             if not result["sent"] and self.policy is not None:
                 self.policy.ban(d.rpm_after)    # refused by the guard: never asked for again this part
             # a write that failed may still have reached the control: the cut's end asks the
@@ -835,8 +850,9 @@ class SuppressionAnalyzer(Analyzer):
             self._ssv_task = None
 
     async def _ssv(self, n0: float, var: SpeedVariation) -> None:
-        t0 = time.monotonic()
+        t0 = time.monotonic()       # its first speed was written by _act, just now
         while True:
+            await asyncio.sleep(SSV_STEP_S)
             n = float(np.asarray(var.profile(time.monotonic() - t0, n0)))
             self._commanded = True       # as above: a failed write may have reached the control
             r = await self.ctx.command(Command(self.machine, "spindle_rpm", n, self.name,
@@ -844,7 +860,6 @@ class SuppressionAnalyzer(Analyzer):
             if not r["sent"]:
                 self.ctx.log.warning("ssv_stopped", reason=r["reason"])
                 return
-            await asyncio.sleep(SSV_STEP_S)
 
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:
@@ -906,7 +921,7 @@ class SuppressionAnalyzer(Analyzer):
                 "cut_tool_number": self.cut.tool_number,
                 "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
-                "actions": self.actions, "last_action": self.last_action,
+                "actions": self.actions, "last_action": self.last_action, "held_back": self.held_back,
                 "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
                 "advisories": self.advisories, "last_advice": self.last_advice,
                 "last_was_advice": self.last_was_advice,

@@ -252,6 +252,10 @@ class ThermalAnalyzer(Analyzer):
             if not self._phasing or abs(gap) < 0.1:
                 self._phasing = False
                 continue
+            held = self.ctx.interlock(self.machine, "offset_x_um")
+            if held is not None:         # a thread being cut: phased in after it, not asked in vain
+                self.refused = held
+                continue
             # phase in: never more than rate * step per write
             move = math.copysign(min(abs(gap), self.rate * self.step), gap)
             value = round(self.applied + move, 2)

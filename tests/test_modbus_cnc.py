@@ -175,19 +175,24 @@ def test_a_thread_being_cut_interlocks_every_command():
     """The map's threading register (1 from a thread's first pass to its last): every command
     is refused while it is 1, and while it has not been read lately; a map without it has no
     interlock (the README says what a machine must provide)."""
-    regs = {**REGS, "threading": {"address": 17, "type": "uint16"}}
+    regs = {**REGS, "threading": {"address": 17, "type": "int16"}}
     d = driver({**tcp(502), "registers": regs})
-    d.client = object()                       # connected: _fresh reads the values
+    d.client = object()                       # connected
     speed = Command(machine="m", action="spindle_rpm", value=1500.0, reason="test", source="t")
-    assert "threading signal not read within" in d.interlock(speed)
-    d.values["threading"] = (1, time.time())
-    assert "is cutting a thread (threading = 1)" in d.interlock(speed)
+    assert "threading signal not read yet" in d.interlock(speed)
+    for on in (1, -1, 0.1, 8):                # a PLC's TRUE as -1, a scaled bit, F2's byte with THRD
+        d.values["threading"] = (on, time.time())
+        assert f"is cutting a thread (threading = {on:g})" in d.interlock(speed)
     assert "is cutting a thread" in d.interlock(dataclasses.replace(speed, release=True))
     d.values["threading"] = (0, time.time())
     assert d.interlock(speed) is None
-    d.values["threading"] = (0, time.time() - 2 * d.stale_after)
-    assert "not read within" in d.interlock(speed)
+    # two polls and an answer's wait (0.05 s, 0.3 s here): older, a thread may have begun since
+    d.values["threading"] = (0, time.time() - 0.45)
+    assert "not read within 0.4 s" in d.interlock(speed)
     assert driver(tcp(502)).interlock(speed) is None
+    slow = {**REGS, "threading": {"address": 17, "type": "uint16", "poll": "500ms"}}
+    with pytest.raises(ConfigError, match=r"threading is polled every 0.5 s: poll it with the fastest group"):
+        driver({**tcp(502), "registers": slow})
 
 
 def test_simulated_controller_answers_as_a_real_one():
@@ -538,6 +543,27 @@ def _supervised(ctl, rpm_max, act, **limits):
 
 def _speed(rpm, reason="t"):
     return Command(machine="m", action="spindle_rpm", value=rpm, reason=reason, source="suppress")
+
+
+def test_a_release_the_interlock_refused_is_sent_when_it_clears():
+    """An override cured before a thread began, its release refused mid-thread: held back, not
+    dropped (it would hold for the parts after), and sent as soon as the thread ends."""
+    async def released_after_the_thread(sup, d):
+        threading_on = [False]
+        d.interlock = lambda cmd: "cutting a thread (threading = 1)" if threading_on[0] else None
+        assert (await sup.command(_speed(1650.0)))["sent"]
+        threading_on[0] = True
+        r = await sup.release("m", "spindle_rpm", "suppress")
+        assert not r["sent"] and r["interlock"] and ("m", "spindle_rpm") in sup._owed
+        assert ctl.override == 110.0 and sup.held() == ["m spindle_rpm"]
+        threading_on[0] = False
+        await until(lambda: ctl.override == 100.0 and not sup.held(), what="the release, the thread over")
+        return sup.held()
+    ctl = OverrideControl()
+    held, records = _supervised(ctl, 3000.0, released_after_the_thread)
+    assert held == []
+    said = [(k, p.get("override_pct")) for k, _, p in records if k.startswith("command_")]
+    assert said == [("command_sent", 110.0), ("command_refused", None), ("command_sent", 100.0)], said
 
 
 def test_an_interlock_that_fails_refuses_the_command():

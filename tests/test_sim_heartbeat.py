@@ -60,3 +60,19 @@ def test_a_held_override_goes_back_to_100_when_the_heartbeat_stops(tmp_path):
             sim._stop.set()
             await asyncio.wait_for(task, 10)
     asyncio.run(asyncio.wait_for(go(), 60))
+
+
+def test_the_watchdog_waits_for_a_threads_end(tmp_path):
+    # a thread's passes run at one speed: the PMC takes the override back after the thread
+    from lathed.sim.program import parse_cut
+    sim = Simulator(parse_args(["--modbus-port", str(free_port()), "--vibration-port", str(free_port()),
+                                "--serial-link", str(tmp_path / "tty"), "--cut", "2000,0.3,1.5,20,thread=1.5",
+                                "--cut", "2000,1.0,0.3,20"]))
+    assert sim.lathe.part == parse_cut("2000,0.3,1.5,20,thread=1.5")
+    sim.lathe.override_pct, sim._beat_wall = 110.0, time.time() - 2 * HEARTBEAT_TIMEOUT_S
+    sim._pmc_watchdog()
+    assert sim.lathe.override_pct == 110.0 and sim.watchdog_resets == []
+    while sim.lathe.part.thread:              # the thread's cycle ends
+        sim.lathe.step(4096)
+    sim._pmc_watchdog()
+    assert sim.lathe.override_pct == 100.0 and len(sim.watchdog_resets) == 1

@@ -92,7 +92,8 @@ def test_a_threading_pass_sets_the_controls_threading_signal_for_its_cycle():
     from lathed.sim.program import parse_cut
     assert parse_cut("2000,0.3,1.5,40,thread=1.5") == parse_cut("2000,0.3,thread=1.5") == Cut(
         2000, 0.3, 1.5, 40, thread=True)
-    for text, why in (("2000,0.3,1.0,thread=1.5", "a thread's feed is its pitch: 1 against thread=1.5"),
+    for text, why in (("2000,0.3,1.0,thread=1.5", "a thread.s feed is its pitch: 1.0 against thread=1.5"),
+                      ("2000,0.3,thread=1,thread=1.5", "thread= given twice"),
                       ("2000,0.3,thread=fine", "thread= takes the pitch in mm"),
                       ("2000,0.3,thread=3", "thread= takes a pitch of 0..2 mm"),
                       ("2000,0.3,dwell=1,thread=1", "a threading pass takes no css= \\(G96\\) or dwell=")):

@@ -287,3 +287,50 @@ def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path)
         assert d.rise("t_motor_c")[NEED] == pytest.approx(0.0)    # not the 1 °C between the mornings
     finally:
         store.close()
+
+
+def test_an_offset_waits_for_the_threads_end_without_asking_in_vain(monkeypatch):
+    """A thread being cut (the machine's interlock): the offset is phased in after it, not asked
+    for at every step (each asked, refused and recorded: a flood over a long thread)."""
+    import asyncio
+    import types
+
+    import structlog
+
+    import lathed_plugins.thermal as thermal
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    th = thermal.ThermalAnalyzer("thermal", Section("f.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe", "step": "1s"}))
+    asked, threading_on = [], [True]
+
+    async def command(cmd):
+        asked.append(cmd.value)
+        return {"sent": True, "reason": None}
+    th.ctx = AnalyzerContext(Bus(), structlog.get_logger("t"), lambda k, p=None: None, command,
+                             lambda *a: None, None, lambda n: None, ".",
+                             interlock=lambda m, a: "cutting a thread (threading = 1)" if threading_on[0] else None)
+    th.temps = {p: 30.0 for p in th._sensor_places()}
+    th.touchoff, th.pred0, th.applied = {"base_um": 0.0}, 0.0, 0.0
+    th._predictor = types.SimpleNamespace(update=lambda *a: 10.0)     # 10 µm of growth to phase in
+    ticks = []
+    real_sleep = asyncio.sleep
+
+    async def step(s):                        # the analyzer's step, counted, not waited
+        ticks.append(s)
+        if len(ticks) == 5:
+            threading_on[0] = False           # the thread's last pass is done
+        if len(ticks) > 8:
+            raise asyncio.CancelledError
+        await real_sleep(0)
+    monkeypatch.setattr(thermal.asyncio, "sleep", step)
+
+    async def run():
+        try:
+            await th._tick()
+        except asyncio.CancelledError:
+            pass
+    asyncio.run(run())
+    assert asked and len(asked) == len(ticks) - 5, (asked, len(ticks))     # only after the thread
+    assert th.refused is None and th.applied == asked[-1]

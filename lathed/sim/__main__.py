@@ -193,10 +193,11 @@ class Simulator:
 
     def _pmc_watchdog(self) -> None:
         """The PMC's side of the heartbeat (wall time, as a ladder's timer): an override held
-        while the count stopped is the client's, and the client is gone."""
+        while the count stopped is the client's, and the client is gone. Not in a thread: its
+        passes run at one speed, the reset waits for its end (the threading bit off)."""
         now = time.time()
         if (self._beat_wall is not None and now - self._beat_wall > HEARTBEAT_TIMEOUT_S
-                and self.lathe.override_pct != 100.0):
+                and self.lathe.override_pct != 100.0 and not self.lathe.part.thread):
             self.watchdog_resets.append({"wall_t": now, "override_pct": self.lathe.override_pct,
                                          "silent_s": round(now - self._beat_wall, 3)})
             self.lathe.override_pct = 100.0

@@ -60,8 +60,12 @@ def parse_cut(text: str) -> Cut:
     pass of that pitch (its feed)."""
     items = [x.strip() for x in text.split(",")]
     css, tool, dwell, pitch = 0.0, 1, 0.0, None
+    seen = set()
     while items and "=" in items[-1]:
         key, _, value = items.pop().partition("=")
+        if key in seen:
+            raise ValueError(f"cut {text!r}: {key}= given twice")
+        seen.add(key)
         if key == "css":
             try:
                 css = float(value)
@@ -96,7 +100,7 @@ def parse_cut(text: str) -> Cut:
         raise ValueError(f"cut {text!r}: expected {FORM}")
     if pitch is not None:
         if len(vals) >= 3 and vals[2] != pitch:
-            raise ValueError(f"cut {text!r}: a thread's feed is its pitch: {vals[2]:g} against thread={pitch:g}")
+            raise ValueError(f"cut {text!r}: a thread's feed is its pitch: {vals[2]!r} against thread={pitch!r}")
         if css or dwell:
             raise ValueError(f"cut {text!r}: a threading pass takes no css= (G96) or dwell=")
         vals = [*vals[:2], pitch, *vals[3:]]
