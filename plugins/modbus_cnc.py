@@ -563,9 +563,14 @@ class ModbusCNC(Driver):
                 raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
         if self.client is None:
             raise ConnectionError("not connected")
-        if detail is not None:
-            self._pending = value    # a write the control applied but answered late is still ours
         async with self._turn():
+            # asked again with the bus ours: on a shared RS-485 bus a poll ahead of this write
+            # may have read a thread begun since the guard passed it
+            why = self.interlock(cmd)
+            if why is not None:
+                raise PermissionError(why)
+            if detail is not None:
+                self._pending = value    # a write the control applied but answered late is still ours
             rr = await self.client.write_registers(reg.address, reg.encode(value), device_id=self.unit)
         if rr.isError():
             raise ModbusException(f"controller refused write of {value:g} to {reg.name}: {rr}")

@@ -190,6 +190,11 @@ def test_a_thread_being_cut_interlocks_every_command():
     d.values["threading"] = (0, time.time() - 0.45)
     assert "not read within 0.4 s" in d.interlock(speed)
     assert driver(tcp(502)).interlock(speed) is None
+    # asked again as the write takes the bus (a poll ahead of it on a shared RS-485 bus read it)
+    d.values["threading"] = (1, time.time())
+    d.values["spindle_rpm_cmd"] = (1400.0, time.time())
+    with pytest.raises(PermissionError, match="is cutting a thread"):
+        asyncio.run(d.execute(speed))
     slow = {**REGS, "threading": {"address": 17, "type": "uint16", "poll": "500ms"}}
     with pytest.raises(ConfigError, match=r"threading is polled every 0.5 s: poll it with the fastest group"):
         driver({**tcp(502), "registers": slow})
