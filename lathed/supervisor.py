@@ -410,13 +410,11 @@ class Supervisor:
         elif cmd.action not in drv.actions:
             reason = f"machine {cmd.machine} does not take {cmd.action!r} (takes: {', '.join(drv.actions) or 'none'})"
         lock = self._cmd_locks.setdefault(cmd.machine, asyncio.Lock())
+        interlock = None
         async with lock:
             if reason is None:
                 runs_at = getattr(drv, "runs_at", lambda c: None)(cmd)
-                try:
-                    interlock = getattr(drv, "interlock", lambda c: None)(cmd)
-                except Exception as e:     # a driver's bug: its machine takes nothing it cannot vouch for
-                    interlock = f"machine {cmd.machine}'s interlock could not be read: {_one_line(e)}"
+                interlock = _interlock(drv, cmd)
                 reason = self.guard.check(cmd, drv.current(cmd.action), runs_at, interlock)
             payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
                        "reason": cmd.reason, "by": cmd.source, **cmd.context}
@@ -456,12 +454,7 @@ class Supervisor:
         """Why ``machine`` would refuse ``action`` now by its own state (its driver's
         interlock), else None; the guard still checks every command."""
         runner = self.runners.get(machine)
-        if runner is None:
-            return None
-        try:
-            return getattr(runner.obj, "interlock", lambda c: None)(Command(machine, action, 0.0, "lathed"))
-        except Exception as e:
-            return f"machine {machine}'s interlock could not be read: {_one_line(e)}"
+        return None if runner is None else _interlock(runner.obj, Command(machine, action, 0.0, "lathed"))
 
     def _owe_release(self, cmd: Command) -> None:
         """A release the machine's interlock refused (a thread begun before it): held back,
@@ -479,12 +472,7 @@ class Supervisor:
         while True:
             await asyncio.sleep(OWED_RELEASE_POLL_S)
             runner = self.runners.get(cmd.machine)
-            if runner is None or runner.state != "connected":
-                continue
-            try:
-                if runner.obj.interlock(probe) is None:
-                    break
-            except Exception:          # refused by command() with the cause, as below
+            if runner is not None and runner.state == "connected" and _interlock(runner.obj, probe) is None:
                 break
         del self._owed[(cmd.machine, cmd.action)]
         await self.release(cmd.machine, cmd.action, cmd.source, reason=cmd.reason)
@@ -541,6 +529,15 @@ class Supervisor:
                               "detail": r.describe(), "last_error": r.last_error,
                               "machine": machine if isinstance(machine, str) else None, **_safe(r.obj.status)})
         return {"machines": machines, "sensors": sensors, "analyzers": analyzers}
+
+
+def _interlock(drv, cmd: Command) -> str | None:
+    """The driver's interlock on ``cmd``; one that fails is a refusal: a machine whose driver
+    cannot vouch for its state takes nothing."""
+    try:
+        return getattr(drv, "interlock", lambda c: None)(cmd)
+    except Exception as e:
+        return f"machine {cmd.machine}'s interlock could not be read: {_one_line(e)}"
 
 
 def _safe(fn) -> dict:

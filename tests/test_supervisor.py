@@ -36,3 +36,16 @@ def test_a_swallowed_cancellation_is_repeated():
         # a plain cancel-and-gather would still be waiting here
         return polls
     assert asyncio.run(main()) > 0
+
+
+def test_a_command_to_a_machine_not_there_is_refused_not_raised():
+    # the interlock was asked only for a connected machine, then read for every refusal
+    from lathed.bus import Bus
+    from lathed.command import Command
+    from lathed.supervisor import Plan, Supervisor
+    from tests.test_plausible import FakeStore
+    store = FakeStore()
+    sup = Supervisor(None, Plan(drivers={}, limits={}), Bus(), store, lambda *a: None)
+    r = asyncio.run(sup.command(Command("nosuch", "spindle_rpm", 1000.0, "t")))
+    assert r == {"sent": False, "reason": "no machine named 'nosuch'"}
+    assert [k for k, _, _ in store.records] == ["command_refused"]
