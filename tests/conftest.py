@@ -30,6 +30,17 @@ def pytest_collection_finish(session):
 BIN = Path(sys.executable).parent
 
 
+def disk_full(store, table: str) -> None:
+    """``store`` refuses every row of ``table`` as a full disk does, until ``disk_free``."""
+    store.submit(f"CREATE TEMP TRIGGER disk_full BEFORE INSERT ON {table} "
+                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+
+
+def disk_free(store):
+    """Space again (a future: await it with asyncio.wrap_future, or .result())."""
+    return store.submit("DROP TRIGGER temp.disk_full", ())
+
+
 def free_port() -> int:
     """A port free now, below the kernel's ephemeral range (32768-60999 here): the peer binds it
     later, and in between a port from that range can be taken as the source of any connection

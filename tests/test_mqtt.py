@@ -20,7 +20,7 @@ from lathed.bus import Bus
 from lathed.config import ConfigError, Section
 from lathed.store import Store
 from lathed_plugins.mqtt_sink import MqttSink
-from tests.conftest import BIN, Daemon, wait_until
+from tests.conftest import BIN, Daemon, disk_full, wait_until
 from tests.mqtt_fixtures import Broker, Subscriber
 
 HERE = Path(__file__).resolve().parent
@@ -381,8 +381,7 @@ def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path):
     broker = Broker(tmp_path / "broker")
     broker.start()
     store = Store(tmp_path / "a.db", machine_id="cell-p")
-    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON forward_progress "
-                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    disk_full(store, "forward_progress")
     sink = _sink(store, port=broker.port)
     try:
         async def main():

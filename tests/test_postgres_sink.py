@@ -14,7 +14,7 @@ import structlog
 from lathed.config import Section
 from lathed.store import FORWARDED, Store
 from lathed_plugins.postgres_sink import PostgresSink
-from tests.conftest import Daemon, wait_until
+from tests.conftest import Daemon, disk_free, disk_full, wait_until
 from tests.pg_fixtures import pg_count, pg_dsn, postgres  # noqa: F401
 
 HERE = Path(__file__).resolve().parent
@@ -116,15 +116,14 @@ def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path, pg_ds
     store = Store(tmp_path / "a.db", machine_id="cell-a")
     for i in range(3):
         store.record_future("tick", "w", {"seq": i}).result(5)
-    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON forward_progress "
-                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    disk_full(store, "forward_progress")
     sink = _sink(pg_dsn, store)
 
     async def main():
         with pytest.raises(sqlite3.DatabaseError, match="disk is full"):
             await asyncio.wait_for(sink.run(), 20)
         assert sink.forwarded == 0 and store.backlog(sink.name) == 3
-        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))    # space again
+        await asyncio.wrap_future(disk_free(store))    # space again
         await _drain(sink, store)
         assert sink.forwarded == 3
     asyncio.run(main())

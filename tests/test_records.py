@@ -9,6 +9,7 @@ import pytest
 from lathed import records
 from lathed.records import PartTracker
 from lathed.store import Store
+from tests.conftest import disk_free, disk_full
 
 
 class Feed:
@@ -530,8 +531,7 @@ def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_recor
     import lathed_plugins.records as plugin
     monkeypatch.setattr(plugin, "RETRY_S", (0.001, 0.01), raising=False)
     store, bus, r, log = records_analyzer(tmp_path)
-    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON workpieces "
-                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    disk_full(store, "workpieces")
 
     async def main():
         task, f = await running_to_abnormal_part_2(r, bus)
@@ -541,7 +541,7 @@ def test_a_part_the_store_refused_is_kept_logged_and_written_once_it_takes_recor
         await turns(lambda: r.status()["last_write_error"])
         st = r.status()
         assert st["unwritten"] == 1 and "1 not yet written, retrying" in st["summary"] and not task.done()
-        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))   # space again
+        await asyncio.wrap_future(disk_free(store))   # space again
         assert await asyncio.to_thread(log.heard("part_abnormal").wait, 5)
         assert r.status()["unwritten"] == 0 and r.status()["parts"] == 1
         task.cancel()
@@ -840,8 +840,7 @@ def test_the_count_is_never_saved_ahead_of_a_part_not_yet_written(tmp_path, monk
     import lathed_plugins.records as plugin
     monkeypatch.setattr(plugin, "RETRY_S", (0.001, 0.01), raising=False)
     store, bus, r, log = records_analyzer(tmp_path)
-    store.submit("CREATE TEMP TRIGGER disk_full BEFORE INSERT ON workpieces "
-                 "BEGIN SELECT RAISE(ABORT, 'database or disk is full'); END", ()).result(5)
+    disk_full(store, "workpieces")
 
     async def main():
         task, f = await running_to_abnormal_part_2(r, bus)
@@ -851,7 +850,7 @@ def test_the_count_is_never_saved_ahead_of_a_part_not_yet_written(tmp_path, monk
         await asyncio.wrap_future(store.submit("SELECT 1", ()))
         # as the process would leave it, lost now: part 1's count, so part 2 is counted at the next start
         assert [c["count"] for c in store.query("SELECT count FROM last_part_count")] == [1]
-        await asyncio.wrap_future(store.submit("DROP TRIGGER temp.disk_full", ()))   # space again
+        await asyncio.wrap_future(disk_free(store))   # space again
         await turns(lambda: not r.unwritten)   # parts 2 and 3 written: the count saved after them
         await asyncio.wrap_future(store.submit("SELECT 1", ()))
         assert [c["count"] for c in store.query("SELECT count FROM last_part_count")] == [3]
