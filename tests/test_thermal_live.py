@@ -83,14 +83,18 @@ def test_compensation_is_phased_in_as_the_spindle_warms(sim_daemon):
     m = meas[-1]["payload"]
     assert m["machine"] == "lathe" and m["displacement_um"] > 0 and round(m["rpm"]) in (1500, 2000, 2500)
     assert set(m["temps_c"]) == {"front_bearing", "rear_bearing", "motor", "room"}
-    # the offset stays on the machine when lathed stops: said, and recorded with the stop
-    last = thermal(d, "status")["applied_offset_um"]
+    # the offset stays on the machine when lathed stops: said, and recorded with the stop. It is
+    # one the analyzer wrote, not necessarily the last one seen here: the phasing goes on until
+    # the stop is handled (a busy CI machine put 3 s and three writes between a status and it)
     assert d.stop() == 0
     import sqlite3
     con = sqlite3.connect(f"file:{d.paths['state'] / 'lathed.db'}?mode=ro", uri=True, timeout=10)
     (payload,), = con.execute("SELECT payload FROM events WHERE kind = 'daemon_stopped'").fetchall()
+    written = [json.loads(p)["offset_um"] for (p,) in
+               con.execute("SELECT payload FROM events WHERE kind = 'compensation'").fetchall()]
     con.close()
-    assert json.loads(payload)["offsets_left_um"]["lathe"] == pytest.approx(last, abs=0.6), payload
+    left = json.loads(payload)["offsets_left_um"]["lathe"]
+    assert any(abs(left - w) < 0.01 for w in written), (left, written[-5:])
     assert '"offsets_left"' in d.cfg.with_suffix(".log").read_text()
 
 
