@@ -30,7 +30,7 @@ test: $(STAMP)
 	bash tests/ensure_mosquitto.sh
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
-# Benchmarks: each prints a Markdown table (the README's performance section).
+# Benchmarks: each prints a Markdown table (docs/benchmarks.md).
 bench-daemon: $(STAMP)
 	$(BIN)/python bench/bench_daemon.py
 bench-chatter: $(STAMP)
@@ -67,7 +67,7 @@ bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal ben
 # issue 15: both plant protocols
 bench-plant: bench-plant-mqtt bench-plant-opcua
 
-# --- Installed as a service (README "Running as a service") ---------------------------
+# --- Installed as a service (docs/installation.md) ---------------------------
 # A wheel of this checkout (not editable, no test tools) in a venv of its own at
 # $(PREFIX)/lib/lathed, with links in $(PREFIX)/bin, the systemd units, sysusers.d and
 # tmpfiles.d files; the config goes to /etc/lathed only where none is yet. /usr/lib
@@ -98,6 +98,7 @@ install: install-venv install-config
 	install -m 0644 systemd/lathed.sysusers $(DESTDIR)$(SYSUSERSDIR)/lathed.conf
 	install -m 0644 systemd/lathed.tmpfiles $(DESTDIR)$(TMPFILESDIR)/lathed.conf
 	install -m 0644 README.md $(DESTDIR)$(DOCDIR)/
+	install -d $(DESTDIR)$(DOCDIR)/docs && install -m 0644 docs/*.md $(DESTDIR)$(DOCDIR)/docs/
 # this version's defaults, to compare with an edited /etc/lathed after an upgrade
 	cp -r etc/. $(DESTDIR)$(DOCDIR)/examples/
 	@if [ -z "$(DESTDIR)" ]; then \

@@ -1,5 +1,5 @@
-"""Does exactly what README "Add a machine" says: the plugin file and the
-config table taken from the README text, the stand-in saw from it too, then
+"""Does exactly what docs/plugins.md "Add a machine" says: the plugin file and the
+config table taken from that page, the stand-in saw from it too, then
 the daemon and lathectl as an operator would run them."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from tests.conftest import BIN, ROOT, Daemon, free_port, wait_until
 
 
 def readme_blocks() -> list[tuple[str, str]]:
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "plugins.md").read_text()
     section = text.split("<!-- BEGIN add-a-machine", 1)[1].split("<!-- END add-a-machine -->", 1)[0]
     return re.findall(r"```(\w+)\n(.*?)```", section, re.S)
 
@@ -21,7 +21,7 @@ def test_dropin_plugin_from_the_readme(tmp_path):
     blocks = readme_blocks()
     assert [lang for lang, _ in blocks] == ["python", "toml", "python"]
     (_, plugin), (_, table), (_, fake) = blocks
-    assert "etc/plugins.d/bandsaw.py" in (ROOT / "README.md").read_text()
+    assert "etc/plugins.d/bandsaw.py" in (ROOT / "docs" / "plugins.md").read_text()
     dropin = tmp_path / "plugins.d"
     dropin.mkdir()
     (dropin / "bandsaw.py").write_text(plugin)

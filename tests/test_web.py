@@ -83,7 +83,7 @@ def _get(url: str, user: str | None = None, pw: str | None = None) -> tuple[int,
 @pytest.fixture(scope="module")
 def shots(tmp_path_factory) -> Path:
     """Where screenshots go: the test's temporary directory; LATHED_WEB_SHOTS=docs/screenshots
-    refreshes the README's."""
+    refreshes docs/screenshots."""
     path = Path(os.environ.get("LATHED_WEB_SHOTS") or tmp_path_factory.mktemp("screenshots"))
     path.mkdir(parents=True, exist_ok=True)
     return path

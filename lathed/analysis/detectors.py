@@ -810,7 +810,7 @@ DETECTORS: dict[str, Factory] = {
 # chatter is visible, chaos_sync 13.6-25.4.  Its false alarms in the closed
 # loop came at the end of stable cuts whose baseline was learned after a
 # speed change at entry (the tool's release rings the structure: jump_ratio).
-# See the README table.
+# See docs/benchmarks.md, chatter detectors.
 DEFAULT_DETECTOR = "sync_cusum"
 
 
