@@ -169,12 +169,12 @@ def test_through_lathectl(files):
     d, _, _ = files
     if not (Path(analyze_chatter.__file__).parents[1] / "lathectl.py").exists():
         pytest.skip("lathectl not present")
-    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "chatter",
+    r = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "chatter",
                         str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["verdict"] == "chatter"
-    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "chatter",
+    r = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "chatter",
                         str(d / "nothere.wav"), "--rpm", "2000"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 66 and r.stderr.startswith("lathectl: no such file")
 

@@ -87,7 +87,7 @@ def test_mode_at_right_angle_is_invalid_data(capsys):
 
 @pytest.mark.skipif(not (ROOT / "lathed" / "lathectl.py").exists(), reason="lathectl not built yet")
 def test_through_lathectl():
-    proc = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "lobes",
+    proc = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "lobes",
                            "--mode", "250,0.03,2e7", "--kf", "1e9", "--rpm", "1500", "--json"],
                           capture_output=True, text=True, timeout=60, cwd=ROOT,
                           env={**os.environ, "MPLBACKEND": "Agg"})

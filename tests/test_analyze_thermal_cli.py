@@ -181,12 +181,12 @@ def test_too_few_rows_is_65(tmp_path, capsys):
 @pytest.mark.skipif(not (ROOT / "lathed" / "lathectl.py").exists(), reason="lathectl not present")
 def test_through_lathectl(runs):
     env = dict(os.environ, MPLBACKEND="Agg")
-    r = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "thermal",
+    r = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "thermal",
                         str(runs / "train.csv"), "--test", str(runs / "test.csv"), "--json"],
                        capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["effects"][0]["effect"] == "speed"
-    bad = subprocess.run([sys.executable, "-m", "lathed.lathectl", "analyze", "thermal", "/nonexistent.csv"],
+    bad = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "thermal", "/nonexistent.csv"],
                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=60)
     assert bad.returncode == 66 and "Traceback" not in bad.stderr
 
@@ -202,7 +202,7 @@ def test_sim_thermal_run_writes_a_pair_the_analysis_reads(tmp_path):
     """The README's walk-through: two simulated shifts with an undeclared
     effect, written by lathectl, analysed by lathectl."""
     def ctl(*a):
-        return subprocess.run([sys.executable, "-m", "lathed.lathectl", *map(str, a)], capture_output=True,
+        return subprocess.run([sys.executable, "-m", "lathed.cli.main", *map(str, a)], capture_output=True,
                               text=True, cwd=ROOT, timeout=120)
     for name, seed in (("train", 4), ("test", 104)):
         r = ctl("sim", "thermal-run", tmp_path / f"{name}.csv", "--effect", "nonlinear", "--hours", "4",

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from lathed.lathectl import main
+from lathed.cli.main import main
 
 
 @pytest.mark.parametrize("argv,needle", [
@@ -45,7 +45,7 @@ def test_lathectl_starts_without_numpy_or_scipy():
     # are imported when an analysis runs
     import subprocess
     import sys
-    code = ("import sys; from lathed.lathectl import build_parser; build_parser().parse_args(['status']); "
+    code = ("import sys; from lathed.cli.main import build_parser; build_parser().parse_args(['status']); "
             "print(sorted(m for m in ('numpy', 'scipy', 'matplotlib') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert r.stdout.strip() == "[]", r.stdout + r.stderr

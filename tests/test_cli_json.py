@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from lathed.lathectl import build_parser, main
+from lathed.cli.main import build_parser, main
 from lathed.store import Store
 from tests.conftest import ROOT, free_port
 

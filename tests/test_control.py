@@ -90,7 +90,7 @@ def test_a_refusal_that_is_not_the_arguments_is_no_usage_error(daemon, monkeypat
     # lathectl: 2 for an argument the daemon refused, 1 for what its state refuses
     from lathed.cli import records
     from lathed.client import RemoteError
-    from lathed.lathectl import main
+    from lathed.cli.main import main
 
     def refuse(*a, **k):
         raise RemoteError("inspect: ra_um: expected a finite number" if usage else "no part 999999", usage)

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from lathed import lathectl
+import lathed.cli.main as lathectl
 from lathed.analysis.cuts import load_cuts_csv
 from lathed.cli import cuts as cuts_cli
 

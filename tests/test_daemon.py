@@ -256,7 +256,7 @@ def _pings(path) -> bool:
 
 def test_status_text_names_a_failing_store_and_an_analyzer_that_crash_looped(monkeypatch, capsys):
     import time as _time
-    from lathed import lathectl
+    import lathed.cli.main as lathectl
     now = _time.time()
     st = {"daemon": {"version": "x", "state": "degraded: store failing", "uptime_s": 75.0, "name": "c", "pid": 1,
                      "store": {"written": 10, "failed": 65, "queued": 3, "failing": True, "failing_since": now - 30,

@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from lathed.config import ConfigError, Section
-from lathed.lathectl import main
+from lathed.cli.main import main
 from lathed_plugins import mqtt_sink
 from lathed_plugins.mqtt_sink import MqttSink
 from lathed_plugins.postgres_sink import PostgresSink

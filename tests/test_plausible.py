@@ -176,7 +176,7 @@ class FakeStore:
 
 def test_supervisor_gates_every_driver_and_status_shows_the_refusals(capsys):
     from lathed.config import Instance
-    from lathed.lathectl import _print_implausible
+    from lathed.cli.main import _print_implausible
     from lathed.supervisor import Plan, Supervisor
     sec = Section("t.toml", "sensor.temps", {"port": "/dev/null"})
     d = DS18B20Serial("temps", sec)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from lathed import lathectl
+import lathed.cli.main as lathectl
 from tests.conftest import DEPTH_REGISTER, Daemon, sim_config, wait_until
 from tests.test_taguchi import FACTORS, PHADKE_BEST, phadke_trials
 
@@ -151,7 +151,7 @@ def test_chattered_part_is_queued_inspected_and_joined(daemon, tmp_path):
 
 
 def test_no_daemon_exits_69(tmp_path, monkeypatch):
-    from lathed.lathectl import main
+    from lathed.cli.main import main
     monkeypatch.setenv("LATHED_DB", str(tmp_path / "no.db"))    # nor a database to read instead
     assert main(["--socket", str(tmp_path / "none.sock"), "parts"]) == 69
 
@@ -159,7 +159,7 @@ def test_no_daemon_exits_69(tmp_path, monkeypatch):
 def test_a_stopped_daemons_store_of_an_older_schema_is_one_line_not_a_missing_column(tmp_path, capsys):
     # after an upgrade, before lathed has started once: "no such column: w.unwatched"
     import sqlite3
-    from lathed.lathectl import main
+    from lathed.cli.main import main
     from lathed.store import MIGRATIONS, statements
     con = sqlite3.connect(tmp_path / "lathed.db", isolation_level=None)
     for _, sql in MIGRATIONS[:5]:
@@ -177,7 +177,7 @@ def test_a_stopped_daemons_store_of_an_older_schema_is_one_line_not_a_missing_co
 
 def test_a_misspelt_kind_on_a_stopped_daemons_store_is_one_usage_line(tmp_path, capsys):
     # it listed "(no events)", exit 0, as if none had happened
-    from lathed.lathectl import main
+    from lathed.cli.main import main
     from lathed.store import Store
     s = Store(tmp_path / "lathed.db")
     s.record_future("robot_gripper_slip", "arm", {"n": 1}).result()     # a plugin's own kind
@@ -203,7 +203,7 @@ def test_a_misspelt_kind_on_a_stopped_daemons_store_is_one_usage_line(tmp_path, 
 ])
 def test_a_name_given_twice_is_refused_not_overwritten(argv, msg, tmp_path, capsys):
     # the last value was kept without a word (x = 2 stored for the inspection)
-    from lathed.lathectl import main
+    from lathed.cli.main import main
     try:
         code = main(["--socket", str(tmp_path / "none.sock"), *argv])
     except SystemExit as e:

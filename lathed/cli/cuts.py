@@ -15,7 +15,7 @@ import time
 from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
 from lathed.cli import count
 from lathed.client import call
-from lathed.lathectl import print_json, remote
+from lathed.cli import print_json, remote
 
 MAX_CUTS = 100_000     # the events command's limit
 REFIT_TIMEOUT_S = 180.0

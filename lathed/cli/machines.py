@@ -44,7 +44,7 @@ HEAD = ["NAME", "KIND", "STATE", "LINK", "RPM", "PARTS", "CYCLE_S", "PROGRAM", "
 
 
 def run(args) -> int:
-    from lathed.lathectl import print_json, remote
+    from lathed.cli import print_json, remote
     st = remote(args, "status")
     machines = st["machines"]
     if args.json:

@@ -15,7 +15,7 @@ import sys
 
 from lathed.cli import EX_CANTCREAT, count, once
 from lathed.client import DaemonUnavailable
-from lathed.lathectl import add_db_argument, print_json, read_db, remote, remote_or_db
+from lathed.cli import add_db_argument, print_json, read_db, remote, remote_or_db
 
 
 def _num(text: str) -> float:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from lathed.cli import positive
 from lathed.client import DaemonUnavailable, RemoteError, default_socket
-from lathed.lathectl import _fmt_value, print_json
+from lathed.cli import fmt_value as _fmt_value, print_json
 from lathed.sim.program import MAX_DEPTH_MM, MAX_OUTAGE_S   # no numpy: lathectl starts without it
 
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from lathed.lathectl import print_json, remote
+from lathed.cli import print_json, remote
 
 
 def run(args: argparse.Namespace) -> int:
