@@ -16,6 +16,8 @@ import socket
 import struct
 from dataclasses import dataclass, field
 
+from lathed.request_error import RequestError
+
 
 @dataclass(frozen=True)
 class Caller:
@@ -72,7 +74,6 @@ def current() -> Caller | None:
 
 def require_operator(what: str) -> None:
     """Refuse ``what`` to a caller without the operator role (read-only callers may query)."""
-    from lathed.control import RequestError
     c = CALLER.get()
     if c is not None and not c.operator:
         raise RequestError(f"{what}: {c.user} (uid {c.uid}) may only read: not in [daemon] "

@@ -25,6 +25,7 @@ from typing import Any, Awaitable, Callable
 import structlog
 
 from lathed import caller
+from lathed.request_error import ArgumentError, RequestError   # noqa: F401 (imported from here too)
 
 log = structlog.get_logger("lathed.control")
 
@@ -40,15 +41,6 @@ MAX_CONTAINERS = 64
 ACCEPT_LOG_EVERY_S = 10.0
 HEAVY_AT_ONCE = 2     # O(records) requests run at once; the rest wait their turn
 ENCODE_CHUNK = 500    # rows of a reply encoded per call: a few ms of the GIL each
-
-
-class RequestError(Exception):
-    """A request the daemon understood but cannot carry out; sent back as the error."""
-
-
-class ArgumentError(RequestError):
-    """A request whose argument is wrong (``Args``): a usage error, said as one (``usage``:
-    lathectl exits 2 for it, 1 for a request the daemon's state refuses)."""
 
 
 class Stream:
