@@ -12,7 +12,10 @@ The simulated controls serve theirs the same way (lathed.sim.registers).
 """
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
+
+from pymodbus.exceptions import ModbusException, ModbusIOException
 
 from lathed.config import Section
 from lathed.identity import KEYS
@@ -62,3 +65,21 @@ def decode_ascii(regs: list[int]) -> str:
 def encode_ascii(text: str, words: int) -> list[int]:
     raw = text.encode("ascii")[:2 * words].ljust(2 * words, b"\0")
     return [int.from_bytes(raw[i:i + 2], "big") for i in range(0, len(raw), 2)]
+
+
+async def read_identity(client, identity: dict[str, IdentityRegister], unit: int, turn, timeout: float,
+                        where: str) -> dict[str, str]:
+    """Read each identity register from the control (``turn()``: the bus for one request)."""
+    out = {}
+    for key, reg in identity.items():
+        try:
+            async with turn(), asyncio.timeout(timeout + 1):
+                rr = await client.read_holding_registers(reg.address, count=reg.words, device_id=unit)
+        except (asyncio.TimeoutError, ModbusIOException) as e:
+            raise TimeoutError(f"no answer from unit {unit} at {where} for its {key} "
+                               f"(registers {reg.address}..{reg.address + reg.words - 1})") from e
+        if rr.isError():
+            raise ModbusException(f"unit {unit} at {where} refused the read of its {key} at {reg.address}: "
+                                  f"{rr} (not the control the identity map is for?)")
+        out[key] = decode_ascii(rr.registers)
+    return out

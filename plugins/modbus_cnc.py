@@ -36,6 +36,13 @@ as well whenever one of these ``source.quantity`` samples says 1 on the bus;
 the spindle load at the chip's entry, which the vibration sees a fraction of
 a revolution in, instead of up to a poll later).
 
+A machine lathed writes to names where its control serves its serial number, which is
+read at every connect and compared with ``[machine.lathe.identification] serial_number``
+before anything is written (docs/safety.md)::
+
+    [machine.lathe.identity]
+    serial_number = { address = 36, words = 8 }   # ASCII, two characters a register
+
 Commands write only to registers declared writable, and only commands the
 supervisor passed through the safety guard reach ``execute``: the
 ``spindle_rpm`` action writes ``spindle_rpm_cmd``, ``offset_x_um`` writes
@@ -84,7 +91,7 @@ from lathed.command import Command
 from lathed.config import Section
 from lathed.driver import Driver
 from lathed.machine import MachineModel
-from lathed.modbus_identity import decode_ascii, read_identity_map
+from lathed.modbus_identity import read_identity, read_identity_map
 from lathed.plausible import Plausibility
 
 DT = AsyncModbusTcpClient.DATATYPE
@@ -323,19 +330,7 @@ class ModbusCNC(Driver):
 
     async def identify(self) -> dict[str, str]:
         """The identity registers ([<machine>.identity]) as the control serves them now."""
-        out = {}
-        for key, reg in self.identity_map.items():
-            try:
-                async with self._turn(), asyncio.timeout(self.timeout + 1):
-                    rr = await self.client.read_holding_registers(reg.address, count=reg.words, device_id=self.unit)
-            except (asyncio.TimeoutError, ModbusIOException) as e:
-                raise TimeoutError(f"no answer from unit {self.unit} at {self.where} for its {key} "
-                                   f"(registers {reg.address}..{reg.address + reg.words - 1})") from e
-            if rr.isError():
-                raise ModbusException(f"unit {self.unit} at {self.where} refused the read of its {key} at "
-                                      f"{reg.address}: {rr} (not the control the identity map is for?)")
-            out[key] = decode_ascii(rr.registers)
-        return out
+        return await read_identity(self.client, self.identity_map, self.unit, self._turn, self.timeout, self.where)
 
     def _held_at_connect(self) -> None:
         """An override the link comes up to that lathed did not write is the operator's, or an
