@@ -452,7 +452,8 @@ class Supervisor:
             log.error("record_failed", kind=kind, source=source, error=_one_line(e))
             self.reserve.settle(need, line)
             return
-        fut.add_done_callback(lambda f: self.reserve.settle(need, line if f.exception() is not None else None))
+        fut.add_done_callback(lambda f: self.reserve.settle(
+            need, line if f.cancelled() or f.exception() is not None else None))
 
     def interlock(self, machine: str, action: str) -> str | None:
         """Why ``machine`` would refuse ``action`` now by its own state (its driver's
