@@ -85,8 +85,8 @@ REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.reg
 # the simulated lathe's serial number and where its control serves it: the daemon commands only a
 # peer confirmed to be the configured machine
 LATHE_SERIAL = "SIM-LATHE-0001"
-IDENTITY = ('\n[machine.lathe.identification]\nserial_number = "SIM-LATHE-0001"\n\n'
-            '[machine.lathe.identity]\nserial_number = { address = 36, words = 8 }\n')
+IDENTITY_REGISTERS = '\n[machine.lathe.identity]\nserial_number = { address = 36, words = 8 }\n'
+IDENTITY = '\n[machine.lathe.identification]\nserial_number = "SIM-LATHE-0001"\n' + IDENTITY_REGISTERS
 # the simulated CNC has it; the default config does not map it (real controls rarely report it)
 DEPTH_REGISTER = 'depth_of_cut_mm = { address = 20, type = "float32", unit = "mm" }\n'
 
@@ -137,7 +137,7 @@ offset_rate_max_um_s = 5.0
 [machine.lathe.registers]
 {REGISTERS}
 {registers}
-{IDENTITY}
+{IDENTITY if "[machine.lathe.identification]" not in extra else IDENTITY_REGISTERS}
 
 [sensor.temps]
 plugin = "ds18b20_serial"
