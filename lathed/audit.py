@@ -117,6 +117,10 @@ class AuditReserve:
                 os.fsync(self.fd)
             self._used -= n
 
+    @property
+    def kept_bytes(self) -> int:
+        return self._used
+
     def stats(self) -> dict:
         with self._lock:
             return {"path": None if self.path is None else str(self.path), "size_bytes": self.size,

@@ -301,7 +301,8 @@ class Supervisor:
 
     async def _drain(self) -> None:
         while True:
-            n, records = self.reserve.kept()
+            # file reads and an fsync: off the loop, and only when something is kept
+            n, records = (await asyncio.to_thread(self.reserve.kept)) if self.reserve.kept_bytes else (0, [])
             if records:
                 stmts = [self.store.event_statement(r["kind"], r["source"], r["payload"], r["t"]) for r in records]
                 try:
@@ -309,7 +310,7 @@ class Supervisor:
                 except Exception as e:      # still refused: kept, offered again
                     log.debug("audit_reserve_not_drained", kept=len(records), error=_one_line(e))
                 else:
-                    self.reserve.drop(n)
+                    await asyncio.to_thread(self.reserve.drop, n)
                     log.info("audit_reserve_drained", records=len(records))
                     continue
             await asyncio.sleep(DRAIN_EVERY_S)
