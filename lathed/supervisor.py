@@ -517,6 +517,7 @@ class Supervisor:
                 machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"),
                                  "identification": drv.identification,
                                  "identity": "confirmed" if r.identity is None else f"not confirmed: {r.identity}",
+                                 "takes": list(drv.actions),
                                  **extra})
             else:
                 last = {q: s.value for q, s in self.bus.latest_of(name).items()}

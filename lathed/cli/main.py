@@ -73,7 +73,7 @@ def cmd_status(args: argparse.Namespace) -> int:
             continue
         rpm = "-" if m.get("spindle_rpm") is None else f"{m['spindle_rpm']:.0f} r/min"
         print(f"  {m['name']:<12} {m.get('kind') or '-':<10} {rpm:>12}  {m['detail']}")
-        if m.get("state") == "connected" and (m.get("identity") or "confirmed") != "confirmed":
+        if m.get("state") == "connected" and m.get("takes") and (m.get("identity") or "confirmed") != "confirmed":
             print(f"    identity {m['identity']}: no command is sent to it")
         if m.get("heartbeat"):      # the count the control's PMC watches (a held override's dead-man)
             print(f"    heartbeat: count {m['heartbeat']['count']}, written every {m['heartbeat']['every_s']:g} s")
