@@ -13,7 +13,6 @@ import types
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from lathed.audit import AuditReserve
 from lathed.bus import Bus
