@@ -24,6 +24,7 @@ from lathed.bus import Bus
 from lathed.cli import EX_CANTCREAT
 from lathed.client import SOCKET_NAME, default_runtime_dir, default_state_dir
 from lathed.args import Args
+from lathed.audit import AuditReserve, ReserveError
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
 from lathed.push import PushHub
@@ -34,7 +35,8 @@ from lathed.supervisor import Plan, Supervisor, build, record_sinks
 
 log = structlog.get_logger("lathed")
 STOP_GRACE_S = 15.0   # below the unit's TimeoutStopSec
-EX_SOFTWARE, EX_TEMPFAIL = 70, 75   # sysexits: a dead store writer; another daemon holds the lock
+# sysexits: a configured simulator that did not start; a dead store writer; another daemon holds the lock
+EX_UNAVAILABLE, EX_SOFTWARE, EX_TEMPFAIL = 69, 70, 75
 
 
 class Settings:
@@ -106,8 +108,10 @@ def prepare(path: str | Path, strict: bool) -> tuple[configmod.Config, Settings,
 
 
 class Daemon:
-    def __init__(self, cfg, settings: Settings, loader: PluginLoader, plan: Plan, sim, store: Store):
+    def __init__(self, cfg, settings: Settings, loader: PluginLoader, plan: Plan, sim, store: Store,
+                 reserve: AuditReserve | None = None):
         self.cfg, self.settings, self.loader, self.plan, self.sim_settings = cfg, settings, loader, plan, sim
+        self.reserve = reserve
         self.started = time.monotonic()
         self.state = "starting"
         self.exit_code = 0
@@ -133,7 +137,8 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self._stop.set)
         loop.add_signal_handler(signal.SIGHUP, lambda: self._reloads.append(asyncio.create_task(self.reload())))
-        self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register)
+        self.supervisor = Supervisor(self.cfg, self.plan, self.bus, self.store, self.control.register,
+                                     self.reserve)
         for name in ("status", "plugins", "events", "ping"):
             self.control.register(name, getattr(self, f"_cmd_{name}"))
         names = {**{n: r.category for n, r in self.supervisor.runners.items()},
@@ -156,6 +161,7 @@ class Daemon:
             return EX_TEMPFAIL if isinstance(e, SocketInUse) else EX_CANTCREAT
         # Analyzers first, and one loop turn for them to register their
         # control commands (parts, suppress, thermal...) before READY.
+        self.supervisor.start_draining()
         self.supervisor.start_analyzers()
         await asyncio.sleep(0)
         # READY as soon as we serve; the drivers start once the simulator (an
@@ -210,6 +216,7 @@ class Daemon:
             self.supervisor.record("daemon_stopped", "lathed", {"offsets_left_um": left} if left else {})
             self._step = "closing the store"
             await asyncio.to_thread(self.store.close)
+            self.supervisor.reserve.close()
         finally:   # stopped in time: the guard must not fire later in a process that lives on
             guard.cancel()
         return self.exit_code
@@ -322,8 +329,18 @@ class Daemon:
 
     async def _start_drivers(self) -> None:
         if self.sim_settings is not None:
-            from lathed.sim.launch import spawn
-            self.sim_process = await spawn(self.sim_settings)
+            from lathed.sim.launch import SimulatorFailed, spawn
+            try:
+                self.sim_process = await spawn(self.sim_settings)
+            except SimulatorFailed as e:
+                # the drivers would reach whatever answers at its addresses instead: stop, saying why
+                self.sim_process = e.process
+                log.critical("simulator_failed", why=str(e))
+                print(f"lathed: {self.cfg.path}: [simulator] {e}", file=sys.stderr, flush=True)
+                self.supervisor.record("simulator_failed", "lathed", {"why": str(e)})
+                self.exit_code = EX_UNAVAILABLE
+                self._stop.set()
+                return
         self.supervisor.start_drivers()
 
     async def _watchdog(self) -> None:
@@ -372,7 +389,8 @@ class Daemon:
                            "version": __version__, "pid": os.getpid(), "name": self.settings.name,
                            "loop_lag_ms": self.loop_lag.summary(), "bus": self.bus.stats(),
                            "config": str(self.cfg.path), "store": {**self.store.stats(), "keep_days": self.settings.keep_days,
-                                                                "last_prune": self.last_prune},
+                                                                "last_prune": self.last_prune,
+                                                                "audit_reserve": self.supervisor.reserve.stats()},
                            "simulator": None if self.sim_process is None else
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
                            "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
@@ -462,7 +480,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"lathed: cannot open the record store {db}: {e}", file=sys.stderr)
         return EX_CANTCREAT
     try:
-        return asyncio.run(Daemon(cfg, settings, loader, plan, sim, store).run())
+        reserve = AuditReserve(settings.state_dir / "audit-reserve")
+    except ReserveError as e:
+        print(f"lathed: {e}", file=sys.stderr)
+        store.close()
+        return EX_CANTCREAT
+    try:
+        return asyncio.run(Daemon(cfg, settings, loader, plan, sim, store, reserve).run())
     finally:
         for fd in locks:
             os.close(fd)

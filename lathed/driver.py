@@ -69,6 +69,10 @@ class GatedBus:
         self.plausible.forget(quantity)
         self._bus.forget(source, quantity)
 
+    def link_lost(self) -> None:
+        """The driver's link failed: the time until it is back vouches for no rate of change."""
+        self.plausible.link_lost()
+
     def __getattr__(self, name: str):
         return getattr(self._bus, name)
 
@@ -123,6 +127,27 @@ class Driver:
 
     def current(self, action: str) -> float | None:
         """The machine's present value of what ``action`` commands, if known."""
+        return None
+
+    async def identify(self) -> dict[str, Any] | None:
+        """What the peer on the link just opened says it is, under the keys of
+        [identification] (serial_number, model, manufacturer), read from the peer itself
+        (an identity register, the agent's device description); None where the protocol or
+        the config gives no way to ask. Called after every ``connect()``: a peer that says it
+        is another machine is refused as a link failure, and a machine whose peer is not
+        confirmed to be the configured one (serial_number) takes no command."""
+        return None
+
+    def released(self, action: str) -> float | None:
+        """The value ``action`` goes back to when lathed is done with it, read from the machine:
+        what its program runs without lathed, where a command of lathed's holds beyond the cut
+        (a spindle override); None where nothing of lathed's holds. The guard takes a command
+        of this value as a release (bounded by the range, not the step or pace)."""
+        return None
+
+    def runs_at(self, cmd: Command) -> tuple[float, str] | None:
+        """(the speed the machine will run for ``cmd``, why it differs from its value), where the
+        machine scales what is written (the operator's override); None: it runs the value."""
         return None
 
     def interlock(self, cmd: Command) -> str | None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import tempfile
 from pathlib import Path
 
 LOCK_NAME = "lathed.lock"
@@ -24,8 +25,10 @@ def dir_problem(path: Path, what: str, create: bool) -> str | None:
     """Why ``path`` cannot serve as the daemon's ``what`` directory, in one
     line naming it and the OS error; None when it can. With ``create`` a
     missing one is made 0750 (an existing one keeps the mode it was given:
-    the files in it are 0640 anyway); without, only checked
-    (``--check-config``)."""
+    the files in it are 0640 anyway); without (``--check-config``), the same
+    is tried and undone: a directory made and removed where it would be made,
+    a file made and removed in an existing one (permission bits do not say
+    it: root passes them, /proc and a read-only mount refuse all the same)."""
     try:
         if create:
             path.mkdir(parents=True, exist_ok=True, mode=0o750)
@@ -34,12 +37,24 @@ def dir_problem(path: Path, what: str, create: bool) -> str | None:
             probe = probe.parent          # the first existing ancestor decides whether it can be made
         if not probe.is_dir():
             raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(probe))
-        if not os.access(probe, os.W_OK | os.X_OK):
-            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(probe))
+        _try_writing(probe, make_dir=probe != path)
     except OSError as e:
         where = f" ({e.filename})" if e.filename and str(e.filename) != str(path) else ""
         return f"{what} {path} is not usable: {e.strerror or e}{where}"
     return None
+
+
+def _try_writing(directory: Path, make_dir: bool) -> None:
+    """Make a directory (or a file) in ``directory`` and remove it; raise as the OS refuses."""
+    try:
+        if make_dir:
+            os.rmdir(tempfile.mkdtemp(prefix=".lathed-check-", dir=directory))
+        else:
+            fd, name = tempfile.mkstemp(prefix=".lathed-check-", dir=directory)
+            os.close(fd)
+            os.unlink(name)
+    except OSError as e:     # named by the directory, not by the trial's random name
+        raise type(e)(e.errno, e.strerror, str(directory)) from None
 
 
 def take_lock(directory: Path) -> int:

@@ -14,13 +14,16 @@ quantity name or a glob, else from the defaults of the value's unit::
     t_front_bearing = { min = 10, max = 90, rate = 1.0 }
     "t_*" = { rate = 2.0, tol = 0.5 }              # °C per s; tol: change always allowed
 
-``rate`` is judged against the last ACCEPTED value and the time since it, so
-after a long gap (a reconnect, a sensor back on its wire) any value within
-the range the elapsed time allows is accepted. A jump faster than ``rate`` is
-refused, unless ``confirm`` readings in a row agree with one another at that
-rate: then the new level is real (a sensor moved, or the first value accepted
-was the wrong one) and it is accepted and counted as ``rebased``. A single
-spike is never accepted; a wrong level cannot hold the sensor out forever.
+``rate`` is judged against the last ACCEPTED value and the time since it, while
+the value was watched: after the driver's link failed (a reconnect, another
+board on the port) or a quantity was forgotten (a sensor off its wire), the
+time unwatched vouches for nothing, and the first value back must lie within
+``tol`` of the last one. A jump faster than ``rate`` is refused, unless
+``confirm`` readings in a row agree with one another at that rate: then the
+new level is real (a sensor moved, or the first value accepted was the wrong
+one) and it is accepted and counted as ``rebased``. A single spike is never
+accepted; a wrong level cannot hold the sensor out forever, and what acts on
+such a level (thermal compensation) judges its own step (docs/safety.md).
 """
 from __future__ import annotations
 
@@ -72,6 +75,7 @@ class Plausibility:
         self.confirm = confirm
         self._last: dict[str, tuple[float, float]] = {}          # quantity -> last accepted (value, t)
         self._chain: dict[str, tuple[float, float, int]] = {}    # quantity -> (value, t, n) of a jump
+        self._unwatched: set[str] = set()      # quantities whose link failed since their last value
         self.rejected: dict[str, Counter] = {}                   # quantity -> reason -> count
         self.rebased: Counter = Counter()
 
@@ -129,6 +133,8 @@ class Plausibility:
                 return self._refuse(quantity, "out_of_range",
                                     f"{quantity} = {value:g} {unit} outside the plausible [{b.lo:g}, {b.hi:g}]")
             last = self._last.get(quantity)
+            if last is not None and quantity in self._unwatched:
+                last = (last[0], max(last[1], t))     # no credit for the time nobody watched
             if last is not None and not _within(b, last, value, t):
                 chain = self._chain.get(quantity)
                 n = chain[2] + 1 if chain is not None and _within(b, chain[:2], value, t) else 1
@@ -140,6 +146,7 @@ class Plausibility:
                                         f"{last[0]:g}; faster than the plausible {b.rate:g} {unit}/s")
                 self.rebased[quantity] += 1
         self._chain.pop(quantity, None)
+        self._unwatched.discard(quantity)
         self._last[quantity] = (float(value), t)
         return None
 
@@ -167,8 +174,17 @@ class Plausibility:
         return None
 
     def forget(self, quantity: str) -> None:
-        self._last.pop(quantity, None)
+        """A quantity its source no longer has (a sensor off its wire): should it come back,
+        its first value is judged against its last, with no credit for the time away."""
         self._chain.pop(quantity, None)
+        if quantity in self._last:
+            self._unwatched.add(quantity)
+
+    def link_lost(self) -> None:
+        """The link to the peer failed: whoever answers next (the same board, another on the
+        same port) gets no credit for the time until then."""
+        self._chain.clear()
+        self._unwatched.update(self._last)
 
     def _refuse(self, quantity: str, reason: str, why: str) -> tuple[str, str]:
         self.rejected.setdefault(quantity, Counter())[reason] += 1

@@ -389,7 +389,7 @@ EVENT_SQL = "INSERT INTO events(uuid, machine_id, t, source, kind, payload) VALU
 # known once recorded: event_kinds() adds the store's.
 KINDS = frozenset({
     "daemon_started", "daemon_stopped", "stop_waited", "config_reloaded", "config_reload_refused",
-    "store_pruned", "forward_refused",
+    "store_pruned", "forward_refused", "simulator_failed", "command_record_damaged",
     *(f"{c}_{w}" for c in ("machine", "sensor", "analyzer") for w in ("fault", "recovered")),
     "command_sent", "command_refused", "command_failed", "speed_not_released", "override_found_held",
     "implausible_value", "alarm_raised", "alarm_cleared", "mtconnect_gap", "part_counter_reset",
@@ -399,6 +399,7 @@ KINDS = frozenset({
     "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",
     "stability_refit_not_adopted",
     "compensation", "thermal_measurement", "thermal_refit", "thermal_touchoff", "thermal_model_unreadable",
+    "thermal_held", "thermal_resumed",
     "part_completed", "part_abnormal", "part_unobserved", "part_inspected",
 })
 

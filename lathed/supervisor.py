@@ -8,9 +8,8 @@ through the safety guard to the machine's driver.
 from __future__ import annotations
 
 import asyncio
-import random
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import structlog
@@ -18,15 +17,21 @@ import structlog
 from lathed import caller
 from lathed.analyzer import Analyzer, AnalyzerContext
 from lathed.args import Args
+from lathed.audit import MARGIN, AuditReserve
 from lathed.bus import Bus
-from lathed.command import Command
+from lathed.command import Command, as_number, short_repr
 from lathed.config import Config, ConfigError, Instance
 from lathed.control import RequestError
 from lathed.driver import Driver, DriverContext
 from lathed.plugins import PluginLoader, _one_line
+from lathed.runner import Runner
 from lathed.safety import Limits, SafetyGuard
+from lathed.store import dumps
+
+__all__ = ["Plan", "Runner", "Supervisor", "build", "cancel_and_wait", "record_sinks"]
 
 OWED_RELEASE_POLL_S = 0.1   # how often a release an interlock held back asks again (a register poll)
+DRAIN_EVERY_S = 2.0         # how often records kept in the audit reserve are offered to the store again
 
 log = structlog.get_logger("lathed.supervisor")
 
@@ -202,80 +207,14 @@ async def cancel_and_wait(tasks, every_s: float = 1.0) -> None:
             log.warning("cancel_repeated", tasks=sorted(t.get_name() for t in pending), round=rounds)
 
 
-class Runner:
-    """A supervised task for one driver or analyzer."""
-
-    def __init__(self, category: str, name: str, obj: Any, retry_initial: float, retry_max: float,
-                 record):
-        self.category, self.name, self.obj = category, name, obj
-        self.retry_initial, self.retry_max = retry_initial, retry_max
-        self.state = "starting"
-        self.last_error: str | None = None
-        self.retry_at: float | None = None
-        self.connected_since: float | None = None
-        self.failures = 0
-        self.task: asyncio.Task | None = None
-        self._record = record
-        self.log = log.bind(**{category: name})
-
-    def describe(self) -> str:
-        if self.state == "retrying" and self.retry_at is not None:
-            return f"retrying in {max(0.0, self.retry_at - time.monotonic()):.1f} s ({self.last_error})"
-        if self.state == "failed":
-            return f"failed: {self.last_error}"
-        return self.state
-
-    async def _start(self) -> None:
-        if isinstance(self.obj, Driver):
-            await self.obj.connect()
-
-    async def _close(self) -> None:
-        if isinstance(self.obj, Driver):
-            try:
-                await asyncio.wait_for(self.obj.close(), 5.0)
-            except Exception as e:   # close must not take the supervisor down
-                self.log.warning("close_failed", error=_one_line(e))
-
-    async def loop(self) -> None:
-        delay = self.retry_initial
-        while True:
-            started = time.monotonic()
-            try:
-                self.state = "connecting" if isinstance(self.obj, Driver) else "starting"
-                await self._start()
-                self.state = "connected" if isinstance(self.obj, Driver) else "running"
-                self.connected_since = time.time()
-                if self.failures:
-                    self.log.info("recovered", after_failures=self.failures)
-                    self._record(f"{self.category}_recovered", self.name,
-                                 {"after_failures": self.failures})
-                await self.obj.run()
-                raise RuntimeError("stopped without an error")
-            except asyncio.CancelledError:
-                self.state = "stopped"
-                await self._close()
-                raise
-            except Exception as e:
-                self.failures += 1
-                self.last_error = _one_line(e)
-                self.connected_since = None
-                await self._close()      # safe state: link released, commands refused
-                if time.monotonic() - started > self.retry_max:
-                    delay = self.retry_initial   # it ran a while: not a tight failure loop
-                wait = min(delay, self.retry_max) * random.uniform(0.8, 1.2)
-                self.retry_at = time.monotonic() + wait
-                self.state = "retrying"
-                self.log.warning(f"{self.category}_fault", error=self.last_error, retry_in_s=round(wait, 2))
-                self._record(f"{self.category}_fault", self.name, {"error": self.last_error,
-                                                                   "retry_in_s": round(wait, 2)})
-                await asyncio.sleep(wait)
-                delay = min(delay * 2, self.retry_max)
-
-
 class Supervisor:
-    def __init__(self, cfg: Config, plan: Plan, bus: Bus, store, register_control):
+    def __init__(self, cfg: Config, plan: Plan, bus: Bus, store, register_control,
+                 reserve: AuditReserve | None = None):
         self.cfg, self.plan, self.bus, self.store = cfg, plan, bus, store
         self.guard = SafetyGuard(plan.limits)
+        # room for the record of every command sent, should the store refuse it
+        self.reserve = reserve if reserve is not None else AuditReserve(None)
+        self._draining: asyncio.Task | None = None
         self.runners: dict[str, Runner] = {}
         self.analyzer_runners: dict[str, Runner] = {}
         self._cmd_locks: dict[str, asyncio.Lock] = {}
@@ -355,6 +294,27 @@ class Supervisor:
         self.start_analyzers()
         self.start_drivers()
 
+    def start_draining(self) -> None:
+        """Records the audit reserve keeps (this run's, or a run's that stopped first) go to
+        the store as soon as it takes them."""
+        self._draining = asyncio.create_task(self._drain(), name="audit-reserve")
+
+    async def _drain(self) -> None:
+        while True:
+            # file reads and an fsync: off the loop, and only when something is kept
+            n, records = (await asyncio.to_thread(self.reserve.kept)) if self.reserve.kept_bytes else (0, [])
+            if records:
+                stmts = [self.store.event_statement(r["kind"], r["source"], r["payload"], r["t"]) for r in records]
+                try:
+                    await asyncio.wrap_future(self.store.submit(stmts, ()))
+                except Exception as e:      # still refused: kept, offered again
+                    log.debug("audit_reserve_not_drained", kept=len(records), error=_one_line(e))
+                else:
+                    await asyncio.to_thread(self.reserve.drop, n)
+                    log.info("audit_reserve_drained", records=len(records))
+                    continue
+            await asyncio.sleep(DRAIN_EVERY_S)
+
     async def stop(self) -> None:
         # analyzers first, so no command is asked for while drivers close; then what the
         # analyses left held on a machine beyond its cut (a spindle override) goes back
@@ -366,15 +326,16 @@ class Supervisor:
             log.warning("override_left_held", held=left, why="its release was refused or failed (a thread being "
                         "cut holds every command); the control's heartbeat watchdog, where mapped, takes it back")
         await cancel_and_wait([r.task for r in self.runners.values() if r.task])
+        if self._draining is not None:
+            await cancel_and_wait([self._draining])
 
     def held(self) -> list[str]:
         """What the machines still hold from lathed's commands beyond their cut ("lathe
         spindle_rpm": an override the driver would release), connected machines only."""
         out = []
         for name, r in self.runners.items():
-            released = getattr(r.obj, "released", None)
-            if r.state == "connected" and released is not None:
-                out += [f"{name} {a}" for a in getattr(r.obj, "actions", ()) if released(a) is not None]
+            if r.state == "connected":
+                out += [f"{name} {a}" for a in r.obj.actions if r.obj.released(a) is not None]
         return out
 
     def offsets_left(self) -> dict[str, float]:
@@ -394,38 +355,63 @@ class Supervisor:
         recorded by ``command``, and the stop goes on (the control's heartbeat watchdog,
         where mapped, takes the override back)."""
         for name, r in self.runners.items():
-            for action in getattr(r.obj, "actions", ()):
+            for action in r.obj.actions:
                 await self.release(name, action, "lathed", reason="released: the daemon is stopping")
 
     # -- commands -------------------------------------------------------------
     async def command(self, cmd: Command) -> dict:
-        """Send a command through the safety guard. Never raises."""
+        """Send a command through the safety guard. Never raises (short of the asker's own
+        cancellation): whatever a plugin passes is refused and recorded with the cause."""
+        try:
+            return await self._command(cmd)
+        except asyncio.CancelledError:
+            raise
+        except Exception as e:          # a bug here or in a driver's checks: refused, never sent
+            why = f"command could not be checked: {_one_line(e)}"
+            log.error("command_refused", command=short_repr(cmd), why=why)
+            self.record("command_refused", str(getattr(cmd, "source", "?")), {"command": short_repr(cmd),
+                                                                           "refused": why})
+            return {"sent": False, "reason": why}
+
+    async def _command(self, cmd: Command) -> dict:
         runner = self.runners.get(cmd.machine)
         drv = runner.obj if runner else None
         reason = None
-        if drv is None or getattr(drv, "role", None) != "machine":
+        if drv is None or drv.role != "machine":
             reason = f"no machine named {cmd.machine!r}"
         elif runner.state != "connected":
             reason = f"machine {cmd.machine} is {runner.describe()}: held in safe state"
         elif cmd.action not in drv.actions:
             reason = f"machine {cmd.machine} does not take {cmd.action!r} (takes: {', '.join(drv.actions) or 'none'})"
+        elif runner.identity is not None:
+            reason = (f"machine {cmd.machine}: the peer at its address is not confirmed to be this machine "
+                      f"({runner.identity}); no command is sent to it")
+        value = as_number(cmd.value)
+        if value is not None:           # the driver gets a float (not numpy's float32, not an int)
+            cmd = replace(cmd, value=value)
         lock = self._cmd_locks.setdefault(cmd.machine, asyncio.Lock())
-        interlock = None
+        interlock = release = None
         async with lock:
             if reason is None:
-                runs_at = getattr(drv, "runs_at", lambda c: None)(cmd)
                 interlock = _interlock(drv, cmd)
-                reason = self.guard.check(cmd, drv.current(cmd.action), runs_at, interlock)
-            payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
-                       "reason": cmd.reason, "by": cmd.source, **cmd.context}
+                program = drv.released(cmd.action)
+                release = self.guard.is_release(cmd, program)
+                reason = self.guard.check(cmd, drv.current(cmd.action), drv.runs_at(cmd), interlock, program)
+            payload = _payload(cmd)
+            if reason is None:
+                # the record's room is claimed before the write: no command without its record
+                need = len(dumps(payload)) + MARGIN
+                if not self.reserve.claim(need):
+                    reason = (f"no room to record it: the store is refusing records and the audit reserve "
+                              f"({self.reserve.size} bytes) is full")
             if reason is not None:
                 log.warning("command_refused", command=cmd.describe(), why=reason)
                 self.record("command_refused", cmd.source, {**payload, "refused": reason})
                 held_back = interlock is not None and reason == interlock
-                if held_back and cmd.release:
+                if held_back and release:
                     self._owe_release(cmd)
                 return {"sent": False, "reason": reason, **({"interlock": True} if held_back else {})}
-            send = asyncio.ensure_future(self._send(cmd, drv, payload))
+            send = asyncio.ensure_future(self._send(cmd, drv, payload, need))
             try:
                 return await asyncio.shield(send)
             except asyncio.CancelledError:
@@ -435,20 +421,40 @@ class Supervisor:
                 await asyncio.gather(send, return_exceptions=True)
                 raise
 
-    async def _send(self, cmd: Command, drv, payload: dict) -> dict:
+    async def _send(self, cmd: Command, drv, payload: dict, need: int) -> dict:
         try:
             detail = await asyncio.wait_for(drv.execute(cmd), 5.0)
         except Exception as e:
             err = _one_line(e)
             log.error("command_failed", command=cmd.describe(), error=err)
-            self.record("command_failed", cmd.source, {**payload, "error": err})
+            # it may have reached the machine (an answer lost): audited as a command sent is
+            self._audit("command_failed", cmd.source, {**payload, "error": err}, need)
             return {"sent": False, "reason": f"write failed: {err}"}
         self.guard.passed(cmd)
-        payload.update(detail or {})     # how the driver carried it (an override: its % and speed)
-        log.info("command_sent", command=cmd.describe(), **(detail or {}))
-        self.record("command_sent", cmd.source, payload)
+        detail = detail or {}
+        # how the driver carried it (an override: its % and speed), never over the recorded fields
+        payload.update({k: v for k, v in detail.items() if k not in payload})
+        log.info("command_sent", command=cmd.describe(), **detail)
+        self._audit("command_sent", cmd.source, payload, need)
         self.sent.set()
-        return {"sent": True, "reason": None, **(detail or {})}
+        return {"sent": True, "reason": None, **detail}
+
+    def _audit(self, kind: str, source: str, payload: dict, need: int) -> None:
+        """The record of a command that may have reached the machine: to the store, and if the
+        store refuses it, into the audit reserve whose room ``need`` was claimed for it."""
+        who = caller.current()
+        if who is not None:
+            payload = {**payload, "caller": who.audit()}
+        t = time.time()
+        line = self.reserve.line(kind, source, payload, t)
+        try:
+            fut = self.store.record_future(kind, source, payload, t)
+        except Exception as e:
+            log.error("record_failed", kind=kind, source=source, error=_one_line(e))
+            self.reserve.settle(need, line)
+            return
+        fut.add_done_callback(lambda f: self.reserve.settle(
+            need, line if f.cancelled() or f.exception() is not None else None))
 
     def interlock(self, machine: str, action: str) -> str | None:
         """Why ``machine`` would refuse ``action`` now by its own state (its driver's
@@ -468,11 +474,10 @@ class Supervisor:
         self._owed[key] = asyncio.create_task(self._release_when_clear(cmd), name=f"release:{cmd.machine}")
 
     async def _release_when_clear(self, cmd: Command) -> None:
-        probe = Command(cmd.machine, cmd.action, cmd.value, cmd.source, reason=cmd.reason, release=True)
         while True:
             await asyncio.sleep(OWED_RELEASE_POLL_S)
             runner = self.runners.get(cmd.machine)
-            if runner is not None and runner.state == "connected" and _interlock(runner.obj, probe) is None:
+            if runner is not None and runner.state == "connected" and _interlock(runner.obj, cmd) is None:
                 break
         del self._owed[(cmd.machine, cmd.action)]
         await self.release(cmd.machine, cmd.action, cmd.source, reason=cmd.reason)
@@ -484,12 +489,12 @@ class Supervisor:
         the value that undoes it; None where there is nothing to undo."""
         runner = self.runners.get(machine)
         drv = runner.obj if runner else None
-        if drv is None or action not in getattr(drv, "actions", ()) or runner.state != "connected":
+        if drv is None or action not in drv.actions or runner.state != "connected":
             return None
-        value = getattr(drv, "released", lambda a: None)(action)
+        value = drv.released(action)
         if value is None:
             return None
-        return await self.command(Command(machine, action, float(value), source, reason=reason, release=True))
+        return await self.command(Command(machine, action, float(value), source, reason=reason))
 
     # -- status ---------------------------------------------------------------
     def machine_status(self, name: str) -> dict | None:
@@ -510,7 +515,10 @@ class Supervisor:
             extra = {**_safe(drv.ctx.bus.plausible.status), **_safe(drv.status)}
             if drv.role == "machine":
                 machines.append({**base, "kind": drv.kind, "spindle_rpm": drv.current("spindle_rpm"),
-                                 "identification": drv.identification, **extra})
+                                 "identification": drv.identification,
+                                 "identity": "confirmed" if r.identity is None else f"not confirmed: {r.identity}",
+                                 "takes": list(drv.actions),
+                                 **extra})
             else:
                 last = {q: s.value for q, s in self.bus.latest_of(name).items()}
                 sensors.append({**base, "kind": drv.kind, "last_value": last or None, **extra})
@@ -531,11 +539,27 @@ class Supervisor:
         return {"machines": machines, "sensors": sensors, "analyzers": analyzers}
 
 
+def _payload(cmd: Command) -> dict:
+    """The record of a command: what was asked, of which machine, by whom; the asker's
+    context under its own key, so that it can never stand for a recorded field."""
+    value = as_number(cmd.value)
+    payload = {"machine": cmd.machine, "action": cmd.action,
+               "value": value if value is not None else short_repr(cmd.value),
+               "reason": cmd.reason, "by": cmd.source}
+    if cmd.context:
+        try:
+            dumps(cmd.context)
+            payload["context"] = cmd.context
+        except (TypeError, ValueError):     # not recordable as given: its text, so it is not lost
+            payload["context"] = short_repr(cmd.context)
+    return payload
+
+
 def _interlock(drv, cmd: Command) -> str | None:
     """The driver's interlock on ``cmd``; one that fails is a refusal: a machine whose driver
     cannot vouch for its state takes nothing."""
     try:
-        return getattr(drv, "interlock", lambda c: None)(cmd)
+        return drv.interlock(cmd)
     except Exception as e:
         return f"machine {cmd.machine}'s interlock could not be read: {_one_line(e)}"
 

@@ -36,6 +36,13 @@ as well whenever one of these ``source.quantity`` samples says 1 on the bus;
 the spindle load at the chip's entry, which the vibration sees a fraction of
 a revolution in, instead of up to a poll later).
 
+A machine lathed writes to names where its control serves its serial number, which is
+read at every connect and compared with ``[machine.lathe.identification] serial_number``
+before anything is written (docs/safety.md)::
+
+    [machine.lathe.identity]
+    serial_number = { address = 36, words = 8 }   # ASCII, two characters a register
+
 Commands write only to registers declared writable, and only commands the
 supervisor passed through the safety guard reach ``execute``: the
 ``spindle_rpm`` action writes ``spindle_rpm_cmd``, ``offset_x_um`` writes
@@ -84,6 +91,7 @@ from lathed.command import Command
 from lathed.config import Section
 from lathed.driver import Driver
 from lathed.machine import MachineModel
+from lathed.modbus_identity import read_identity, read_identity_map
 from lathed.plausible import Plausibility
 
 DT = AsyncModbusTcpClient.DATATYPE
@@ -276,6 +284,16 @@ class ModbusCNC(Driver):
         self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last polls
         self._ours: float | None = None           # the override lathed wrote and has not released
         self._pending: float | None = None        # one written whose answer never came (it may hold)
+        taken = {a: r.name for r in self.registers.values() for a in range(r.address, r.address + r.count)}
+        self.identity_map = read_identity_map(section.getsection("identity", required=False), taken,
+                                              self.identification)
+        writes = [*self.actions, *(["heartbeat"] if "heartbeat" in self.registers else [])]
+        if writes and "serial_number" not in self.identity_map:
+            # whatever answers at the address would be commanded (another machine, a simulator)
+            raise section.error("identity", f"{self.name} is written to ({', '.join(writes)}): map the "
+                                            "control's serial number (serial_number = { address = ..., words = ... }) "
+                                            f"and give it as [{section.table}.identification] serial_number, so that "
+                                            "the peer is confirmed to be this machine before any command")
         hb = self.registers.get("heartbeat")
         if hb is not None and not hb.writable:
             raise section.error("registers", "heartbeat must be writable: lathed writes it, the control's "
@@ -304,11 +322,15 @@ class ModbusCNC(Driver):
             await self._open(self.client)
         else:
             await self._join_link()
-        # the first read proves the controller answers: an open port is not a machine
+        # the first read proves the controller answers: an open port is not a machine. Nothing
+        # is written before run(): the supervisor first confirms the peer is this machine
         await self._read_group(self.groups[min(self.groups)])
-        await self._beat()        # the control's watchdog is armed as soon as the link is up
         self._held_at_connect()
         self.model.link_up()
+
+    async def identify(self) -> dict[str, str]:
+        """The identity registers ([<machine>.identity]) as the control serves them now."""
+        return await read_identity(self.client, self.identity_map, self.unit, self._turn, self.timeout, self.where)
 
     def _held_at_connect(self) -> None:
         """An override the link comes up to that lathed did not write is the operator's, or an
@@ -450,6 +472,7 @@ class ModbusCNC(Driver):
         for src in sources:
             self.ctx.bus.tap(src, self._trigger)
         try:
+            await self._beat()        # the control's watchdog is armed as soon as the peer is confirmed
             await self._poll()
         finally:
             for src in sources:

@@ -111,6 +111,7 @@ class MTConnect(Driver):
         self.model = MachineModel(self.kind, self.stale_after, self._record)
         self.session: aiohttp.ClientSession | None = None
         self.kinds: dict[str, tuple[str, str]] = {}   # dataItemId -> (category, type), from /probe
+        self.description: dict[str, str] = {}         # the device's Description in /probe
         self.instance: str | None = None
         self.next_seq: int | None = None
         self.values: dict[str, tuple[float, float]] = {}
@@ -155,6 +156,7 @@ class MTConnect(Driver):
             raise ConnectionError(f"the agent at {self.url} refused /probe ({e}): is device "
                                   f"{self.device!r} served there?") from None
         have = {d.get("id"): d for d in probe.iter() if _local(d.tag) == "DataItem"}
+        self.description = self._description(probe)
         for ident, name in self.items.items():
             d = have.get(ident)
             if d is None:
@@ -171,6 +173,25 @@ class MTConnect(Driver):
         # else a reconnect: the next sample goes on from the last sequence read, so the outage
         # loses nothing the agent still buffers
         self.model.link_up()
+
+    def _description(self, probe: ET.Element) -> dict[str, str]:
+        """The device's Description attributes (manufacturer, model, serialNumber) in
+        [identification]'s keys: the device named by ``device``, else the only one."""
+        devices = [d for group in probe.iter() if _local(group.tag) == "Devices"
+                   for d in group if _local(d.tag) == "Device"]
+        if self.device:
+            devices = [d for d in devices if self.device in (d.get("name"), d.get("uuid"), d.get("id"))]
+        if len(devices) != 1:
+            return {}
+        desc = next((e for e in devices[0] if _local(e.tag) == "Description"), None)
+        if desc is None:
+            return {}
+        keys = {"manufacturer": "manufacturer", "model": "model", "serialNumber": "serial_number"}
+        return {ours: desc.get(theirs).strip() for theirs, ours in keys.items() if desc.get(theirs)}
+
+    async def identify(self) -> dict[str, str] | None:
+        """The agent's Description of the device, read at connect (/probe)."""
+        return self.description or None
 
     async def close(self) -> None:
         self.model.link_down()

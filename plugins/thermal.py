@@ -10,6 +10,8 @@ write it to the CNC as an X offset (numeric core: lathed.analysis.thermal).
     rate_um_s = 2.0            # phase the offset in at most this fast
     step = "1s"                # how often the prediction is evaluated
     sign = -1.0                # -1 or 1: offset = sign * growth since the tool was touched off
+    stale_after = "20s"        # a temperature older than this holds the offset (asks nothing)
+    growth_rate_max_um_s = 1.0 # predicted growth moving faster is a sensor fault: the offset holds
 
 The growth is compensated since the tool was touched off. The touch-off (the
 temperatures, time and speed of that moment, the prediction then, and the
@@ -42,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from lathed import hookimpl
+from lathed.analysis.compensation_hold import CompensationHold
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
 from lathed.analyzer import Analyzer
 from lathed.args import Args
@@ -72,6 +75,13 @@ class ThermalAnalyzer(Analyzer):
             # the offset's direction against the growth; 0.3 would compensate 30 % without a word
             raise section.error("sign", f"expected -1 or 1 (the offset's direction against the growth), "
                                         f"got {self.sign:g}")
+        # what the compensation must not act on: stale readings, a growth no spindle makes (docs/safety.md)
+        self.hold = CompensationHold(section.getduration("stale_after", 20.0, minval=0.1, maxval=3600),
+                                     section.getfloat("growth_rate_max_um_s", 1.0, above=0, maxval=10_000),
+                                     self.step, self.tolerance)
+        self.held: str | None = None
+        self._held_kind: str | None = None
+        self._read_at: dict[str, float] = {}     # place -> time of its last reading
         if self.model_path:
             p = Path(self.model_path)
             if not p.is_absolute():
@@ -154,6 +164,7 @@ class ThermalAnalyzer(Analyzer):
                     continue
                 if s.source == self.input and s.quantity.startswith("t_"):
                     self.temps[s.quantity[2:]] = s.value
+                    self._read_at[s.quantity[2:]] = s.t
                 elif s.source == self.machine:
                     if s.quantity == "spindle_rpm":
                         self.rpm = s.value
@@ -202,6 +213,7 @@ class ThermalAnalyzer(Analyzer):
             # the live prediction, with the state of lagging and hysteretic terms
             to["pred0_um"] = self._predictor.update(self.temps, self.rpm, now)
         self.touchoff = to
+        self.hold.reset()       # the operator's touch-off takes the growth of now as it is
         self.ctx.record("thermal_touchoff", to)
         if to["pred0_um"] is not None:
             self.pred0 = to["pred0_um"]     # same model and predictor: only the zero moves
@@ -227,11 +239,16 @@ class ThermalAnalyzer(Analyzer):
         else:   # another model since (or the cold start itself): its prediction, settled at the touch-off
             self.pred0 = self.model.predictor(cold, cold_t).update(to["temps_c"], to["rpm"] or 0.0, to["t"])
         self.prediction = None      # until the next step: the last one was another model's
+        self.hold.reset()
 
     async def _tick(self) -> None:
         while True:
             await asyncio.sleep(self.step)
             if not all(k in self.temps for k in self._sensor_places()):
+                continue
+            stale = self.hold.stale(self._read_at, self._sensor_places(), time.time())
+            if stale is not None:       # nothing predicted from them, nothing asked
+                self._hold(stale, "stale")
                 continue
             if self.touchoff is None:
                 self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
@@ -244,6 +261,9 @@ class ThermalAnalyzer(Analyzer):
                 continue
             self.prediction = pred
             self.ctx.bus.publish(Sample(self.name, "predicted_growth_um", pred - self.pred0, "µm", time.time()))
+            self._hold(self.hold.judge(pred - self.pred0, time.time()), "growth")
+            if self.held is not None:
+                continue
             self.target = self.touchoff["base_um"] + self.sign * (pred - self.pred0)
             gap = self.target - self.applied
             # hysteresis: start phasing in past the tolerance, stop once caught up
@@ -269,6 +289,21 @@ class ThermalAnalyzer(Analyzer):
                                                  "model": self.model_name})
             else:
                 self.refused = r["reason"]
+
+    def _hold(self, why: str | None, kind: str = "") -> None:
+        """Hold the offset (``why``; ``kind``: stale or growth) or act again (None); each change
+        recorded once, not each step."""
+        said = self._held_kind
+        self.held, self._held_kind = why, (kind if why is not None else None)
+        if self._held_kind == said:
+            return
+        payload = {"machine": self.machine, "offset_um": self.applied}
+        if why is not None:
+            self.ctx.log.warning("thermal_held", why=why, **payload)
+            self.ctx.record("thermal_held", {**payload, "why": why})
+        else:
+            self.ctx.log.info("thermal_resumed", **payload)
+            self.ctx.record("thermal_resumed", {**payload, "held": said})
 
     def _sensor_places(self) -> list[str]:
         return [s[2:-2] if s.startswith("t_") and s.endswith("_c") else s for s in self.model.sensors]
@@ -349,6 +384,9 @@ class ThermalAnalyzer(Analyzer):
             missing = [p for p in self._sensor_places() if p not in self.temps]
             if missing:
                 raise RequestError(f"no reading yet from {', '.join(missing)}: cannot take the touch-off temperatures")
+            stale = self.hold.stale(self._read_at, self._sensor_places(), time.time())
+            if stale is not None:
+                raise RequestError(f"cannot take the touch-off temperatures: {stale.split(':')[0]}")
             if self.applied is None:
                 raise RequestError(f"{self.machine} has not reported its offset_x_um yet: cannot take the touch-off")
             self._touch_off("operator touched the tool off", self.applied, by)
@@ -378,7 +416,7 @@ class ThermalAnalyzer(Analyzer):
         offset = f"offset {self.applied:g} µm" if self.applied is not None else \
             f"waiting for {self.machine}'s offset_x_um"
         return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
-                "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused,
+                "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused, "held": self.held,
                 "touchoff": None if to is None else {k: to[k] for k in ("t", "base_um", "reason")},
                 "last_refit": self.last_refit,
                 "summary": f"model {self.model_name}, growth {growth} µm {since}, {offset}"}

@@ -82,6 +82,11 @@ def sim_call(path: str | Path, cmd: str, args: dict | None = None) -> object:
 
 
 REGISTERS = (ROOT / "etc" / "lathed.toml").read_text().split("[machine.lathe.registers]", 1)[1].split("\n[", 1)[0]
+# the simulated lathe's serial number and where its control serves it: the daemon commands only a
+# peer confirmed to be the configured machine
+LATHE_SERIAL = "SIM-LATHE-0001"
+IDENTITY_REGISTERS = '\n[machine.lathe.identity]\nserial_number = { address = 36, words = 8 }\n'
+IDENTITY = '\n[machine.lathe.identification]\nserial_number = "SIM-LATHE-0001"\n' + IDENTITY_REGISTERS
 # the simulated CNC has it; the default config does not map it (real controls rarely report it)
 DEPTH_REGISTER = 'depth_of_cut_mm = { address = 20, type = "float32", unit = "mm" }\n'
 
@@ -132,6 +137,7 @@ offset_rate_max_um_s = 5.0
 [machine.lathe.registers]
 {REGISTERS}
 {registers}
+{IDENTITY if "[machine.lathe.identification]" not in extra else IDENTITY_REGISTERS}
 
 [sensor.temps]
 plugin = "ds18b20_serial"
@@ -188,9 +194,11 @@ class Daemon:
             return self.ctl("status", "--json", check=False).returncode == 0
         wait_until(up, timeout, what="daemon control socket")
 
-    def output(self) -> str:
+    def output(self, tail: int | None = 4000) -> str:
+        """The daemon's log, its last ``tail`` characters (None: all of it)."""
         self.log.flush()
-        return self.cfg.with_suffix(".log").read_text(errors="replace")[-4000:]
+        text = self.cfg.with_suffix(".log").read_text(errors="replace")
+        return text if tail is None else text[-tail:]
 
     def stop(self) -> int:
         if self.proc.poll() is None:

@@ -28,6 +28,7 @@ retry_max = "10s"
 
 [machine.lathe.registers]
 {registers}
+{identity}
 
 [sensor.temps]
 plugin = "ds18b20_serial"
@@ -73,9 +74,10 @@ material = "C45"
 
 class InProcessDaemon:
     def __init__(self, tmp: Path, daemon: str = ""):
-        from tests.conftest import REGISTERS, without_dangling_read_on
+        from tests.conftest import IDENTITY, REGISTERS, without_dangling_read_on
         cfg = tmp / "lathed.toml"
-        cfg.write_text(without_dangling_read_on(CONFIG.format(tmp=tmp, daemon=daemon, registers=REGISTERS)))
+        cfg.write_text(without_dangling_read_on(CONFIG.format(tmp=tmp, daemon=daemon, registers=REGISTERS,
+                                                              identity=IDENTITY)))
         self.loop = asyncio.new_event_loop()
         cfg, settings, loader, plan, sim = daemonmod.prepare(cfg, strict=True)
         settings.state_dir.mkdir(parents=True, exist_ok=True)

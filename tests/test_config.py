@@ -20,6 +20,10 @@ runtime_dir = "run"
 plugin = "modbus_cnc"
 host = "127.0.0.1"
 port = 15020
+[machine.lathe.identification]
+serial_number = "L-1"
+[machine.lathe.identity]
+serial_number = { address = 40, words = 8 }
 [machine.lathe.registers]
 spindle_rpm = { address = 2, type = "float32" }
 spindle_rpm_cmd = { address = 0, type = "float32", writable = true }
@@ -224,6 +228,22 @@ def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path):
     assert r.returncode == 73 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].endswith(f"[daemon] state_dir {blocker / 'state'} is not usable: "
                                                       "Not a directory")
+
+
+def test_check_config_refuses_a_state_dir_the_daemon_cannot_make(tmp_path):
+    # issue 35 case 13: permission bits said yes (root passes them) for a state_dir under
+    # /proc; --check-config said ok and the daemon then refused it (73). Now both try it
+    text = BASE.replace('state_dir = "state"', 'state_dir = "/proc/lathed/state"')
+    code, err = check(tmp_path, text)
+    assert (code, err) == (73, "lathed: FILE: [daemon] state_dir /proc/lathed/state is not usable: "
+                               "No such file or directory (/proc)")
+    r = subprocess.run([str(BIN / "lathed"), "--config", str(tmp_path / "lathed.toml")], capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 73 and "state_dir /proc/lathed/state is not usable" in r.stderr
+    # and nothing is left behind by the trial where it works
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    assert check(fresh, BASE) == (0, "") and sorted(p.name for p in fresh.iterdir()) == ["lathed.toml"]
 
 
 def test_simulator_links_must_be_in_a_directory_only_we_can_write(tmp_path):

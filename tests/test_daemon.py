@@ -54,7 +54,9 @@ def test_modbus_outage_retrying_then_connected(sim_daemon):
     assert age is not None and d.item("sensors", "accel")["age_s"] < 1.0
     wait_until(lambda: d.item("machines", "lathe")["state"] == "connected", timeout=25, what="reconnect")
     assert d.proc.poll() is None
-    kinds = [e["kind"] for e in json.loads(d.ctl("events", "--json", "--limit", "200").stdout)]
+    # recovered once it has run a while again (the runner's settled time: retry_max here)
+    kinds = wait_until(lambda: (k := [e["kind"] for e in json.loads(d.ctl("events", "--json", "--limit", "200").stdout)])
+                       and "machine_recovered" in k and k, what="machine_recovered recorded")
     assert "machine_fault" in kinds and "machine_recovered" in kinds
 
 
@@ -203,7 +205,8 @@ def test_a_dead_store_writer_fails_the_daemon_loudly_and_loses_nothing(sim_daemo
     _call(d, "queue", {"n": 200})
     wait_until(lambda: d.proc.poll() is not None, 30, what="the daemon to exit")
     assert d.proc.returncode == 70
-    assert "store_writer_dead" in d.output() and "injected writer death" in d.output()
+    # the whole log: a simulator's pymodbus error at the stop dumps its last frames after it
+    assert "store_writer_dead" in d.output(None) and "injected writer death" in d.output(None)
     assert _count(d.paths["state"] / "lathed.db", "command_sent") == 200
 
 

@@ -25,7 +25,7 @@ from lathed.driver import DriverContext
 from lathed.sim.can_peer import robot_frames
 from lathed.sim.line import CycleProgram, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
-from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
+from lathed.sim.registers import CELL_IDENTITY, CELL_MAP, N_CELL_REGISTERS, SERIALS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
 from lathed.supervisor import Runner, cancel_and_wait
@@ -43,6 +43,18 @@ def cell_registers() -> dict:
     return {n: {"address": a, "type": t, "writable": w} for n, (a, t, w, _u) in CELL_MAP.items()}
 
 
+def identified(name: str) -> dict:
+    """The machine's serial number and where its control serves it (the simulator's)."""
+    (at, words), = CELL_IDENTITY.values()
+    return {"identification": {"serial_number": SERIALS[name]},
+            "identity": {"serial_number": {"address": at, "words": words}}}
+
+
+def served(name: str) -> dict:
+    (at, words), = CELL_IDENTITY.values()
+    return {"identity": {"serial_number": ((at, words), SERIALS[name])}}
+
+
 class Line:
     """Peers and drivers of a small line, all on loopback, in one loop."""
 
@@ -55,9 +67,9 @@ class Line:
         self.arm = SimRobotArm()
         self.arm.MOVE_S, self.arm.GRIP_S = 0.05, 0.05     # a cycle every 0.4 s
         port = free_port()
-        self.mill_peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, self.mill.write)
+        self.mill_peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, self.mill.write, **served("mill"))
         self.grinder_peer = ModbusPeer("127.0.0.1", 0, CELL_MAP, N_CELL_REGISTERS, self.grinder.write,
-                                       null_modem=NullModem(tmp / "ttyGRINDER"))
+                                       null_modem=NullModem(tmp / "ttyGRINDER"), **served("grinder"))
         self.arduino = SerialPeer(tmp / "ttyARDUINO")
         self.vib_peer = VibrationPeer("127.0.0.1", free_port(), 2000)
         self.can_channel = f"faults-{os.getpid()}-{id(self)}"
@@ -68,10 +80,10 @@ class Line:
         self.drivers = {
             "mill": ModbusCNC("mill", self._sec("mill", {"kind": "mill", "host": "127.0.0.1", "port": port,
                                                          "poll": "50ms", "timeout": "1s",
-                                                         "registers": cell_registers()})),
+                                                         "registers": cell_registers(), **identified("mill")})),
             "grinder": ModbusCNC("grinder", self._sec("grinder", {
                 "kind": "grinder", "transport": "rtu", "device": str(tmp / "ttyGRINDER"), "baudrate": 115200,
-                "poll": "50ms", "timeout": "1s", "registers": cell_registers()})),
+                "poll": "50ms", "timeout": "1s", "registers": cell_registers(), **identified("grinder")})),
             "robot": CanRobot("robot", self._sec("robot", {"interface": "virtual", "channel": self.can_channel,
                                                            "dbc": str(ROOT / "etc" / "robot_arm.dbc"),
                                                            # silence longer than a busy 2-core machine's
@@ -220,6 +232,9 @@ def test_every_peer_killed_and_restarted(tmp_path, seconds):
                 check_part_events(line.events, name, m.part_count if m else line.arm.cycle_count)
                 late = [p for k, s, p in line.events if k == "part_completed" and s == name and p["late"]]
                 assert late, f"{name}: parts made during the outage were not recorded late"
+            # recovered once each: when it has run a while again (the runner's settled time)
+            await line.until(lambda: {s for k, s, _ in line.events if k.endswith("_recovered")} == set(line.drivers),
+                             5, "every driver recorded as recovered")
             faults = Counter(s for k, s, _ in line.events if k.endswith("_fault"))
             recovered = Counter(s for k, s, _ in line.events if k.endswith("_recovered"))
             assert set(recovered) == set(line.drivers) and all(v == 1 for v in recovered.values()), recovered

@@ -103,6 +103,12 @@ part_count = {{ address = 10, type = "int32", poll = "500ms" }}
 program_state = {{ address = 14, type = "uint16" }}
 alarm_code = {{ address = 16, type = "uint16" }}
 
+[machine.mill.identification]
+serial_number = "SIM-MILL-0001"
+
+[machine.mill.identity]
+serial_number = {{ address = 20, words = 8 }}
+
 [machine.grinder]
 plugin = "modbus_cnc"
 kind = "grinder"

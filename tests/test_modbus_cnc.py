@@ -15,8 +15,9 @@ from lathed.command import Command
 from lathed.config import ConfigError, Section
 from lathed.driver import DriverContext
 from lathed.sim.line import MILL_PROGRAM, SimCycleMachine
-from lathed.sim.modbus_peer import ModbusPeer
-from lathed.sim.registers import CELL_MAP, N_CELL_REGISTERS
+from lathed.sim.modbus_peer import ModbusPeer as SimPeer
+from lathed.modbus_identity import decode_ascii
+from lathed.sim.registers import CELL_IDENTITY, CELL_MAP, N_CELL_REGISTERS, SERIALS
 from lathed.sim.serial_peer import NullModem
 from lathed.supervisor import cancel_and_wait
 from lathed_plugins.modbus_cnc import READ_ON_MIN_S, ModbusCNC, poll_groups
@@ -30,7 +31,19 @@ REGS = {"spindle_rpm_cmd": {"address": 0, "type": "float32", "writable": True},
         "alarm_code": {"address": 16, "type": "uint16"}}
 
 
+# every control lathed writes to says what it is (identity registers), and its driver names it
+SERIAL, ID_AT = "TEST-CONTROL-1", 40
+IDENT = {"identification": {"serial_number": SERIAL}, "identity": {"serial_number": {"address": ID_AT, "words": 8}}}
+
+
+def ModbusPeer(host, port, regmap, size, on_write, serial=SERIAL, **kw):   # noqa: N802 (the peer it stands for)
+    """A simulated control that serves its serial number at ID_AT."""
+    return SimPeer(host, port, regmap, max(size, ID_AT + 8), on_write,
+                   identity={"serial_number": ((ID_AT, 8), serial)}, **kw)
+
+
 def driver(data: dict) -> ModbusCNC:
+    data = {**IDENT, **data}
     sec = Section("t.toml", "machine.m", data)
     d = ModbusCNC("m", sec)
     sec.check_unused()
@@ -58,6 +71,15 @@ def tcp(port: int, **kw) -> dict:
     ({"registers": {"spindle_rmp_cmd": {"address": 0, "type": "float32", "writable": True}}},
      "[machine.m.registers.spindle_rmp_cmd] writable: no action writes 'spindle_rmp_cmd'; writable registers: "
      "spindle_rpm_cmd, offset_x_um, spindle_override_pct, heartbeat"),
+    # issue 35 case 3: a machine written to must say what it is before any write
+    ({"registers": REGS, "identity": {}},
+     "[machine.m] identity: m is written to (spindle_rpm): map the control's serial number"),
+    ({"registers": REGS, "identity": {"serial": {"address": 40, "words": 8}}},
+     "[machine.m.identity] serial: not an identification key; allowed: manufacturer, model, serial_number"),
+    ({"registers": REGS, "identity": {"model": {"address": 40, "words": 8}}},
+     "[machine.m.identity.model]: the peer's model is read, but [machine.m.identification] gives no model"),
+    ({"registers": REGS, "identity": {"serial_number": {"address": 2, "words": 8}}},
+     "[machine.m.identity.serial_number] address: overlaps register 'spindle_rpm' of the register map"),
 ])
 def test_config_errors_name_the_key(data, problem):
     data = {"host": "127.0.0.1", **data} if data.get("transport") != "rtu" else data
@@ -116,15 +138,20 @@ def test_tcp_fills_the_model_and_writes_only_declared_registers():
     mill = SimCycleMachine(MILL_PROGRAM)
     peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, mill.write)
     d = driver(tcp(port))
+    started = time.monotonic()        # before the connect: every read counted is after it
 
     async def check(d, events):
         await until(lambda: d.model.live("spindle_rpm") is not None and d.polls > 10, what="polls")
         snap = d.model.snapshot()
         assert snap["program"]["value"] == 2100 and snap["axes"]["x"]["stale"] is False
-        # the slow group is read about ten times less often than the fast one
+        # the slow group is read no more often than its period allows, and never more often than
+        # the fast one (each due at once in a poll: checked fast first). Not a ratio of the two:
+        # on a loaded machine a poll outlasting 50 ms reads the fast group once a poll, and the
+        # ratio fell below the bound (failed once on a fresh clone)
         await until(lambda: d.reads[0.5] >= 3, what="slow group reads")
-        ratio = d.reads[0.05] / d.reads[0.5]
-        assert 5 <= ratio <= 14, d.reads
+        slow, fast, elapsed = d.reads[0.5], d.reads[0.05], time.monotonic() - started
+        assert slow <= elapsed / 0.5 + 1 and fast <= elapsed / 0.05 + 1, (d.reads, elapsed)
+        assert fast >= slow, d.reads
         await d.execute(Command(machine="m", action="spindle_rpm", value=4200.0, reason="test", source="t"))
         await until(lambda: mill.rpm_override == 4200.0, what="write reached the controller")
         with pytest.raises(PermissionError, match="no writable register"):
@@ -183,7 +210,7 @@ def test_a_thread_being_cut_interlocks_every_command():
     for on in (1, -1, 0.1, 8):                # a PLC's TRUE as -1, a scaled bit, F2's byte with THRD
         d.values["threading"] = (on, time.time())
         assert f"is cutting a thread (threading = {on:g})" in d.interlock(speed)
-    assert "is cutting a thread" in d.interlock(dataclasses.replace(speed, release=True))
+    assert "is cutting a thread" in d.interlock(dataclasses.replace(speed, value=1000.0))   # a release too
     d.values["threading"] = (0, time.time())
     assert d.interlock(speed) is None
     # two polls and an answer's wait (0.05 s, 0.3 s here): older, a thread may have begun since
@@ -218,7 +245,9 @@ def test_simulated_controller_answers_as_a_real_one():
         writes.append((name, value))
 
     port = free_port()
-    peer = ModbusPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, on_write)
+    (at, words), = CELL_IDENTITY.values()
+    peer = SimPeer("127.0.0.1", port, CELL_MAP, N_CELL_REGISTERS, on_write,
+                   identity={"serial_number": ((at, words), SERIALS["mill"])})
     peer.block.update({"spindle_rpm": 1234.0, "program_number": 2100})
 
     async def main():
@@ -234,6 +263,10 @@ def test_simulated_controller_answers_as_a_real_one():
 
             regs = await read(0, N_CELL_REGISTERS)
             assert decode(regs[2:4], "float32") == 1234.0 and regs[15] == 2100
+            # its serial number, as a control serves it, and read-only
+            assert decode_ascii(regs[at:at + words]) == "SIM-MILL-0001"
+            rr = await client.write_registers(at, [0x4142], device_id=1)
+            assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_ADDRESS
             rr = await client.write_registers(2, encode(9.0, "float32"), device_id=1)
             assert rr.isError() and rr.exception_code == ExcCodes.ILLEGAL_ADDRESS
             rr = await client.write_registers(0, encode(9999.0, "float32"), device_id=1)
@@ -288,14 +321,18 @@ def test_machines_on_one_rs485_bus_share_the_port_and_take_turns(tmp_path):
 
     link = tmp_path / "ttyBUS"
     nm = NullModem(link)
-    blocks = {u: _Registers(CELL_MAP, N_CELL_REGISTERS, lambda n, v: None) for u in (1, 2)}
+    (at, words), = CELL_IDENTITY.values()
+    blocks = {u: _Registers(CELL_MAP, N_CELL_REGISTERS, lambda n, v: None,
+                            identity={"serial_number": ((at, words), f"GRINDER-{u}")}) for u in (1, 2)}
     blocks[1].update({"spindle_rpm": 1111.0})
     blocks[2].update({"spindle_rpm": 2222.0})
 
     def machine(name, unit, baudrate=115200):
         sec = Section("t.toml", f"machine.{name}", {"kind": "grinder", "transport": "rtu", "device": str(link),
                                                     "baudrate": baudrate, "unit": unit, "poll": "50ms",
-                                                    "timeout": "300ms", "registers": REGS})
+                                                    "timeout": "300ms", "registers": REGS,
+                                                    "identification": {"serial_number": f"GRINDER-{unit}"},
+                                                    "identity": {"serial_number": {"address": at, "words": words}}})
         d = ModbusCNC(name, sec)
         d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
         return d

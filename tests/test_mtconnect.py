@@ -201,3 +201,20 @@ def test_a_lathe_read_over_mtconnect_raises_chatter_alarms_and_flags_parts_live(
         assert events(d, "command_sent") == []
     finally:
         d.stop()
+
+
+def test_the_agents_device_description_identifies_the_machine():
+    """Issue 35 case 3: the device's Description in /probe is what the machine says it is; a
+    machine configured as another is refused at connect, naming both."""
+    from lathed.identity import NotTheMachine, judge
+
+    async def check(agent, d, events, seen):
+        await d.connect()
+        said = await d.identify()
+        assert said == {"manufacturer": "lathed simulator", "model": "MC4200-class lathe (simulated)",
+                        "serial_number": "SIM-LATHE-0001"}
+        assert judge("m", d.identification, said) is None
+        with pytest.raises(NotTheMachine, match="the peer says its serial_number is 'SIM-LATHE-0001', not "
+                                                "'SIM-LATHE-0002'"):
+            judge("m", {"serial_number": "SIM-LATHE-0002"}, said)
+    asyncio.run(_with_agent(check, identification={"serial_number": "SIM-LATHE-0001"}))

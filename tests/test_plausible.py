@@ -65,6 +65,25 @@ def test_after_a_long_gap_a_value_within_range_is_accepted():
     assert p.check("t_motor", "°C", 60.0, 600.0) is None            # 10 min later: plausible
 
 
+def test_after_a_reconnect_the_time_unwatched_vouches_for_nothing():
+    """Issue 35 case 1: the board's link dropped; after the reconnect any value the gap's
+    length allowed was taken (another board on the port, 10 °C colder). Now the first value
+    back must lie within tol of the last; a new level is taken once confirmed (a rebase)."""
+    p = Plausibility(confirm=3)
+    assert p.check("t_motor", "°C", 32.0, 0.0) is None
+    p.link_lost()
+    assert p.check("t_motor", "°C", 22.0, 35.0)[0] == "rate"          # 35 s later: was accepted
+    assert p.check("t_motor", "°C", 22.0, 41.0)[0] == "rate"
+    assert p.check("t_motor", "°C", 22.0, 47.0) is None              # three alike: a real level
+    assert p.rebased["t_motor"] == 1
+    assert p.check("t_motor", "°C", 22.1, 53.0) is None              # watched again: the rate holds
+    p.link_lost()
+    assert p.check("t_motor", "°C", 22.4, 600.0) is None             # within tol: taken at once
+    # a sensor forgotten (off its wire) and back is judged against its last value the same way
+    p.forget("t_motor")
+    assert p.check("t_motor", "°C", 40.0, 1200.0)[0] == "rate"
+
+
 def test_a_real_jump_is_confirmed_by_consistent_readings_a_spike_never():
     p = Plausibility(confirm=3)
     assert p.check("t", "°C", 20.0, 0.0) is None
@@ -113,6 +132,7 @@ def test_driver_reads_its_plausible_table():
 
 REGS = {"spindle_rpm_cmd": {"address": 0, "type": "float32", "writable": True},
         "spindle_rpm": {"address": 2, "type": "float32", "unit": "r/min"}}
+IDENT = {"identification": {"serial_number": "L-1"}, "identity": {"serial_number": {"address": 40, "words": 8}}}
 NAN32 = [0x7FC0, 0x0000]
 RPM_1000 = [0x447A, 0x0000]
 
@@ -134,7 +154,7 @@ class FakeClient:
 
 
 def test_modbus_float32_nan_reaches_neither_model_nor_guard_reference():
-    d = ModbusCNC("lathe", Section("t.toml", "machine.lathe", {"host": "h", "registers": REGS}))
+    d = ModbusCNC("lathe", Section("t.toml", "machine.lathe", {"host": "h", "registers": REGS, **IDENT}))
     d.ctx = ctx()
     d.model.link_up()
     d.client = FakeClient(RPM_1000 + RPM_1000)
@@ -166,7 +186,7 @@ class FakeStore:
     def __init__(self):
         self.records = []
 
-    def record_future(self, kind, source, payload):
+    def record_future(self, kind, source, payload, t=None):
         import concurrent.futures
         self.records.append((kind, source, payload))
         f = concurrent.futures.Future()

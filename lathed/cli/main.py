@@ -59,6 +59,9 @@ def cmd_status(args: argparse.Namespace) -> int:
           f"(name {d['name']}, pid {d['pid']})")
     if d.get("store"):
         print(_store_line(d["store"]))
+        kept = (d["store"].get("audit_reserve") or {}).get("kept_bytes")
+        if kept:        # commands whose records the store refused: kept until it takes them
+            print(f"audit reserve: {kept} bytes of command records kept, waiting for the store")
     dropped = (d.get("bus") or {}).get("dropped")
     if dropped:     # an analysis fell behind its samples and missed these
         print("bus: samples missed by a subscriber behind: "
@@ -70,6 +73,8 @@ def cmd_status(args: argparse.Namespace) -> int:
             continue
         rpm = "-" if m.get("spindle_rpm") is None else f"{m['spindle_rpm']:.0f} r/min"
         print(f"  {m['name']:<12} {m.get('kind') or '-':<10} {rpm:>12}  {m['detail']}")
+        if m.get("state") == "connected" and m.get("takes") and (m.get("identity") or "confirmed") != "confirmed":
+            print(f"    identity {m['identity']}: no command is sent to it")
         if m.get("heartbeat"):      # the count the control's PMC watches (a held override's dead-man)
             print(f"    heartbeat: count {m['heartbeat']['count']}, written every {m['heartbeat']['every_s']:g} s")
         _print_implausible(m)

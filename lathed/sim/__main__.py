@@ -41,7 +41,8 @@ from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, MAX_OUTAGE_S, par
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.mtconnect_agent import MTConnectAgent
-from lathed.sim.registers import CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
+from lathed.sim.registers import (CELL_IDENTITY, CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_IDENTITY, LATHE_MAP,
+                                  N_CELL_REGISTERS, N_REGISTERS, SERIALS)
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
 
@@ -55,19 +56,23 @@ class Simulator:
         self.args = args
         self.lathe = SimLathe(rate_hz=args.rate, time_scale=args.time_scale, seed=args.seed,
                               depth_override_mm=args.depth_mm, flank=args.flank, **args.lathe)
-        self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
+        self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write,
+                                 identity=_identity(LATHE_IDENTITY, args.lathe_serial))
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
-        self.agent = MTConnectAgent(args.host, args.mtconnect_port) if args.mtconnect_port else None
+        self.agent = (MTConnectAgent(args.host, args.mtconnect_port, serial_number=args.lathe_serial)
+                      if args.mtconnect_port else None)
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
         self.mill_peer = self.grinder_peer = self.robot_peer = None
         if args.mill_port:
             self.mill = SimCycleMachine(MILL_PROGRAM)
-            self.mill_peer = ModbusPeer(args.host, args.mill_port, CELL_MAP, N_CELL_REGISTERS, self.mill.write)
+            self.mill_peer = ModbusPeer(args.host, args.mill_port, CELL_MAP, N_CELL_REGISTERS, self.mill.write,
+                                        identity=_identity(CELL_IDENTITY, SERIALS["mill"]))
         if args.grinder_link:
             self.grinder = SimCycleMachine(GRINDER_PROGRAM)
             self.grinder_peer = ModbusPeer(args.host, 0, CELL_MAP, N_CELL_REGISTERS, self.grinder.write,
-                                           null_modem=NullModem(Path(args.grinder_link)))
+                                           null_modem=NullModem(Path(args.grinder_link)),
+                                           identity=_identity(CELL_IDENTITY, SERIALS["grinder"]))
         if args.robot_link:
             self.robot = SimRobotArm()
             self.robot_peer = CanPeer(Path(args.robot_link))
@@ -83,11 +88,10 @@ class Simulator:
         self._clock: deque[tuple[float, float]] = deque(maxlen=512)
         self._outages: set[asyncio.Task] = set()
         self._stop = asyncio.Event()
+        self.control: asyncio.Server | None = None
 
-    async def run(self) -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, self._stop.set)
+    async def _start_peers(self) -> str:
+        """Every peer listening; the Arduino's tty name."""
         tty = self.serial.open()
         await self.modbus.start()
         await self.vibration.start()
@@ -99,14 +103,25 @@ class Simulator:
                 await peer.start()
         if self.robot_peer is not None:
             self.robot_peer.open()
-        control = None
         if self.args.control:
             Path(self.args.control).parent.mkdir(parents=True, exist_ok=True)
             if os.path.exists(self.args.control):
                 os.unlink(self.args.control)
-            control = await asyncio.start_unix_server(self._control_client, path=self.args.control)
+            self.control = await asyncio.start_unix_server(self._control_client, path=self.args.control)
         self.modbus.block.update(self.lathe.registers())
         self._update_line(0.0)
+        return tty
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self._stop.set)
+        try:
+            tty = await self._start_peers()
+        except Exception as e:      # a port taken, a link not made: the daemon says why and stops
+            text = " ".join(str(e).split()) or type(e).__name__
+            print(f"FAILED {text}", flush=True)
+            raise SystemExit(1) from None
         ready = {"modbus": [self.args.host, self.args.modbus_port],
                  "vibration": [self.args.host, self.args.vibration_port],
                  "serial": self.args.serial_link, "tty": tty, "control": self.args.control}
@@ -149,8 +164,8 @@ class Simulator:
                 await peer.stop()
         if self.robot_peer is not None:
             self.robot_peer.close()
-        if control:
-            control.close()
+        if self.control is not None:
+            self.control.close()
 
     async def _vibration_loop(self) -> None:
         start = time.time()
@@ -352,6 +367,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--flank-indentation", type=float, default=FlankWear.k_sp_n_per_m3,
                    help="indentation coefficient under the land, N/m^3")
     p.add_argument("--exit-with-parent", action="store_true")
+    p.add_argument("--lathe-serial", default=SERIALS["lathe"],
+                   help="the serial number the lathe's control serves (its identity registers)")
     p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
     p.add_argument("--mtconnect-port", type=int, default=0,
                    help="serve the lathe as an MTConnect agent on this HTTP port too (0: none)")
@@ -391,6 +408,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         except ValueError as e:
             p.error(str(e))
     return args
+
+
+def _identity(where: dict[str, tuple[int, int]], serial: str) -> dict:
+    return {"serial_number": (where["serial_number"], serial)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -103,13 +103,23 @@ class SimulatorSettings:
         return a
 
 
+class SimulatorFailed(Exception):
+    """The configured simulator did not start; the message says why, in one line."""
+
+    def __init__(self, why: str, process: asyncio.subprocess.Process | None = None):
+        super().__init__(why)
+        self.process = process
+
+
 async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subprocess.Process | None:
+    """The simulator started and listening; None when the config says it runs elsewhere
+    (``spawn = false``). Raises SimulatorFailed with its reason: the daemon must not go on to
+    command whatever else answers at its addresses."""
     if not s.spawn:
         return None
     problems = s.link_problems()
     if problems:
-        log.error("simulator_refused", why="unsafe place for its tty links", problems=problems)
-        return None
+        raise SimulatorFailed(f"not started: unsafe place for its tty links: {'; '.join(problems)}")
     # its own session: a Ctrl-C on the terminal reaches lathed only, which stops its
     # drivers before the simulator (--exit-with-parent covers lathed dying)
     proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE, start_new_session=True)
@@ -118,8 +128,20 @@ async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subproce
     except asyncio.TimeoutError:
         line = b""
     if not line.startswith(b"READY "):
-        log.error("simulator_failed", returncode=proc.returncode, output=line.decode(errors="replace").strip())
-        return proc
+        text = line.decode(errors="replace").strip()
+        if text.startswith("FAILED "):
+            why = text[7:]
+        elif text:
+            why = f"said {text[:200]!r} instead of READY"
+        else:
+            try:
+                await asyncio.wait_for(proc.wait(), 1.0)
+            except asyncio.TimeoutError:
+                pass
+            why = (f"exited with code {proc.returncode} before it was ready" if proc.returncode is not None
+                   else f"not ready within {timeout:g} s")
+        await stop(proc)
+        raise SimulatorFailed(f"the simulator did not start: {why}", proc)
     log.info("simulator_ready", pid=proc.pid, **json.loads(line[6:]))
     asyncio.create_task(_drain(proc))
     return proc

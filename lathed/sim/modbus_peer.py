@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 from typing import Callable
 
 from pymodbus.client import AsyncModbusTcpClient
@@ -12,6 +13,7 @@ from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from lathed.modbus_identity import encode_ascii
 from lathed.sim.serial_peer import NullModem
 
 log = logging.getLogger("lathed.sim.modbus")
@@ -37,10 +39,14 @@ class _Registers:
     server's memory; writes to read-only addresses are refused and accepted
     writes pass to the machine, which may refuse the value."""
 
-    def __init__(self, regmap: dict, size: int, on_write: Callable[[str, float], None]):
+    def __init__(self, regmap: dict, size: int, on_write: Callable[[str, float], None],
+                 identity: dict[str, tuple[tuple[int, int], str]] | None = None):
         self.regmap = regmap
         self.on_write = on_write
         self.regs = [0] * size
+        # what the control says it is: key -> ((address, words), text), read-only
+        for (addr, words), text in (identity or {}).values():
+            self.regs[addr:addr + words] = encode_ascii(text, words)
         self._owner = {}
         for name, (addr, typ, writable, _unit) in regmap.items():
             for a in range(addr, addr + len(encode(0, typ))):
@@ -89,10 +95,11 @@ class _Registers:
 
 class ModbusPeer:
     def __init__(self, host: str, port: int, regmap: dict, size: int, on_write,
-                 null_modem: NullModem | None = None, baudrate: int = 115200):
+                 null_modem: NullModem | None = None, baudrate: int = 115200,
+                 identity: dict[str, tuple[tuple[int, int], str]] | None = None):
         self.host, self.port = host, port
         self.null_modem, self.baudrate = null_modem, baudrate
-        self.block = _Registers(regmap, size, on_write)
+        self.block = _Registers(regmap, size, on_write, identity)
         self.server: ModbusTcpServer | ModbusSerialServer | None = None
         self.up = False
 
@@ -103,7 +110,18 @@ class ModbusPeer:
                                              baudrate=self.baudrate)
         else:
             self.server = ModbusTcpServer(self.block.device(), address=(self.host, self.port))
-        await self.server.serve_forever(background=True)
+        try:
+            await self.server.serve_forever(background=True)
+        except RuntimeError:
+            # pymodbus logs the cause and raises a generic error: the daemon is to say why
+            if self.null_modem is None:
+                with socket.socket() as probe:
+                    try:
+                        probe.bind((self.host, self.port))
+                    except OSError as e:
+                        raise OSError(e.errno, f"cannot serve Modbus TCP on {self.host}:{self.port}: "
+                                               f"{e.strerror}") from None
+            raise
         self.up = True
 
     async def stop(self) -> None:

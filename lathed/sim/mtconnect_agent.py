@@ -49,8 +49,12 @@ def _now_iso(t: float) -> str:
 
 
 class MTConnectAgent:
-    def __init__(self, host: str, port: int, device: str = "SimLathe", items=None):
+    def __init__(self, host: str, port: int, device: str = "SimLathe", items=None,
+                 serial_number: str = "SIM-LATHE-0001"):
         self.host, self.port, self.device = host, port, device
+        # the device's Description, as a real agent's /probe gives it: what the daemon identifies it by
+        self.description = {"manufacturer": "lathed simulator", "model": "MC4200-class lathe (simulated)",
+                            "serialNumber": serial_number}
         self.items = items or LATHE_ITEMS
         self.instance_id = int(time.time())
         self._seq = itertools.count(1)
@@ -107,6 +111,7 @@ class MTConnectAgent:
                        f"</{c}></Components>" for c, d in comps.items())
         return (f'<?xml version="1.0" encoding="UTF-8"?><MTConnectDevices xmlns="{DEVICES_NS}">'
                 f'{self._header()}<Devices><Device id="d1" name="{self.device}" uuid="sim-lathe-1">'
+                f'<Description {" ".join(f"{k}={quoteattr(v)}" for k, v in self.description.items())}/>'
                 f"{body}</Device></Devices></MTConnectDevices>")
 
     def streams(self, observations) -> str:

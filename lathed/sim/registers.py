@@ -41,7 +41,11 @@ LATHE_MAP: dict[str, tuple[int, str, bool, str]] = {
     # likewise): no speed or offset may change in it
     "threading":             (35, "uint16", False, ""),
 }
-N_REGISTERS = 36
+# The control's serial number, ASCII, two characters a register (lathed.modbus_identity): the
+# driver reads it at every connect and the daemon commands the control only if it is the
+# serial_number of the machine's [identification].
+LATHE_IDENTITY = {"serial_number": (36, 8)}
+N_REGISTERS = 44
 HEARTBEAT_TIMEOUT_S = 1.5   # three of the driver's default 500 ms beats
 
 # The mill (Modbus TCP) and the grinder (Modbus RTU on a pseudo-terminal,
@@ -58,4 +62,7 @@ CELL_MAP: dict[str, tuple[int, str, bool, str]] = {
     "program_number":  (15, "uint16", False, ""),
     "alarm_code":      (16, "uint16", False, ""),
 }
-N_CELL_REGISTERS = 20
+CELL_IDENTITY = {"serial_number": (20, 8)}
+N_CELL_REGISTERS = 28
+# what each simulated control says it is
+SERIALS = {"lathe": "SIM-LATHE-0001", "mill": "SIM-MILL-0001", "grinder": "SIM-GRINDER-0001"}
