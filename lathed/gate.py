@@ -33,6 +33,9 @@ from lathed.lograte import Limited
 log = structlog.get_logger("lathed.gate")
 FD_RESERVE = 64        # descriptors kept for the rest of the process (the daemon link, files, logs)
 BACKLOG = 128          # the listen backlog, at most
+# asyncio accepts up to the backlog at each turn of its loop, and a descriptor an eviction
+# frees is closed a few turns later: this many backlogs of descriptors are kept free
+IN_FLIGHT = 4
 
 
 def _loopback(host: str | None) -> bool:
@@ -42,28 +45,31 @@ def _loopback(host: str | None) -> bool:
         return False
 
 
-def fit_to_fd_limit(wanted: int) -> tuple[int, int]:
-    """(connection cap, listen backlog) the file-descriptor limit allows. asyncio accepts up
-    to the backlog in one go, before an eviction frees a descriptor: that many are kept free
-    too, and the backlog is a fifth of the cap at most (a fresh client accepted in a burst
-    is read before the burst could evict it). The soft limit is raised toward the hard one
-    if it must; what does not fit is said, and the cap lowered."""
+def fit_to_fd_limit(wanted: int | None) -> tuple[int, int]:
+    """(connection cap, listen backlog) the file-descriptor limit allows; ``wanted`` None:
+    as many as it allows. Descriptors accepted but not yet admitted or closed are kept free
+    (IN_FLIGHT backlogs), and the backlog is a fifth of the cap at most (a fresh client
+    accepted in a burst is read before the burst could evict it).
+    For a cap that is asked for, the soft limit is raised toward the hard one if it must;
+    what does not fit is said, and the cap lowered."""
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    need = wanted + FD_RESERVE + min(BACKLOG, wanted // 5)
-    if soft != resource.RLIM_INFINITY and soft < need:
-        new = need if hard == resource.RLIM_INFINITY else min(need, hard)
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
-            soft = new
-        except (ValueError, OSError):
-            pass
-    if soft == resource.RLIM_INFINITY or soft >= need:
-        return wanted, min(BACKLOG, wanted // 5)
-    room = max(16, soft - FD_RESERVE)
-    backlog = max(4, min(BACKLOG, room // 6))
-    log.warning("connection_cap_lowered", wanted=wanted, cap=room - backlog, open_files_limit=soft,
-                why="the open-files limit (LimitNOFILE) leaves no room for more")
-    return room - backlog, backlog
+    if wanted is not None:
+        need = wanted + FD_RESERVE + IN_FLIGHT * min(BACKLOG, wanted // 5)
+        if soft != resource.RLIM_INFINITY and soft < need:
+            new = need if hard == resource.RLIM_INFINITY else min(need, hard)
+            try:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
+                soft = new
+            except (ValueError, OSError):
+                pass
+        if soft == resource.RLIM_INFINITY or soft >= need:
+            return wanted, min(BACKLOG, wanted // 5)
+    room = max(16, (1 << 16 if soft == resource.RLIM_INFINITY else soft) - FD_RESERVE)
+    backlog = max(4, min(BACKLOG, room // (5 + IN_FLIGHT)))
+    if wanted is not None:
+        log.warning("connection_cap_lowered", wanted=wanted, cap=room - IN_FLIGHT * backlog, open_files_limit=soft,
+                    why="the open-files limit (LimitNOFILE) leaves no room for more")
+    return room - IN_FLIGHT * backlog, backlog
 
 
 class Gated(asyncio.Protocol):
@@ -110,7 +116,7 @@ class Gated(asyncio.Protocol):
 class Gate:
     """The protocol factory to give ``loop.create_server``; ``factory`` makes the inner protocol."""
 
-    def __init__(self, factory: Callable[[], asyncio.Protocol] | None = None, max_connections: int = 1024,
+    def __init__(self, factory: Callable[[], asyncio.Protocol] | None = None, max_connections: int = 4000,
                  per_client: int = 64, idle_timeout: float = 10.0, name: str = "web",
                  clock: Callable[[], float] = time.monotonic):
         self.factory = factory

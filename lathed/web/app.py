@@ -70,11 +70,13 @@ class Settings:
         self.socket = Path(sock or sec.getstr("socket", "") or default_socket())
         self.rate_hz = sec.getfloat("rate_hz", 4.0, minval=0.5, maxval=20.0)   # the page draws 4 times a second
         self.allowed_hosts = sec.getlist("allowed_hosts", [])
-        self.max_connections = sec.getint("max_connections", 1024, minval=16, maxval=65536)
+        # default: as many as the open-files limit allows (the unit's LimitNOFILE): a crowd
+        # that fits is held, not churned, and churn is what locks a fresh client out
+        self.max_connections: int | None = sec.getint("max_connections", None, minval=16, maxval=1 << 20)
         self.max_per_client = sec.getint("max_connections_per_client", 64, minval=4, maxval=65536)
         self.idle_timeout = sec.getduration("idle_timeout", 10.0, minval=1.0, maxval=3600.0)
-        self.max_live_pages = sec.getint("max_live_pages", 200, minval=1, maxval=10000)
-        if self.max_live_pages >= self.max_connections:
+        self.max_live_pages = sec.getint("max_live_pages", 50, minval=1, maxval=10000)
+        if self.max_connections is not None and self.max_live_pages >= self.max_connections:
             raise sec.error("max_live_pages", f"{self.max_live_pages} leaves no connection for anything else: "
                                               f"it must be below max_connections ({self.max_connections})")
         sec.check_unused()
@@ -90,9 +92,8 @@ class App:
     def __init__(self, settings: Settings):
         self.s = settings
         self.link = BrowserLink(settings.socket, settings.rate_hz, settings.max_live_pages)
-        self.gate = Gate(max_connections=settings.max_connections, per_client=settings.max_per_client,
-                         idle_timeout=settings.idle_timeout)
-        self.backlog = 128
+        cap, self.backlog = fit_to_fd_limit(settings.max_connections)
+        self.gate = Gate(max_connections=cap, per_client=settings.max_per_client, idle_timeout=settings.idle_timeout)
         self.sessions = Sessions()
         self.logins = Logins()
         self.lim = Limited(log)
@@ -336,9 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"lathed-web: {e}", file=sys.stderr)
         return EX_CONFIG
-    settings.max_connections, backlog = fit_to_fd_limit(settings.max_connections)
     app = App(settings)
-    app.backlog = backlog
     host = f"[{settings.listen}]" if ":" in settings.listen else settings.listen
     print(f"lathed-web: the operator view is at http://{host}:{settings.port}/ "
           f"(daemon socket {settings.socket})", flush=True)
