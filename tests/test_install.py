@@ -66,6 +66,17 @@ def test_the_folder_refuses_its_folder_name(tmp_path):
                                          "as lathed_plugins")
 
 
+def test_the_install_lines_name_every_extra():
+    # issue 39: the install docs' line left out the mqtt extra
+    extras = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]) - {"test"}
+    line = next(ln for ln in (ROOT / "docs" / "installation.md").read_text().splitlines()
+                if ln.startswith("sudo make install"))
+    make = next(ln for ln in (ROOT / "Makefile").read_text().splitlines() if ln.startswith("EXTRAS ?="))
+    for where, text in (("docs/installation.md", line), ("Makefile", make)):
+        named = set(re.search(r"EXTRAS=([\w,]+)", text)[1].split(","))
+        assert named == extras, f"{where}: {text!r} names {sorted(named)}, the extras are {sorted(extras)}"
+
+
 # -- make install DESTDIR=<root> -------------------------------------------------------
 
 def _make(*args: str, timeout: float = 900) -> subprocess.CompletedProcess:
