@@ -634,8 +634,8 @@ def run(a) -> dict:
         proc = start(cfg, tmp)
         sock, sim_sock = tmp / "run" / "lathed.sock", tmp / "run" / "sim.sock"
         web_port = free_port()
-        web = start_web(tmp, sock, web_port)
-        webw = WebWatch(web_port, web.pid, tmp / "lathed-web.log")
+        web = start_web(tmp, sock, web_port) if a.web else None
+        webw = WebWatch(web_port, web.pid if web else 0, tmp / "lathed-web.log")
         sampler = Sampler(sock, sim_sock, proc.pid).start()
         fz = Fuzzer(sock, random.Random(rng.random()), heavy_every=max(30.0, a.duration / 5))
         slow = SlowClients(sock)
@@ -647,7 +647,8 @@ def run(a) -> dict:
             ser.hostile.set()
             fz.start()
             slow.start()
-            webw.start_flood(tmp)
+            if web is not None:
+                webw.start_flood(tmp)
             deadline = time.monotonic() + a.duration
             while time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(min(1.0, max(0.0, deadline - time.monotonic())))
@@ -673,8 +674,9 @@ def run(a) -> dict:
             sampler.join()
             if "web" not in res:
                 res["web"] = webw.end_flood()
-            web.terminate()
-            web.wait(15)
+            if web is not None:
+                web.terminate()
+                web.wait(15)
             res["daemon_stop"] = stop_daemon(proc, tmp)
             vib.join()
             ser.join()
@@ -855,6 +857,8 @@ def main() -> int:
     ap.add_argument("--after", type=float, default=60.0, help=f"seconds after it (>= {RSS_SETTLE_S:g})")
     ap.add_argument("--seed", type=int, default=18)
     ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--no-web", dest="web", action="store_false",
+                    help="without lathed-web and its floods (a baseline for the daemon's figures)")
     a = ap.parse_args()
     a.after = max(a.after, RSS_SETTLE_S)
     r = run(a)

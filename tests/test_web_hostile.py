@@ -120,6 +120,13 @@ def test_each_login_has_its_own_token():
     assert s.check(a, "local", s.token(a)) and not s.check(b, "local", s.token(a))
     assert not s.check(a, "olga", s.token(a))          # another user's session
     assert not s.check(None, "local", s.token(a)) and not s.check("forged", "local", s.token(a))
+    t = [1e9]
+    s = Sessions(clock=lambda: t[0])
+    a = s.new("olga")
+    forged = a.rsplit(".", 1)[0] + "." + "0" * 32
+    assert s.get(a, "olga") == a and s.get(forged, "olga") is None and s.get(a, "ivan") is None
+    t[0] += 24 * 3600 + 1                                  # a day on: a new login is needed
+    assert s.get(a, "olga") is None and not s.check(a, "olga", s.token(a))
 
 
 def test_a_page_of_another_name_gets_no_token_and_no_action(web_factory):

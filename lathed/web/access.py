@@ -7,6 +7,7 @@
   Host names it: never compared with a Host an attacker chose.
 * ``Sessions``: each login (a page load without a live session cookie) gets a
   session and a CSRF token of its own; an action needs both, for the same user.
+  Sessions are signed cookies, not a table a flood could fill.
 * ``Logins``: failed passwords back off per client address and per account,
   and are logged (rate-limited, with counts).
 
@@ -26,8 +27,7 @@ from typing import Callable
 from urllib.parse import urlsplit
 
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
-SESSIONS_KEPT = 4096          # live sessions; the least recently used goes first
-SESSION_IDLE_S = 12 * 3600.0  # a session unused this long is gone (the next page load makes another)
+SESSION_S = 24 * 3600         # a session's life; the next page load after it makes another
 COOKIE = "lathed_session"
 BACKOFF_FIRST_S = 5.0         # the wait after the free tries; each further failure doubles it
 TRUSTED_S = 24 * 3600.0       # an address that logged in to an account within this is spared its back-off
@@ -82,46 +82,44 @@ def same_origin(origin: str, host: str, secure: bool) -> bool:
             and (o_port or default) == (h_port or (443 if secure else 80)))
 
 
-@dataclass
-class Session:
-    user: str
-    last_t: float
-
-
 class Sessions:
-    """Session id (in an HttpOnly, SameSite=Strict cookie) -> user; the CSRF token is an HMAC of the id."""
+    """A session is a signed cookie value, ``issued.random.signature`` (the signature over the
+    user, the time and the random part), so no table is kept that a flood of page loads could
+    fill or evict; the CSRF token is an HMAC of the whole value. A session lasts SESSION_S."""
 
     def __init__(self, clock: Callable[[], float] = time.time):
         self.secret = secrets.token_bytes(32)
         self.clock = clock
-        self._s: OrderedDict[str, Session] = OrderedDict()
+        self.issued = 0
+
+    def _sign(self, user: str, body: str) -> str:
+        return hmac.new(self.secret, f"{user}\0{body}".encode(), hashlib.sha256).hexdigest()[:32]
 
     def token(self, sid: str) -> str:
-        return hmac.new(self.secret, sid.encode(), hashlib.sha256).hexdigest()
+        return hmac.new(self.secret, b"csrf\0" + sid.encode(), hashlib.sha256).hexdigest()
 
     def get(self, sid: str | None, user: str) -> str | None:
-        """The live session ``sid`` of ``user`` (touched), or None."""
-        s = self._s.get(sid) if sid else None
-        if s is None or s.user != user or self.clock() - s.last_t > SESSION_IDLE_S:
+        """``sid`` if it is a live session of ``user`` made here, else None."""
+        if not sid or sid.count(".") != 2:
             return None
-        s.last_t = self.clock()
-        self._s.move_to_end(sid)
-        return sid
+        issued, rand, sig = sid.split(".")
+        if not hmac.compare_digest(sig, self._sign(user, f"{issued}.{rand}")):
+            return None
+        try:
+            age = self.clock() - int(issued)
+        except ValueError:
+            return None
+        return sid if 0 <= age <= SESSION_S else None
 
     def new(self, user: str) -> str:
-        sid = secrets.token_urlsafe(32)
-        self._s[sid] = Session(user, self.clock())
-        while len(self._s) > SESSIONS_KEPT:
-            self._s.popitem(last=False)
-        return sid
+        self.issued += 1
+        body = f"{int(self.clock())}.{secrets.token_urlsafe(16)}"
+        return f"{body}.{self._sign(user, body)}"
 
     def check(self, sid: str | None, user: str, token: str) -> bool:
         """An action's cookie and X-CSRF-Token: the same user's live session and its token."""
         live = self.get(sid, user)
         return live is not None and hmac.compare_digest(token, self.token(live))
-
-    def __len__(self) -> int:
-        return len(self._s)
 
 
 @dataclass

@@ -190,7 +190,7 @@ class App:
                                   "live": self.link.counts(), "connections": self.gate.counts(),
                                   "logins": {"failed": self.logins.failed_total,
                                              "refused": self.logins.refused_total},
-                                  "sessions": len(self.sessions)})
+                                  "sessions_issued": self.sessions.issued})
 
     async def api_get(self, request: web.Request) -> web.Response:
         what = request.match_info["what"]
