@@ -73,43 +73,49 @@ def fit_to_fd_limit(wanted: int | None) -> tuple[int, int]:
 
 
 class Gated(asyncio.Protocol):
-    """One connection: the inner protocol (aiohttp's) behind the gate's bookkeeping."""
+    """One connection: the inner protocol (aiohttp's) behind the gate's bookkeeping. The inner
+    one is made at the first byte: a connection that never sends one costs only this."""
 
-    def __init__(self, gate: "Gate", inner: asyncio.Protocol):
-        self.gate, self.inner = gate, inner
+    def __init__(self, gate: "Gate"):
+        self.gate = gate
+        self.inner: asyncio.Protocol | None = None
         self.transport: asyncio.Transport | None = None
         self.client: str | None = None
         self.busy = 0
-        self.admitted = False    # refused ones never reach the inner protocol
+        self.admitted = False    # refused ones never reach an inner protocol
 
     # what asyncio calls, handed on
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport   # type: ignore[assignment]
         peer = transport.get_extra_info("peername")
         self.client = peer[0] if isinstance(peer, tuple) else None
-        if self.gate.admit(self):
-            self.admitted = True
-            self.inner.connection_made(transport)
+        self.admitted = self.gate.admit(self)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.gate.forget(self)
-        if self.admitted:
-            self.admitted = False
-            self.inner.connection_lost(exc)
+        self.admitted = False
+        if self.inner is not None:
+            inner, self.inner = self.inner, None
+            inner.connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
-        if self.admitted:
-            self.inner.data_received(data)   # type: ignore[attr-defined]
+        if not self.admitted:
+            return
+        if self.inner is None:
+            assert self.gate.factory is not None, "Gate.factory is set before serving"
+            self.inner = self.gate.factory()
+            self.inner.connection_made(self.transport)
+        self.inner.data_received(data)   # type: ignore[attr-defined]
 
     def eof_received(self) -> bool | None:
-        return self.inner.eof_received() if self.admitted else None   # type: ignore[attr-defined]
+        return self.inner.eof_received() if self.inner is not None else None   # type: ignore[attr-defined]
 
     def pause_writing(self) -> None:
-        if self.admitted:
+        if self.inner is not None:
             self.inner.pause_writing()
 
     def resume_writing(self) -> None:
-        if self.admitted:
+        if self.inner is not None:
             self.inner.resume_writing()
 
 
@@ -132,8 +138,7 @@ class Gate:
         self._sweeper: asyncio.TimerHandle | None = None
 
     def __call__(self) -> Gated:
-        assert self.factory is not None, "Gate.factory is set before serving"
-        return Gated(self, self.factory())
+        return Gated(self)
 
     # -- admission --------------------------------------------------------------------
     def admit(self, c: Gated) -> bool:
