@@ -164,11 +164,11 @@ def test_every_panel_shows_live_data(stack, browser, shots):
         if "needs at least" in page.inner_text("#thermal-confirm"):   # the browser logs the refused request
             errors.remove("Failed to load resource: the server responded with a status of 400 (Bad Request)")
         # one Taguchi recommendation per tool holder and material tried, the one in use marked
+        from lathed.client import call     # what `lathectl experiment add` sends, 18 times in one process
         for tool, material in (("T0101", "C45"), ("T0202", "Al6061")):
             for run, trial in enumerate(phadke_trials("ra_um"), 1):
-                levels = ",".join(f"{f}={lv}" for f, lv in trial["levels"].items())
-                d.ctl("experiment", "add", "--tool", tool, "--material", material, "--run", str(run),
-                      "--levels", levels, "--ra", repr(trial["ra_um"]))
+                call("experiment_add", {"tool": tool, "material": material, "run": run, "levels": trial["levels"],
+                                        "ra_um": trial["ra_um"]}, sock_path=d.socket)
         page.reload()
         page.wait_for_selector("#recommend tbody tr:has-text('T0202 / Al6061')", timeout=15_000)
         assert "(in use)" in page.inner_text("#recommend tbody tr.current")

@@ -6,7 +6,7 @@ const $ = (sel) => document.querySelector(sel);
 const S = { hist: {}, units: {}, latest: {}, status: null, events: [], vib: {}, views: {}, connected: false,
             error: null, lastFrame: 0, parts: [] };
 const HISTORY = 600;
-let dirty = true, drawQueued = false, recordsDirty = true;
+let dirty = true, drawQueued = false, recordsDirty = true, partsDirty = true;
 
 // -- data --------------------------------------------------------------------------------
 function addSample(key, t, v, unit) {
@@ -33,7 +33,7 @@ function onInit(m) {
   S.hist = {}; S.latest = {}; S.units = m.units || {};
   for (const [k, [ts, vs]] of Object.entries(m.history || {})) ts.forEach((t, i) => addSample(k, t, vs[i]));
   S.status = m.status; S.events = m.events || []; S.vib = unpackAll(m.vibration); S.views = unpackAll(m.views);
-  recordsDirty = true;
+  recordsDirty = true; eventsShown = { filter: null, last: -1 };
   setLink(m.connected, m.error);
 }
 function onFrame(m) {
@@ -88,7 +88,9 @@ function connect() {
 const fmt = (v, d = 1) => v === undefined || v === null ? "-" : (typeof v === "number" ? v.toFixed(d) : String(v));
 const analyzer = (plugin) => (S.status && S.status.analyzers || []).find((a) => a.plugin === plugin);
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]);
-const hhmmss = (t) => new Date(t * 1000).toLocaleTimeString([], { hour12: false });
+// one formatter for all: toLocaleTimeString makes a new one per call (a tenth of a millisecond each)
+const TIME = new Intl.DateTimeFormat([], { hour: "2-digit", minute: "2-digit", second: "2-digit", hour12: false });
+const hhmmss = (t) => TIME.format(t * 1000);
 function note(sel, text, err) { const el = $(sel); el.textContent = text; el.title = text; el.classList.toggle("err", !!err); }
 // A confirmation or a refusal of what the operator did: stays until read (the OK button), never
 // overwritten by the next redraw
@@ -152,7 +154,7 @@ function chart(id, series, opts = {}) {
     ...chartSize(el, null), legend: { show: true, live: true },
     scales: { x: { time }, ...(opts.scales || {}) },
     // a time axis in hh:mm:ss only: uPlot's date line under it costs a chart's height
-    axes: [{ ...axis, ...(time ? { values: (u, ts) => ts.map((t) => hhmmss(t)) } : {}), ...(opts.xaxis || {}) },
+    axes: [{ ...axis, ...(time ? { values: (u, ts) => ts.map((t) => hhmmss(t)), space: 75 } : {}), ...(opts.xaxis || {}) },
            { ...axis, size: 50, ...(opts.yaxis || {}) }],
     series: [{ label: opts.xlabel || "time",
                value: (u, v) => (v === null || v === undefined ? "-" : time ? hhmmss(v) : num(v, 0) + (opts.xunit ? " " + opts.xunit : "")) },
@@ -324,11 +326,26 @@ function shownEvents() {
   const f = $("#filter").value.trim().toLowerCase();
   return S.events.filter((e) => !f || (e.kind + " " + e.source + " " + JSON.stringify(e.payload)).toLowerCase().includes(f));
 }
+const EVENT_ROWS = 150;
+let eventsShown = { filter: null, last: -1 };
+const eventRow = (e) => { const d = esc(detail(e.payload));
+  return `<tr class="${/alarm|fault|refused|abnormal|unobserved/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${d}">${d}</td></tr>`; };
 function drawRecords() {
-  if (!recordsDirty) return;   // rebuilt only when an event, a part or the filter changes
-  recordsDirty = false;
-  const ev = shownEvents().slice(-150).reverse();
-  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal|unobserved/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
+  if (recordsDirty) {
+    // new events go on top of the rows there; all are rebuilt only when the filter changes (or after a reconnect)
+    recordsDirty = false;
+    const f = $("#filter").value, tb = $("#events tbody");
+    const ev = shownEvents();
+    const fresh = eventsShown.filter === f ? ev.filter((e) => e.id > eventsShown.last) : null;
+    if (fresh === null || fresh.length >= EVENT_ROWS) tb.innerHTML = ev.slice(-EVENT_ROWS).reverse().map(eventRow).join("");
+    else if (fresh.length) {
+      tb.insertAdjacentHTML("afterbegin", fresh.reverse().map(eventRow).join(""));
+      while (tb.rows.length > EVENT_ROWS) tb.deleteRow(-1);
+    }
+    eventsShown = { filter: f, last: ev.length ? ev[ev.length - 1].id : -1 };
+  }
+  if (!partsDirty) return;      // rebuilt only when the parts or their filter change
+  partsDirty = false;
   const only = $("#abnormal-only").checked;
   $("#parts tbody").innerHTML = S.parts.filter((p) => !only || p.abnormal).slice().reverse().map((p) =>
     `<tr class="${p.abnormal ? "abnormal" : ""}"><td>${p.id} <small>#${fmt(p.part_no, 0)}</small></td><td>${p.end_t ? hhmmss(p.end_t) : "-"}</td>
@@ -346,7 +363,7 @@ async function refreshParts() {
   try {
     const r = await fetch("/api/parts?abnormal=" + ($("#abnormal-only").checked ? 1 : 0));
     const j = await r.json();
-    if (r.ok && !j.error) { S.parts = j.result; dirty = recordsDirty = true; } else confirmed("#records-confirm", "parts: " + j.error, true);
+    if (r.ok && !j.error) { S.parts = j.result; dirty = partsDirty = true; } else confirmed("#records-confirm", "parts: " + j.error, true);
   } finally { partsBusy = false; }
 }
 async function refreshRecommend() {
