@@ -290,3 +290,53 @@ def test_guessing_passwords_backs_off_and_is_logged(web_factory):
     assert len(failed) < 7                                                     # rate-limited, with counts
     assert any(f["client"] == "127.0.0.4" and f["known_user"] is False for f in failed)
     assert w.health(headers=_basic("olga", "olga-pw"))["logins"]["failed"] == 7
+
+
+class _Transport:
+    def __init__(self, peer: str):
+        self.peer, self.sent, self.closed = peer, b"", None
+
+    def get_extra_info(self, name):
+        return (self.peer, 40000) if name == "peername" else None
+
+    def write(self, data):
+        self.sent += data
+
+    def close(self):
+        self.closed = "close"
+
+    def abort(self):
+        self.closed = "abort"
+
+
+def test_the_gate_evicts_the_longest_waiting_never_a_request_in_hand():
+    from lathed.gate import Gate
+    t = [0.0]
+    g = Gate(factory=None, max_connections=3, per_client=2, idle_timeout=10.0, clock=lambda: t[0])
+
+    def connect(peer):
+        c = g()
+        tr = _Transport(peer)
+        c.connection_made(tr)
+        t[0] += 1
+        return c, tr
+    (a, ta), (b, tb), (c, tc) = connect("127.0.0.1"), connect("127.0.0.1"), connect("127.0.0.1")
+    g.busy(ta)                                   # a has a request in hand (a live page)
+    d, td = connect("127.0.0.1")                 # over the cap: b, the longest waiting, makes room
+    assert tb.closed == "abort" and ta.closed is None and d.admitted and g.counts()["evicted"] == 1
+    g.busy(tc)
+    g.busy(td)
+    e, te = connect("127.0.0.1")                 # every one busy: the newcomer is refused, saying why
+    assert not e.admitted and te.closed == "close" and te.sent.startswith(b"HTTP/1.1 503")
+    assert b"too many connections (3 at once, all busy)" in te.sent
+    # one remote address: its own oldest waiting connection makes room, then it is refused
+    g2 = Gate(factory=None, max_connections=100, per_client=2, idle_timeout=10.0, clock=lambda: t[0])
+    g = g2
+    (r1, tr1), (r2, tr2) = connect("10.9.9.9"), connect("10.9.9.9")
+    r3, tr3 = connect("10.9.9.9")
+    assert tr1.closed == "abort" and r3.admitted
+    g.busy(tr2)
+    g.busy(tr3)
+    r4, tr4 = connect("10.9.9.9")
+    assert not r4.admitted and b"too many connections from 10.9.9.9 (2 at once)" in tr4.sent
+    assert connect("10.9.9.8")[0].admitted      # another address is not held back
