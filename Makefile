@@ -77,7 +77,7 @@ bench-plant: bench-plant-mqtt bench-plant-opcua
 # rewritten to the final ones (scripts' #! lines, bytecode's file names).
 PREFIX ?= /usr
 DESTDIR ?=
-EXTRAS ?=                       # e.g. EXTRAS=postgres,plots,opcua (opcua: for lathed-opcua)
+EXTRAS ?=                       # e.g. EXTRAS=postgres,plots,opcua,mqtt,recordings (opcua: for lathed-opcua)
 LIBDIR = $(PREFIX)/lib/lathed
 BINDIR = $(PREFIX)/bin
 DOCDIR = $(PREFIX)/share/doc/lathed
@@ -88,6 +88,9 @@ CONFDIR ?= /etc/lathed
 PROGRAMS := lathed lathectl lathed-web lathed-opcua lathed-sim
 UNITS := lathed.service lathed-web.service lathed-opcua.service
 STAGE = $(DESTDIR)$(LIBDIR)
+# etc/ as git tracks it (a file left there untracked is not shipped); all of it outside a checkout
+ETC_FILES := $(shell if git -C . rev-parse --is-inside-work-tree >/dev/null 2>&1; then git -C . ls-files etc; \
+	else find etc -type f; fi)
 
 install: install-venv install-config
 	install -d $(DESTDIR)$(BINDIR) $(DESTDIR)$(UNITDIR) $(DESTDIR)$(SYSUSERSDIR) $(DESTDIR)$(TMPFILESDIR) \
@@ -100,7 +103,7 @@ install: install-venv install-config
 	install -m 0644 README.md $(DESTDIR)$(DOCDIR)/
 	install -d $(DESTDIR)$(DOCDIR)/docs && install -m 0644 docs/*.md $(DESTDIR)$(DOCDIR)/docs/
 # this version's defaults, to compare with an edited /etc/lathed after an upgrade
-	cp -r etc/. $(DESTDIR)$(DOCDIR)/examples/
+	for f in $(ETC_FILES); do install -D -m 0644 $$f $(DESTDIR)$(DOCDIR)/examples/$${f#etc/}; done
 	@if [ -z "$(DESTDIR)" ]; then \
 		systemd-sysusers $(SYSUSERSDIR)/lathed.conf && systemd-tmpfiles --create $(TMPFILESDIR)/lathed.conf; \
 		if [ -d /run/systemd/system ]; then systemctl daemon-reload; fi; \
@@ -120,6 +123,8 @@ install-venv:
 		"$$(echo "$$tmp"/dist/lathed-*.whl)$(if $(strip $(EXTRAS)),[$(strip $(EXTRAS))])"
 	@if [ -n "$(DESTDIR)" ]; then grep -rlIF -- '$(STAGE)' $(STAGE) | xargs -r sed -i 's|$(STAGE)|$(LIBDIR)|g'; fi
 	$(STAGE)/bin/python -m compileall -q -f $(if $(DESTDIR),-s '$(DESTDIR)' -p /) $(STAGE)/lib
+# how a missing extra is added to this venv (lathed/extras.py says it)
+	echo "prefix=$(PREFIX)" > $(STAGE)/lathed-install
 
 # Never overwrites a config that is there: an edited one stays as it is.
 install-config:
@@ -127,7 +132,8 @@ install-config:
 	for f in lathed.toml lathed-web.toml lathed-opcua.toml; do [ -e $(DESTDIR)$(CONFDIR)/$$f ] || \
 		install -m 0640 etc/$$f $(DESTDIR)$(CONFDIR)/$$f; done
 	[ -e $(DESTDIR)$(CONFDIR)/robot_arm.dbc ] || install -m 0644 etc/robot_arm.dbc $(DESTDIR)$(CONFDIR)/
-	[ -e $(DESTDIR)$(CONFDIR)/plugins.d ] || cp -r etc/plugins.d $(DESTDIR)$(CONFDIR)/
+	[ -e $(DESTDIR)$(CONFDIR)/plugins.d ] || for f in $(filter etc/plugins.d/%,$(ETC_FILES)); do \
+		install -D -m 0644 $$f $(DESTDIR)$(CONFDIR)/$${f#etc/}; done
 
 # What install put, but the config, the records (/var/lib/lathed) and the users.
 uninstall:

@@ -30,6 +30,10 @@ sockets, bounded and stopping by itself:
             every event ``events`` reported, and the spindle writes the
             simulated lathe received are matched by ``command_sent`` records
 
+  web       lathed-web beside the daemon, as its unit runs it, under slow-header
+            clients, idle TCP connections and a crowd of live pages (bench/hostile_web.py);
+            a fresh client asks for its page and its live stream every second
+
 Event-loop lag is the daemon's own (``status`` -> daemon.loop_lag_ms,
 lathed/looplag.py), sampled through ordinary connections with a timeout; a
 status call that fails is counted. RSS from /proc/PID/status.
@@ -57,8 +61,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_daemon import config, rss_mb  # noqa: E402
+from bench_daemon import config, free_port, rss_mb  # noqa: E402
 from bench_loop import DEPTH_MM, start  # noqa: E402
+from hostile_web import WebWatch, start_web, web_report  # noqa: E402
 
 from lathed.client import call  # noqa: E402
 from lathed.wire import VIB_HEADER, VIB_MAGIC, VIB_VERSION, format_temperature_line, pack_vibration  # noqa: E402
@@ -439,6 +444,7 @@ class Sampler(Stopper):
         self.rss: list[tuple[float, float]] = []
         self.offsets: list[tuple[float, float]] = []                     # (t, offset_x_um the lathe holds)
         self.events_failed = 0
+        self.status_s: list[tuple[float, float]] = []                    # (t, seconds a fresh status call took)
         self._since = 0
 
     def run(self) -> None:
@@ -455,7 +461,9 @@ class Sampler(Stopper):
     def poll(self) -> None:
         t = time.time()
         try:
-            self.status.append((t, call("status", {}, sock_path=self.sock, timeout=5.0), None))
+            st = call("status", {}, sock_path=self.sock, timeout=5.0)
+            self.status_s.append((t, time.time() - t))
+            self.status.append((t, st, None))
         except Exception as e:
             self.status.append((t, None, f"{type(e).__name__}: {e}"))
         try:
@@ -501,8 +509,8 @@ def lag_from_histograms(first: dict | None, last: dict | None) -> dict | None:
     return {"n": n, "p50_le": upper(50), "p99_le": upper(99), "above_bar": above}
 
 
-COUNTERS = {"chatter_alarms": ("chatter", "alarms"), "suppression_actions": ("suppress", "actions"),
-            "thermal_writes": ("thermal", "writes")}
+COUNTERS = {"chatter_alarms": ("chatter", "alarms"), "chatter_windows": ("chatter", "windows"),
+            "suppression_actions": ("suppress", "actions"), "thermal_writes": ("thermal", "writes")}
 
 
 def counters(sampler: Sampler, t: float) -> dict:
@@ -513,6 +521,37 @@ def counters(sampler: Sampler, t: float) -> dict:
         return {}
     ans = {an["name"]: an for an in upto[-1]["analyzers"]}
     return {k: ans[name][field] for k, (name, field) in COUNTERS.items() if field in ans.get(name, {})}
+
+
+def cut_counts(cuts: list[dict]) -> dict:
+    """The lathe's cut records of a phase: how each ended, and whether an alarm in it was answered."""
+    chattered = [c for c in cuts if c.get("alarms")]
+    return {"cuts": len(cuts), "cuts_stable": sum(c.get("outcome") == "stable" for c in cuts),
+            "cuts_chattered": len(chattered), "cuts_cured": sum(bool(c.get("cured")) for c in chattered),
+            "cuts_alarm_unanswered": sum(not any(a.get("sent") for a in c.get("actions") or []) for c in chattered)}
+
+
+def loops_acting(loops: dict) -> tuple[bool, str]:
+    """Whether the chatter and thermal loops still act during and after the load. Remembered
+    cures mean a healthy run may see no chatter at all (issue 35 case 12), so alarms are not
+    the measure: the detector must still judge windows, suppression must still move the
+    lathe's spindle (the lathe received the writes), every cut must end (recorded), an alarm
+    in a cut must be answered by a sent action, and the thermal loop must still write offsets
+    that the lathe received."""
+    dur, aft = loops["during"], loops["after"]
+    n = lambda v, k: v.get(k) or 0  # noqa: E731
+    chatter = all(n(v, "chatter_windows") > 0 and n(v, "suppression_actions") > 0 and v["speed_writes_received"] > 0
+                  and n(v, "cuts") > 0 and n(v, "cuts_alarm_unanswered") == 0 for v in (dur, aft))
+    thermal = n(dur, "thermal_writes") + n(aft, "thermal_writes") > 0 \
+        and dur["offset_changes_received"] + aft["offset_changes_received"] > 0
+    detail = "; ".join(
+        f"{ph}: {_f(v.get('chatter_windows'))} windows judged, {_f(v.get('suppression_actions'))} suppressions "
+        f"({v['speed_writes_received']} speed writes received), {v.get('cuts', 0)} cuts ({v.get('cuts_stable', 0)} "
+        f"stable, {v.get('cuts_chattered', 0)} chattered of which {v.get('cuts_cured', 0)} cured, "
+        f"{v.get('cuts_alarm_unanswered', 0)} alarms unanswered), {_f(v.get('chatter_alarms'))} alarms, "
+        f"{_f(v.get('thermal_writes'))} thermal writes ({v['offset_changes_received']} offset changes received)"
+        for ph, v in (("during", dur), ("after", aft)))
+    return chatter and thermal, detail
 
 
 def in_db(db: Path, fz: Fuzzer, sampler: Sampler) -> dict:
@@ -594,6 +633,9 @@ def run(a) -> dict:
         ser.start()
         proc = start(cfg, tmp)
         sock, sim_sock = tmp / "run" / "lathed.sock", tmp / "run" / "sim.sock"
+        web_port = free_port()
+        web = start_web(tmp, sock, web_port) if a.web else None
+        webw = WebWatch(web_port, web.pid if web else 0, tmp / "lathed-web.log")
         sampler = Sampler(sock, sim_sock, proc.pid).start()
         fz = Fuzzer(sock, random.Random(rng.random()), heavy_every=max(30.0, a.duration / 5))
         slow = SlowClients(sock)
@@ -605,9 +647,12 @@ def run(a) -> dict:
             ser.hostile.set()
             fz.start()
             slow.start()
+            if web is not None:
+                webw.start_flood(tmp)
             deadline = time.monotonic() + a.duration
             while time.monotonic() < deadline and proc.poll() is None:
                 time.sleep(min(1.0, max(0.0, deadline - time.monotonic())))
+            res["web"] = webw.end_flood()
             slow.join()
             fz.join()
             vib.hostile.clear()
@@ -627,6 +672,11 @@ def run(a) -> dict:
             slow.join()
             fz.join()
             sampler.join()
+            if "web" not in res:
+                res["web"] = webw.end_flood()
+            if web is not None:
+                web.terminate()
+                web.wait(15)
             res["daemon_stop"] = stop_daemon(proc, tmp)
             vib.join()
             ser.join()
@@ -639,7 +689,9 @@ def run(a) -> dict:
     # -- figures ---------------------------------------------------------------------
     ok_during = [(t, s) for t, s, e in sampler.status if s is not None and t_load <= t <= t_end]
     fail_during = [e for t, s, e in sampler.status if s is None and t_load <= t <= t_end]
+    took = [d for t, d in sampler.status_s if t_load <= t <= t_end]
     res["status_calls"] = {"during_ok": len(ok_during), "during_failed": len(fail_during),
+                           "during_max_s": max(took, default=None), "during_over_2s": sum(d > 2.0 for d in took),
                            "failures": sorted(set(fail_during))[:5],
                            "all_failed": sum(s is None for _, s, _ in sampler.status)}
     lags = [s["daemon"].get("loop_lag_ms") for _, s in ok_during if s["daemon"].get("loop_lag_ms")]
@@ -677,8 +729,13 @@ def run(a) -> dict:
                                                 for e in ev),
                     "suppression_action_events": sum(e["kind"] == "suppression_action" for e in ev),
                     "compensation_events": sum(e["kind"] == "compensation" and e["source"] == "thermal"
-                                               for e in ev)}
+                                               for e in ev),
+                    **cut_counts([e["payload"] for e in ev if e["kind"] == "cut"
+                                  and e["payload"].get("machine") == "lathe"])}
     res["loops"] = acts
+    drops = [s["daemon"]["control"].get("dropped", 0) for t, s, _ in sampler.status
+             if s is not None and t_load - STATUS_EVERY_S * 2 <= t <= t_end + STATUS_EVERY_S * 2]
+    res["web_daemon_dropped"] = (drops[-1] - drops[0]) if drops else None
     peers = {}
     if final is not None:
         for s in final.get("sensors", []):
@@ -764,6 +821,9 @@ def report(r: dict) -> None:
     print(f"| heavy requests | {'; '.join(r['fuzz_heavy']) or '-'} | |")
     print(f"| slow clients | {json.dumps(r['slow_clients'])} | |")
     print(f"| error lines in the daemon's log | {r['log_errors']} | |")
+    web_rows, web_verdicts = web_report(r["web"], r.get("web_daemon_dropped")) if r.get("web") else ([], [])
+    for row in web_rows:
+        print(row)
     for ln in r.get("log_error_lines", []):
         print(f"\n    {ln}")
     if r["bench_errors"]:
@@ -781,17 +841,13 @@ def report(r: dict) -> None:
     ratio = r.get("rss_ratio")
     print(f"- RSS back within {RSS_BAR:.0%} of its start: {verdict(ratio is not None and ratio <= 1 + RSS_BAR)}"
           f" ({_f(ratio, 3)})")
-    dur, aft = r["loops"]["during"], r["loops"]["after"]
-    n = lambda v, k: v[k] or 0  # noqa: E731
-    acting = all(n(v, "chatter_alarms") > 0 and n(v, "suppression_actions") > 0 and v["speed_writes_received"] > 0
-                 for v in (dur, aft)) and n(dur, "thermal_writes") + n(aft, "thermal_writes") > 0 \
-        and dur["offset_changes_received"] + aft["offset_changes_received"] > 0
-    print(f"- chatter and thermal loops still acting: {verdict(acting)} (during / after: "
-          f"{_f(dur['chatter_alarms'])} / {_f(aft['chatter_alarms'])} alarms, {_f(dur['suppression_actions'])} / "
-          f"{_f(aft['suppression_actions'])} suppressions, {dur['speed_writes_received']} / "
-          f"{aft['speed_writes_received']} speed writes received, {_f(dur['thermal_writes'])} / "
-          f"{_f(aft['thermal_writes'])} thermal writes, {dur['offset_changes_received']} / "
-          f"{aft['offset_changes_received']} offset changes received)")
+    acting, detail = loops_acting(r["loops"])
+    print(f"- chatter and thermal loops still acting: {verdict(acting)} ({detail})")
+    print(f"- the daemon answers a fresh control client within 2 s during the load: "
+          f"{verdict(sc['during_failed'] == 0 and sc.get('during_over_2s', 1) == 0 and sc['during_ok'] > 0)} "
+          f"({sc['during_ok']} status calls, slowest {_f(sc.get('during_max_s'), 2, ' s')}, {sc['during_failed']} failed)")
+    for text, ok, why in web_verdicts:
+        print(f"- {text}: {verdict(ok)} ({why})")
 
 
 def main() -> int:
@@ -801,6 +857,8 @@ def main() -> int:
     ap.add_argument("--after", type=float, default=60.0, help=f"seconds after it (>= {RSS_SETTLE_S:g})")
     ap.add_argument("--seed", type=int, default=18)
     ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--no-web", dest="web", action="store_false",
+                    help="without lathed-web and its floods (a baseline for the daemon's figures)")
     a = ap.parse_args()
     a.after = max(a.after, RSS_SETTLE_S)
     r = run(a)

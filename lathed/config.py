@@ -9,6 +9,7 @@ is allowed.
 """
 from __future__ import annotations
 
+import difflib
 import math
 import re
 import tomllib
@@ -56,6 +57,12 @@ def _range_text(minval: Any, maxval: Any) -> str:
     return ""
 
 
+def _close(word: str, words: list[str]) -> str | None:
+    """The one of ``words`` that ``word`` most likely misspells, if any."""
+    near = difflib.get_close_matches(word, words, n=1, cutoff=0.75)
+    return near[0] if near else None
+
+
 class Section:
     """One TOML table with typed, range-checked getters.
 
@@ -94,6 +101,10 @@ class Section:
         if key in self._data:
             return self._data[key]
         if default is _REQUIRED:
+            # "hots" where "host" is required is a misspelling, not two problems: name the key written
+            typo = _close(key, [k for k in self._data if k not in self._read])
+            if typo is not None:
+                raise self.error(typo, f"unknown key; did you mean {key} (required here, and missing)?")
             raise self.error(key, "missing required key")
         return default
 
@@ -218,7 +229,9 @@ class Section:
         unknown = [k for k in self._data if k not in self._read]
         if unknown:
             allowed = ", ".join(sorted(self._read)) or "none"
-            raise self.error(unknown[0], f"unknown key; allowed keys here: {allowed}")
+            near = _close(unknown[0], sorted(self._read))
+            hint = f"did you mean {near}? " if near is not None else ""
+            raise self.error(unknown[0], f"unknown key; {hint}allowed keys here: {allowed}")
 
 
 @dataclass

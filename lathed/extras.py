@@ -2,16 +2,23 @@
 
 Code that needs one asks here first, so a missing one is one line naming the
 extra, not an ImportError traceback; and imports it only when used, so the
-daemon and lathectl do not pay its import time when it is not.
+daemon and lathectl do not pay its import time when it is not. In the service's
+own venv (``make install`` leaves INSTALL_MARK in it) the line says how to add
+the extra there: ``make install EXTRAS=...`` again, keeping those it has.
 """
 from __future__ import annotations
 
 import importlib
 import importlib.util
+import sys
+from pathlib import Path
 from types import ModuleType
 
 EXTRAS = {"psycopg": "postgres", "matplotlib": "plots", "asyncua": "opcua", "aiomqtt": "mqtt",
           "h5py": "recordings", "nptdms": "recordings"}   # module -> extra that installs it
+
+
+INSTALL_MARK = "lathed-install"   # in sys.prefix: "prefix=/usr" of the `make install` that made this venv
 
 
 class MissingExtra(ImportError):
@@ -38,4 +45,15 @@ def _found(module: str) -> bool:
 
 
 def _install(module: str) -> str:
-    return f"pip install 'lathed[{EXTRAS[module]}]'"
+    extra = EXTRAS[module]
+    mark = Path(sys.prefix) / INSTALL_MARK
+    if not mark.is_file():
+        return f"pip install 'lathed[{extra}]'"
+    # the service's venv: pip there would leave it out of step with `make install`, which
+    # rebuilds the venv with only the extras it is given; so name those it has already
+    fields = dict(line.split("=", 1) for line in mark.read_text().splitlines() if "=" in line)
+    have = {x for m, x in EXTRAS.items() if _found(m) and all(_found(o) for o, y in EXTRAS.items() if y == x)}
+    unit = Path(sys.argv[0]).name if Path(sys.argv[0]).name.startswith("lathed") else "lathed"
+    return (f"in the service's venv ({sys.prefix}) add it from the lathed source with `sudo make install "
+            f"PREFIX={fields.get('prefix', '/usr')} EXTRAS={','.join(sorted(have | {extra}))}`, "
+            f"then `sudo systemctl restart {unit}`")

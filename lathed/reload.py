@@ -5,7 +5,7 @@ machine's ``[*.limits]``, and an analyzer's keys it lists in ``LIVE_KEYS``
 (applied by its ``reconfigure(section)``). Anything else that differs — a
 machine, sensor or analyzer added, removed or of another plugin, a driver's
 address, the simulator — is structural: the whole reload is refused, naming
-each, and the running configuration stays as it is.
+each with "(restart lathed to apply)", and the running configuration stays as it is.
 """
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from typing import Any
 from lathed.config import Config
 
 LIVE_DAEMON = {"log_level", "stop_wait"}
+RESTART = "(restart lathed to apply)"   # what the refusal of a structural change asks of the reader
 LIVE_STORE = {"keep_days", "prune_every"}
 
 
@@ -44,28 +45,28 @@ def diff(old: Config, new: Config, live_keys: dict[str, set[str]]) -> Changes:
             if k in live:
                 out[k] = n.get(k)
             else:
-                ch.refused.append(f"[{table}] {k} changed (needs a restart)")
+                ch.refused.append(f"[{table}] {k} changed {RESTART}")
     if (old.simulator and old.simulator.raw()) != (new.simulator and new.simulator.raw()):
-        ch.refused.append("[simulator] changed (needs a restart)")
+        ch.refused.append(f"[simulator] changed {RESTART}")
     olds = {(i.category, i.name): i for i in old.instances}
     news = {(i.category, i.name): i for i in new.instances}
     for key in sorted(set(olds) - set(news)):
-        ch.refused.append(f"[{key[0]}.{key[1]}] removed")
+        ch.refused.append(f"[{key[0]}.{key[1]}] removed {RESTART}")
     for key in sorted(set(news) - set(olds)):
-        ch.refused.append(f"[{key[0]}.{key[1]}] added")
+        ch.refused.append(f"[{key[0]}.{key[1]}] added {RESTART}")
     for key in sorted(set(olds) & set(news)):
         o, n = olds[key], news[key]
         where = f"[{key[0]}.{key[1]}]"
         if o.plugin != n.plugin:
-            ch.refused.append(f"{where} plugin changed from {o.plugin!r} to {n.plugin!r}")
+            ch.refused.append(f"{where} plugin changed from {o.plugin!r} to {n.plugin!r} {RESTART}")
             continue
         fw = _changed(o.framework.raw(), n.framework.raw())
         if "limits" in fw and key[0] == "machine":
             ch.limits.append(key[1])
-        ch.refused += [f"{where} {k} changed (needs a restart)" for k in fw if k != "limits"]
+        ch.refused += [f"{where} {k} changed {RESTART}" for k in fw if k != "limits"]
         sec = _changed(o.section.raw(), n.section.raw())
         live = live_keys.get(key[1], set()) if key[0] == "analyzer" else set()
         if any(k in live for k in sec):
             ch.analyzers.append(key[1])
-        ch.refused += [f"{where} {k} changed (needs a restart)" for k in sec if k not in live]
+        ch.refused += [f"{where} {k} changed {RESTART}" for k in sec if k not in live]
     return ch

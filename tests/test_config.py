@@ -54,9 +54,13 @@ def test_valid_minimal(tmp_path):
     (("port = 15020", "port = 70000"),
      "lathed: FILE: [machine.lathe] port: 70000 is out of range; allowed: an integer in [1, 65535]"),
     (("port = 15020", "port = 15020\nprot = 1"),
-     "lathed: FILE: [machine.lathe] prot: unknown key; allowed keys here: host, *port, *registers"),
+     "lathed: FILE: [machine.lathe] prot: unknown key; did you mean port? allowed keys here: host, *port, "
+     "*registers"),
     (('host = "127.0.0.1"\n', ""),
      "lathed: FILE: [machine.lathe] host: missing required key"),
+    # a required key misspelt is the key written, unknown, not the key meant, missing (issue 39)
+    (('host = "127.0.0.1"\n', 'hots = "127.0.0.1"\n'),
+     "lathed: FILE: [machine.lathe] hots: unknown key; did you mean host (required here, and missing)?"),
     (('plugin = "modbus_cnc"', 'plugin = "modbus_cn"'),
      "lathed: FILE: [machine.lathe] plugin: unknown driver type 'modbus_cn'; allowed: *modbus_cnc, "),
     (('name = "t"', 'name = "t"\nflavour = 1'),
@@ -65,7 +69,8 @@ def test_valid_minimal(tmp_path):
     (('name = "t"', 'name = "t"\ncontrol_max_clients = 0'),
      "lathed: FILE: [daemon] control_max_clients: 0 is out of range; allowed: an integer in [1, 1024]"),
     (("writable = true }\n", "writable = true }\n[store]\nkeep_day = 30\n"),
-     "lathed: FILE: [store] keep_day: unknown key; allowed keys here: keep_days, prune_every"),
+     "lathed: FILE: [store] keep_day: unknown key; did you mean keep_days? allowed keys here: keep_days, "
+     "prune_every"),
     # an integer too large for a float once raised OverflowError out of the getter (a traceback)
     (("writable = true }\n", "writable = true }\n[store]\nkeep_days = 1" + "0" * 400 + "\n"),
      "lathed: FILE: [store] keep_days: expected a number in [0.0, 36500.0], got 1000"),
@@ -202,7 +207,7 @@ def test_one_bad_key_is_one_error_not_its_follow_ons(tmp_path):
     # issue 18 D10: the analyzers referring to the refused machine were each reported too
     code, err = check(tmp_path, BASE.replace("port = 15020", "port = 15020\nprot = 1", 1) + ANALYZERS)
     assert code == 78
-    assert err == "lathed: FILE: [machine.lathe] prot: unknown key; allowed keys here: " + \
+    assert err == "lathed: FILE: [machine.lathe] prot: unknown key; did you mean port? allowed keys here: " + \
         err.split("allowed keys here: ", 1)[1]
     assert len(err.splitlines()) == 1, err
     # an analyzer naming a machine that is not configured at all is still an error

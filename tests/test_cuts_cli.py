@@ -69,3 +69,32 @@ def test_csv_export_reads_back_and_says_what_it_left_out(daemon_cuts, tmp_path, 
     err = capsys.readouterr().err
     assert "lathectl: 3 cut speed(s) not exported: too short to judge or speed modulated" in err
     assert "lathectl: 2 cut speed(s) not exported: no depth of cut known" in err
+
+
+def test_events_print_a_cut_as_a_line_to_read(tmp_path, capsys):
+    """Issue 39: `lathectl events` printed a cut record as ~980 characters of Python syntax."""
+    import asyncio
+
+    from lathed.analysis.cut_log import CutTracker
+    from lathed.store import Store
+    tr = CutTracker("lathe", "T0101", "C45")
+    tr.start(100.0, 2000.0)
+    tr.depth_mm, tr.depth_from, tr.feed_mm_rev = 3.0, "register", 0.3
+    for i in range(1, 40):
+        tr.speed(100.0 + 0.05 * i, 2000.0)
+    tr.chatter(101.2, True, 195.0)
+    tr.action(101.3, {"trigger": "alarm", "strategy": "sss_lobes", "rpm_before": 2000.0, "rpm_after": 2298.0,
+                      "sent": True, "by": "suppress"}, 101.8)
+    tr.chatter(101.9, False, None)
+    for i in range(1, 120):
+        tr.speed(101.3 + 0.05 * i, 2298.0)
+    rec = tr.end(107.3)
+    store = Store(tmp_path / "lathed.db")
+    asyncio.run(store.record("cut", "suppress", rec))
+    store.close()
+    assert lathectl.main(["--socket", str(tmp_path / "none.sock"), "events", "--db", str(tmp_path / "lathed.db")]) == 0
+    line = capsys.readouterr().out.strip()
+    assert "{'" not in line and "[{" not in line and "None" not in line, line
+    assert len(line) < 250, (len(line), line)
+    assert "T0101/C45 depth 3 mm (register), feed 0.3: chatter; r/min 2000 chatter -> 2298 stable" in line
+    assert "first alarm at 1.20 s" in line and "195.0 Hz, cured" in line

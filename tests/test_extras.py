@@ -62,3 +62,21 @@ def test_lathed_opcua_without_asyncua_is_one_line_naming_the_extra(monkeypatch, 
     assert lathed.opcua.main(["--port", "1"]) == 69
     out, err = capsys.readouterr()
     assert (out, err) == ("", "lathed-opcua: asyncua is not installed: pip install 'lathed[opcua]'\n")
+
+
+def test_in_the_service_venv_a_missing_extra_says_make_install_with_those_it_has(monkeypatch, tmp_path):
+    """Issue 39: an installed config's error said `pip install`, which the packaged venv is not
+    meant for (`make install` rebuilds it with only the extras it is given)."""
+    from lathed import extras
+    (tmp_path / extras.INSTALL_MARK).write_text("prefix=/opt/plant\n")
+    monkeypatch.setattr(sys, "prefix", str(tmp_path))
+    monkeypatch.setattr(sys, "argv", ["/opt/plant/bin/lathed-opcua"])
+    monkeypatch.setitem(sys.modules, "psycopg", None)
+    # this venv has every extra but postgres: the line keeps them all
+    assert extras.missing("psycopg") == (
+        f"psycopg is not installed: in the service's venv ({tmp_path}) add it from the lathed source with "
+        "`sudo make install PREFIX=/opt/plant EXTRAS=mqtt,opcua,plots,postgres,recordings`, "
+        "then `sudo systemctl restart lathed-opcua`")
+    assert "pip install" not in extras.missing("psycopg")
+    (tmp_path / extras.INSTALL_MARK).unlink()          # a venv of one's own: pip it is
+    assert extras.missing("psycopg") == "psycopg is not installed: pip install 'lathed[postgres]'"

@@ -37,7 +37,7 @@ def test_sighup_applies_live_values_and_refuses_structural_changes(sim_daemon):
                                                                             'stale_after = "7s"'))
     d.proc.send_signal(signal.SIGHUP)
     refused = wait_until(lambda: _events(d, "config_reload_refused"), timeout=20, what="config_reload_refused")
-    assert refused[-1]["payload"]["problems"] == ["[sensor.temps] stale_after changed (needs a restart)"]
+    assert refused[-1]["payload"]["problems"] == ["[sensor.temps] stale_after changed (restart lathed to apply)"]
     assert d.item("analyzers", "chatter")["threshold"] == 3.5
     # a config that does not parse is refused with its error, the daemon goes on
     cfg.write_text("[daemon\n")
@@ -83,6 +83,9 @@ def test_diff_names_every_structural_change(tmp_path):
     (tmp_path / "b.toml").write_text(new)
     ch = diff(configmod.load(tmp_path / "a.toml"), configmod.load(tmp_path / "b.toml"), {"chatter": {"params"}})
     assert ch.daemon == {"log_level": "debug"} and ch.store == {"keep_days": 30} and ch.limits == ["lathe"]
-    assert ch.refused == ["[daemon] name changed (needs a restart)", "[machine.mill] removed",
-                          "[machine.saw] added", "[analyzer.chatter] plugin changed from 'chatter' to 'thermal'",
-                          "[machine.lathe] port changed (needs a restart)"]
+    # each names what changed and what to do: a machine added is applied by a restart, not a reload
+    assert ch.refused == ["[daemon] name changed (restart lathed to apply)",
+                          "[machine.mill] removed (restart lathed to apply)",
+                          "[machine.saw] added (restart lathed to apply)",
+                          "[analyzer.chatter] plugin changed from 'chatter' to 'thermal' (restart lathed to apply)",
+                          "[machine.lathe] port changed (restart lathed to apply)"]

@@ -14,6 +14,7 @@ import time
 
 from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
 from lathed.cli import count
+from lathed.cli.eventtext import cut_text
 from lathed.client import call
 from lathed.cli import print_json, remote
 
@@ -44,10 +45,6 @@ def _records(args) -> list[dict]:
     return out if args.csv is not None else out[-args.limit:]
 
 
-def _f(v, fmt: str) -> str:
-    return "-" if v is None else format(v, fmt)
-
-
 def run_cuts(args) -> int:
     rows = _records(args)
     if args.csv is not None:
@@ -71,29 +68,10 @@ def run_cuts(args) -> int:
     for r in rows:
         p = r["payload"]
         t = time.strftime("%m-%d %H:%M:%S", time.localtime(p.get("start_t") or r["t"]))
-        speeds = " -> ".join(f"{_speed(s)}{'' if s['outcome'] is None else ' ' + s['outcome']}"
-                             for s in p.get("speeds") or [])
-        alarm = "" if p.get("first_alarm_s") is None else \
-            (f", first alarm at {p['first_alarm_s']:.2f} s (rev {_f(p.get('first_alarm_rev'), '.0f')}) "
-             f"{_f(p.get('chatter_frequency_hz'), '.1f')} Hz")
-        cured = {True: ", cured", False: ", not cured", None: ""}[p.get("cured")]
-        if p.get("advice"):
-            cured += " (speed held: no stable speed within reach)"
-        tn = "" if p.get("tool_number") is None else f" tool {p['tool_number']}"
-        print(f"{r['id']:>7} {t} {p['machine']:<10} {p.get('tool') or '-'}/{p.get('material') or '-'}{tn} "
-              f"depth {_f(p.get('depth_mm'), '.3g')} mm ({p.get('depth_from') or 'unknown'}), "
-              f"feed {_f(p.get('feed_mm_rev'), '.3g')}: {p.get('outcome') or 'too short to judge'}; "
-              f"r/min {speeds}{alarm}{cured}")
+        print(f"{r['id']:>7} {t} {cut_text(p)}")
     if not rows:
         print("(no cuts)")
     return 0
-
-
-def _speed(s: dict) -> str:
-    """A stretch's speed; one that drifted (constant surface speed) as its range."""
-    if s.get("steady") is False and s.get("rpm_min") is not None and s.get("rpm_max") is not None:
-        return f"{s['rpm_min']:.0f}..{s['rpm_max']:.0f} (drifting)"
-    return _f(s.get("rpm"), ".0f")
 
 
 def _analyzer(args) -> str | None:

@@ -20,6 +20,7 @@ from lathed import __version__
 from lathed import cli as cli_pkg
 from lathed.cli import (EX_UNAVAILABLE, UsageError, add_db_argument, age as _age, count, fmt_value as _fmt_value,
                         print_json, remote, remote_or_db)
+from lathed.cli.eventtext import event_text
 from lathed.client import DaemonUnavailable, RemoteError, subscribe
 
 
@@ -114,7 +115,7 @@ def _print_event(r: dict, as_json: bool) -> None:
         print(json.dumps(r, default=str), flush=True)
         return
     t = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(r["t"]))
-    print(f"{r['id']:>7} {t} {r['source']:<12} {r['kind']:<22} {_fmt_value(r['payload'])}", flush=True)
+    print(f"{r['id']:>7} {t} {r['source']:<12} {r['kind']:<22} {event_text(r['kind'], r['payload'])}", flush=True)
 
 
 def cmd_events(args: argparse.Namespace) -> int:

@@ -1,11 +1,12 @@
-// The operator view: one EventSource from lathed-web, six panels redrawn at most 4 times a second.
+// The operator view: one EventSource from lathed-web, six panels redrawn at most 4 times a second,
+// all on one 1920x1080 screen (app.css); charts fit the room their panel gives them.
 "use strict";
 const META = JSON.parse(document.getElementById("meta").textContent);
 const $ = (sel) => document.querySelector(sel);
 const S = { hist: {}, units: {}, latest: {}, status: null, events: [], vib: {}, views: {}, connected: false,
             error: null, lastFrame: 0, parts: [] };
 const HISTORY = 600;
-let dirty = true, drawQueued = false, recordsDirty = true;
+let dirty = true, drawQueued = false, recordsDirty = true, partsDirty = true;
 
 // -- data --------------------------------------------------------------------------------
 function addSample(key, t, v, unit) {
@@ -32,7 +33,7 @@ function onInit(m) {
   S.hist = {}; S.latest = {}; S.units = m.units || {};
   for (const [k, [ts, vs]] of Object.entries(m.history || {})) ts.forEach((t, i) => addSample(k, t, vs[i]));
   S.status = m.status; S.events = m.events || []; S.vib = unpackAll(m.vibration); S.views = unpackAll(m.views);
-  recordsDirty = true;
+  recordsDirty = true; eventsShown = { filter: null, last: -1 };
   setLink(m.connected, m.error);
 }
 function onFrame(m) {
@@ -61,6 +62,7 @@ function setLink(ok, err) {
 }
 function connect() {
   const es = new EventSource("/events");
+  S.es = es;
   es.onmessage = (e) => {
     const m = JSON.parse(e.data);
     if (m.type === "init") onInit(m);
@@ -69,15 +71,36 @@ function connect() {
     dirty = true;
     if (!drawQueued) { drawQueued = true; requestAnimationFrame(() => { drawQueued = false; draw(); }); }
   };
-  es.onerror = () => setLink(false, "lathed-web is not reachable");
+  es.onerror = async () => {
+    if (es.readyState !== EventSource.CLOSED) { setLink(false, "lathed-web is not reachable"); return; }
+    // refused (too many live pages open) or gone for good: say which, and try again later
+    let why = "lathed-web ended the live stream";
+    try {
+      const h = await (await fetch("/api/health")).json();
+      if (h.live && h.live.pages >= h.live.max_pages) why = `refused: ${h.live.pages} of ${h.live.max_pages} live pages are open; trying again every 10 s`;
+    } catch (e) { why = "lathed-web is not reachable"; }
+    setLink(false, why);
+    setTimeout(connect, 10000);
+  };
 }
 
 // -- helpers -------------------------------------------------------------------------------
 const fmt = (v, d = 1) => v === undefined || v === null ? "-" : (typeof v === "number" ? v.toFixed(d) : String(v));
 const analyzer = (plugin) => (S.status && S.status.analyzers || []).find((a) => a.plugin === plugin);
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]);
-const hhmmss = (t) => new Date(t * 1000).toLocaleTimeString([], { hour12: false });
-function note(sel, text, err) { const el = $(sel); el.textContent = text; el.className = "note" + (err ? " err" : ""); }
+// one formatter for all: toLocaleTimeString makes a new one per call (a tenth of a millisecond each)
+const TIME = new Intl.DateTimeFormat([], { hour: "2-digit", minute: "2-digit", second: "2-digit", hour12: false });
+const hhmmss = (t) => TIME.format(t * 1000);
+function note(sel, text, err) { const el = $(sel); el.textContent = text; el.title = text; el.classList.toggle("err", !!err); }
+// A confirmation or a refusal of what the operator did: stays until read (the OK button), never
+// overwritten by the next redraw
+function confirmed(sel, text, err) {
+  const el = $(sel);
+  el.querySelector("span").textContent = `${hhmmss(Date.now() / 1000)}  ${text}`;
+  el.classList.toggle("err", !!err);
+  el.hidden = false;
+}
+document.querySelectorAll(".confirm .ok").forEach((b) => b.addEventListener("click", () => { b.parentElement.hidden = true; }));
 
 // Histories of several keys on one time axis (null where a key has no point)
 function joined(keys) {
@@ -92,29 +115,70 @@ function joined(keys) {
 
 const COLORS = ["#58a6ff", "#f0883e", "#3fb950", "#d2a8ff", "#ff7b72", "#e3b341", "#39c5cf", "#8b949e"];
 const charts = {};
+const lastIdx = (u) => u.data[0].length - 1;
+function lastValue(col, upto) {
+  for (let i = Math.min(upto, col.length - 1); i >= 0; i--) if (col[i] !== null && col[i] !== undefined) return col[i];
+  return null;
+}
+function num(v, d) {
+  if (v === null || v === undefined) return "-";
+  const a = Math.abs(v);
+  if (a !== 0 && a < 1) return v.toPrecision(Math.max(2, d));
+  return a >= 1000 ? v.toFixed(0) : a >= 100 ? v.toFixed(Math.min(d, 1)) : v.toFixed(d);
+}
+// The room a chart has: its cell, less its legend (which may wrap to two lines)
+function chartSize(el, u) {
+  const legend = u && u.root.querySelector(".u-legend");
+  return { width: Math.max(150, el.clientWidth), height: Math.max(50, el.clientHeight - (legend ? legend.offsetHeight : 22) - 2) };
+}
+const sizer = new ResizeObserver((entries) => {
+  for (const e of entries) { const c = charts[e.target.id]; if (c) c.u.setSize(chartSize(e.target, c.u)); }
+  dirty = true;
+});
 function chart(id, series, opts = {}) {
-  // (re)made when its series change; otherwise only its data is set
+  // (re)made when its series change; otherwise only its data is set (chart(...).set(data))
   const el = document.getElementById(id);
   const sig = JSON.stringify(series);
   let c = charts[id];
-  if (c && c.sig === sig) return c.u;
+  if (c && c.sig === sig) return c;
   if (c) c.u.destroy();
   const axis = { stroke: "#8b95a3", grid: { stroke: "#2c333d" }, ticks: { stroke: "#2c333d" } };
+  const time = opts.time !== false;
+  // with no cursor on the chart, the legend shows each series' latest value (or the
+  // chart's own choice, opts.idle: the spectrum's peak), never "--"
+  const idle = (u) => (u.data[0].length ? (opts.idle ? opts.idle(u) : lastIdx(u)) : null);
+  const showIdle = (u) => {
+    if (u.cursor.idx === null || u.cursor.idx === undefined) { const i = idle(u); if (i !== null) u.setLegend({ idx: i }); }
+  };
   const u = new uPlot({
-    width: Math.max(200, el.clientWidth), height: 170, legend: { show: true },
-    scales: { x: { time: opts.time !== false } , ...(opts.scales || {}) },
-    axes: [{ ...axis, ...(opts.xaxis || {}) }, { ...axis, size: 55, ...(opts.yaxis || {}) }],
-    series: [{ label: opts.xlabel || "time" },
+    ...chartSize(el, null), legend: { show: true, live: true },
+    scales: { x: { time }, ...(opts.scales || {}) },
+    // a time axis in hh:mm:ss only: uPlot's date line under it costs a chart's height
+    axes: [{ ...axis, ...(time ? { values: (u, ts) => ts.map((t) => hhmmss(t)), space: 75 } : {}), ...(opts.xaxis || {}) },
+           { ...axis, size: 50, ...(opts.yaxis || {}) }],
+    series: [{ label: opts.xlabel || "time",
+               value: (u, v) => (v === null || v === undefined ? "-" : time ? hhmmss(v) : num(v, 0) + (opts.xunit ? " " + opts.xunit : "")) },
              ...series.map((s, i) => ({ label: s.label, stroke: s.stroke || COLORS[i % COLORS.length], width: 1.5,
-                                        spanGaps: true, dash: s.dash, points: { show: false } }))],
+                                        spanGaps: true, dash: s.dash, points: { show: false },
+                                        value: (u, v, si, di) => num(v ?? lastValue(u.data[si], di ?? lastIdx(u)), s.digits ?? 2)
+                                                                 + (s.unit ? " " + s.unit : "") }))],
+    hooks: { setCursor: [showIdle], draw: [showIdle] },
   }, null, el);
-  charts[id] = { u, sig };
-  return u;
+  u.setSize(chartSize(el, u));
+  sizer.observe(el);
+  c = charts[id] = { u, sig, set: (data) => { u.setData(data); showIdle(u); } };
+  return c;
 }
-window.addEventListener("resize", () => {
-  for (const [id, c] of Object.entries(charts)) c.u.setSize({ width: document.getElementById(id).clientWidth, height: 170 });
-  dirty = true;
-});
+window.__charts = charts;
+// The index chart's top: the threshold stays in view whatever one spike does (a spike is
+// drawn clipped and its height said above the chart): at least twice the threshold, at most
+// ten times it, else what 95 % of the points reach
+function indexTop(index, threshold) {
+  const xs = index.filter((v) => v !== null && v !== undefined && Number.isFinite(v)).sort((a, b) => a - b);
+  if (!threshold || threshold <= 0 || !xs.length) return null;
+  const q95 = xs[Math.floor(0.95 * (xs.length - 1))];
+  return Math.min(10 * threshold, Math.max(2 * threshold, 1.15 * q95));
+}
 function canvas(id) {
   const c = document.getElementById(id), r = window.devicePixelRatio || 1;
   const w = c.clientWidth, h = c.clientHeight;
@@ -193,15 +257,21 @@ function drawVibration() {
   const v = name && S.vib[name];
   if (v) {
     const ms = v.env_t.map((t) => t * 1000);
-    chart("signal", [{ label: "max" }, { label: "min", stroke: "#1f6feb" }],
-          { time: false, xlabel: "ms" }).setData([ms, v.env_max, v.env_min]);
-    chart("spectrum", [{ label: "amplitude", stroke: "#3fb950" }], { time: false, xlabel: "Hz" })
-      .setData([v.spec_f, v.spec_a]);
+    const peak = (col) => (u) => { const d = u.data[col]; let b = 0; d.forEach((x, i) => { if (x !== null && x > d[b]) b = i; }); return b; };
+    chart("signal", [{ label: "max", digits: 1 }, { label: "min", stroke: "#1f6feb", digits: 1 }],
+          { time: false, xlabel: "at", xunit: "ms", idle: peak(1) }).set([ms, v.env_max, v.env_min]);
+    chart("spectrum", [{ label: "peak amplitude", stroke: "#3fb950", digits: 1 }], { time: false, xlabel: "at", xunit: "Hz", idle: peak(1) })
+      .set([v.spec_f, v.spec_a]);
   }
   const ch = analyzer("chatter");
   if (ch) {
     const k = ch.name + "/chatter_index", th = ch.name + "/chatter_threshold";
-    chart("index", [{ label: "index" }, { label: "threshold", stroke: "#f85149", dash: [6, 4] }]).setData(joined([k, th]));
+    const data = joined([k, th]), top = indexTop(data[1], lastValue(data[2], data[0].length - 1));
+    chart("index", [{ label: "index" }, { label: "threshold", stroke: "#f85149", dash: [6, 4] }],
+          { scales: { y: { range: (u, lo, hi) => { const t = indexTop(u.data[1], lastValue(u.data[2], lastIdx(u)));
+                                                  return t === null ? [Math.min(0, lo ?? 0), Math.max(hi ?? 1, 1)] : [0, t]; } } } }).set(data);
+    const hi = Math.max(...data[1].filter((x) => x !== null));
+    $("#index-clip").textContent = top !== null && hi > top ? `(peak ${fmt(hi, 1)} above the chart)` : "";
     if (ch.detector) $("#index-title").textContent = ch.detector;
     const b = $("#chatter-state"); b.textContent = ch.cut_state || ch.state;
     b.className = "badge " + (ch.cut_state === "chatter" ? "bad" : ch.cut_state === "watching" ? "ok" : "warn");
@@ -236,11 +306,11 @@ function drawEye(view) {
 
 function drawThermal() {
   const temps = Object.keys(S.hist).filter((k) => /\/t_/.test(k)).sort();
-  if (temps.length) chart("temps", temps.map((k) => ({ label: k.split("/")[1].slice(2) + " °C" }))).setData(joined(temps));
+  if (temps.length) chart("temps", temps.map((k) => ({ label: k.split("/")[1].slice(2), unit: "°C", digits: 2 }))).set(joined(temps));
   const th = analyzer("thermal");
   if (!th) { note("#thermal-info", "no thermal analyzer"); return; }
   const keys = [th.name + "/predicted_growth_um", th.name + "/compensation_um"];
-  chart("growth", [{ label: "predicted growth" }, { label: "compensation", stroke: "#3fb950" }]).setData(joined(keys));
+  chart("growth", [{ label: "predicted growth", unit: "µm", digits: 1 }, { label: "compensation", stroke: "#3fb950", unit: "µm", digits: 1 }]).set(joined(keys));
   const rf = th.last_refit;
   note("#thermal-info", `model ${th.model}; growth ${fmt(th.predicted_growth_um, 1)} µm; offset written ${fmt(th.applied_offset_um, 1)} µm (target ${fmt(th.target_offset_um, 1)}), ${th.writes} writes` + (th.refused ? `; refused: ${th.refused}` : "")
     + (rf ? "; last refit: " + refitText(rf) : "; no refit yet"));
@@ -256,11 +326,26 @@ function shownEvents() {
   const f = $("#filter").value.trim().toLowerCase();
   return S.events.filter((e) => !f || (e.kind + " " + e.source + " " + JSON.stringify(e.payload)).toLowerCase().includes(f));
 }
+const EVENT_ROWS = 150;
+let eventsShown = { filter: null, last: -1 };
+const eventRow = (e) => { const d = esc(detail(e.payload));
+  return `<tr class="${/alarm|fault|refused|abnormal|unobserved/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${d}">${d}</td></tr>`; };
 function drawRecords() {
-  if (!recordsDirty) return;   // rebuilt only when an event, a part or the filter changes
-  recordsDirty = false;
-  const ev = shownEvents().slice(-150).reverse();
-  $("#events tbody").innerHTML = ev.map((e) => `<tr class="${/alarm|fault|refused|abnormal|unobserved/.test(e.kind) ? "abnormal" : ""}"><td>${e.id}</td><td>${hhmmss(e.t)}</td><td>${esc(e.source)}</td><td>${esc(e.kind)}</td><td title="${esc(detail(e.payload))}">${esc(detail(e.payload))}</td></tr>`).join("");
+  if (recordsDirty) {
+    // new events go on top of the rows there; all are rebuilt only when the filter changes (or after a reconnect)
+    recordsDirty = false;
+    const f = $("#filter").value, tb = $("#events tbody");
+    const ev = shownEvents();
+    const fresh = eventsShown.filter === f ? ev.filter((e) => e.id > eventsShown.last) : null;
+    if (fresh === null || fresh.length >= EVENT_ROWS) tb.innerHTML = ev.slice(-EVENT_ROWS).reverse().map(eventRow).join("");
+    else if (fresh.length) {
+      tb.insertAdjacentHTML("afterbegin", fresh.reverse().map(eventRow).join(""));
+      while (tb.rows.length > EVENT_ROWS) tb.deleteRow(-1);
+    }
+    eventsShown = { filter: f, last: ev.length ? ev[ev.length - 1].id : -1 };
+  }
+  if (!partsDirty) return;      // rebuilt only when the parts or their filter change
+  partsDirty = false;
   const only = $("#abnormal-only").checked;
   $("#parts tbody").innerHTML = S.parts.filter((p) => !only || p.abnormal).slice().reverse().map((p) =>
     `<tr class="${p.abnormal ? "abnormal" : ""}"><td>${p.id} <small>#${fmt(p.part_no, 0)}</small></td><td>${p.end_t ? hhmmss(p.end_t) : "-"}</td>
@@ -278,7 +363,7 @@ async function refreshParts() {
   try {
     const r = await fetch("/api/parts?abnormal=" + ($("#abnormal-only").checked ? 1 : 0));
     const j = await r.json();
-    if (r.ok && !j.error) { S.parts = j.result; dirty = recordsDirty = true; } else note("#records-note", "parts: " + j.error, true);
+    if (r.ok && !j.error) { S.parts = j.result; dirty = partsDirty = true; } else confirmed("#records-confirm", "parts: " + j.error, true);
   } finally { partsBusy = false; }
 }
 async function refreshRecommend() {
@@ -298,35 +383,35 @@ async function refreshRecommend() {
 }
 
 // -- actions ----------------------------------------------------------------------------------
-async function act(path, body, noteSel) {
+async function act(path, body, confirmSel) {
   const r = await fetch("/api/" + path, { method: "POST", headers: { "Content-Type": "application/json", "X-CSRF-Token": META.csrf },
                                           body: JSON.stringify(body) });
   const j = await r.json().catch(() => ({ error: r.statusText }));
-  if (!r.ok) note(noteSel, `${r.status}: ${j.error}`, true);
+  if (!r.ok) confirmed(confirmSel, `refused (${r.status}): ${j.error}`, true);
   return [r.status, j];
 }
 document.querySelectorAll(".switch button[data-mode]").forEach((b) => b.addEventListener("click", async () => {
-  const [st] = await act("suppress", { action: b.dataset.mode }, "#suppress-note");
-  if (st === 200) note("#suppress-note", `suppression set to ${b.dataset.mode} by ${META.user}`);
+  const [st] = await act("suppress", { action: b.dataset.mode }, "#suppress-confirm");
+  if (st === 200) confirmed("#suppress-confirm", `suppression set to ${b.dataset.mode} by ${META.user}`);
 }));
 $("#suppress-now").addEventListener("click", async () => {
-  const [st, j] = await act("suppress", { action: "now" }, "#suppress-note");
-  if (st === 200) note("#suppress-note", `suppressed: ${fmt(j.rpm_before, 0)} → ${fmt(j.rpm_after, 0)} r/min`);
+  const [st, j] = await act("suppress", { action: "now" }, "#suppress-confirm");
+  if (st === 200) confirmed("#suppress-confirm", `suppressed by ${META.user}: ${fmt(j.rpm_before, 0)} → ${fmt(j.rpm_after, 0)} r/min`);
 });
 $("#touchoff").addEventListener("click", async () => {
-  const [st] = await act("thermal", { action: "touchoff" }, "#thermal-note");
-  if (st === 200) note("#thermal-note", `touch-off recorded by ${META.user}: growth counts from now`);
+  const [st] = await act("thermal", { action: "touchoff" }, "#thermal-confirm");
+  if (st === 200) confirmed("#thermal-confirm", `touch-off recorded by ${META.user}: growth counts from now`);
 });
 $("#refit").addEventListener("click", async () => {
-  note("#thermal-note", "refitting the thermal model…");
-  const [st, j] = await act("thermal", { action: "refit" }, "#thermal-note");
-  if (st === 200) note("#thermal-note", "refit: " + refitText(j));
+  confirmed("#thermal-confirm", "refitting the thermal model…");
+  const [st, j] = await act("thermal", { action: "refit" }, "#thermal-confirm");
+  if (st === 200) confirmed("#thermal-confirm", "refit: " + refitText(j));
 });
 $("#inspect").addEventListener("submit", async (e) => {
   e.preventDefault();
-  const f = new FormData(e.target), num = (k) => f.get(k) === "" ? null : Number(f.get(k));
-  const [st] = await act("inspect", { part: f.get("part"), ra_um: num("ra_um"), diameter_error_um: num("diameter_error_um") }, "#records-note");
-  if (st === 200) { note("#records-note", `inspection of part ${f.get("part")} recorded by ${META.user}`); refreshParts(); }
+  const f = new FormData(e.target), val = (k) => f.get(k) === "" ? null : Number(f.get(k));
+  const [st] = await act("inspect", { part: f.get("part"), ra_um: val("ra_um"), diameter_error_um: val("diameter_error_um") }, "#records-confirm");
+  if (st === 200) { confirmed("#records-confirm", `inspection of part ${f.get("part")} recorded by ${META.user}`); refreshParts(); }
 });
 function csv(rows, cols) {
   const cell = (v) => { const s = v === null || v === undefined ? "" : (typeof v === "object" ? JSON.stringify(v) : String(v)); return /[",\n]/.test(s) ? '"' + s.replace(/"/g, '""') + '"' : s; };
@@ -347,6 +432,7 @@ function draw() {
   $("#clock").textContent = new Date().toLocaleTimeString([], { hour12: false });
   if (!dirty) return;
   dirty = false;
+  window.__draws = (window.__draws || 0) + 1;
   if (S.status) $("#daemon-name").textContent = `${S.status.daemon.name}: ${S.connected ? S.status.daemon.state : "not reachable, values below are the last seen"}`;
   for (const f of [drawMachines, drawLobes, drawRobot, drawVibration, drawThermal, drawRecords]) {
     try { f(); } catch (e) { console.error(f.name, e); }
