@@ -37,8 +37,7 @@ from bench_loop import DEPTH_MM, start, stop  # noqa: E402
 from bench_web import pct  # noqa: E402
 
 from lathed.client import call  # noqa: E402
-from lathed.opcua.space import NAMESPACE  # noqa: E402
-from tests.test_opcua import Collect, every_sample  # noqa: E402
+from tests.test_opcua import WATCHDOG_S, Collect, every_sample, machine_node  # noqa: E402
 
 CLIENTS = 10
 PUBLISH_MS = 20
@@ -55,17 +54,15 @@ async def clients(url: str, seconds: float, ready: asyncio.Event) -> list[float]
     conns = []
     try:
         for _ in range(CLIENTS):
-            c = Client(url)
+            c = Client(url, watchdog_intervall=WATCHDOG_S)
             await c.connect()
             conns.append(c)
-            ns = await c.get_namespace_index(NAMESPACE)
             got = Collect()
             sub = await c.create_subscription(PUBLISH_MS, got)
             handle = 1
             for machine, paths in WATCHED.items():
                 for p in paths:
-                    node = await c.nodes.objects.get_child([f"{ns}:Machines", f"{ns}:{machine}", f"{ns}:Monitoring",
-                                                            *(f"{ns}:{x}" for x in p.split("/"))])
+                    node = await machine_node(c, machine, "mt:Monitoring", *p.split("/"))
                     await every_sample(sub, node, handle)
                     handle += 1
             c.got = got

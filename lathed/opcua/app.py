@@ -41,12 +41,14 @@ from lathed import __version__
 from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
+from lathed.opcua import nodesets
 from lathed.opcua.space import NAMESPACE, SUPPRESSION_MODES, Space
 from lathed.web import accounts
 from lathed.link import DaemonLink, ask, loopback
 
 log = structlog.get_logger("lathed.opcua")
 EVENTS_REPLAYED = 200    # events a reconnection looks back for, so a short daemon restart loses none
+FIRST_STATUS_WAIT_S = 15.0   # for the daemon's first status before listening (its machines built)
 
 
 def default_state_dir() -> Path:
@@ -267,22 +269,33 @@ async def serve(settings: Settings, stop: asyncio.Event) -> int:
         server.set_certificate_validator(CertificateValidator(
             CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI |
             CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.PEER_CLIENT, store))
+    ns = await nodesets.load(server)
     idx = await server.register_namespace(NAMESPACE)
-    space = Space(server, idx)
+    space = Space(server, idx, nodesets.Types(server, ns))
     await space.build(settings.writable)
     WriteGate(server, space, users, settings.socket)
     link = UaLink(settings.socket, settings.rate_hz)
-    try:
-        await server.start()
-    except OSError as e:
-        print(f"lathed-opcua: cannot listen on {settings.listen}:{settings.port}: {e.strerror or e}", file=sys.stderr)
-        return 71
-    security = "anonymous read, no security (loopback)" if settings.loopback else \
-        "Basic256Sha256 SignAndEncrypt, accounts only"
-    print(f"lathed-opcua: serving {settings.url} ({security}; namespace {NAMESPACE}; "
-          f"daemon socket {settings.socket})", flush=True)
     tasks = [asyncio.create_task(link.run()), asyncio.create_task(_feed(link, space))]
     try:
+        # the machines are built from the daemon's first status before the port opens: building
+        # one holds the loop for a while, and a client should find them all at once
+        waiting = asyncio.create_task(space.ready.wait())
+        await asyncio.wait([waiting, asyncio.create_task(stop.wait())], timeout=FIRST_STATUS_WAIT_S,
+                           return_when=asyncio.FIRST_COMPLETED)
+        waiting.cancel()
+        if not space.ready.is_set() and not stop.is_set():
+            log.warning("daemon_not_reached", socket=str(settings.socket), waited_s=FIRST_STATUS_WAIT_S,
+                        why="serving without the machines; they appear when the daemon answers")
+        try:
+            await server.start()
+        except OSError as e:
+            print(f"lathed-opcua: cannot listen on {settings.listen}:{settings.port}: {e.strerror or e}",
+                  file=sys.stderr)
+            return 71
+        security = "anonymous read, no security (loopback)" if settings.loopback else \
+            "Basic256Sha256 SignAndEncrypt, accounts only"
+        print(f"lathed-opcua: serving {settings.url} ({security}; namespace {NAMESPACE}; "
+              f"daemon socket {settings.socket})", flush=True)
         await stop.wait()
     finally:
         for t in tasks:
@@ -309,6 +322,8 @@ async def _feed(link: UaLink, space: Space) -> None:
                     if space.last_event_id is None or latest < space.last_event_id:
                         space.last_event_id = latest
                 await space.apply(msg)
+                if msg["type"] == "init":
+                    space.ready.set()
             failing = None
         except Exception as e:   # a bug here must not stop the values (the next frame goes on); said once
             if repr(e) != failing:
