@@ -74,11 +74,12 @@ class OpcUa:
             assert self.proc.poll() is None, f"lathed-opcua exited {self.proc.returncode}: {self.output()}"
             with socket.create_connection(("127.0.0.1", self.port), timeout=1):
                 return True
-        wait_until(up, timeout=90, what="lathed-opcua listening")
+        wait_until(up, timeout=180, what="lathed-opcua listening")
 
-    def output(self) -> str:
+    def output(self, tail: int | None = 4000) -> str:
         self.log.flush()
-        return self.cfg.with_suffix(".log").read_text(errors="replace")[-4000:]
+        text = self.cfg.with_suffix(".log").read_text(errors="replace")
+        return text[-tail:] if tail else text
 
     def stop(self) -> None:
         self.proc.terminate()
@@ -535,3 +536,118 @@ def test_password_guessing_cannot_stall_the_server(monkeypatch):
     now[0] += Accounts.FAILS_WINDOW_S
     assert users.get_user(None, "olga", "olga-pw").name == "olga"
     assert users.get_user(None, "olga", "olga-pw").name == "olga" and len(checks) == Accounts.FAILS_MAX + 1
+
+
+# -- limits (issue 35, defect 6): a second server on the same daemon, with small limits ------
+LIMITS = """max_connections = 8
+hello_timeout = "1s"
+activation_timeout = "3s"
+max_subscriptions_per_session = 3
+max_monitored_items_per_session = 20
+min_publishing_interval = "100ms"
+"""
+
+
+@pytest.fixture(scope="module")
+def limited(stack):
+    server = OpcUa(opcua_config(stack["tmp"], "ua-limits", stack["sock"], writable=False, extra=LIMITS))
+    try:
+        server.wait_serving()
+        yield server
+    finally:
+        server.stop()
+
+
+def idle_sockets(port: int, n: int) -> list[socket.socket]:
+    """``n`` TCP connections that never send a Hello."""
+    out = []
+    for _ in range(n):
+        s = socket.create_connection(("127.0.0.1", port), timeout=5)
+        s.setblocking(False)
+        out.append(s)
+    return out
+
+
+def closed(s: socket.socket) -> bool:
+    try:
+        return s.recv(1) == b""
+    except BlockingIOError:
+        return False
+    except OSError:       # reset
+        return True
+
+
+def test_connections_that_never_say_hello_are_closed_and_lock_no_client_out(limited):
+    """4,187 silent connections once held lathed-opcua: each is closed after hello_timeout, and at
+    max_connections a new connection closes the oldest that has no session."""
+    socks = idle_sockets(limited.port, 8)          # the cap, filled
+    try:
+        async def fresh_client_reads() -> str:
+            async with ua_client(limited.url, timeout=10) as c:
+                return (await (await lathe_node(c, "di:Identification", "di:Manufacturer")).read_value()).Text
+        assert asyncio.run(fresh_client_reads()) == "lathed simulator"
+        # it got in by closing the oldest silent one (not only by the Hello timeout: a second later)
+        assert closed(socks[0]) or wait_until(lambda: closed(socks[0]), timeout=0.5, what="") is None
+        # and every silent one is closed within the Hello timeout (1 s here; asyncua alone waits 30 s)
+        wait_until(lambda: all(closed(s) for s in socks), timeout=10, what="the silent connections closed")
+    finally:
+        for s in socks:
+            s.close()
+    out = limited.output()
+    assert "no Hello within 1 s" in out and "the connection cap" in out
+
+
+def test_one_session_gets_its_share_of_subscriptions_and_monitored_items(limited):
+    """One anonymous client with 50 subscriptions x 200 monitored items at 10 ms once stalled every
+    other client: a session gets max_subscriptions_per_session, max_monitored_items_per_session,
+    and no interval below min_publishing_interval."""
+    async def go():
+        async with ua_client(limited.url) as c, ua_client(limited.url) as other:
+            speed = await lathe_node(c, "mt:Monitoring", "Spindle", "RotationalSpeed")
+            # the service itself, to see the interval the server revised
+            raw = await c.uaclient.create_subscription(ua.CreateSubscriptionParameters(
+                RequestedPublishingInterval=10, RequestedLifetimeCount=300, RequestedMaxKeepAliveCount=10,
+                PublishingEnabled=False), callback=lambda result: None)
+            revised = raw.RevisedPublishingInterval
+            subs = [await c.create_subscription(10, Collect()) for _ in range(2)]
+            with pytest.raises(ua.uaerrors.BadTooManySubscriptions):
+                await c.create_subscription(10, Collect())
+            handles = []
+            for i in range(30):      # 30 asked, 20 given
+                try:
+                    handles.append(await subs[i % 2].subscribe_data_change(speed, sampling_interval=0))
+                except ua.uaerrors.BadTooManyMonitoredItems:
+                    handles.append(None)
+            # another session has its own share
+            sub = await other.create_subscription(100, Collect())
+            theirs = await sub.subscribe_data_change([speed] * 20)
+            return revised, handles, theirs, subs
+    revised, handles, theirs, subs = asyncio.run(go())
+    assert revised == 100.0
+    assert sum(h is not None for h in handles) == 20 and handles[20:] == [None] * 10
+    assert all(isinstance(h, int) for h in theirs) and len(theirs) == 20
+
+
+def test_a_flood_of_bad_connections_is_counted_in_the_log_not_written_line_by_line(limited):
+    """The probe's silent connections wrote 97 MB of log: each kind of line is written a few times
+    a window, then counted."""
+    from lathed.opcua.guard import LOG_BURST
+    bad = b"HELF" + (8).to_bytes(4, "little")        # a header announcing no body: asyncua's "malformed header"
+    for _ in range(60):
+        with socket.create_connection(("127.0.0.1", limited.port), timeout=5) as s:
+            s.sendall(bad)
+            s.settimeout(5)
+            try:
+                s.recv(1)         # closed by the server
+            except OSError:
+                pass
+    def shown_and_counted() -> tuple[int, int]:
+        lines = limited.output(tail=None).splitlines()
+        shown = sum("malformed header" in ln and "log_suppressed" not in ln for ln in lines)
+        counted = sum(int(ln.split("log_suppressed: ")[1].split()[0]) for ln in lines
+                      if "log_suppressed: " in ln and "malformed header" in ln)
+        return shown, counted
+    # every one of the 60 is either written or counted (the count comes when its window closes)
+    wait_until(lambda: sum(shown_and_counted()) == 60, timeout=40, interval=0.5, what="60 lines written or counted")
+    shown, counted = shown_and_counted()
+    assert 1 <= shown <= 2 * LOG_BURST and counted >= 60 - 2 * LOG_BURST

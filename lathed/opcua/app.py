@@ -42,6 +42,7 @@ from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
 from lathed.opcua import nodesets
+from lathed.opcua.guard import GuardedServer, Limits, LogLimit, flush_logs
 from lathed.opcua.space import NAMESPACE, SUPPRESSION_MODES, Space
 from lathed.web import accounts
 from lathed.link import DaemonLink, ask, loopback
@@ -79,6 +80,20 @@ class Settings:
         self.rate_hz = sec.getfloat("rate_hz", 10.0, minval=0.5, maxval=20.0)
         self.writable = sec.getbool("writable", False)
         self.name = sec.getstr("name", "lathed")
+        d = Limits()
+        self.limits = Limits(
+            max_connections=sec.getint("max_connections", d.max_connections, minval=2, maxval=10000),
+            hello_timeout_s=sec.getduration("hello_timeout", d.hello_timeout_s, minval=0.1, maxval=600.0),
+            activation_timeout_s=sec.getduration("activation_timeout", d.activation_timeout_s, minval=0.5,
+                                                 maxval=600.0),
+            max_subscriptions_per_session=sec.getint("max_subscriptions_per_session", d.max_subscriptions_per_session,
+                                                     minval=1, maxval=1000),
+            max_monitored_items_per_session=sec.getint("max_monitored_items_per_session",
+                                                       d.max_monitored_items_per_session, minval=1, maxval=100000),
+            max_monitored_items=sec.getint("max_monitored_items", d.max_monitored_items, minval=1, maxval=1000000),
+            min_publishing_interval_ms=1000.0 * sec.getduration("min_publishing_interval",
+                                                                d.min_publishing_interval_ms / 1000.0,
+                                                                minval=0.01, maxval=60.0))
         trusted = sec.getstr("trusted_clients", "")
         self.trusted_clients = Path(trusted) if trusted else None
         sec.check_unused()
@@ -235,9 +250,9 @@ def ensure_certificate(state_dir: Path, app_uri: str) -> tuple[Path, Path]:
     return key, cert
 
 
-async def serve(settings: Settings, stop: asyncio.Event) -> int:
+async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | None = None) -> int:
     users = Accounts(settings.users, anonymous=settings.loopback)
-    server = Server(user_manager=users)
+    server = GuardedServer(settings.limits, user_manager=users)
     await server.init()
     server.set_endpoint(settings.url)
     server.set_server_name(f"lathed-opcua ({settings.name})")
@@ -276,6 +291,8 @@ async def serve(settings: Settings, stop: asyncio.Event) -> int:
     WriteGate(server, space, users, settings.socket)
     link = UaLink(settings.socket, settings.rate_hz)
     tasks = [asyncio.create_task(link.run()), asyncio.create_task(_feed(link, space))]
+    if log_limit is not None:
+        tasks.append(asyncio.create_task(flush_logs(log_limit)))
     try:
         # the machines are built from the daemon's first status before the port opens: building
         # one holds the loop for a while, and a client should find them all at once
@@ -339,6 +356,9 @@ def main(argv: list[str] | None = None) -> int:
         return args
     logmod.setup("info")
     logging.getLogger("asyncua").setLevel(logging.ERROR)   # its per-request chatter; ours says what matters
+    log_limit = LogLimit()     # a flood of bad connections is counted, not logged line by line
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(log_limit)
     try:
         settings = Settings(args.config, args.listen, args.port, args.socket)
     except ConfigError as e:
@@ -351,7 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
         try:
-            return await serve(settings, stop)
+            return await serve(settings, stop, log_limit)
         except ConfigError as e:
             print(f"lathed-opcua: {e}", file=sys.stderr)
             return EX_CONFIG
