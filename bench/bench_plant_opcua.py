@@ -147,7 +147,11 @@ def run(duration: float, warmup: float) -> dict:
         finally:
             if ua:
                 ua.terminate()
-                ua.wait(10)
+                try:
+                    ua.wait(60)      # a loaded machine: its stop can take a while
+                except subprocess.TimeoutExpired:
+                    ua.kill()
+                    ua.wait()
             stop(proc, tmp)
     return res
 
