@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import socket
 import statistics
 import subprocess
 import sys
@@ -124,6 +125,13 @@ def run(duration: float, warmup: float) -> dict:
             url = f"opc.tcp://127.0.0.1:{port}"
 
             async def measure() -> tuple[dict, list[float]]:
+                deadline = time.monotonic() + 240    # a loaded machine: lathed-opcua may take a minute to listen
+                while time.monotonic() < deadline and ua.poll() is None:
+                    try:
+                        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                        break
+                    except OSError:
+                        await asyncio.sleep(0.5)
                 for _ in range(300):       # lathed-opcua starting, its nodes appearing with the first samples
                     ready = asyncio.Event()
                     task = asyncio.create_task(clients(url, duration, ready))
