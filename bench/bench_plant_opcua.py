@@ -78,7 +78,10 @@ async def clients(url: str, seconds: float, ready: asyncio.Event) -> list[float]
                         lat.append(at - dv.SourceTimestamp.timestamp())
     finally:
         for c in conns:
-            await c.disconnect()
+            try:
+                await c.disconnect()
+            except Exception:      # a loaded server may not answer the close in time: the figures stand
+                pass
     return lat
 
 

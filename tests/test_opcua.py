@@ -473,6 +473,9 @@ def test_bad_config_is_one_line_and_exit_78(tmp_path):
     cfg.write_text('[opcua]\nwritable = true\n')
     with pytest.raises(ConfigError, match=r"writable = true but no \[users.NAME\] has role = \"operator\""):
         Settings(str(cfg))
+    cfg.write_text('[opcua]\nmax_connections = 1\n')
+    with pytest.raises(ConfigError, match=r"\[opcua\] max_connections: 1 is out of range"):
+        Settings(str(cfg))
     cfg.write_text('[opcua]\nport = 70000\n')
     r = subprocess.run([str(BIN / "lathed-opcua"), "--config", str(cfg)], capture_output=True, text=True, timeout=30)
     assert r.returncode == 78

@@ -51,9 +51,10 @@ AXIS = re.compile(r"^([a-z]|j\d)_(mm|deg)$")
 # the active program's state (ProductionProgramStateMachineType)
 CHANNEL_STATE = {0: 2, 1: 0, 2: 1}
 PROGRAM_STATE = {0: "Ended", 1: "Running", 2: "Interrupted"}
-# ChannelMode and MachineOperationMode: Automatic while a program runs; lathed reads no mode switch
-CHANNEL_MODE = {1: 0}, 7            # (by program_state, otherwise) Automatic 0, Other 7
-OPERATION_MODE = {1: 1}, 5          # Automatic 1, Other 5
+# ChannelMode and MachineOperationMode: Automatic while a program runs, else Other (lathed reads
+# no mode switch): (while running, otherwise)
+CHANNEL_MODE = (0, 7)
+OPERATION_MODE = (1, 5)
 # the machine model's state -> Machinery's MachineryItemState
 ITEM_STATE = {"running": "Executing", "idle": "NotExecuting", "alarm": "OutOfService", "disconnected": "NotAvailable"}
 # an analyzer's quantities, by its plugin: (object, {quantity: browse name})
@@ -171,10 +172,12 @@ class Space:
     async def _state_vars(self, mach: Machine) -> None:
         """The state machines' current state (and its Id, Number) as variables of the machine."""
         base, name = f"Machines/{mach.name}", mach.name
-        ua0 = ua.QualifiedName
-        cur = await mach.item_state.get_child(ua0("CurrentState", 0))
+
+        def ua0(n: str) -> ua.QualifiedName:
+            return ua.QualifiedName(n, 0)
+        cur = await mach.item_state.get_child(ua0("CurrentState"))
         self._track(f"{base}/ItemState", cur, ua.VariantType.LocalizedText, None)
-        self._track(f"{base}/ItemState/Id", await cur.get_child(ua0("Id", 0)), ua.VariantType.NodeId, None)
+        self._track(f"{base}/ItemState/Id", await cur.get_child(ua0("Id")), ua.VariantType.NodeId, None)
         if not mach.tool:
             return
         mon = ((MT, "Monitoring"),)
@@ -182,9 +185,9 @@ class Space:
                     await mach.child(*mon, (MT, "MachineTool"), (MT, "OperationMode")), ua.VariantType.Int32, name)
         cur = await mach.child((MT, "Production"), (MT, "ActiveProgram"), (MT, "State"), (N.UA, "CurrentState"))
         self._track(f"{base}/Production/ActiveProgram/State", cur, ua.VariantType.LocalizedText, name)
-        self._track(f"{base}/Production/ActiveProgram/State/Id", await cur.get_child(ua0("Id", 0)),
+        self._track(f"{base}/Production/ActiveProgram/State/Id", await cur.get_child(ua0("Id")),
                     ua.VariantType.NodeId, name)
-        self._track(f"{base}/Production/ActiveProgram/State/Number", await cur.get_child(ua0("Number", 0)),
+        self._track(f"{base}/Production/ActiveProgram/State/Number", await cur.get_child(ua0("Number")),
                     ua.VariantType.UInt32, name)
         self._track(f"{base}/Production/ActiveProgram/Name",
                     await mach.child((MT, "Production"), (MT, "ActiveProgram"), (MT, "Name")),
@@ -357,9 +360,10 @@ class Space:
         await self._object(f"{base}/Monitoring/Channel1")
         channel = f"{base}/Monitoring/Channel1"
         await self._set(self.vars[f"{channel}/ChannelState"], CHANNEL_STATE.get(state, 1), t, quality)
-        await self._set(self.vars[f"{channel}/ChannelMode"], CHANNEL_MODE[0].get(state, CHANNEL_MODE[1]), t, quality)
+        running = state == 1
+        await self._set(self.vars[f"{channel}/ChannelMode"], CHANNEL_MODE[0 if running else 1], t, quality)
         await self._set(self.vars[f"{base}/Monitoring/MachineTool/OperationMode"],
-                        OPERATION_MODE[0].get(state, OPERATION_MODE[1]), t, quality)
+                        OPERATION_MODE[0 if running else 1], t, quality)
         await self._state(f"{base}/Production/ActiveProgram/State", ("program", PROGRAM_STATE.get(state, "Interrupted")),
                           t, quality)
         await self._prognosis(mach, "program_state", t, state)
