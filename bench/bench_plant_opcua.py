@@ -135,7 +135,7 @@ def run(duration: float, warmup: float) -> dict:
                         break
                     except OSError:
                         await asyncio.sleep(0.5)
-                for _ in range(300):       # lathed-opcua starting, its nodes appearing with the first samples
+                while time.monotonic() < deadline + 300:   # its nodes appear with the first status and samples
                     ready = asyncio.Event()
                     task = asyncio.create_task(clients(url, duration, ready))
                     waiter = asyncio.create_task(ready.wait())

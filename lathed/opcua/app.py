@@ -50,6 +50,7 @@ from lathed.link import DaemonLink, ask, loopback
 log = structlog.get_logger("lathed.opcua")
 EVENTS_REPLAYED = 200    # events a reconnection looks back for, so a short daemon restart loses none
 FIRST_STATUS_WAIT_S = 15.0   # for the daemon's first status before listening (its machines built)
+BUILD_WAIT_S = 120.0         # ... when the daemon answers and its machines are being built
 
 
 def default_state_dir() -> Path:
@@ -296,10 +297,7 @@ async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | N
     try:
         # the machines are built from the daemon's first status before the port opens: building
         # one holds the loop for a while, and a client should find them all at once
-        waiting = asyncio.create_task(space.ready.wait())
-        await asyncio.wait([waiting, asyncio.create_task(stop.wait())], timeout=FIRST_STATUS_WAIT_S,
-                           return_when=asyncio.FIRST_COMPLETED)
-        waiting.cancel()
+        await _first_status(space, link, stop)
         if not space.ready.is_set() and not stop.is_set():
             log.warning("daemon_not_reached", socket=str(settings.socket), waited_s=FIRST_STATUS_WAIT_S,
                         why="serving without the machines; they appear when the daemon answers")
@@ -320,6 +318,20 @@ async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | N
         await asyncio.gather(*tasks, return_exceptions=True)
         await server.stop()
     return 0
+
+
+async def _first_status(space: Space, link: UaLink, stop: asyncio.Event) -> None:
+    """Until the first status is applied, the stop, or FIRST_STATUS_WAIT_S without a daemon (with
+    one, building its machines may take longer on a loaded machine: up to BUILD_WAIT_S)."""
+    t0 = asyncio.get_running_loop().time()
+    while not space.ready.is_set() and not stop.is_set():
+        waited = asyncio.get_running_loop().time() - t0
+        if waited > BUILD_WAIT_S or (waited > FIRST_STATUS_WAIT_S and not link.connected):
+            return
+        try:
+            await asyncio.wait_for(space.ready.wait(), 0.5)
+        except TimeoutError:
+            pass
 
 
 async def _feed(link: UaLink, space: Space) -> None:
