@@ -2,7 +2,8 @@
 the values and their config keys: docs/opcua.md).
 
 Connections: at most ``max_connections``; a new one past the cap closes the oldest that has no
-session yet (a client that holds sockets open without talking cannot lock the next one out);
+session yet, a silent one first (a client that holds sockets open without talking cannot lock
+the next one out);
 a connection that sends no Hello within ``hello_timeout`` is closed, one without an activated
 session within ``activation_timeout`` too. Sessions: at most ``max_subscriptions_per_session``
 subscriptions and ``max_monitored_items_per_session`` monitored items (and the server at most
@@ -84,7 +85,8 @@ class GuardedServer(Server):
         self.counts[what] = self.counts.get(what, 0) + 1
 
     def admit(self, proto: GuardedProtocol) -> bool:
-        """Room for a new connection: the oldest one without a session gives way at the cap."""
+        """Room for a new connection: at the cap the oldest one without a session (a silent one
+        before one that said Hello) gives way."""
         if len(self.connections) >= self.guard_limits.max_connections:
             idle = [p for p in self.connections if not p.in_session()]
             if not idle:
@@ -92,7 +94,8 @@ class GuardedServer(Server):
                 log.warning("connection_refused", peer=str(proto.peer_name), open=len(self.connections),
                             why="every connection has a session")
                 return False
-            oldest = min(idle, key=lambda p: p.opened)
+            # a silent one first: a client that said Hello is mid-handshake (four round trips)
+            oldest = min(idle, key=lambda p: (p.greeted, p.opened))
             self.connections.remove(oldest)
             self.count("evicted")
             log.warning("connection_closed", peer=str(oldest.peer_name), why="the connection cap: the oldest "
