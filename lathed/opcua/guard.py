@@ -95,7 +95,7 @@ class GuardedServer(Server):
                             why="every connection has a session")
                 return False
             # a silent one first: a client that said Hello is mid-handshake (four round trips)
-            oldest = min(idle, key=lambda p: (p.greeted, p.opened))
+            oldest = min(idle, key=lambda p: (p.talking, p.opened))
             self.connections.remove(oldest)
             self.count("evicted")
             log.warning("connection_closed", peer=str(oldest.peer_name), why="the connection cap: the oldest "
@@ -124,7 +124,8 @@ class GuardedProtocol(OPCUAProtocol):
         super().__init__(**kw)
         self.owner = owner
         self.opened = time.monotonic()
-        self.greeted = False
+        self.greeted = False        # a whole Hello processed
+        self.talking = False        # bytes came: a client mid-handshake, not a silent socket
         self._hello_timer: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport) -> None:
@@ -151,6 +152,10 @@ class GuardedProtocol(OPCUAProtocol):
         self.owner.forget(self)
         if self.transport is not None:
             self.transport.close()
+
+    def data_received(self, data: bytes) -> None:
+        self.talking = True          # at once, before the message is queued and processed
+        super().data_received(data)
 
     async def _process_one_msg(self, header, buf) -> bool:
         if header.MessageType == ua.MessageType.Hello and not self.greeted:
