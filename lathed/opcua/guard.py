@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import time
 from dataclasses import dataclass
 
@@ -130,6 +131,9 @@ class GuardedProtocol(OPCUAProtocol):
 
     def connection_made(self, transport) -> None:
         self.peer_name = transport.get_extra_info("peername")
+        # a loaded loop accepts connections in batches, before reading any: a client whose Hello
+        # already waits in the socket is talking, not one of a flood's silent sockets
+        self.talking = _waiting(transport.get_extra_info("socket"))
         if not self.owner.admit(self):
             transport.close()
             return
@@ -169,6 +173,17 @@ class GuardedProtocol(OPCUAProtocol):
         if self._hello_timer is not None:
             self._hello_timer.cancel()
         super().connection_lost(ex)
+
+
+def _waiting(tsock) -> bool:
+    """Bytes wait unread on the connection (peeked through a duplicate: asyncio's socket lends no recv)."""
+    if tsock is None:
+        return False
+    try:
+        with socket.fromfd(tsock.fileno(), tsock.family, tsock.type) as dup:
+            return bool(dup.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT))
+    except OSError:               # nothing there yet, or gone
+        return False
 
 
 class SessionLimits:
