@@ -28,6 +28,7 @@ test: $(STAMP)
 	bash tests/ensure_postgres.sh
 	bash tests/ensure_chromium.sh
 	bash tests/ensure_mosquitto.sh
+	bash tests/ensure_node_opcua.sh
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 # Benchmarks: each prints a Markdown table (docs/benchmarks.md).

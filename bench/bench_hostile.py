@@ -64,6 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_daemon import config, free_port, rss_mb  # noqa: E402
 from bench_loop import DEPTH_MM, start  # noqa: E402
 from hostile_web import WebWatch, start_web, web_report  # noqa: E402
+import hostile_opcua  # noqa: E402
 
 from lathed.client import call  # noqa: E402
 from lathed.wire import VIB_HEADER, VIB_MAGIC, VIB_VERSION, format_temperature_line, pack_vibration  # noqa: E402
@@ -639,9 +640,15 @@ def run(a) -> dict:
         sampler = Sampler(sock, sim_sock, proc.pid).start()
         fz = Fuzzer(sock, random.Random(rng.random()), heavy_every=max(30.0, a.duration / 5))
         slow = SlowClients(sock)
+        ua = ua_floods = None
         try:
+            if a.opcua:
+                ua_floods = opcua_start(tmp, sock)
+                ua = ua_floods[0]
             time.sleep(a.warmup)
             t_load = time.time()
+            if ua_floods:
+                ua_cpu0, ua_t0 = opcua_load(ua_floods)
             res["rss_start_mb"] = _rss(proc.pid)
             vib.hostile.set()
             ser.hostile.set()
@@ -658,6 +665,8 @@ def run(a) -> dict:
             vib.hostile.clear()
             ser.hostile.clear()
             t_end = time.time()
+            if ua_floods:
+                res["opcua"] = opcua_end(ua_floods, t_load, t_end, ua_cpu0, ua_t0)
             time.sleep(RSS_SETTLE_S)
             res["rss_after_mb"] = _rss(proc.pid)
             time.sleep(max(0.0, a.after - RSS_SETTLE_S))
@@ -677,6 +686,10 @@ def run(a) -> dict:
             if web is not None:
                 web.terminate()
                 web.wait(15)
+            if ua_floods:
+                for flood in ua_floods[1:]:
+                    flood.join()
+                res["opcua_stop"] = ua.stop()
             res["daemon_stop"] = stop_daemon(proc, tmp)
             vib.join()
             ser.join()
@@ -765,6 +778,31 @@ def run(a) -> dict:
     return res
 
 
+# -- the OPC UA floods (bench/hostile_opcua.py) -----------------------------------------
+def opcua_start(tmp: Path, sock: Path) -> tuple:
+    """lathed-opcua beside the daemon, and the fresh-client probe from now on (the floods wait)."""
+    ua = hostile_opcua.OpcUa(tmp, sock)
+    ua.wait_serving()
+    return (ua, hostile_opcua.IdleFlood(ua.port), hostile_opcua.Storm(ua.url),
+            hostile_opcua.FreshClient(ua.url).start())
+
+
+def opcua_load(floods: tuple) -> tuple[float, float]:
+    ua, idle, storm, _ = floods
+    idle.start()
+    storm.start()
+    return hostile_opcua.cpu_s(ua.proc.pid), time.monotonic()
+
+
+def opcua_end(floods: tuple, t_load: float, t_end: float, cpu0: float, t0: float) -> dict:
+    ua, idle, storm, probe = floods
+    wall = time.monotonic() - t0
+    idle.join()
+    storm.join()
+    probe.join()
+    return hostile_opcua.figures(ua, idle, storm, probe, t_load, t_end, cpu0, wall)
+
+
 def _f(x, p=1, unit="") -> str:
     return "-" if x is None else (f"{x:.{p}f}{unit}" if isinstance(x, float) else f"{x}{unit}")
 
@@ -822,7 +860,8 @@ def report(r: dict) -> None:
     print(f"| slow clients | {json.dumps(r['slow_clients'])} | |")
     print(f"| error lines in the daemon's log | {r['log_errors']} | |")
     web_rows, web_verdicts = web_report(r["web"], r.get("web_daemon_dropped")) if r.get("web") else ([], [])
-    for row in web_rows:
+    opcua_lines = hostile_opcua.report(r["opcua"]) if r.get("opcua") else []
+    for row in web_rows + opcua_lines[:-2]:
         print(row)
     for ln in r.get("log_error_lines", []):
         print(f"\n    {ln}")
@@ -848,6 +887,8 @@ def report(r: dict) -> None:
           f"({sc['during_ok']} status calls, slowest {_f(sc.get('during_max_s'), 2, ' s')}, {sc['during_failed']} failed)")
     for text, ok, why in web_verdicts:
         print(f"- {text}: {verdict(ok)} ({why})")
+    if opcua_lines:
+        print(opcua_lines[-1])
 
 
 def main() -> int:
@@ -859,6 +900,8 @@ def main() -> int:
     ap.add_argument("--json", type=Path, help="also write the figures here")
     ap.add_argument("--no-web", dest="web", action="store_false",
                     help="without lathed-web and its floods (a baseline for the daemon's figures)")
+    ap.add_argument("--no-opcua", dest="opcua", action="store_false",
+                    help="without lathed-opcua and its floods (bench/hostile_opcua.py)")
     a = ap.parse_args()
     a.after = max(a.after, RSS_SETTLE_S)
     r = run(a)

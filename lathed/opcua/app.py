@@ -41,12 +41,16 @@ from lathed import __version__
 from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
+from lathed.opcua import nodesets
+from lathed.opcua.guard import GuardedServer, Limits, LogLimit, flush_logs
 from lathed.opcua.space import NAMESPACE, SUPPRESSION_MODES, Space
 from lathed.web import accounts
 from lathed.link import DaemonLink, ask, loopback
 
 log = structlog.get_logger("lathed.opcua")
 EVENTS_REPLAYED = 200    # events a reconnection looks back for, so a short daemon restart loses none
+FIRST_STATUS_WAIT_S = 15.0   # for the daemon's first status before listening (its machines built)
+BUILD_WAIT_S = 120.0         # ... when the daemon answers and its machines are being built
 
 
 def default_state_dir() -> Path:
@@ -77,6 +81,20 @@ class Settings:
         self.rate_hz = sec.getfloat("rate_hz", 10.0, minval=0.5, maxval=20.0)
         self.writable = sec.getbool("writable", False)
         self.name = sec.getstr("name", "lathed")
+        d = Limits()
+        self.limits = Limits(
+            max_connections=sec.getint("max_connections", d.max_connections, minval=2, maxval=10000),
+            hello_timeout_s=sec.getduration("hello_timeout", d.hello_timeout_s, minval=0.1, maxval=600.0),
+            activation_timeout_s=sec.getduration("activation_timeout", d.activation_timeout_s, minval=0.5,
+                                                 maxval=600.0),
+            max_subscriptions_per_session=sec.getint("max_subscriptions_per_session", d.max_subscriptions_per_session,
+                                                     minval=1, maxval=1000),
+            max_monitored_items_per_session=sec.getint("max_monitored_items_per_session",
+                                                       d.max_monitored_items_per_session, minval=1, maxval=100000),
+            max_monitored_items=sec.getint("max_monitored_items", d.max_monitored_items, minval=1, maxval=1000000),
+            min_publishing_interval_ms=1000.0 * sec.getduration("min_publishing_interval",
+                                                                d.min_publishing_interval_ms / 1000.0,
+                                                                minval=0.01, maxval=60.0))
         trusted = sec.getstr("trusted_clients", "")
         self.trusted_clients = Path(trusted) if trusted else None
         sec.check_unused()
@@ -233,9 +251,9 @@ def ensure_certificate(state_dir: Path, app_uri: str) -> tuple[Path, Path]:
     return key, cert
 
 
-async def serve(settings: Settings, stop: asyncio.Event) -> int:
+async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | None = None) -> int:
     users = Accounts(settings.users, anonymous=settings.loopback)
-    server = Server(user_manager=users)
+    server = GuardedServer(settings.limits, user_manager=users)
     await server.init()
     server.set_endpoint(settings.url)
     server.set_server_name(f"lathed-opcua ({settings.name})")
@@ -267,22 +285,32 @@ async def serve(settings: Settings, stop: asyncio.Event) -> int:
         server.set_certificate_validator(CertificateValidator(
             CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI |
             CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.PEER_CLIENT, store))
+    ns = await nodesets.load(server)
     idx = await server.register_namespace(NAMESPACE)
-    space = Space(server, idx)
+    space = Space(server, idx, nodesets.Types(server, ns))
     await space.build(settings.writable)
     WriteGate(server, space, users, settings.socket)
     link = UaLink(settings.socket, settings.rate_hz)
-    try:
-        await server.start()
-    except OSError as e:
-        print(f"lathed-opcua: cannot listen on {settings.listen}:{settings.port}: {e.strerror or e}", file=sys.stderr)
-        return 71
-    security = "anonymous read, no security (loopback)" if settings.loopback else \
-        "Basic256Sha256 SignAndEncrypt, accounts only"
-    print(f"lathed-opcua: serving {settings.url} ({security}; namespace {NAMESPACE}; "
-          f"daemon socket {settings.socket})", flush=True)
     tasks = [asyncio.create_task(link.run()), asyncio.create_task(_feed(link, space))]
+    if log_limit is not None:
+        tasks.append(asyncio.create_task(flush_logs(log_limit)))
     try:
+        # the machines are built from the daemon's first status before the port opens: building
+        # one holds the loop for a while, and a client should find them all at once
+        await _first_status(space, link, stop)
+        if not space.ready.is_set() and not stop.is_set():
+            log.warning("daemon_not_reached", socket=str(settings.socket), waited_s=FIRST_STATUS_WAIT_S,
+                        why="serving without the machines; they appear when the daemon answers")
+        try:
+            await server.start()
+        except OSError as e:
+            print(f"lathed-opcua: cannot listen on {settings.listen}:{settings.port}: {e.strerror or e}",
+                  file=sys.stderr)
+            return 71
+        security = "anonymous read, no security (loopback)" if settings.loopback else \
+            "Basic256Sha256 SignAndEncrypt, accounts only"
+        print(f"lathed-opcua: serving {settings.url} ({security}; namespace {NAMESPACE}; "
+              f"daemon socket {settings.socket})", flush=True)
         await stop.wait()
     finally:
         for t in tasks:
@@ -290,6 +318,20 @@ async def serve(settings: Settings, stop: asyncio.Event) -> int:
         await asyncio.gather(*tasks, return_exceptions=True)
         await server.stop()
     return 0
+
+
+async def _first_status(space: Space, link: UaLink, stop: asyncio.Event) -> None:
+    """Until the first status is applied, the stop, or FIRST_STATUS_WAIT_S without a daemon (with
+    one, building its machines may take longer on a loaded machine: up to BUILD_WAIT_S)."""
+    t0 = asyncio.get_running_loop().time()
+    while not space.ready.is_set() and not stop.is_set():
+        waited = asyncio.get_running_loop().time() - t0
+        if waited > BUILD_WAIT_S or (waited > FIRST_STATUS_WAIT_S and not link.connected):
+            return
+        try:
+            await asyncio.wait_for(space.ready.wait(), 0.5)
+        except TimeoutError:
+            pass
 
 
 async def _feed(link: UaLink, space: Space) -> None:
@@ -309,6 +351,8 @@ async def _feed(link: UaLink, space: Space) -> None:
                     if space.last_event_id is None or latest < space.last_event_id:
                         space.last_event_id = latest
                 await space.apply(msg)
+                if msg["type"] == "init":
+                    space.ready.set()
             failing = None
         except Exception as e:   # a bug here must not stop the values (the next frame goes on); said once
             if repr(e) != failing:
@@ -324,6 +368,9 @@ def main(argv: list[str] | None = None) -> int:
         return args
     logmod.setup("info")
     logging.getLogger("asyncua").setLevel(logging.ERROR)   # its per-request chatter; ours says what matters
+    log_limit = LogLimit()     # a flood of bad connections is counted, not logged line by line
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(log_limit)
     try:
         settings = Settings(args.config, args.listen, args.port, args.socket)
     except ConfigError as e:
@@ -336,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, stop.set)
         try:
-            return await serve(settings, stop)
+            return await serve(settings, stop, log_limit)
         except ConfigError as e:
             print(f"lathed-opcua: {e}", file=sys.stderr)
             return EX_CONFIG

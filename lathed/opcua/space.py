@@ -1,69 +1,63 @@
-"""lathed-opcua's address space: the daemon's line as OPC 40501 (Machine Tools) lays a machine out.
+"""lathed-opcua's address space: the daemon's line as OPC 40501 and the Machinery model lay it
+out (the browse paths, types and meanings: docs/opcua.md).
 
-Objects/Machines/<machine> for every machine of the daemon's status, each with the
-40501 components where lathed knows something to put in them:
-
-  Identification   Manufacturer, Model, SerialNumber, YearOfConstruction ([machine.NAME.identification])
-  Monitoring       MachineTool/MachineState; Channel1/ChannelState, Feed; Spindle/IsRotating, Override,
-                   RotationalSpeed, CommandedSpeed, Load; Axes/<X, Y, Z, B, J1..>; for the analyzers
-                   working on the machine Chatter/..., Thermal/..., Suppression/Mode, Strategy, Actions;
-                   Values/<quantity> for anything else the machine reports
-  Production       ActiveProgram/Name, ActiveProgram/State/CurrentState; PartCount; CycleTime
-  Notification     Messages: the event notifier of the machine's records (NotificationEventType)
-
-Browse names are 40501's where it has one (Identification, Monitoring, Spindle, Override,
-IsRotating, ChannelState, Production, ActiveProgram, Notification, Messages...), in lathed's
-namespace NAMESPACE; the types are the base OPC UA types (FolderType, BaseObjectType,
-BaseDataVariableType, AnalogUnitType with EngineeringUnits), not the companion
-specification's nodeset, which is not imported. Names 40501 lacks (RotationalSpeed, Axes,
-Chatter, Thermal, PartCount...) are lathed's own.
+Objects/Machines (Machinery's folder) holds every machine of the daemon's status
+(lathed.opcua.machines); Objects/Sensors lathed's own sensors. The daemon's frames are routed
+here: a sample to its variable, the status to the machine states and the suppression mode, a
+record to an event on the machine's Messages and on the Server object.
 
 Values carry the sample's own time as SourceTimestamp. While the daemon is unreachable every
 live value is BadNoCommunication; while a machine's driver is not connected its values are
 UncertainNoCommunicationLastUsableValue; a value the daemon has none of now (the chatter
-frequency while there is no chatter) is BadNoDataAvailable.
+frequency while there is no chatter) is BadNoDataAvailable, as is a mandatory 40501 variable
+the machine does not report (FeedOverride without a feed_override_pct register).
 """
 from __future__ import annotations
 
+import asyncio
 import json
 import re
-from dataclasses import dataclass
+import socket
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
+from urllib.parse import quote
 
 import structlog
 from asyncua import Node, Server, ua
+
+from lathed.opcua import nodesets as N
+from lathed.opcua.machines import MT, Machine, build, eu_information, variable, write
 
 log = structlog.get_logger("lathed.opcua")
 
 NAMESPACE = "urn:lathed:opcua"
 
-# lathed's unit text -> UNECE Recommendation 20 code (what OPC UA's EUInformation carries)
-UNECE = {"mm": ("MMT", "millimetre"), "µm": ("4H", "micrometre"), "um": ("4H", "micrometre"),
-         "r/min": ("RPM", "revolutions per minute"), "%": ("P1", "percent"), "Hz": ("HTZ", "hertz"),
-         "s": ("SEC", "second"), "deg": ("DD", "degree"), "°C": ("CEL", "degree Celsius"),
-         "m/s²": ("MSK", "metre per second squared"), "m/s^2": ("MSK", "metre per second squared"),
-         "mm/rev": (None, "millimetre per revolution")}
-CEFACT = "http://www.opcfoundation.org/UA/units/un/cefact"
-
-# a machine's quantity -> (folder, browse name, variant type) in 40501's layout
-MACHINE = {
-    "spindle_rpm": ("Monitoring/Spindle", "RotationalSpeed", ua.VariantType.Double),
-    "spindle_rpm_cmd": ("Monitoring/Spindle", "CommandedSpeed", ua.VariantType.Double),
-    "spindle_override_pct": ("Monitoring/Spindle", "Override", ua.VariantType.Double),
-    "spindle_load_pct": ("Monitoring/Spindle", "Load", ua.VariantType.Double),
-    "feed_mm_rev": ("Monitoring/Channel1", "Feed", ua.VariantType.Double),
-    "program_number": ("Production/ActiveProgram", "Name", ua.VariantType.String),
-    "program": ("Production/ActiveProgram", "Name", ua.VariantType.String),
-    "part_count": ("Production", "PartCount", ua.VariantType.UInt32),
-    "cycle_time_s": ("Production", "CycleTime", ua.VariantType.Double),
+# a machine tool's quantity -> (path under the machine, browse-name model (None: lathed's), variant type)
+TOOL = {
+    "spindle_rpm": ("Monitoring/Spindle/RotationalSpeed", None, ua.VariantType.Double),
+    "spindle_rpm_cmd": ("Monitoring/Spindle/CommandedSpeed", None, ua.VariantType.Double),
+    "spindle_load_pct": ("Monitoring/Spindle/Load", None, ua.VariantType.Double),
+    "spindle_override_pct": ("Monitoring/Spindle/Override", MT, ua.VariantType.Double),
+    "feed_mm_rev": ("Monitoring/Channel1/Feed", None, ua.VariantType.Double),
+    "feed_override_pct": ("Monitoring/Channel1/FeedOverride", MT, ua.VariantType.Double),
+    "program_number": ("Production/ActiveProgram/Name", MT, ua.VariantType.String),
+    "program": ("Production/ActiveProgram/Name", MT, ua.VariantType.String),
+    "part_count": ("Production/PartCount", None, ua.VariantType.UInt32),
+    "cycle_time_s": ("Production/CycleTime", None, ua.VariantType.Double),
 }
 AXIS = re.compile(r"^([a-z]|j\d)_(mm|deg)$")
-# program_state (0 idle, 1 running, 2 alarm) -> 40501 ChannelState (Active 0, Interrupted 1, Reset 2)
-# and ProductionStateMachine's current state
+# program_state (0 idle, 1 running, 2 alarm) -> 40501 ChannelState (Active 0, Interrupted 1, Reset 2),
+# the active program's state (ProductionProgramStateMachineType)
 CHANNEL_STATE = {0: 2, 1: 0, 2: 1}
-PRODUCTION_STATE = {0: "Ended", 1: "Running", 2: "Interrupted"}
-# an analyzer's quantities, by its plugin: (folder, {quantity: browse name})
+PROGRAM_STATE = {0: "Ended", 1: "Running", 2: "Interrupted"}
+# ChannelMode and MachineOperationMode: Automatic while a program runs, else Other (lathed reads
+# no mode switch): (while running, otherwise)
+CHANNEL_MODE = (0, 7)
+OPERATION_MODE = (1, 5)
+# the machine model's state -> Machinery's MachineryItemState
+ITEM_STATE = {"running": "Executing", "idle": "NotExecuting", "alarm": "OutOfService", "disconnected": "NotAvailable"}
+# an analyzer's quantities, by its plugin: (object, {quantity: browse name})
 D, B = ua.VariantType.Double, ua.VariantType.Boolean
 ANALYZER = {
     "chatter": ("Chatter", {"chatter_index": ("ChatterIndex", D), "chatter_threshold": ("ChatterThreshold", D),
@@ -73,29 +67,19 @@ ANALYZER = {
 }
 SUPPRESSION_MODES = ("auto", "manual", "off")
 
-# records that become OPC UA events (Notification/Messages of their machine, and the Server object),
-# with their severity (1..1000); the others stay in the daemon's event log
+# records that become OPC UA events (the machine's Messages, and the Server object), with their
+# severity (1..1000); the others stay in the daemon's event log
 SEVERITY = {"chatter_alarm": 800, "chatter_cleared": 300, "suppression_action": 500,
             "suppression_advice": 700,   # the speed is held and the chatter goes on: the operator must act
             "suppression_proposed": 500, "suppression_mode": 300, "compensation": 200, "thermal_touchoff": 300,
             "thermal_refit": 200, "part_abnormal": 700, "part_unobserved": 700, "part_inspected": 200, "alarm_raised": 800,
             "alarm_cleared": 300, "command_refused": 700, "command_failed": 800, "implausible_value": 600}
 
-GOOD = ua.StatusCode(ua.StatusCodes.Good)
-NO_DAEMON = ua.StatusCode(ua.StatusCodes.BadNoCommunication)
-NO_MACHINE = ua.StatusCode(ua.StatusCodes.UncertainNoCommunicationLastUsableValue)
-NO_DATA = ua.StatusCode(ua.StatusCodes.BadNoDataAvailable)
-
-
-def eu_information(unit: str) -> ua.EUInformation:
-    code, text = UNECE.get(unit, (None, unit))
-    unit_id = -1
-    if code is not None:
-        unit_id = 0
-        for c in code:
-            unit_id = unit_id << 8 | ord(c)
-    return ua.EUInformation(NamespaceUri=CEFACT, UnitId=unit_id, DisplayName=ua.LocalizedText(unit),
-                            Description=ua.LocalizedText(text))
+GOOD = ua.StatusCodes.Good
+NO_DAEMON = ua.StatusCodes.BadNoCommunication
+NO_MACHINE = ua.StatusCodes.UncertainNoCommunicationLastUsableValue
+NO_DATA = ua.StatusCodes.BadNoDataAvailable
+WAITING = ua.StatusCodes.BadWaitingForInitialData
 
 
 def _time(t: float | None) -> datetime:
@@ -107,120 +91,173 @@ class Var:
     node: Node
     vtype: ua.VariantType
     machine: str | None          # whose driver state decides its quality (None: the daemon's link only)
-    live: bool = True            # False: from the config (Identification), good while the server runs
+    live: bool = True            # False: from the config (the nameplate), good while the server runs
     value: Any = None
     t: float | None = None
-    status: ua.StatusCode = NO_DAEMON
+    status: int = field(default=NO_DAEMON)
 
 
 class Space:
-    def __init__(self, server: Server, idx: int):
-        self.server, self.idx = server, idx
-        self.vars: dict[str, Var] = {}            # path ("lathe/Monitoring/Spindle/Override") -> variable
+    def __init__(self, server: Server, idx: int, types: N.Types):
+        self.server, self.idx, self.types = server, idx, types
+        self.vars: dict[str, Var] = {}            # path ("Machines/lathe/Monitoring/Spindle/Override") -> variable
         self.objects: dict[str, Node] = {}        # path -> object or folder
         self.machines: dict[str, dict] = {}       # name -> its last status
+        self.built: dict[str, Machine] = {}
         self.analyzers: dict[str, dict] = {}
         self.sensors: set[str] = set()
         self.writable: dict[ua.NodeId, str] = {}  # suppression Mode node -> its analyzer
         self.can_write = False
         self.connected = False
-        self.quality: dict[str, ua.StatusCode] = {}   # machine -> GOOD or NO_MACHINE
+        self.quality: dict[str, int] = {}         # machine -> GOOD or NO_MACHINE
+        self.production: dict[str, dict] = {}     # machine -> what its prognosis is made of
         self.last_event_id: int | None = None
         self.events_sent = 0
         self.failing: dict[str, str] = {}         # what -> the error last logged for it
+        self.cell = socket.gethostname()
+        self.ready = asyncio.Event()              # the daemon's first status is in
 
     # -- building ---------------------------------------------------------------------
     async def build(self, writable: bool) -> None:
         self.can_write = writable
-        objects = self.server.nodes.objects
-        self.objects["Machines"] = await objects.add_folder(self._id("Machines"), self._q("Machines"))
-        self.objects["Sensors"] = await objects.add_folder(self._id("Sensors"), self._q("Sensors"))
+        self.objects["Machines"] = self.types.node(N.MACHINES_FOLDER)
+        self.objects["Sensors"] = await self.server.nodes.objects.add_folder(self._id("Sensors"), self._q("Sensors"))
         self.etype = await self.server.create_custom_event_type(
-            self.idx, "NotificationEventType", ua.ObjectIds.BaseEventType,
-            [("Identifier", ua.VariantType.String), ("RecordId", ua.VariantType.Int64),
-             ("Payload", ua.VariantType.String)])
-        self.server_events = await self.server.get_event_generator(self.etype, ua.ObjectIds.Server)
+            self.idx, "RecordEventType", self.types.id(N.NOTIFICATION_EVENT_TYPE),
+            [("RecordId", ua.VariantType.Int64), ("Payload", ua.VariantType.String)])
+        self.server_events = await self._generator(ua.ObjectIds.Server)
         self.machine_events: dict[str, Any] = {}
+        t = self.types
+        self.states = {
+            ("item", s): await t.state(N.MACHINERY_ITEM_STATE_TYPE, s, N.MACHINERY) for s in ITEM_STATE.values()}
+        self.states.update({("program", s): await t.state(N.PRODUCTION_PROGRAM_STATE_MACHINE_TYPE, s, MT)
+                            for s in PROGRAM_STATE.values()})
+
+    async def _generator(self, emitting):
+        gen = await self.server.get_event_generator(self.etype, emitting)
+        # 40501's Identifier has no default value, and asyncua leaves such a property out of the event
+        gen.event.add_property("Identifier", "", ua.VariantType.String)
+        return gen
 
     def _id(self, path: str) -> ua.NodeId:
-        return ua.NodeId(path, self.idx)
+        return ua.NodeId(path.replace("/", "."), self.idx)
 
     def _q(self, name: str) -> ua.QualifiedName:
         return ua.QualifiedName(name, self.idx)
 
+    async def _machine(self, m: dict) -> Machine:
+        name = m["name"]
+        mach = self.built.get(name)
+        if mach is None:
+            mach = self.built[name] = await build(self.types, self.objects["Machines"], self.idx, name,
+                                                  m.get("kind") or "machine")
+            base = f"Machines/{name}"
+            self.objects[base] = mach.node
+            mon = await mach.child((mach.monitoring_uri, "Monitoring"))
+            self.objects[f"{base}/Monitoring"] = mon
+            if mach.tool:
+                for path in ("Production", "Production/ActiveProgram"):
+                    self.objects[f"{base}/{path}"] = await mach.child(*((MT, p) for p in path.split("/")))
+            gen = await self._generator(mach.events)
+            gen.event.SourceNode, gen.event.SourceName = mach.node.nodeid, name
+            self.machine_events[name] = gen
+            await self._state_vars(mach)
+        ident = m.get("identification") or {}
+        if name not in self.machines or ident != self.machines[name].get("identification"):  # new, or reloaded
+            uri = product_instance_uri(self.cell, name, ident)
+            await mach.identification(ident, uri)
+        self.machines[name] = m
+        return mach
+
+    async def _state_vars(self, mach: Machine) -> None:
+        """The state machines' current state (and its Id, Number) as variables of the machine."""
+        base, name = f"Machines/{mach.name}", mach.name
+
+        def ua0(n: str) -> ua.QualifiedName:
+            return ua.QualifiedName(n, 0)
+        cur = await mach.item_state.get_child(ua0("CurrentState"))
+        self._track(f"{base}/ItemState", cur, ua.VariantType.LocalizedText, None)
+        self._track(f"{base}/ItemState/Id", await cur.get_child(ua0("Id")), ua.VariantType.NodeId, None)
+        if not mach.tool:
+            return
+        mon = ((MT, "Monitoring"),)
+        self._track(f"{base}/Monitoring/MachineTool/OperationMode",
+                    await mach.child(*mon, (MT, "MachineTool"), (MT, "OperationMode")), ua.VariantType.Int32, name)
+        cur = await mach.child((MT, "Production"), (MT, "ActiveProgram"), (MT, "State"), (N.UA, "CurrentState"))
+        self._track(f"{base}/Production/ActiveProgram/State", cur, ua.VariantType.LocalizedText, name)
+        self._track(f"{base}/Production/ActiveProgram/State/Id", await cur.get_child(ua0("Id")),
+                    ua.VariantType.NodeId, name)
+        self._track(f"{base}/Production/ActiveProgram/State/Number", await cur.get_child(ua0("Number")),
+                    ua.VariantType.UInt32, name)
+        self._track(f"{base}/Production/ActiveProgram/Name",
+                    await mach.child((MT, "Production"), (MT, "ActiveProgram"), (MT, "Name")),
+                    ua.VariantType.String, name)
+
+    def _track(self, path: str, node: Node, vtype: ua.VariantType, machine: str | None, live: bool = True) -> Var:
+        v = self.vars[path] = Var(node, vtype, machine, live)
+        return v
+
     async def _object(self, path: str) -> Node:
-        """The object at ``path``, made (with its parents) if new."""
+        """The object at ``path``, made (with its parents) if new: a 40501 Spindle or Channel1 of
+        a machine tool, else one of lathed's (Axes, Values, Chatter...)."""
         node = self.objects.get(path)
         if node is None:
             parent_path, _, name = path.rpartition("/")
-            parent = await self._object(parent_path) if parent_path else self.server.nodes.objects
-            node = await parent.add_object(self._id(path), self._q(name))
+            parent = await self._object(parent_path)
+            parts = path.split("/")
+            if parts[0] == "Machines":
+                mach = self.built[parts[1]]
+                if mach.tool and len(parts) == 4 and name in ("Spindle", "Channel1"):
+                    node = await mach.element(name)
+                    await self._element_vars(mach, path, node)
+                else:
+                    node = await mach.folder(parent, *parts[2:])
+            elif len(parts) == 2:     # a sensor's object
+                node = await parent.add_object(self._id(path), self._q(name))
+            else:
+                raise KeyError(path)
             self.objects[path] = node
         return node
 
+    async def _element_vars(self, mach: Machine, path: str, node: Node) -> None:
+        """A new monitored element's mandatory variables, waiting for their first value."""
+        names = {"Spindle": (("IsRotating", ua.VariantType.Boolean),),
+                 "Channel1": (("ChannelState", ua.VariantType.Int32), ("ChannelMode", ua.VariantType.Int32),
+                              ("FeedOverride", ua.VariantType.Double))}[path.rsplit("/", 1)[1]]
+        for name, vtype in names:
+            v = self._track(f"{path}/{name}", await node.get_child(mach.q(MT, name)), vtype, mach.name)
+            # no feed override register: the 40501 variable is there, with no data
+            status = NO_DATA if name == "FeedOverride" else WAITING
+            await self._set(v, None, None, status)
+
     async def _var(self, path: str, vtype: ua.VariantType, unit: str | None, machine: str | None,
-                   writable: bool = False, live: bool = True) -> Var:
+                   std: str | None = None, writable: bool = False) -> Var:
+        """The variable at ``path``: a standard one (``std``: its model's URI) found or added,
+        else one of lathed's, made."""
         v = self.vars.get(path)
         if v is not None:
             return v
         parent_path, _, name = path.rpartition("/")
         parent = await self._object(parent_path)
-        if unit and vtype in (ua.VariantType.Double, ua.VariantType.Float):
-            node = await self._analog(parent, path, name, unit)
+        if std is not None:
+            mach = self.built[path.split("/")[1]]
+            if name == "Override":
+                node = await mach.override(parent)
+            else:
+                node = await parent.get_child(mach.q(std, name))
+        elif unit and vtype == ua.VariantType.Double:
+            node = await variable(self.server, parent, self.types.node(N.ANALOG_UNIT_TYPE), self._id(path),
+                                  self._q(name), ua.ObjectIds.Double)
+            await write(self.server, await node.get_child(ua.QualifiedName("EngineeringUnits", 0)),
+                        eu_information(unit), ua.VariantType.ExtensionObject)
         else:
             node = await parent.add_variable(self._id(path), self._q(name),
                                              ua.Variant(ua.get_default_value(vtype), vtype),
-                                             varianttype=vtype, datatype=_datatype(vtype))
+                                             varianttype=vtype, datatype=ua.NodeId(getattr(ua.ObjectIds, vtype.name)))
         if writable:
             await node.set_writable(True)
-        v = self.vars[path] = Var(node, vtype, machine, live)
-        return v
-
-    async def _analog(self, parent: Node, path: str, name: str, unit: str) -> Node:
-        """An AnalogUnitType variable (Double) with its EngineeringUnits."""
-        item = ua.AddNodesItem(RequestedNewNodeId=self._id(path), BrowseName=self._q(name),
-                               NodeClass_=ua.NodeClass.Variable, ParentNodeId=parent.nodeid,
-                               ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent),
-                               TypeDefinition=ua.NodeId(ua.ObjectIds.AnalogUnitType))
-        attrs = ua.VariableAttributes(DisplayName=ua.LocalizedText(name), Description=ua.LocalizedText(name),
-                                      DataType=ua.NodeId(ua.ObjectIds.Double), ValueRank=ua.ValueRank.Scalar,
-                                      Value=ua.Variant(0.0, ua.VariantType.Double),
-                                      AccessLevel=ua.AccessLevel.CurrentRead.mask,
-                                      UserAccessLevel=ua.AccessLevel.CurrentRead.mask)
-        item.NodeAttributes = attrs
-        res = await self.server.iserver.isession.add_nodes([item])
-        res[0].StatusCode.check()
-        node = self.server.get_node(res[0].AddedNodeId)
-        await node.add_property(self._id(path + "/EngineeringUnits"), ua.QualifiedName("EngineeringUnits", 0),
-                                ua.Variant(eu_information(unit), ua.VariantType.ExtensionObject))
-        return node
-
-    async def _machine(self, m: dict) -> None:
-        name = m["name"]
-        base = f"Machines/{name}"
-        if name not in self.machines:
-            await self._object(base)
-            for part in ("Identification", "Monitoring", "Production", "Notification"):
-                await self._object(f"{base}/{part}")
-            messages = await self._object(f"{base}/Notification/Messages")
-            gen = await self.server.get_event_generator(self.etype, messages)
-            gen.event.SourceNode = self.objects[base].nodeid
-            gen.event.SourceName = name
-            self.machine_events[name] = gen
-            kind = await self._var(f"{base}/Identification/ComponentName", ua.VariantType.LocalizedText, None,
-                                   None, live=False)
-            await self._set(kind, ua.LocalizedText(f"{name} ({m.get('kind') or 'machine'})"), None, GOOD)
-        ident = m.get("identification") or {}
-        if ident != (self.machines.get(name) or {}).get("identification"):   # new, or the config was reloaded
-            for key, bname, vtype in (("manufacturer", "Manufacturer", ua.VariantType.LocalizedText),
-                                      ("model", "Model", ua.VariantType.LocalizedText),
-                                      ("serial_number", "SerialNumber", ua.VariantType.String),
-                                      ("year_of_construction", "YearOfConstruction", ua.VariantType.UInt16)):
-                if key in ident:
-                    v = await self._var(f"{base}/Identification/{bname}", vtype, None, None, live=False)
-                    value = ua.LocalizedText(ident[key]) if vtype == ua.VariantType.LocalizedText else ident[key]
-                    await self._set(v, value, None, GOOD)
-        self.machines[name] = m
+        await asyncio.sleep(0)     # the address space's calls do not yield: let clients in between
+        return self._track(path, node, vtype, machine)
 
     # -- applying what the daemon pushes ------------------------------------------------
     async def apply(self, frame: dict) -> None:
@@ -243,24 +280,30 @@ class Space:
 
     async def apply_status(self, status: dict) -> None:
         for m in status.get("machines", []):
-            await self._machine(m)
-            base = f"Machines/{m['name']}"
+            mach = await self._machine(m)
             quality = GOOD if m.get("state") == "connected" else NO_MACHINE
             if self.quality.get(m["name"]) != quality:
                 self.quality[m["name"]] = quality
                 for v in self.vars.values():
                     if v.machine == m["name"] and v.value is not None:
                         await self._set(v, v.value, v.t, quality)
-            state = m.get("machine_state") or m.get("state")
-            if state is not None:
-                v = await self._var(f"{base}/Monitoring/MachineTool/MachineState", ua.VariantType.String, None, None)
-                await self._set(v, str(state), None, GOOD)
+            state = m.get("machine_state") or ("disconnected" if m.get("state") != "connected" else None)
+            if state in ITEM_STATE:
+                await self._state(f"Machines/{mach.name}/ItemState", ("item", ITEM_STATE[state]), None, GOOD)
         if "sensors" in status:
             self.sensors = {s["name"] for s in status["sensors"]}
         for a in status.get("analyzers", []):
             self.analyzers[a["name"]] = a
             if a.get("plugin") == "suppression" and a.get("machine") in self.machines:
                 await self._suppression(a)
+
+    async def _state(self, path: str, state: tuple[str, str], t: float | None, status: int) -> None:
+        """A state machine's CurrentState: its name, Id and (where it has one) Number."""
+        nodeid, number = self.states[state]
+        await self._set(self.vars[path], ua.LocalizedText(state[1]), t, status)
+        await self._set(self.vars[f"{path}/Id"], nodeid, t, status)
+        if f"{path}/Number" in self.vars and number is not None:
+            await self._set(self.vars[f"{path}/Number"], int(number), t, status)
 
     async def _suppression(self, a: dict) -> None:
         base = f"Machines/{a['machine']}/Monitoring/Suppression"
@@ -274,54 +317,82 @@ class Space:
                 v = await self._var(f"{base}/{name}", vtype, None, None)
                 await self._set(v, a[key], None, GOOD)
 
-    def _route(self, src: str, q: str, value: Any) -> tuple[str, ua.VariantType, str | None] | None:
-        """Where a sample goes: (path, variant type, machine whose state qualifies it)."""
+    def _route(self, src: str, q: str, value: Any) -> tuple[str, ua.VariantType, str | None, str | None] | None:
+        """Where a sample goes: (path, variant type, machine whose state qualifies it, standard model)."""
         if src in self.machines:
-            base = f"Machines/{src}"
-            if q in MACHINE:
-                folder, name, vtype = MACHINE[q]
-                return f"{base}/{folder}/{name}", vtype, src
+            base, mach = f"Machines/{src}", self.built[src]
+            if mach.tool and q in TOOL:
+                path, std, vtype = TOOL[q]
+                return f"{base}/{path}", vtype, src, std
             if (m := AXIS.match(q)) is not None:
-                return f"{base}/Monitoring/Axes/{m.group(1).upper()}", ua.VariantType.Double, src
-            return f"{base}/Monitoring/Values/{q}", _vtype(value), src
+                return f"{base}/Monitoring/Axes/{m.group(1).upper()}", ua.VariantType.Double, src, None
+            return f"{base}/Monitoring/Values/{q}", _vtype(value), src, None
         a = self.analyzers.get(src)
         if a is not None and a.get("machine") in self.machines:
             folder, names = ANALYZER.get(a.get("plugin"), (src, {}))
             name, vtype = names.get(q, (q, _vtype(value)))
-            return f"Machines/{a['machine']}/Monitoring/{folder}/{name}", vtype, None
+            return f"Machines/{a['machine']}/Monitoring/{folder}/{name}", vtype, None, None
         if src in self.sensors:
-            return f"Sensors/{src}/{q}", _vtype(value), src
+            return f"Sensors/{src}/{q}", _vtype(value), src, None
         return None
 
     async def apply_sample(self, key: str, t: float, value: Any, unit: str) -> None:
         src, _, q = key.partition("/")
-        if src in self.machines and q == "program_state":   # shown as the channel's and the program's state
-            return await self._program_state(src, t, value)
+        mach = self.built.get(src) if src in self.machines else None
+        if mach is not None and mach.tool and q == "program_state":
+            return await self._program_state(mach, t, value)
         where = self._route(src, q, value)
         if where is None:   # a source not in the status yet (or an analyzer of no machine): its next value will do
             return
-        path, vtype, machine = where
-        v = await self._var(path, vtype, unit, machine if machine in self.machines else None)
+        path, vtype, machine, std = where
+        v = await self._var(path, vtype, unit, machine if machine in self.machines else None, std)
         await self._set(v, _convert(value, v.vtype), t, self.quality.get(machine, GOOD))
-        if src in self.machines and q == "spindle_rpm" and isinstance(value, (int, float)):
-            rot = await self._var(f"Machines/{src}/Monitoring/Spindle/IsRotating", ua.VariantType.Boolean, None, src)
-            await self._set(rot, abs(value) > 0.5, t, self.quality.get(src, GOOD))
+        if mach is not None and mach.tool:
+            if q == "spindle_rpm" and isinstance(value, (int, float)):
+                await self._set(self.vars[f"Machines/{src}/Monitoring/Spindle/IsRotating"], abs(value) > 0.5, t,
+                                self.quality.get(src, GOOD))
+            if q in ("part_count", "cycle_time_s", "program", "program_number"):
+                await self._prognosis(mach, q, t, value)
 
-    async def _program_state(self, src: str, t: float, value: Any) -> None:
-        cs = await self._var(f"Machines/{src}/Monitoring/Channel1/ChannelState", ua.VariantType.Int32, None, src)
-        ps = await self._var(f"Machines/{src}/Production/ActiveProgram/State/CurrentState",
-                             ua.VariantType.LocalizedText, None, src)
+    async def _program_state(self, mach: Machine, t: float, value: Any) -> None:
+        base, quality = f"Machines/{mach.name}", self.quality.get(mach.name, GOOD)
         state = int(value) if isinstance(value, (int, float)) else -1
-        await self._set(cs, CHANNEL_STATE.get(state, 1), t, self.quality.get(src, GOOD))
-        await self._set(ps, ua.LocalizedText(PRODUCTION_STATE.get(state, "Interrupted")), t,
-                        self.quality.get(src, GOOD))
+        await self._object(f"{base}/Monitoring/Channel1")
+        channel = f"{base}/Monitoring/Channel1"
+        await self._set(self.vars[f"{channel}/ChannelState"], CHANNEL_STATE.get(state, 1), t, quality)
+        running = state == 1
+        await self._set(self.vars[f"{channel}/ChannelMode"], CHANNEL_MODE[0 if running else 1], t, quality)
+        await self._set(self.vars[f"{base}/Monitoring/MachineTool/OperationMode"],
+                        OPERATION_MODE[0 if running else 1], t, quality)
+        await self._state(f"{base}/Production/ActiveProgram/State", ("program", PROGRAM_STATE.get(state, "Interrupted")),
+                          t, quality)
+        await self._prognosis(mach, "program_state", t, state)
 
-    async def _set(self, v: Var, value: Any, t: float | None, status: ua.StatusCode) -> None:
+    async def _prognosis(self, mach: Machine, q: str, t: float, value: Any) -> None:
+        """The next part's unload: the last part's end plus the last cycle time, while a program runs."""
+        p = self.production.setdefault(mach.name, {})
+        if q == "part_count":
+            if p.get("count") is not None and value != p["count"]:
+                p["part_t"] = t
+            p["count"] = value
+        elif q == "cycle_time_s":
+            p["cycle"] = value
+        elif q == "program_state":
+            p["running"] = value == 1
+        else:
+            p["program"] = _convert(value, ua.VariantType.String)
+        cycle = p.get("cycle")
+        ok = p.get("running") and p.get("part_t") is not None and isinstance(cycle, (int, float)) and cycle > 0
+        await mach.set_prognosis(_time(p["part_t"] + cycle) if ok else None,
+                                 f"program {p['program']}" if p.get("program") else None)
+
+    async def _set(self, v: Var, value: Any, t: float | None, status: int) -> None:
         v.value, v.t, v.status = value, t, status
-        if value is None:    # the source has none now (no chatter: no chatter frequency)
+        if value is None and status == GOOD:    # the source has none now (no chatter: no chatter frequency)
             status = NO_DATA
         dv = ua.DataValue(Value=ua.Variant(ua.get_default_value(v.vtype) if value is None else value, v.vtype),
-                          StatusCode_=status, SourceTimestamp=_time(t), ServerTimestamp=datetime.now(timezone.utc))
+                          StatusCode=ua.StatusCode(status), SourceTimestamp=_time(t),
+                          ServerTimestamp=datetime.now(timezone.utc))
         # to the address space itself: Server.write_attribute_value drops the status it answers
         res = await self.server.iserver.aspace.write_attribute_value(v.node.nodeid, ua.AttributeIds.Value, dv)
         res.check()     # e.g. BadTypeMismatch: a value of another type than the node's first
@@ -344,8 +415,8 @@ class Space:
         gens = [self.server_events] + ([self.machine_events[machine]] if machine in self.machine_events else [])
         for gen in gens:
             ev = gen.event
-            if machine in self.machines:
-                ev.SourceNode, ev.SourceName = self.objects[f"Machines/{machine}"].nodeid, machine
+            if machine in self.built:
+                ev.SourceNode, ev.SourceName = self.built[machine].node.nodeid, machine
             else:
                 ev.SourceNode, ev.SourceName = ua.NodeId(ua.ObjectIds.Server), e["source"]
             ev.Severity = severity
@@ -360,6 +431,13 @@ class Space:
         for v in self.vars.values():
             if v.live and v.value is not None and v.status != NO_DAEMON:
                 await self._set(v, v.value, v.t, NO_DAEMON)
+
+
+def product_instance_uri(cell: str, name: str, ident: dict) -> str:
+    """The machine's globally unique URI (Machinery): its maker and serial number where known."""
+    if ident.get("manufacturer") and ident.get("serial_number"):
+        return f"urn:{quote(ident['manufacturer'], safe='')}:{quote(ident['serial_number'], safe='')}"
+    return f"urn:lathed:{quote(cell, safe='')}:{quote(name, safe='')}"
 
 
 def _vtype(value: Any) -> ua.VariantType:
@@ -384,7 +462,3 @@ def _convert(value: Any, vtype: ua.VariantType) -> Any:
             return str(int(value))     # a program number read as a float register
         return value if isinstance(value, str) else json.dumps(value)
     return value
-
-
-def _datatype(vtype: ua.VariantType) -> ua.NodeId:
-    return ua.NodeId(getattr(ua.ObjectIds, vtype.name))
