@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from typing import Any
 
@@ -110,7 +110,7 @@ class Var:
     live: bool = True            # False: from the config (Identification), good while the server runs
     value: Any = None
     t: float | None = None
-    status: ua.StatusCode = NO_DAEMON
+    status: ua.StatusCode = field(default_factory=lambda: NO_DAEMON)
 
 
 class Space:
@@ -179,7 +179,7 @@ class Space:
     async def _analog(self, parent: Node, path: str, name: str, unit: str) -> Node:
         """An AnalogUnitType variable (Double) with its EngineeringUnits."""
         item = ua.AddNodesItem(RequestedNewNodeId=self._id(path), BrowseName=self._q(name),
-                               NodeClass_=ua.NodeClass.Variable, ParentNodeId=parent.nodeid,
+                               NodeClass=ua.NodeClass.Variable, ParentNodeId=parent.nodeid,
                                ReferenceTypeId=ua.NodeId(ua.ObjectIds.HasComponent),
                                TypeDefinition=ua.NodeId(ua.ObjectIds.AnalogUnitType))
         attrs = ua.VariableAttributes(DisplayName=ua.LocalizedText(name), Description=ua.LocalizedText(name),
@@ -321,7 +321,7 @@ class Space:
         if value is None:    # the source has none now (no chatter: no chatter frequency)
             status = NO_DATA
         dv = ua.DataValue(Value=ua.Variant(ua.get_default_value(v.vtype) if value is None else value, v.vtype),
-                          StatusCode_=status, SourceTimestamp=_time(t), ServerTimestamp=datetime.now(timezone.utc))
+                          StatusCode=status, SourceTimestamp=_time(t), ServerTimestamp=datetime.now(timezone.utc))
         # to the address space itself: Server.write_attribute_value drops the status it answers
         res = await self.server.iserver.aspace.write_attribute_value(v.node.nodeid, ua.AttributeIds.Value, dv)
         res.check()     # e.g. BadTypeMismatch: a value of another type than the node's first
