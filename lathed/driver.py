@@ -125,6 +125,18 @@ class Driver:
         """The machine's present value of what ``action`` commands, if known."""
         return None
 
+    def released(self, action: str) -> float | None:
+        """The value that undoes what lathed's commands of ``action`` left held beyond the cut
+        (a spindle override: the programmed speed), sent through the guard as a release;
+        None: nothing held (the program's next word takes over)."""
+        return None
+
+    def runs_at(self, cmd: Command) -> tuple[float, str] | None:
+        """(the speed the machine will run ``cmd``'s value at, why it differs) where the driver
+        knows it differs (an S word times the operator's override); the guard holds it to the
+        range too. None: at the value itself."""
+        return None
+
     def interlock(self, cmd: Command) -> str | None:
         """Why the machine must not take ``cmd`` now, from its own state (the safety guard
         refuses it then); None: nothing the driver knows of stands against it."""

@@ -372,9 +372,8 @@ class Supervisor:
         spindle_rpm": an override the driver would release), connected machines only."""
         out = []
         for name, r in self.runners.items():
-            released = getattr(r.obj, "released", None)
-            if r.state == "connected" and released is not None:
-                out += [f"{name} {a}" for a in getattr(r.obj, "actions", ()) if released(a) is not None]
+            if r.state == "connected" and isinstance(r.obj, Driver):
+                out += [f"{name} {a}" for a in r.obj.actions if r.obj.released(a) is not None]
         return out
 
     def offsets_left(self) -> dict[str, float]:
@@ -413,7 +412,7 @@ class Supervisor:
         interlock = None
         async with lock:
             if reason is None:
-                runs_at = getattr(drv, "runs_at", lambda c: None)(cmd)
+                runs_at = drv.runs_at(cmd)
                 interlock = _interlock(drv, cmd)
                 reason = self.guard.check(cmd, drv.current(cmd.action), runs_at, interlock)
             payload = {"machine": cmd.machine, "action": cmd.action, "value": cmd.value,
@@ -486,7 +485,7 @@ class Supervisor:
         drv = runner.obj if runner else None
         if drv is None or action not in getattr(drv, "actions", ()) or runner.state != "connected":
             return None
-        value = getattr(drv, "released", lambda a: None)(action)
+        value = drv.released(action)
         if value is None:
             return None
         return await self.command(Command(machine, action, float(value), source, reason=reason, release=True))
