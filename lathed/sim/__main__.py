@@ -6,6 +6,8 @@ accelerometer DAQ as a framed TCP stream. Optionally its neighbours: a mill
 on Modbus TCP (``--mill-port``), a grinder on Modbus RTU over a null-modem
 pseudo-terminal pair (``--grinder-link``), a robot arm on CAN through a
 serial-line CAN adapter (slcan) on a pseudo-terminal (``--robot-link``).
+The lathe's control can be an OPC UA server as well (``--opcua-port``, security on, its
+certificates in ``--opcua-pki``: lathed.sim.opcua_peer, lathed.sim.pki).
 A JSON-lines control socket lets an operator or a test change the cut,
 take a peer down or raise an alarm:
 
@@ -14,7 +16,7 @@ take a peer down or raise an alarm:
                             in the wall time of the vibration stream's t0 stamps)
     {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
     {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
-        peer: modbus | vibration | serial (the lathe's), mill, grinder
+        peer: modbus | vibration | serial | opcua (the lathe's), mill, grinder
         (server gone, RS-485 line cut), robot (the arm powered off: CAN silent)
     {"cmd": "alarm", "args": {"machine": "mill", "code": 42}}   (0 clears)
 
@@ -41,6 +43,8 @@ from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, MAX_OUTAGE_S, par
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.mtconnect_agent import MTConnectAgent
+from lathed.sim.opcua_peer import OpcUaPeer
+from lathed.sim.pki import ensure_pki
 from lathed.sim.registers import CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
@@ -58,6 +62,8 @@ class Simulator:
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.agent = MTConnectAgent(args.host, args.mtconnect_port) if args.mtconnect_port else None
+        self.opcua = (OpcUaPeer(args.host, args.opcua_port, ensure_pki(Path(args.opcua_pki)), self._lathe_write)
+                      if args.opcua_port else None)
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
         self.mill_peer = self.grinder_peer = self.robot_peer = None
@@ -94,6 +100,9 @@ class Simulator:
         if self.agent is not None:
             self.agent.update(self.lathe.registers())
             await self.agent.start()
+        if self.opcua is not None:
+            await self.opcua.start()
+            await self.opcua.update(self.lathe.registers(), self.lathe.phase)
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
                 await peer.start()
@@ -112,6 +121,9 @@ class Simulator:
                  "serial": self.args.serial_link, "tty": tty, "control": self.args.control}
         if self.agent is not None:
             ready["mtconnect"] = [self.args.host, self.args.mtconnect_port]
+        if self.opcua is not None:
+            ready["opcua"] = self.opcua.url
+            ready["opcua_pki"] = str(self.opcua.pki.root)
         if self.mill_peer:
             ready["mill"] = [self.args.host, self.args.mill_port]
         if self.grinder_peer:
@@ -143,6 +155,8 @@ class Simulator:
         await self.vibration.stop()
         if self.agent is not None:
             await self.agent.stop()
+        if self.opcua is not None:
+            await self.opcua.stop()
         self.serial.close()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
@@ -169,12 +183,14 @@ class Simulator:
                 self.vibration.send(t0, self.lathe.block_rpm, data)
                 self.produced += BLOCK
             self._pmc_watchdog()
-            if self.modbus.up or self.agent is not None:
+            if self.modbus.up or self.agent is not None or self.opcua is not None:
                 regs = self.lathe.registers()
                 if self.modbus.up:
                     self.modbus.block.update(regs)
                 if self.agent is not None and self.agent.up:
                     self.agent.update(regs)
+                if self.opcua is not None:
+                    await self.opcua.update(regs, self.lathe.phase)
             await asyncio.sleep(max(0.0, start + (self.produced + BLOCK) / rate - time.time()))
 
     def _wall(self, sim_t: float) -> float | None:
@@ -268,6 +284,7 @@ class Simulator:
                     "visible_at": self.lathe.record.visible_wall,
                     "parts": [r.as_dict() for r in list(self.lathe.parts)[-max(1, int(args.get("parts", 16))):]],
                     "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,
+                              **({"opcua": self.opcua.up} if self.opcua else {}),
                               "serial": self.serial.master is not None,
                               **({"mill": self.mill_peer.up} if self.mill_peer else {}),
                               **({"grinder": self.grinder_peer.up} if self.grinder_peer else {}),
@@ -292,6 +309,8 @@ class Simulator:
             seconds = float(seconds)
             fns = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
                    "serial": self._serial_outage}
+            if self.opcua:
+                fns["opcua"] = self.opcua.outage
             if self.mill_peer:
                 fns["mill"] = self.mill_peer.outage
             if self.grinder_peer:
@@ -355,6 +374,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
     p.add_argument("--mtconnect-port", type=int, default=0,
                    help="serve the lathe as an MTConnect agent on this HTTP port too (0: none)")
+    p.add_argument("--opcua-port", type=int, default=0,
+                   help="serve the lathe's control as an OPC UA server on this port too (0: none)")
+    p.add_argument("--opcua-pki", default="/tmp/lathed-sim/pki",
+                   help="the simulated plant's OPC UA certificates and password: made there if missing")
     p.add_argument("--grinder-link", default="",
                    help="serve the grinder on Modbus RTU; path of the symlink to its tty (empty: no grinder)")
     p.add_argument("--robot-link", default="",

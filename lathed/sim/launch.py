@@ -43,6 +43,10 @@ class SimulatorSettings:
         self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
         # the lathe as an MTConnect agent too (read-only, beside its Modbus server; 0: none)
         self.mtconnect_port = sec.getint("mtconnect_port", 0, minval=0, maxval=65535)
+        # the lathe's control as an OPC UA server too (security on; 0: none), its certificates and
+        # password made by the simulator in opcua_pki (a directory of the runtime dir's, like its ttys)
+        self.opcua_port = sec.getint("opcua_port", 0, minval=0, maxval=65535)
+        self.opcua_pki = sec.getstr("opcua_pki", str(runtime_dir / "sim" / "pki"))
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
         # the lathe's true dynamics and program, when they are to differ from the built-in ones
@@ -61,15 +65,16 @@ class SimulatorSettings:
                 except ValueError as e:
                     raise sec.error(key, str(e)) from None
         sec.check_unused()
-        for key in ("serial_link", "grinder_link", "robot_link"):
+        for key in ("serial_link", "grinder_link", "robot_link", "opcua_pki"):
             link = getattr(self, key)
             problem = link and link_dir_problem(Path(link).parent, create=False)
             if problem:
-                raise sec.error(key, f"unsafe place for the simulator's tty link: {problem}")
+                raise sec.error(key, f"unsafe place for the simulator's {'certificates' if key == 'opcua_pki' else 'tty link'}: {problem}")
 
     def link_problems(self) -> list[str]:
         """Make the links' directories (0700) and check them again, now."""
-        return [p for link in (self.serial_link, self.grinder_link, self.robot_link)
+        return [p for link in (self.serial_link, self.grinder_link, self.robot_link,
+                               self.opcua_pki if self.opcua_port else "")
                 if link and (p := link_dir_problem(Path(link).parent, create=True))]
 
     def argv(self) -> list[str]:
@@ -81,6 +86,8 @@ class SimulatorSettings:
             a += ["--mill-port", str(self.mill_port)]
         if self.mtconnect_port:
             a += ["--mtconnect-port", str(self.mtconnect_port)]
+        if self.opcua_port:
+            a += ["--opcua-port", str(self.opcua_port), "--opcua-pki", self.opcua_pki]
         if self.grinder_link:
             a += ["--grinder-link", self.grinder_link]
         if self.robot_link:
