@@ -177,7 +177,8 @@ class OpcUaPeer:
             self.writes += 1
         return (await inner(ua.WriteParameters(NodesToWrite=[wv]), user))[0]
 
-    def _set_wear(self, parent, value: ua.Variant):
+    async def _set_wear(self, parent, value: ua.Variant):
+        # a coroutine: asyncua runs a plain function in a thread, and the machine is the loop's
         v = value.Value if isinstance(value, ua.Variant) else value
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             return ua.StatusCode(ua.StatusCodes.BadTypeMismatch)
@@ -204,6 +205,14 @@ class OpcUaPeer:
                 continue
             self._last[name] = v
             await self.server.write_attribute_value(node_id(path, self._idx), ua.DataValue(ua.Variant(v, vtype)))
+
+    async def fault(self, name: str, status: str) -> None:
+        """The control reports ``name`` unusable (a status code's name: a broken sensor behind
+        it, BadSensorFailure; its PLC link down, BadNoCommunication): a client's value goes stale."""
+        path, vtype, _ = NODES[name]
+        self._last.pop(name, None)            # the next update writes a good value again
+        await self.server.write_attribute_value(node_id(path, self._idx), ua.DataValue(
+            ua.Variant(None, ua.VariantType.Null), StatusCode=ua.StatusCode(getattr(ua.StatusCodes, status))))
 
     async def stop(self) -> None:
         self.up = False

@@ -1,0 +1,397 @@
+"""opcua_cnc against a real OPC UA server (the simulated control's, asyncua): the shipped
+node map, values by subscription, writes to nodes and by a method, security and its
+refusals, the nameplate check, a stale subscription, the threading interlock."""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import re
+import threading
+import time
+import tomllib
+from types import SimpleNamespace
+from pathlib import Path
+
+import pytest
+import structlog
+
+from lathed.bus import Bus
+from lathed.command import Command
+from lathed.config import FRAMEWORK_KEYS, ConfigError, Section
+from lathed.driver import DriverContext
+from lathed.sim.opcua_peer import NODES, OpcUaPeer
+from lathed.sim.pki import ensure_pki
+from lathed.supervisor import cancel_and_wait
+from lathed.ua_session import Refused
+from lathed_plugins.opcua_cnc import OpcUaCNC
+from tests.conftest import ROOT, free_port
+
+SHIPPED = ROOT / "etc" / "lathed-cell-opcua.toml"
+LATHE = tomllib.loads(SHIPPED.read_text())["machine"]["lathe"]
+BASE = {"spindle_rpm_cmd": 1500.0, "spindle_rpm": 1500.0, "spindle_override_pct": 100.0, "spindle_load_pct": 20.0,
+        "x_mm": 14.0, "y_mm": 2.0, "b_deg": 0.0, "part_count": 7, "cycle_time_s": 1.5, "program_state": 1,
+        "program_number": 1000, "offset_x_um": 0.0, "feed_mm_rev": 0.3, "alarm_code": 0, "tool_number": 1,
+        "probe_displacement_um": 0.0, "probe_seq": 0, "depth_of_cut_mm": 0.0, "cutting_feed": 1,
+        "css_active": 0, "threading": 0}
+
+
+class Control:
+    """The simulated control's OPC UA server in a thread and an event loop of its own, reached
+    only over TCP as any server; a plain dict of values stands for the machine behind it."""
+
+    def __init__(self, pki, port: int):
+        self.values, self.writes, self.refuse = dict(BASE), [], set()
+        self.peer = OpcUaPeer("127.0.0.1", port, pki, self._write)
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+
+    def _write(self, name: str, value: float) -> None:
+        if name in self.refuse:
+            raise ValueError(f"{name} refused")
+        self.writes.append((name, value))
+        if name != "heartbeat":
+            self.values[name] = value
+            asyncio.ensure_future(self.peer.update(self.values, "cut"))   # the method's value node too
+
+    def run(self, coro, timeout: float = 120.0):
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def set(self, **values) -> None:
+        self.values.update(values)
+        self.run(self.peer.update(self.values, "cut"))
+
+    def start(self) -> Control:
+        self.thread.start()
+        self.run(self.peer.start())
+        self.set()
+        return self
+
+    def stop(self) -> None:
+        self.run(self.peer.stop())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def plant(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("opcua")
+    pki, rogue = ensure_pki(tmp / "pki"), ensure_pki(tmp / "rogue")   # rogue: another plant's certificates
+    control = Control(pki, free_port()).start()
+    try:
+        yield control, pki, rogue
+    finally:
+        control.stop()
+
+
+def table(pki, port: int, **over) -> dict:
+    """The shipped lathe's table (etc/lathed-cell-opcua.toml) on this control."""
+    t = {k: v for k, v in LATHE.items() if k not in FRAMEWORK_KEYS}
+    t = {k: v.replace("{runtime_dir}/sim/pki", str(pki.root)) if isinstance(v, str) else v for k, v in t.items()}
+    t["url"] = f"opc.tcp://127.0.0.1:{port}"
+    t.update(over)
+    return {k: v for k, v in t.items() if v is not None}
+
+
+def driver(data: dict, file: str = "t.toml") -> OpcUaCNC:
+    sec = Section(file, "machine.lathe", data)
+    d = OpcUaCNC("lathe", sec)
+    sec.check_unused()
+    return d
+
+
+async def running(d: OpcUaCNC, check, events: list | None = None) -> None:
+    events = [] if events is None else events
+    d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: events.append((k, p)))
+    await d.connect()
+    task = asyncio.create_task(d.run())
+    try:
+        await check(d, task)
+    finally:
+        await cancel_and_wait([task])
+        await d.close()
+
+
+async def until(pred, timeout=10.0, what="condition"):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def speed(rpm: float, **kw) -> Command:
+    return Command(machine="lathe", action="spindle_rpm", value=rpm, source="t", reason="test", **kw)
+
+
+@pytest.mark.parametrize("over, problem", [
+    ({"url": "http://cnc:4840"}, "url: 'http://cnc:4840' is not opc.tcp://HOST:PORT"),
+    ({"url": "opc.tcp://10.0.0.7:4840", "security": "None", "certificate": None, "private_key": None,
+      "server_certificate": None}, "security: None sends every value and the login in clear"),
+    ({"server_certificate": None}, "server_certificate: missing: security SignAndEncrypt needs it"),
+    ({"password_file": None}, "password_file: missing: a login by name needs username and password_file"),
+    ({"policy": "Basic128Rsa15"}, "policy: 'Basic128Rsa15' is not allowed; allowed: Basic256Sha256, "
+                                  "Aes128Sha256RsaOaep, Aes256Sha256RsaPss"),
+    ({"stale_after": "900ms"}, "stale_after: must be longer than two keep-alives (1 s)"),
+    ({"nodes": {**LATHE["nodes"], "spindle_rmp_cmd": {"node": "ns=cnc;s=/x", "writable": True}}},
+     "[machine.lathe.nodes.spindle_rmp_cmd] writable: no action writes 'spindle_rmp_cmd'"),
+    ({"nodes": {**LATHE["nodes"], "x_mm": {"node": "ns=cnc;/Channel/x"}}}, "is not a node id"),
+    ({"nodes": {**LATHE["nodes"], "z_mm": {"path": "mt:Monitoring/mt:Z"}}}, "root: missing: the map names nodes by path"),
+    ({"nodes": {k: v for k, v in LATHE["nodes"].items() if k not in ("serial_number", "manufacturer", "model")}},
+     "this machine takes commands, so its control must say it is the configured one"),
+    ({"namespaces": {"cnc": "urn:lathed:sim:cnc", "cnx": "urn:typo"}}, "[machine.lathe.namespaces] cnx: not used"),
+])
+def test_config_errors_name_the_key(over, problem, tmp_path):
+    data = table(SimpleNamespace(root=tmp_path), 4840, **over)
+    if "identification" not in data:
+        data["identification"] = dict(LATHE["identification"])
+    with pytest.raises(ConfigError) as e:
+        driver(data)
+    assert problem in str(e.value) and str(e.value).startswith("t.toml: [machine.lathe"), str(e.value)
+
+
+def test_the_shipped_map_reads_by_subscription_and_writes_nodes_and_a_method(plant):
+    """Every value of the shipped map arrives without a single read of its nodes: the
+    subscription's publishes fill the model and go on the bus, one stamp a publish; the speed
+    is written to its node, the X offset by the control's method, the heartbeat counts."""
+    control, pki, _ = plant
+    reads = []
+    service = control.peer.server.iserver.attribute_service
+    inner = service.read
+
+    def counting(params, *a, **kw):
+        reads.extend(r.NodeId.to_string() for r in params.NodesToRead)
+        return inner(params, *a, **kw)
+    service.read = counting
+    d = driver(table(pki, control.peer.port))
+
+    async def check(d, task):
+        await until(lambda: d.counts["publishes"] >= 5, what="publishes")
+        snap = d.model.snapshot()
+        assert snap["state"] == "running" and snap["part_count"]["value"] == 7 and snap["program"]["value"] == 1000
+        assert snap["axes"]["x"]["value"] == 14.0 and snap["axes"]["x"]["stale"] is False
+        assert set(d.values) == set(d.readings)
+        assert d.current("spindle_rpm") == 1500.0 and d.actions == ("spindle_rpm", "offset_x_um")
+        before = list(reads)
+        control.set(part_count=8, x_mm=13.5)
+        await until(lambda: d.model.snapshot()["part_count"]["value"] == 8, what="a change by subscription")
+        # the machine's values came by subscription: no read of a mapped node in between
+        mapped = {e.node.to_string() for e in d.entries.values()}
+        assert not [r for r in reads[len(before):] if r in mapped]
+        latest = d.ctx.bus.latest_of("lathe")
+        assert latest["part_count"].value == 8 and latest["x_mm"].t == latest["spindle_rpm"].t   # one frame
+        await d.execute(speed(1800.0))
+        await d.execute(Command(machine="lathe", action="offset_x_um", value=-2.5, source="t", reason="test"))
+        assert ("spindle_rpm_cmd", 1800.0) in control.writes and ("offset_x_um", -2.5) in control.writes
+        await until(lambda: d.current("offset_x_um") == -2.5, what="the offset read back")
+        beats = [v for n, v in control.writes if n == "heartbeat"]
+        await until(lambda: len([n for n, _ in control.writes if n == "heartbeat"]) > len(beats) + 1,
+                    what="heartbeats")
+        control.refuse.add("spindle_rpm_cmd")
+        try:
+            with pytest.raises(RuntimeError, match="the control refused 9000 for spindle_rpm_cmd.*BadOutOfRange"):
+                await d.execute(speed(9000.0))
+        finally:
+            control.refuse.clear()
+    try:
+        asyncio.run(asyncio.wait_for(running(d, check), 60))
+    finally:
+        service.read = inner
+        control.set(**BASE)
+    assert d.status()["link"]["security"] == "Basic256Sha256 SignAndEncrypt"
+
+
+@pytest.mark.parametrize("over", [{"security": "Sign"}, {"policy": "Aes256Sha256RsaPss"},
+                                  {"username": None, "password_file": None, "user_certificate": "USER",
+                                   "user_private_key": "USERKEY"}])
+def test_sign_newer_policies_and_a_user_certificate(plant, over):
+    control, pki, _ = plant
+    over = {k: {"USER": str(pki.user_cert), "USERKEY": str(pki.user_key)}.get(v, v) for k, v in over.items()}
+    d = driver(table(pki, control.peer.port, **over))
+
+    async def check(d, task):
+        await until(lambda: d.current("spindle_rpm") is not None, what="values")
+    asyncio.run(asyncio.wait_for(running(d, check), 60))
+
+
+@pytest.mark.parametrize("case, match", [
+    ("password", r"refused the login of user 'lathed' \(BadUserAccessDenied"),
+    ("client", r"refused lathed's certificate .*lathed-cert.der \(BadCertificateUntrusted\): put it in the "
+               "control's trusted certificates"),
+    ("server", r"presents certificate [0-9A-F]{16}\.\.\., not the trusted [0-9A-F]{16}\.\.\. in .*cnc-cert.der"),
+    ("identity", r"reports serial number 'SIM-LATHE-0001', \[machine.lathe.identification\] says 'SIM-LATHE-0002'"),
+    ("user_certificate", r"refused the login of the user certificate"),
+])
+def test_a_refused_certificate_login_or_machine_is_one_line_and_no_link(plant, tmp_path, case, match):
+    control, pki, rogue = plant
+    over = {"password": {"password_file": str(tmp_path / "pw")},
+            "client": {"certificate": str(rogue.client_cert), "private_key": str(rogue.client_key)},
+            "server": {"server_certificate": str(rogue.server_cert)},
+            "identity": {"identification": {**LATHE["identification"], "serial_number": "SIM-LATHE-0002"}},
+            "user_certificate": {"username": None, "password_file": None, "user_certificate": str(rogue.user_cert),
+                                 "user_private_key": str(rogue.user_key)}}[case]
+    (tmp_path / "pw").write_text("not-the-password\n")
+    (tmp_path / "pw").chmod(0o600)
+    d = driver(table(pki, control.peer.port, **over))
+    d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
+    writes = len(control.writes)
+
+    async def attempt():
+        try:
+            await d.connect()
+        finally:
+            assert not d.linked() or case == "identity"
+            await d.close()
+    with pytest.raises(Refused) as e:
+        asyncio.run(asyncio.wait_for(attempt(), 60))
+    assert "\n" not in str(e.value) and e.value.__cause__ is None
+    assert re.search(match, str(e.value)), str(e.value)
+    assert d.model.state() == "disconnected" and len(control.writes) == writes    # not even a heartbeat
+
+
+def test_a_missing_or_open_file_is_named_with_its_key(plant, tmp_path):
+    control, pki, _ = plant
+    loose = tmp_path / "pw"
+    loose.write_text(pki.password() + "\n")
+    loose.chmod(0o644)
+    for over, problem in (({"private_key": str(tmp_path / "nope.pem")}, "private_key: " + str(tmp_path / "nope.pem")
+                           + ": no such file"),
+                          ({"password_file": str(loose)}, "password_file: " + str(loose) + ": readable by every user")):
+        d = driver(table(pki, control.peer.port, **over))
+        with pytest.raises(ConfigError, match="t.toml: \\[machine.lathe\\] " + problem.replace("(", "\\(")):
+            asyncio.run(d.connect())
+
+
+class Proxy:
+    """A TCP relay between the driver and the server that can freeze (a switch that stops
+    passing frames, both connections left open): nothing arrives, nothing is refused."""
+
+    def __init__(self, target: int):
+        self.target, self.port = target, free_port()
+        self.flowing = asyncio.Event()
+        self.flowing.set()
+        self.server = None
+
+    async def start(self):
+        self.server = await asyncio.start_server(self._client, "127.0.0.1", self.port)
+
+    async def _client(self, r, w):
+        ur, uw = await asyncio.open_connection("127.0.0.1", self.target)
+
+        async def pump(src, dst):
+            with contextlib.suppress(Exception):
+                while data := await src.read(65536):
+                    await self.flowing.wait()
+                    dst.write(data)
+                    await dst.drain()
+            dst.close()
+        await asyncio.gather(pump(r, uw), pump(ur, w))
+
+    async def stop(self):
+        self.flowing.set()
+        self.server.close()
+
+
+def test_a_stale_subscription_is_detected_and_its_values_go_stale(plant):
+    """The link freezes (no publish, no keep-alive, the connection open): within stale_after
+    the driver says so and drops the link; its values are stale then, the threading signal
+    too, so the guard takes nothing; a fresh link comes back with a new subscription."""
+    control, pki, _ = plant
+
+    async def main():
+        proxy = Proxy(control.peer.port)
+        await proxy.start()
+        # without the heartbeat, whose write would time out first: the subscription's silence is
+        # what tells the link is dead
+        nodes = {k: v for k, v in LATHE["nodes"].items() if k != "heartbeat"}
+        d = driver(table(pki, proxy.port, stale_after="1500ms", timeout="1s", nodes=nodes))
+        d.ctx = DriverContext(Bus(), structlog.get_logger(), lambda k, p=None: None)
+        try:
+            await d.connect()
+            first = d.subscription["id"]
+            task = asyncio.create_task(d.run())
+            await until(lambda: d.counts["publishes"] >= 3, what="publishes")
+            assert d.current("spindle_rpm") == 1500.0 and d.interlock(speed(1600.0)) is None
+            proxy.flowing.clear()
+            frozen = time.monotonic()
+            with pytest.raises(TimeoutError, match="no publish .* subscription stale"):
+                await asyncio.wait_for(task, 10)
+            took = time.monotonic() - frozen
+            assert 1.5 - 0.6 <= took, took          # not before the last publish was stale_after old
+            assert d.current("spindle_rpm") is None and d.model.state() == "disconnected"
+            assert "threading signal not read" in d.interlock(speed(1600.0))
+            await d.close()
+            proxy.flowing.set()
+            await d.connect()
+            assert d.subscription["id"] != first and d.current("spindle_rpm") == 1500.0
+        finally:
+            await d.close()
+            await proxy.stop()
+    asyncio.run(asyncio.wait_for(main(), 90))
+
+
+def test_the_threading_signal_is_read_again_as_a_command_is_written(plant):
+    """A thread begun since the last publish (the publishing interval long here) refuses the
+    command all the same: the signal is read from the server as the write goes; a signal
+    the control reports unusable (Bad) is as good as a thread."""
+    control, pki, _ = plant
+    d = driver(table(pki, control.peer.port, publish_interval="2s", keepalive="2s", stale_after="5s"))
+
+    async def check(d, task):
+        await until(lambda: d.current("spindle_rpm") is not None, what="values")
+        assert d.interlock(speed(1600.0)) is None
+        control.set(threading=1)
+        with pytest.raises(PermissionError, match=r"is cutting a thread \(threading = 1\)"):
+            await d.execute(speed(1600.0))
+        assert ("spindle_rpm_cmd", 1600.0) not in control.writes
+        control.set(threading=0)
+        control.run(control.peer.fault("threading", "BadSensorFailure"))
+        with pytest.raises(PermissionError, match="threading signal unreadable \\(BadSensorFailure\\)"):
+            await d.execute(speed(1600.0))
+        await until(lambda: "threading" not in d.values, timeout=6, what="the Bad value published")
+        assert d.status()["unusable"] == {"threading": "BadSensorFailure"}
+        assert "threading signal not read yet" in d.interlock(speed(1600.0))
+    try:
+        asyncio.run(asyncio.wait_for(running(d, check), 60))
+    finally:
+        control.set(**BASE)
+
+
+def test_the_second_shipped_config_is_the_default_cell_but_the_lathe():
+    """etc/lathed-cell-opcua.toml: etc/lathed.toml with the lathe over OPC UA; nothing else
+    may drift between the two."""
+    a, b = (tomllib.loads(p.read_text()) for p in (ROOT / "etc" / "lathed.toml", SHIPPED))
+    la, lb = a["machine"].pop("lathe"), b["machine"].pop("lathe")
+    assert {k: b["simulator"].pop(k) for k in ("opcua_port", "opcua_pki")} == {
+        "opcua_port": 15024, "opcua_pki": "{runtime_dir}/sim/pki"}
+    assert a == b
+    assert la["identification"] == lb["identification"] and la["limits"] == lb["limits"]
+    # the same values by the same names (the Modbus map's depth register aside: commented out there)
+    assert set(la["registers"]) <= set(lb["nodes"])
+    # what the map writes the control takes (the override too, where a map writes the speed so)
+    assert {n for n, e in lb["nodes"].items() if e.get("writable")} == {"spindle_rpm_cmd", "offset_x_um", "heartbeat"}
+    assert {"spindle_rpm_cmd", "spindle_override_pct", "heartbeat"} == {n for n, (_, _, w) in NODES.items() if w}
+
+
+def test_a_speed_written_as_an_override_and_released(plant):
+    """A control that takes the speed only as its override (the map's commanded speed read-only,
+    its override writable): a percentage of the programmed speed, released back to 100 %."""
+    control, pki, _ = plant
+    nodes = {**LATHE["nodes"], "spindle_rpm_cmd": {**LATHE["nodes"]["spindle_rpm_cmd"], "writable": False},
+             "spindle_override_pct": {**LATHE["nodes"]["spindle_override_pct"], "writable": True}}
+    d = driver(table(pki, control.peer.port, nodes=nodes))
+
+    async def check(d, task):
+        await until(lambda: d.current("spindle_rpm") is not None, what="values")
+        assert d.speed_by_override and d.released("spindle_rpm") is None
+        assert await d.execute(speed(1831.0)) == {"override_pct": 122.0, "rpm_effective": 1830.0}
+        assert ("spindle_override_pct", 122.0) in control.writes
+        control.set(spindle_rpm_cmd=1830.0)          # the control's commanded speed follows
+        await until(lambda: d.current("spindle_rpm") == 1830.0, what="the commanded speed")
+        assert d.released("spindle_rpm") == pytest.approx(1500.0)
+        await d.execute(speed(1500.0, release=True))
+        assert ("spindle_override_pct", 100.0) in control.writes
+    try:
+        asyncio.run(asyncio.wait_for(running(d, check), 60))
+    finally:
+        control.set(**BASE)
