@@ -137,16 +137,23 @@ class OpcUaCNC(CncDriver):
             self.errors["connect"] += 1
             raise
         self.client.connection_lost_callback = self._connection_lost
+        step = "resolving the node map"
         try:
             await self._resolve()
+            step = "reading the nameplate"
             await self._confirm_identity()
+            step = "subscribing"
             await self._subscribe()
             # the first values prove the control answers: an open session is not a machine
             await self._first_values()
         except ua.UaStatusCodeError as e:
             self.errors["refused"] += 1
-            raise ConnectionError(f"the OPC UA server at {self.where} refused a request while setting up: "
+            raise ConnectionError(f"the OPC UA server at {self.where} refused a request while {step}: "
                                   f"{type(e).__name__}") from None
+        except asyncio.TimeoutError:
+            self.errors["timeout"] += 1
+            raise TimeoutError(f"the OPC UA server at {self.where} did not answer within {self.timeout:g} s while "
+                               f"{step} (server overloaded or link lost?)") from None
         await self._beat()          # the control's watchdog is armed as soon as the link is up
         self.held_at_connect()
         self.model.link_up()
@@ -413,7 +420,12 @@ class OpcUaCNC(CncDriver):
         if e is None:
             return None
         from asyncua import ua
-        dv = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.Value))[0]
+        try:
+            dv = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.Value))[0]
+        except asyncio.TimeoutError:
+            self.errors["timeout"] += 1
+            raise TimeoutError(f"the OPC UA server at {self.where} did not answer the threading signal's read "
+                               f"within {self.timeout:g} s: nothing written") from None
         v = e.number(dv.Value.Value) if dv.StatusCode.is_good() and dv.Value is not None else None
         if v is None:
             return f"machine {self.name}'s threading signal unreadable ({dv.StatusCode.name}): a thread may be being cut"

@@ -159,8 +159,8 @@ class OpcUaPeer:
             return [await self._client_write(wv, inner, user) for wv in params.NodesToWrite]
         service.write = write
         self._last = {}
-        self.server = server
         await server.start()
+        self.server = server
         self.up = True
 
     async def _client_write(self, wv: ua.WriteValue, inner, user: User) -> ua.StatusCode:
