@@ -32,9 +32,12 @@ class CncDriver(Driver):
     role = "machine"
 
     def setup_cnc(self, section: Section, names: set[str] | frozenset[str], writable: set[str], what: str,
-                  stale_after: float, threading_max_age: float) -> None:
-        """``what``: the map's table ("registers", "nodes"), for the errors."""
+                  stale_after: float, threading_max_age: float, alarms_elsewhere: bool = False) -> None:
+        """``what``: the map's table ("registers", "nodes"), for the errors; ``alarms_elsewhere``:
+        the driver fills the model's alarms itself (a control's alarm events)."""
         self.names = frozenset(names)
+        # without an alarm code or events, the program state's 2 is the alarm
+        self.alarm_from_state = "alarm_code" not in self.names and not alarms_elsewhere
         self.stale_after = stale_after
         # how old a threading reading may be for a command to pass
         self.threading_max_age = threading_max_age
@@ -77,7 +80,7 @@ class CncDriver(Driver):
         if name == "spindle_rpm_cmd" and self.speed_by_override:
             self._cmd_seen.append((v, self.values.get("spindle_override_pct", (None, 0))[0]))
         self.values[name] = (v, t)
-        self.model.reading(name, v, t, alarm_from_state="alarm_code" not in self.names)
+        self.model.reading(name, v, t, alarm_from_state=self.alarm_from_state)
         return True
 
     def held_at_connect(self) -> None:

@@ -82,7 +82,8 @@ class Entry:
     ref: Ref
     unit: str = ""
     scale: float = 1.0
-    states: dict[str, float] = field(default_factory=dict)     # a text's (LocalizedText, String) number
+    # a text's (LocalizedText, String) number, or an enumeration's ("0" = 1): the value lathed knows
+    states: dict[str, float] = field(default_factory=dict)
     writable: bool = False
     method: Ref | None = None          # written by calling this method on ``obj``, not by a write
     obj: Ref | None = None
@@ -102,6 +103,9 @@ class Entry:
             return None if v is None else float(v)
         if isinstance(value, bool):
             return 1.0 if value else 0.0
+        if self.states and isinstance(value, int):    # an enumeration's value (40501's ChannelState)
+            v = self.states.get(str(value))
+            return None if v is None else float(v)
         if isinstance(value, (int, float)) and math.isfinite(float(value)):
             return float(value) * self.scale
         return None

@@ -31,7 +31,7 @@ No publish within ``stale_after`` (a hung server, a cut cable): the values go st
 link is dropped and opened again (the supervisor's backoff), subscriptions made anew. The
 values and the commands are those of modbus_cnc (lathed.cnc): ``spindle_rpm_cmd`` or the
 override written for the speed, ``offset_x_um``, a ``heartbeat`` node, the ``threading``
-interlock (read again as each command is written). Before the first command the control's
+interlock (asked again as each command is written). Before the first command the control's
 nameplate nodes must match ``[machine.NAME.identification]``. docs/machines.md: OPC UA.
 """
 from __future__ import annotations
@@ -43,12 +43,13 @@ import time
 from collections import Counter
 
 from lathed import hookimpl
-from lathed.cnc import CncDriver, threading_refusal
+from lathed.cnc import CncDriver
 from lathed.command import Command
 from lathed.config import ConfigError, Section
 from lathed.extras import MissingExtra, need
 
 HEARTBEAT_MAX = 32767
+EVENTS_HANDLE = 0          # the alarms' monitored item; the values' are 1..n
 
 
 class OpcUaCNC(CncDriver):
@@ -79,19 +80,25 @@ class OpcUaCNC(CncDriver):
         except ValueError as e:
             raise section.error("root", str(e)) from None
         self.entries = ua_map.read_node_map(section.getsection("nodes"), self.plausible)
-        if self.root is None and any(e.ref.path for e in self.entries.values()):
+        alarms = section.getsection("alarms", required=False)
+        from lathed.ua_alarms import AlarmEvents
+        self.alarms = AlarmEvents(alarms) if alarms.keys() else None
+        if self.root is None and (any(e.ref.path for e in self.entries.values())
+                                  or (self.alarms is not None and self.alarms.ref.path)):
             raise section.error("root", "missing: the map names nodes by path, from this node "
                                         "(a node id, or a path from the Objects folder)")
         for key in self.aliases.keys() - ua_map.BUILTIN_NAMESPACES.keys():
             if not any(key in (e.ref.ns, *(ns for ns, _ in e.ref.path)) for e in self.entries.values()) and \
                     not (self.root and key in (self.root.ns, *(ns for ns, _ in self.root.path))) and \
-                    not any(e.method and key in (e.method.ns, e.obj.ns) for e in self.entries.values()):
+                    not any(e.method and key in (e.method.ns, e.obj.ns) for e in self.entries.values()) and \
+                    not (self.alarms and key in (self.alarms.ref.ns, *(ns for ns, _ in self.alarms.ref.path),
+                                                 self.alarms.code and self.alarms.code[0])):
                 raise section.getsection("namespaces").error(key, "not used by any node: a typo?")
         self.identity = {n: e for n, e in self.entries.items() if n in ua_map.IDENTITY}
         self.readings = {n: e for n, e in self.entries.items() if n not in ua_map.IDENTITY}
         writable = {n for n, e in self.readings.items() if e.writable}
         self.setup_cnc(section, self.readings.keys(), writable, "nodes", stale_after,
-                       threading_max_age=2 * self.keepalive + self.timeout)
+                       threading_max_age=2 * self.keepalive + self.timeout, alarms_elsewhere=self.alarms is not None)
         hb = self.readings.get("heartbeat")
         if hb is not None and not hb.writable:
             raise section.error("nodes", "heartbeat must be writable: lathed writes it, the control watches it")
@@ -127,7 +134,7 @@ class OpcUaCNC(CncDriver):
         self._image.clear()
         self._reported.clear()
         self._bad.clear()
-        self._wake.clear()
+        self._wake = asyncio.Event()      # this connect's loop (a test runs a driver in several)
         try:
             self.client = await self.security.open(self.name, self.timeout, self.session_timeout)
         except ConfigError:
@@ -165,7 +172,13 @@ class OpcUaCNC(CncDriver):
         r = Resolver(self.client, self.aliases, self.root)
         try:
             await r.start()
-            start = await r.root_node() if any(e.ref.path for e in self.entries.values()) else None
+            paths = any(e.ref.path for e in self.entries.values()) or (self.alarms and self.alarms.ref.path)
+            start = await r.root_node() if paths else None
+            if self.alarms is not None:
+                where = self.section_name("alarms")
+                self.alarms.node = ((await r.paths(start, [(self.alarms.ref, where)]))[0] if self.alarms.ref.path
+                                    else r.node_id(self.alarms.ref, where))
+                self._ns_index = lambda ns: r.ns_index(ns, f"{where} code")
             by_path = [(e, f"{self.section_name('nodes')}.{e.name}") for e in self.entries.values() if e.ref.path]
             for e, node in zip([e for e, _ in by_path], await r.paths(start, [(e.ref, w) for e, w in by_path])):
                 e.node = node
@@ -263,20 +276,48 @@ class OpcUaCNC(CncDriver):
                 MonitoringMode=ua.MonitoringMode.Reporting,
                 RequestedParameters=ua.MonitoringParameters(ClientHandle=handle, SamplingInterval=self.publish_interval
                                                              * 1000, QueueSize=1, DiscardOldest=True)))
+        if self.alarms is not None:
+            self.alarms.reset()
+            items.append(ua.MonitoredItemCreateRequest(
+                ItemToMonitor=ua.ReadValueId(NodeId=self.alarms.node, AttributeId=ua.AttributeIds.EventNotifier),
+                MonitoringMode=ua.MonitoringMode.Reporting,
+                RequestedParameters=ua.MonitoringParameters(ClientHandle=EVENTS_HANDLE, SamplingInterval=0,
+                                                             QueueSize=1000, DiscardOldest=False,
+                                                             Filter=self.alarms.event_filter(self._ns_index))))
         results = await self.client.uaclient.create_monitored_items(ua.CreateMonitoredItemsParameters(
             SubscriptionId=res.SubscriptionId, ItemsToCreate=items, TimestampsToReturn=ua.TimestampsToReturn.Both))
-        for (name, e), r in zip(self.readings.items(), results):
+        for (name, what), r in zip([*((n, e.ref.text) for n, e in self.readings.items()),
+                                    ("alarms", self.alarms and self.alarms.ref.text)], results):
             if not r.StatusCode.is_good():
                 self.errors["map"] += 1
-                raise ConnectionError(f"{self.section_name('nodes')}.{name}: the server refused to watch "
-                                      f"{e.ref.text}: {r.StatusCode.name}")
+                raise ConnectionError(f"{self.section_name('nodes' if name != 'alarms' else 'alarms')}"
+                                      f"{'.' + name if name != 'alarms' else ''}: the server refused to watch "
+                                      f"{what}: {r.StatusCode.name}")
+        if self.alarms is not None:
+            # the conditions active now, each once: the set is told when the refresh ends
+            refresh = ua.CallMethodRequest(ObjectId=ua.NodeId(ua.ObjectIds.ConditionType),
+                                           MethodId=ua.NodeId(ua.ObjectIds.ConditionType_ConditionRefresh),
+                                           InputArguments=[ua.Variant(res.SubscriptionId, ua.VariantType.UInt32)])
+            status = (await self.client.uaclient.call([refresh]))[0].StatusCode
+            self.alarms.requested = True
+            if not status.is_good():
+                # the alarms are then known as they change only: said, recorded, and the link goes on
+                self.errors["alarm_refresh"] += 1
+                self.alarms.refreshed = True
+                payload = {"machine": self.name, "status": status.name,
+                           "why": "the server cannot refresh its conditions: an alarm active before this "
+                                  "connect is not known until it changes"}
+                self.ctx.log.warning("alarm_refresh_refused", **payload)
+                self._record("alarm_refresh_refused", payload)
 
     async def _first_values(self) -> None:
         deadline = time.monotonic() + max(self.stale_after, self.timeout)
-        while len(self._reported) < len(self.readings) and self._lost is None:
+        while (len(self._reported) < len(self.readings) or (self.alarms is not None and not self.alarms.refreshed)) \
+                and self._lost is None:
             left = deadline - time.monotonic()
             if left <= 0:
-                missing = sorted(set(self.readings) - self._reported)
+                missing = sorted(set(self.readings) - self._reported) + (
+                    ["the active alarms (ConditionRefresh)"] if self.alarms and not self.alarms.refreshed else [])
                 raise ConnectionError(f"the OPC UA server at {self.where} sent no first value of "
                                       f"{', '.join(missing)} within {max(self.stale_after, self.timeout):g} s")
             self._wake.clear()
@@ -310,6 +351,12 @@ class OpcUaCNC(CncDriver):
                 self.counts["status_changes"] += 1
                 self._drop(f"the OPC UA server at {self.where} ended the subscription: {notif.Status.name}")
                 return
+            if isinstance(notif, ua.EventNotificationList):
+                for ev in notif.Events:
+                    self.counts["events"] += 1
+                    if ev.ClientHandle == EVENTS_HANDLE and self.alarms.take(ev.EventFields):
+                        self.model.set_alarms(self.alarms.codes(), now)
+                continue
             if not isinstance(notif, ua.DataChangeNotification):
                 continue
             for item in notif.MonitoredItems:
@@ -343,6 +390,8 @@ class OpcUaCNC(CncDriver):
         for name, v in self._image.items():
             if not self.take(name, v, self.readings[name].unit, t):
                 self.counts["refused"] += 1
+        if self.alarms is not None and self.alarms.settle():
+            self.model.set_alarms(self.alarms.codes(), now)
         # what was not sent again still holds: the subscription reports every change
         self.values = {n: (v, max(vt, t)) for n, (v, vt) in self.values.items()}
         self.model.confirm(t)
@@ -401,8 +450,10 @@ class OpcUaCNC(CncDriver):
                 raise PermissionError(f"{self.name}: no writable node for action {cmd.action!r}")
         if not self.linked():
             raise ConnectionError("not connected")
-        # asked again as the write goes: the threading signal read now, not as last published
-        why = self.interlock(cmd) or await self._threading_now()
+        # asked again as the write goes, nothing awaited in between: a publish handled since the
+        # guard passed it may have brought a thread's start (the subscription sends the signal
+        # within a publishing interval of its change, as a poll would read it)
+        why = self.interlock(cmd)
         if why is not None:
             raise PermissionError(why)
         if detail is not None:
@@ -414,22 +465,6 @@ class OpcUaCNC(CncDriver):
         else:
             self.values[e.name] = (value, time.time())
         return detail
-
-    async def _threading_now(self) -> str | None:
-        e = self.readings.get("threading")
-        if e is None:
-            return None
-        from asyncua import ua
-        try:
-            dv = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.Value))[0]
-        except asyncio.TimeoutError:
-            self.errors["timeout"] += 1
-            raise TimeoutError(f"the OPC UA server at {self.where} did not answer the threading signal's read "
-                               f"within {self.timeout:g} s: nothing written") from None
-        v = e.number(dv.Value.Value) if dv.StatusCode.is_good() and dv.Value is not None else None
-        if v is None:
-            return f"machine {self.name}'s threading signal unreadable ({dv.StatusCode.name}): a thread may be being cut"
-        return threading_refusal(self.name, v)
 
     async def _write(self, e, value: float) -> None:
         from asyncua import ua
@@ -455,6 +490,8 @@ class OpcUaCNC(CncDriver):
                 "model": self.model.snapshot(),
                 "values": self.value_status({n: e.unit for n, e in self.readings.items()}),
                 "unusable": dict(self._bad),
+                **({"alarm_events": {"active": self.alarms.codes(), "messages": self.alarms.messages}}
+                   if self.alarms is not None else {}),
                 **({"heartbeat": {"every_s": self.heartbeat_every, "count": self.beats}}
                    if self.heartbeat_every else {}),
                 "link": {"url": self.where, "security": self.security.describe(), "login": self.security.login,

@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 import structlog
 
+from asyncua import ua
+
 from lathed.bus import Bus
 from lathed.command import Command
 from lathed.config import FRAMEWORK_KEYS, ConfigError, Section
@@ -331,27 +333,32 @@ def test_a_stale_subscription_is_detected_and_its_values_go_stale(plant):
     asyncio.run(asyncio.wait_for(main(), 90))
 
 
-def test_the_threading_signal_is_read_again_as_a_command_is_written(plant):
-    """A thread begun since the last publish (the publishing interval long here) refuses the
-    command all the same: the signal is read from the server as the write goes; a signal
-    the control reports unusable (Bad) is as good as a thread."""
+def test_a_thread_being_cut_interlocks_every_command(plant):
+    """The threading signal, as its subscription brings it: a thread's start refuses every
+    command (the driver asks again as the write goes, whatever the guard saw); a signal the
+    control reports unusable (Bad) is as good as a thread, and so is one not heard of lately."""
     control, pki, _ = plant
-    d = driver(table(pki, control.peer.port, publish_interval="2s", keepalive="2s", stale_after="5s"))
+    d = driver(table(pki, control.peer.port))
 
     async def check(d, task):
         await until(lambda: d.current("spindle_rpm") is not None, what="values")
         assert d.interlock(speed(1600.0)) is None
         control.set(threading=1)
+        await until(lambda: d.interlock(speed(1600.0)) is not None, what="the thread's start")
+        assert "is cutting a thread (threading = 1)" in d.interlock(speed(1600.0, release=True))
         with pytest.raises(PermissionError, match=r"is cutting a thread \(threading = 1\)"):
             await d.execute(speed(1600.0))
         assert ("spindle_rpm_cmd", 1600.0) not in control.writes
         control.set(threading=0)
+        await until(lambda: d.interlock(speed(1600.0)) is None, what="the thread's end")
         control.run(control.peer.fault("threading", "BadSensorFailure"))
-        with pytest.raises(PermissionError, match="threading signal unreadable \\(BadSensorFailure\\)"):
-            await d.execute(speed(1600.0))
-        await until(lambda: "threading" not in d.values, timeout=6, what="the Bad value published")
+        await until(lambda: "threading" not in d.values, what="the Bad value published")
         assert d.status()["unusable"] == {"threading": "BadSensorFailure"}
         assert "threading signal not read yet" in d.interlock(speed(1600.0))
+        control.set(threading=0)
+        await until(lambda: d.interlock(speed(1600.0)) is None, what="a good value again")
+        d.values["threading"] = (0.0, time.time() - d.threading_max_age - 0.1)    # as if no publish came
+        assert "threading signal not read within" in d.interlock(speed(1600.0))
     try:
         asyncio.run(asyncio.wait_for(running(d, check), 60))
     finally:
@@ -455,3 +462,63 @@ def test_the_shipped_opcua_cell_cures_chatter_and_rides_out_a_server_restart(tmp
             counts[-1] == sim_call(sim, "status")["registers"]["part_count"] - 1     # the last step in flight
     finally:
         d.stop()
+
+
+async def _alert_source(control: Control):
+    """An object of the control whose events carry its alarms as conditions (40501's
+    Notification/Messages and AlertType with its ErrorCode), made once on the server."""
+    server = control.peer.server
+    if getattr(control, "alerts", None) is None:
+        idx = await server.get_namespace_index("urn:lathed:sim:cnc")
+        obj = await server.nodes.objects.add_object(ua.NodeId("/Nck/Messages", idx), ua.QualifiedName("Messages", idx))
+        await obj.set_event_notifier([ua.EventNotifier.SubscribeToEvents])
+        etype = await server.create_custom_event_type(idx, "AlertType", ua.ObjectIds.AlarmConditionType,
+                                                      [("ErrorCode", ua.VariantType.String)])
+        control.alerts = (idx, etype, obj, {})
+    return control.alerts
+
+
+async def _alert(control: Control, code: str, active: bool) -> None:
+    idx, etype, obj, gens = await _alert_source(control)
+    if code not in gens:       # a condition is an object of its own: the server keeps each one it retains
+        gens[code] = await control.peer.server.get_event_generator(etype, obj)
+    gen = gens[code]
+    ev = gen.event
+    ev.add_property("NodeId", ua.NodeId(f"/Nck/Alarms/{code}", idx), ua.VariantType.NodeId)   # its ConditionId
+    ev.add_property("ActiveState/Id", active, ua.VariantType.Boolean)
+    ev.Retain, ev.ErrorCode, ev.Message = active, code, ua.LocalizedText(f"alarm {code}")
+    await gen.trigger()
+
+
+def test_alarms_as_conditions_are_told_once_across_a_reconnect(plant):
+    """The control's alarms as conditions of an event notifier ([alarms]): raised and cleared
+    as they come; one active across a reconnect is not told again (the refresh gives it back),
+    one cleared while the link was down is told cleared once it returns."""
+    control, pki, _ = plant
+    control.run(_alert_source(control))
+    nodes = {k: v for k, v in LATHE["nodes"].items() if k != "alarm_code"}
+    d = driver(table(pki, control.peer.port, nodes=nodes,
+                     alarms={"node": "ns=cnc;s=/Nck/Messages", "code": "cnc:ErrorCode"}))
+    events = []
+
+    async def first(d, task):
+        await until(lambda: d.current("spindle_rpm") is not None, what="values")
+        assert d.model.state() == "running"
+        control.run(_alert(control, "2047", True))
+        await until(lambda: d.model.state() == "alarm", what="the alarm")
+        control.run(_alert(control, "700", True))
+        await until(lambda: d.status()["alarm_events"]["active"] == ["2047", "700"], what="two alarms")
+
+    async def second(d, task):
+        await until(lambda: d.status()["alarm_events"]["active"] == ["2047"], what="the refresh")
+        control.run(_alert(control, "2047", False))
+        await until(lambda: d.model.state() == "running", what="the alarm cleared")
+    try:
+        asyncio.run(asyncio.wait_for(running(d, first, events), 60))
+        control.run(_alert(control, "700", False))          # cleared while lathed was away
+        asyncio.run(asyncio.wait_for(running(d, second, events), 60))
+    finally:
+        control.run(_alert(control, "2047", False))
+    told = [(k, p["alarm"]) for k, p in events if k.startswith("alarm_")]
+    assert told == [("alarm_raised", "2047"), ("alarm_raised", "700"), ("alarm_cleared", "700"),
+                    ("alarm_cleared", "2047")], told

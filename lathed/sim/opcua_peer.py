@@ -111,6 +111,7 @@ class OpcUaPeer:
 
     async def start(self) -> None:
         server = Server(user_manager=Accounts(self.pki.password(), self.pki.user_cert.read_bytes()))
+        server.iserver.bind_condition_methods = True     # ConditionRefresh: a client learns the active alarms
         await server.init()
         server.set_endpoint(self.url)
         server.set_server_name("lathed simulated CNC")
