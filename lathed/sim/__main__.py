@@ -100,6 +100,10 @@ class Simulator:
         if self.agent is not None:
             self.agent.update(self.lathe.registers())
             await self.agent.start()
+        if self.opcua is not None:
+            # before READY and the physics: asyncua builds its address space for seconds (tens on a
+            # loaded host), holding the interpreter; the machine's other servers would not answer
+            await self._start_opcua()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
                 await peer.start()
@@ -137,10 +141,6 @@ class Simulator:
             self._stop.set()
         parent = os.getppid()
         tasks = [asyncio.create_task(self._vibration_loop()), asyncio.create_task(self._serial_loop())]
-        if self.opcua is not None:
-            # after READY: asyncua builds its address space for seconds (a loaded host: tens), and
-            # a control's OPC UA server comes up after its other interfaces too; a client retries
-            tasks.append(asyncio.create_task(self._start_opcua()))
         if self.mill or self.grinder or self.robot:
             tasks.append(asyncio.create_task(self._line_loop()))
         while not self._stop.is_set():
@@ -197,9 +197,9 @@ class Simulator:
     async def _start_opcua(self) -> None:
         try:
             await self.opcua.start()
-        except Exception as e:   # the port taken, a certificate unreadable: said, the rest goes on
-            print(f"lathed-sim: the OPC UA server at {self.opcua.url} failed to start: {type(e).__name__}: {e}",
-                  file=sys.stderr, flush=True)
+        except OSError as e:   # the port taken: no READY, the daemon says why
+            raise SystemExit(f"lathed-sim: cannot serve OPC UA at {self.opcua.url}: {e.strerror or e}") from None
+        await self.opcua.update(self.lathe.registers(), self.lathe.phase)
 
     def _wall(self, sim_t: float) -> float | None:
         for s0, w0 in reversed(self._clock):

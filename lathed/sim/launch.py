@@ -47,6 +47,9 @@ class SimulatorSettings:
         # password made by the simulator in opcua_pki (a directory of the runtime dir's, like its ttys)
         self.opcua_port = sec.getint("opcua_port", 0, minval=0, maxval=65535)
         self.opcua_pki = sec.getstr("opcua_pki", str(runtime_dir / "sim" / "pki"))
+        # asyncua builds its server's address space before the simulator is READY: seconds, tens on a
+        # loaded host
+        self.ready_timeout = 60.0 if self.opcua_port else 20.0
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
         # the lathe's true dynamics and program, when they are to differ from the built-in ones
@@ -110,7 +113,7 @@ class SimulatorSettings:
         return a
 
 
-async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subprocess.Process | None:
+async def spawn(s: SimulatorSettings, timeout: float | None = None) -> asyncio.subprocess.Process | None:
     if not s.spawn:
         return None
     problems = s.link_problems()
@@ -121,7 +124,7 @@ async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subproce
     # drivers before the simulator (--exit-with-parent covers lathed dying)
     proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE, start_new_session=True)
     try:
-        line = await asyncio.wait_for(proc.stdout.readline(), timeout)
+        line = await asyncio.wait_for(proc.stdout.readline(), timeout or s.ready_timeout)
     except asyncio.TimeoutError:
         line = b""
     if not line.startswith(b"READY "):
