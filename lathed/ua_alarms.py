@@ -23,14 +23,14 @@ FIELDS = (("EventType",), ("SourceName",), ("Message",), ("Severity",), ("Active
 
 class AlarmEvents:
     def __init__(self, sec: Section):
-        has_path, has_node = "events" in sec, "node" in sec
-        if has_path == has_node:
+        path, node = sec.getstr("events", ""), sec.getstr("node", "")
+        if bool(path) == bool(node):
             raise sec.error(None, "give events (a path from root to the object whose events carry the alarms) "
                                   "or node (its node id), one of them")
         try:
-            self.ref = Ref.parse(sec.getstr("events" if has_path else "node"), is_path=has_path)
+            self.ref = Ref.parse(path or node, is_path=bool(path))
         except ValueError as e:
-            raise sec.error("events" if has_path else "node", str(e)) from None
+            raise sec.error("events" if path else "node", str(e)) from None
         code = sec.getstr("code", "")
         self.code: tuple[str | int, str] | None = None
         if code:

@@ -131,13 +131,13 @@ def read_node_map(sec: Section, plausible: Plausibility | None = None) -> dict[s
         if not sec.has_section(key):
             raise sec.error(key, f"expected a table {{ node = ... }} or {{ path = ... }}, got {sec.get(key)!r}")
     for sub in sec.subsections():
-        has_node, has_path = "node" in sub, "path" in sub
-        if has_node == has_path:
+        node, path = sub.getstr("node", ""), sub.getstr("path", "")
+        if bool(node) == bool(path):
             raise sub.error(None, "give node (a node id) or path (a browse path from root), one of them")
         try:
-            ref = Ref.parse(sub.getstr("node" if has_node else "path"), is_path=has_path)
+            ref = Ref.parse(node or path, is_path=bool(path))
         except ValueError as e:
-            raise sub.error("node" if has_node else "path", str(e)) from None
+            raise sub.error("node" if node else "path", str(e)) from None
         e = Entry(sub.name, ref, unit=sub.getstr("unit", ""), scale=sub.getfloat("scale", 1.0),
                   writable=sub.getbool("writable", False))
         if e.scale == 0 or not math.isfinite(e.scale):

@@ -74,28 +74,21 @@ class Security:
             raise section.error("security", f"None sends every value and the login in clear: only to a server on "
                                             f"this computer (loopback), not {u.hostname}; use Sign or SignAndEncrypt")
 
-        def path(key: str, required: bool) -> Path | None:
-            text = section.getstr(key, "")
-            if not text:
-                if required:
-                    raise section.error(key, f"missing: security {self.mode} needs it")
-                return None
-            p = Path(text)
-            return p if p.is_absolute() else here / p
         secure = self.mode != "None"
-        self.certificate = path("certificate", secure)
-        self.private_key = path("private_key", secure)
+        need = f"security {self.mode}" if secure else None
+        self.certificate = _path(section, here, "certificate", need)
+        self.private_key = _path(section, here, "private_key", need)
         # the control's own certificate: the only one trusted for this machine
-        self.server_certificate = path("server_certificate", secure)
+        self.server_certificate = _path(section, here, "server_certificate", need)
         if not secure and (self.certificate or self.private_key or self.server_certificate):
             raise section.error("security", "is None but certificates are given: give Sign or SignAndEncrypt")
         self.username = section.getstr("username", "") or None
-        self.password_file = path("password_file", False)
+        self.password_file = _path(section, here, "password_file", None)
         if bool(self.username) != bool(self.password_file):
             raise section.error("username" if not self.username else "password_file",
                                 "missing: a login by name needs username and password_file (its first line)")
-        self.user_certificate = path("user_certificate", False)
-        self.user_private_key = path("user_private_key", False)
+        self.user_certificate = _path(section, here, "user_certificate", None)
+        self.user_private_key = _path(section, here, "user_private_key", None)
         if bool(self.user_certificate) != bool(self.user_private_key):
             raise section.error("user_certificate" if not self.user_certificate else "user_private_key",
                                 "missing: a login by certificate needs user_certificate and user_private_key")
@@ -210,6 +203,17 @@ class Security:
                           "(another server at that address, or a new certificate to trust by hand)")
         await client.set_security(policy, str(self.certificate), str(self.private_key),
                                   server_certificate=trusted, mode=mode)
+
+
+def _path(section: Section, here: Path, key: str, needed_by: str | None) -> Path | None:
+    """A file's path from the config, relative to it; ``needed_by``: what makes it required."""
+    text = section.getstr(key, "")
+    if not text:
+        if needed_by:
+            raise section.error(key, f"missing: {needed_by} needs it")
+        return None
+    p = Path(text)
+    return p if p.is_absolute() else here / p
 
 
 def _first_cert(der: bytes) -> bytes:

@@ -19,12 +19,15 @@ GETTERS = {"get", "getstr", "getint", "getfloat", "getbool", "getduration", "get
 SECTION_MAKERS = {"getsection", "subsections", "without"}
 SECTION_ATTRS = {"daemon", "store", "simulator", "framework", "section"}
 # tables named by the user's own keys: their entries' fields are keys, their names are not
-USER_NAMED = {"registers", "items", "params", "plausible"}
+USER_NAMED = {"registers", "items", "params", "plausible", "nodes", "namespaces", "states"}
 # ... of which these also take keys of their own beside the named entries (plausible's confirm)
 OWN_SCALARS = {"plausible"}
 # keys a module reads through a helper with a computed name (a loop over a tuple of names)
 INDIRECT = {"mqtt_sink": {"ca_file", "cert_file", "key_file"},
             "framework": {"manufacturer", "model", "serial_number"}}
+# modules a plugin reads its table through (a protocol's session, its map, the CNC's shared keys)
+HELPERS = {"modbus_cnc": ("lathed/cnc.py",),
+           "opcua_cnc": ("lathed/cnc.py", "lathed/ua_session.py", "lathed/ua_map.py", "lathed/ua_alarms.py")}
 FRAMEWORK_MODULES = ("lathed/config.py", "lathed/supervisor.py", "lathed/safety.py", "lathed/plausible.py",
                      "lathed/driver.py", "lathed/analyzer.py")
 
@@ -134,7 +137,8 @@ def test_every_plugin_has_a_block_with_exactly_the_keys_its_code_reads():
         if name not in documented:
             problems.append(f"{name}: no sample block in docs/configuration.md")
             continue
-        code = code_keys(module) | INDIRECT.get(name, set())
+        code = code_keys(module).union(*(code_keys(ROOT / h) for h in HELPERS.get(name, ()))) \
+            | INDIRECT.get(name, set())
         doc = documented[name] - {"plugin"}
         if missing := sorted(code - doc - framework):
             problems.append(f"{name}: read by {module.relative_to(ROOT)} but not in the reference: {missing}")
