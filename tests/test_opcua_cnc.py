@@ -522,3 +522,33 @@ def test_alarms_as_conditions_are_told_once_across_a_reconnect(plant):
     told = [(k, p["alarm"]) for k, p in events if k.startswith("alarm_")]
     assert told == [("alarm_raised", "2047"), ("alarm_raised", "700"), ("alarm_cleared", "700"),
                     ("alarm_cleared", "2047")], told
+
+
+def test_the_shipped_40501_map_reads_a_machine_tools_tree_and_takes_no_command(plant):
+    """etc/lathed-opc40501.toml against the control's OPC 40501 tree (its elements in the
+    control's namespace): the override, the spindle turning, the channel's and the program's
+    state, the parts, the nameplate checked; the map writes nothing, so no action is offered."""
+    control, pki, _ = plant
+    shipped = tomllib.loads((ROOT / "etc" / "lathed-opc40501.toml").read_text())["machine"]["lathe"]
+    t = table(pki, control.peer.port, **{k: v for k, v in shipped.items() if k not in FRAMEWORK_KEYS
+                                          and k not in ("url",)})
+    for key in ("certificate", "private_key", "server_certificate"):
+        t[key] = table(pki, control.peer.port)[key]
+    t["namespaces"] = {"lathed": "urn:lathed:sim:cnc"}        # this server's own namespace
+    d = driver(t)
+    assert d.actions == () and d.security.login == "user 'lathed'"
+
+    async def check(d, task):
+        await until(lambda: "part_count" in d.values, what="values")
+        assert d.values["spindle_override_pct"][0] == 100.0 and d.values["spindle_rotating"][0] == 1.0
+        assert d.values["channel_state"][0] == 0.0 and d.model.state() == "running"
+        assert d.model.snapshot()["part_count"]["value"] == 7
+        control.set(program_state=0, spindle_rpm=0.0, part_count=8, spindle_override_pct=80.0)
+        await until(lambda: d.model.state() == "idle", what="the program ended")
+        assert d.values["spindle_rotating"][0] == 0.0 and d.values["channel_state"][0] == 2.0
+        assert d.values["spindle_override_pct"][0] == 80.0 and d.model.snapshot()["part_count"]["value"] == 8
+        assert d.status()["alarm_events"] == {"active": [], "messages": 0}
+    try:
+        asyncio.run(asyncio.wait_for(running(d, check), 60))
+    finally:
+        control.set(**BASE)

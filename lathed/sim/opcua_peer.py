@@ -7,7 +7,8 @@ policies), Sign or SignAndEncrypt, no endpoint without security; a client applic
 certificate opens a channel only if it is in the trust list; a session needs the account's
 password or the user certificate. The spindle speed (an S word), the spindle override and the
 heartbeat are writable nodes; the X wear offset is written by a method, as some controls take
-tool data. Shipped map: etc/lathed-cell-opcua.toml; docs/machines.md.
+tool data. Beside it, the machine as OPC 40501 lays it out (lathed.sim.opcua_40501). Shipped
+maps: etc/lathed-cell-opcua.toml, etc/lathed-opc40501.toml; docs/machines.md.
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from asyncua.crypto.truststore import TrustStore
 from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from cryptography.hazmat.primitives.serialization import Encoding
 
+from lathed.sim.opcua_40501 import Tree40501
 from lathed.sim.pki import SERVER_URI, USERNAME, Pki
 
 log = logging.getLogger("lathed.sim.opcua")
@@ -148,6 +150,8 @@ class OpcUaPeer:
         for key, (path, value) in IDENTIFICATION.items():
             parent = await folder(path.rsplit("/", 1)[0])
             await parent.add_property(node_id(path, idx), ua.QualifiedName(path.rsplit("/", 1)[1], idx), value)
+        self.tree = Tree40501(server, idx)
+        await self.tree.build({key: value for key, (_, value) in IDENTIFICATION.items()})
         wear = folders[WEAR_OBJECT]
         await wear.add_method(node_id(WEAR_METHOD, idx), ua.QualifiedName("SetWearX", idx), self._set_wear,
                               [ua.VariantType.Double], [])
@@ -206,6 +210,7 @@ class OpcUaPeer:
                 continue
             self._last[name] = v
             await self.server.write_attribute_value(node_id(path, self._idx), ua.DataValue(ua.Variant(v, vtype)))
+        await self.tree.update(values)
 
     async def fault(self, name: str, status: str) -> None:
         """The control reports ``name`` unusable (a status code's name: a broken sensor behind
