@@ -52,6 +52,9 @@ class Ref:
     ident: str = ""
     path: tuple[tuple[str | int, str], ...] = ()    # ((namespace, name), ...) from the root
 
+    def namespaces(self) -> set[str | int]:
+        return {self.ns, *(ns for ns, _ in self.path)}
+
     @classmethod
     def parse(cls, text: str, is_path: bool) -> Ref:
         if is_path:

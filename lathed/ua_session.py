@@ -22,7 +22,7 @@ from asyncua.crypto import security_policies as sp
 from cryptography import x509
 from cryptography.hazmat.primitives.serialization import Encoding
 
-from lathed.config import ConfigError, Section
+from lathed.config import Section
 
 POLICIES = {"Basic256Sha256": sp.SecurityPolicyBasic256Sha256,
             "Aes128Sha256RsaOaep": sp.SecurityPolicyAes128Sha256RsaOaep,
@@ -152,7 +152,7 @@ class Security:
         try:
             await client.connect()
         except ua.UaStatusCodeError as e:
-            await _quietly(client)
+            await close_quietly(client)
             code = type(e).__name__
             if code in LOGIN_REFUSED:
                 raise Refused(f"the OPC UA server at {self.url} refused the login of {self.login} ({code}: "
@@ -162,11 +162,11 @@ class Security:
                               f"({code}): put it in the control's trusted certificates") from None
             raise ConnectionError(f"the OPC UA server at {self.url} refused the session: {code}") from None
         except ua.UaError as e:
-            await _quietly(client)
+            await close_quietly(client)
             raise Refused(f"the OPC UA server at {self.url} answered with another certificate than "
                           f"{self.server_certificate} ({e}): not the trusted control") from None
         except (OSError, asyncio.TimeoutError) as e:
-            await _quietly(client)
+            await close_quietly(client)
             raise ConnectionError(f"no OPC UA session with {self.url}: {type(e).__name__} {e} "
                                   "(machine off, network down, or the server does not trust lathed?)") from None
         return client
@@ -223,7 +223,7 @@ def _first_cert(der: bytes) -> bytes:
     return der[:int.from_bytes(der[2:4], "big") + 4]
 
 
-async def _quietly(client: Client) -> None:
+async def close_quietly(client: Client) -> None:
     try:
         await asyncio.wait_for(client.disconnect(), 2.0)
     except Exception:   # half-open: nothing to close cleanly

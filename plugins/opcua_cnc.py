@@ -43,10 +43,17 @@ import time
 from collections import Counter
 
 from lathed import hookimpl
-from lathed.cnc import CncDriver
+from lathed.cnc import ACTION_TARGETS, CncDriver
 from lathed.command import Command
 from lathed.config import ConfigError, Section
-from lathed.extras import MissingExtra, need
+from lathed.extras import missing
+
+if missing("asyncua") is None:     # the opcua extra; without it the constructor says which to install
+    from asyncua import ua
+
+    from lathed import ua_map
+    from lathed.ua_alarms import AlarmEvents
+    from lathed.ua_session import Refused, Security, close_quietly
 
 HEARTBEAT_MAX = 32767
 EVENTS_HANDLE = 0          # the alarms' monitored item; the values' are 1..n
@@ -55,12 +62,8 @@ EVENTS_HANDLE = 0          # the alarms' monitored item; the values' are 1..n
 class OpcUaCNC(CncDriver):
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
-        try:
-            need("asyncua", "the opcua_cnc driver")
-        except MissingExtra as e:
-            raise section.error("plugin", str(e)) from None
-        from lathed import ua_map
-        from lathed.ua_session import Security
+        if (why := missing("asyncua")) is not None:
+            raise section.error("plugin", f"the opcua_cnc driver needs {why}")
         self.kind = section.getstr("kind", "lathe", choices=("lathe", "mill", "grinder"))
         self.security = Security(section)
         self.where = self.security.url
@@ -81,19 +84,17 @@ class OpcUaCNC(CncDriver):
             raise section.error("root", str(e)) from None
         self.entries = ua_map.read_node_map(section.getsection("nodes"), self.plausible)
         alarms = section.getsection("alarms", required=False)
-        from lathed.ua_alarms import AlarmEvents
         self.alarms = AlarmEvents(alarms) if alarms.keys() else None
         if self.root is None and (any(e.ref.path for e in self.entries.values())
                                   or (self.alarms is not None and self.alarms.ref.path)):
             raise section.error("root", "missing: the map names nodes by path, from this node "
                                         "(a node id, or a path from the Objects folder)")
-        for key in self.aliases.keys() - ua_map.BUILTIN_NAMESPACES.keys():
-            if not any(key in (e.ref.ns, *(ns for ns, _ in e.ref.path)) for e in self.entries.values()) and \
-                    not (self.root and key in (self.root.ns, *(ns for ns, _ in self.root.path))) and \
-                    not any(e.method and key in (e.method.ns, e.obj.ns) for e in self.entries.values()) and \
-                    not (self.alarms and key in (self.alarms.ref.ns, *(ns for ns, _ in self.alarms.ref.path),
-                                                 self.alarms.code and self.alarms.code[0])):
-                raise section.getsection("namespaces").error(key, "not used by any node: a typo?")
+        refs = [r for e in self.entries.values() for r in (e.ref, e.method, e.obj) if r is not None]
+        refs += [r for r in (self.root, self.alarms and self.alarms.ref) if r]
+        used = set().union(*(r.namespaces() for r in refs)) | {self.alarms.code[0] if self.alarms and
+                                                               self.alarms.code else 0}
+        for key in sorted(self.aliases.keys() - ua_map.BUILTIN_NAMESPACES.keys() - used):
+            raise section.getsection("namespaces").error(key, "not used by any node: a typo?")
         self.identity = {n: e for n, e in self.entries.items() if n in ua_map.IDENTITY}
         self.readings = {n: e for n, e in self.entries.items() if n not in ua_map.IDENTITY}
         writable = {n for n, e in self.readings.items() if e.writable}
@@ -129,7 +130,6 @@ class OpcUaCNC(CncDriver):
 
     # -- connecting ------------------------------------------------------------
     async def connect(self) -> None:
-        from asyncua import ua
         self._lost, self._last_publish = None, None
         self._image.clear()
         self._reported.clear()
@@ -166,10 +166,7 @@ class OpcUaCNC(CncDriver):
         self.model.link_up()
 
     async def _resolve(self) -> None:
-        from asyncua import ua
-
-        from lathed.ua_map import MapError, Resolver
-        r = Resolver(self.client, self.aliases, self.root)
+        r = ua_map.Resolver(self.client, self.aliases, self.root)
         try:
             await r.start()
             paths = any(e.ref.path for e in self.entries.values()) or (self.alarms and self.alarms.ref.path)
@@ -188,7 +185,7 @@ class OpcUaCNC(CncDriver):
                     e.node = r.node_id(e.ref, where)
                 if e.method is not None:
                     e.method_node, e.obj_node = r.node_id(e.method, where), r.node_id(e.obj, where)
-        except MapError as err:
+        except ua_map.MapError as err:
             self.errors["map"] += 1
             raise ConnectionError(str(err)) from None
         nodes = [e.node for e in self.entries.values()]
@@ -204,9 +201,6 @@ class OpcUaCNC(CncDriver):
 
     async def _write_type(self, e):
         """The type a write (or the method's value argument) takes, from the server."""
-        from asyncua import ua
-
-        from lathed.ua_map import WRITABLE_TYPES
         where = f"{self.section_name('nodes')}.{e.name}"
         if e.method is not None:
             method = self.client.get_node(e.method_node)
@@ -226,7 +220,7 @@ class OpcUaCNC(CncDriver):
                                       "no such command there")
             dtype = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.DataType))[0].Value.Value
         vtype = ua.VariantType(dtype.Identifier) if dtype.NamespaceIndex == 0 and dtype.Identifier < 26 else None
-        if vtype not in WRITABLE_TYPES:
+        if vtype not in ua_map.WRITABLE_TYPES:
             raise ConnectionError(f"{where}: {e.ref.text} takes a {dtype.to_string()}, not a number lathed writes")
         return vtype
 
@@ -238,7 +232,6 @@ class OpcUaCNC(CncDriver):
         different machine at this address (a swapped IP, a simulator left running) takes nothing."""
         if not self.identity:
             return
-        from asyncua import ua
         dvs = await self.client.uaclient.read_attributes([e.node for e in self.identity.values()],
                                                          ua.AttributeIds.Value)
         for (key, e), dv in zip(self.identity.items(), dvs):
@@ -248,13 +241,11 @@ class OpcUaCNC(CncDriver):
             want = self.identification.get(key)
             if want is not None and (v is None or str(v).strip() != str(want).strip()):
                 self.errors["identity"] += 1
-                from lathed.ua_session import Refused
                 raise Refused(f"the control at {self.where} reports {key.replace('_', ' ')} {v!r}, "
                               f"[machine.{self.name}.identification] says {want!r}: not the configured machine, "
                               "nothing is sent to it")
 
     async def _subscribe(self) -> None:
-        from asyncua import ua
         ka = max(1, math.ceil(self.keepalive / self.publish_interval - 1e-9))
         params = ua.CreateSubscriptionParameters(
             RequestedPublishingInterval=self.publish_interval * 1000, RequestedMaxKeepAliveCount=ka,
@@ -340,7 +331,6 @@ class OpcUaCNC(CncDriver):
     def _on_publish(self, result) -> None:
         """One publish response: data changes, events, a status change, or a keep-alive. In
         the publish loop, synchronously: the notifications of one response are one frame."""
-        from asyncua import ua
         if self.client is None:
             return
         now = time.time()
@@ -432,8 +422,7 @@ class OpcUaCNC(CncDriver):
         client, self.client = self.client, None
         self.model.link_down()
         if client is not None:
-            from lathed.ua_session import _quietly
-            await _quietly(client)
+            await close_quietly(client)
 
     # -- commands ------------------------------------------------------------------
     async def execute(self, cmd: Command) -> dict | None:
@@ -443,7 +432,6 @@ class OpcUaCNC(CncDriver):
             e = self.readings["spindle_override_pct"]
             detail = {"override_pct": value, "rpm_effective": round(rpm, 1)}
         else:
-            from lathed.cnc import ACTION_TARGETS
             value, e = float(cmd.value), self.readings.get(ACTION_TARGETS.get(cmd.action, ""))
             if cmd.action not in self.actions or e is None or not e.writable:
                 # only the supervisor calls this, after the guard; anything else is a bug
@@ -467,7 +455,6 @@ class OpcUaCNC(CncDriver):
         return detail
 
     async def _write(self, e, value: float) -> None:
-        from asyncua import ua
         variant = e.variant(value)
         try:
             if e.method is not None:

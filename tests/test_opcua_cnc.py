@@ -11,7 +11,6 @@ import threading
 import time
 import tomllib
 from types import SimpleNamespace
-from pathlib import Path
 
 import pytest
 import structlog

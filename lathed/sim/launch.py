@@ -72,7 +72,8 @@ class SimulatorSettings:
             link = getattr(self, key)
             problem = link and link_dir_problem(Path(link).parent, create=False)
             if problem:
-                raise sec.error(key, f"unsafe place for the simulator's {'certificates' if key == 'opcua_pki' else 'tty link'}: {problem}")
+                what = "certificates" if key == "opcua_pki" else "tty link"
+                raise sec.error(key, f"unsafe place for the simulator's {what}: {problem}")
 
     def link_problems(self) -> list[str]:
         """Make the links' directories (0700) and check them again, now."""
