@@ -39,3 +39,6 @@ def setup(level: str = "info", json_lines: bool | None = None) -> None:
     # the libraries are chatty at debug; their warnings and errors matter
     for noisy in ("pymodbus", "can", "asyncua"):
         logging.getLogger(noisy).setLevel(max(logging.WARNING, root.level))
+    # an OPC UA client's refused session or lost link is one line of the driver's (opcua_cnc):
+    # the library's own account of it (the fault, the channel it could not close) is the same
+    logging.getLogger("asyncua.client").setLevel(max(logging.ERROR, root.level))
