@@ -234,6 +234,7 @@ class OpcUaCNC(CncDriver):
             return
         dvs = await self.client.uaclient.read_attributes([e.node for e in self.identity.values()],
                                                          ua.AttributeIds.Value)
+        self.reported_identity = {}
         for (key, e), dv in zip(self.identity.items(), dvs):
             v = dv.Value.Value if dv.StatusCode.is_good() and dv.Value is not None else None
             v = v.Text if isinstance(v, ua.LocalizedText) else v
@@ -244,6 +245,11 @@ class OpcUaCNC(CncDriver):
                 raise Refused(f"the control at {self.where} reports {key.replace('_', ' ')} {v!r}, "
                               f"[machine.{self.name}.identification] says {want!r}: not the configured machine, "
                               "nothing is sent to it")
+
+    async def identify(self) -> dict | None:
+        """The nameplate the control reported at this connect (its mapped nameplate nodes), for
+        the supervisor's check of the peer (issue 35's Driver.identify)."""
+        return {k: v for k, v in self.reported_identity.items() if v is not None} or None
 
     async def _subscribe(self) -> None:
         ka = max(1, math.ceil(self.keepalive / self.publish_interval - 1e-9))

@@ -551,3 +551,14 @@ def test_the_shipped_40501_map_reads_a_machine_tools_tree_and_takes_no_command(p
         asyncio.run(asyncio.wait_for(running(d, check), 60))
     finally:
         control.set(**BASE)
+
+
+def test_the_control_says_what_it_is(plant):
+    """identify(): the nameplate as the control reported it at the connect, for the supervisor."""
+    control, pki, _ = plant
+    d = driver(table(pki, control.peer.port))
+
+    async def check(d, task):
+        assert await d.identify() == {"serial_number": "SIM-LATHE-0001", "manufacturer": "lathed simulator",
+                                      "model": "MC4200-class lathe (simulated)"}
+    asyncio.run(asyncio.wait_for(running(d, check), 60))
