@@ -102,16 +102,6 @@ class MachineModel:
         elif (ax := AXIS.match(name)) is not None:
             self.set_axis(ax.group(1), v, t)
 
-    def confirm(self, t: float) -> None:
-        """Every value held is known to hold still at ``t``: a subscription's publish (its server
-        reports each change, and none came for these), as good as reading them again then."""
-        self.values = {f: Stamped(s.value, max(s.t, t)) for f, s in self.values.items()}
-        self.axes = {a: Stamped(s.value, max(s.t, t)) for a, s in self.axes.items()}
-        if self.run_state is not None:
-            self.run_state = Stamped(self.run_state.value, max(self.run_state.t, t))
-        if self.alarms.t:
-            self.alarms = Stamped(self.alarms.value, max(self.alarms.t, t))
-
     def _count(self, count: int, t: float) -> None:
         last = self._last_count
         self._last_count = count

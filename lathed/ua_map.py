@@ -96,6 +96,11 @@ class Entry:
     vtype: ua.VariantType | None = None        # the type a write or a method's value goes in
     method_node: ua.NodeId | None = None
     obj_node: ua.NodeId | None = None
+    arg_types: tuple = ()                      # the method's leading arguments' types, from the server
+
+    def arguments(self, value: float) -> list[ua.Variant]:
+        """A method's input: its leading arguments in the types the server declares, then the value."""
+        return [ua.Variant(a, t) for a, t in zip(self.args, self.arg_types)] + [self.variant(value)]
 
     def number(self, value: Any) -> float | None:
         """The value as a number in lathed's unit, or None (a text not in ``states``, null)."""

@@ -212,6 +212,10 @@ class OpcUaCNC(CncDriver):
             if len(args) != len(e.args) + 1:
                 raise ConnectionError(f"{where}: method {e.method.text} takes {len(args)} arguments; the map gives "
                                       f"{len(e.args)} (args) and the value")
+            e.arg_types = tuple(_builtin(a.DataType) for a in args[:-1])
+            if None in e.arg_types:
+                raise ConnectionError(f"{where}: method {e.method.text} takes an argument of a structured type: "
+                                      "lathed passes numbers and texts only")
             dtype = args[-1].DataType
         else:
             dv = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.AccessLevel))[0]
@@ -219,7 +223,7 @@ class OpcUaCNC(CncDriver):
                 raise ConnectionError(f"{where}: {e.ref.text} is read-only on {self.where}: this control takes "
                                       "no such command there")
             dtype = (await self.client.uaclient.read_attributes([e.node], ua.AttributeIds.DataType))[0].Value.Value
-        vtype = ua.VariantType(dtype.Identifier) if dtype.NamespaceIndex == 0 and dtype.Identifier < 26 else None
+        vtype = _builtin(dtype)
         if vtype not in ua_map.WRITABLE_TYPES:
             raise ConnectionError(f"{where}: {e.ref.text} takes a {dtype.to_string()}, not a number lathed writes")
         return vtype
@@ -257,7 +261,8 @@ class OpcUaCNC(CncDriver):
             RequestedPublishingInterval=self.publish_interval * 1000, RequestedMaxKeepAliveCount=ka,
             RequestedLifetimeCount=max(3 * ka, math.ceil(self.session_timeout / self.publish_interval)),
             MaxNotificationsPerPublish=0, PublishingEnabled=True, Priority=0)
-        res = await self.client.uaclient.create_subscription(params, self._on_publish)
+        client = self.client      # a late publish of a client closed since is not this link's
+        res = await client.uaclient.create_subscription(params, lambda result: self._on_publish(client, result))
         revised_ka = res.RevisedPublishingInterval / 1000 * res.RevisedMaxKeepAliveCount
         self.subscription = {"id": res.SubscriptionId, "publish_interval_s": res.RevisedPublishingInterval / 1000,
                              "keepalive_s": round(revised_ka, 3)}
@@ -334,10 +339,10 @@ class OpcUaCNC(CncDriver):
         self.model.link_down()
         self._wake.set()
 
-    def _on_publish(self, result) -> None:
+    def _on_publish(self, client, result) -> None:
         """One publish response: data changes, events, a status change, or a keep-alive. In
         the publish loop, synchronously: the notifications of one response are one frame."""
-        if self.client is None:
+        if client is not self.client:
             return
         now = time.time()
         self._last_publish = time.monotonic()
@@ -386,11 +391,10 @@ class OpcUaCNC(CncDriver):
         for name, v in self._image.items():
             if not self.take(name, v, self.readings[name].unit, t):
                 self.counts["refused"] += 1
-        if self.alarms is not None and self.alarms.settle():
-            self.model.set_alarms(self.alarms.codes(), now)
-        # what was not sent again still holds: the subscription reports every change
-        self.values = {n: (v, max(vt, t)) for n, (v, vt) in self.values.items()}
-        self.model.confirm(t)
+        # the frame above stamped every value the subscription holds: what was not sent again
+        # still holds (the server reports each change); the alarms likewise, once the refresh told them
+        if self.alarms is not None and (self.alarms.settle() or self.alarms.refreshed):
+            self.model.set_alarms(self.alarms.codes(), t)
         self.counts["publishes"] += 1
         self.mark_data()
         self._wake.set()
@@ -464,8 +468,8 @@ class OpcUaCNC(CncDriver):
         variant = e.variant(value)
         try:
             if e.method is not None:
-                args = [ua.Variant(a) for a in e.args] + [variant]
-                call = ua.CallMethodRequest(ObjectId=e.obj_node, MethodId=e.method_node, InputArguments=args)
+                call = ua.CallMethodRequest(ObjectId=e.obj_node, MethodId=e.method_node,
+                                            InputArguments=e.arguments(value))
                 status = (await self.client.uaclient.call([call]))[0].StatusCode
             else:
                 status = (await self.client.uaclient.write_attributes([e.node], [ua.DataValue(variant)]))[0]
@@ -492,6 +496,13 @@ class OpcUaCNC(CncDriver):
                          "last_publish_age_s": None if self._last_publish is None
                          else round(now - self._last_publish, 3),
                          **({"lost": self._lost} if self._lost else {})}}
+
+
+def _builtin(dtype) -> ua.VariantType | None:
+    """A DataType node id's built-in type (Double, UInt16, String...), else None."""
+    if dtype.NamespaceIndex == 0 and isinstance(dtype.Identifier, int) and 1 <= dtype.Identifier <= 25:
+        return ua.VariantType(dtype.Identifier)
+    return None
 
 
 @hookimpl
