@@ -48,7 +48,13 @@ from lathed.command import Command
 from lathed.config import ConfigError, Section
 from lathed.extras import missing
 
-if missing("asyncua") is None:     # the opcua extra; without it the constructor says which to install
+# asyncua and lathed's OPC UA client, imported with the first machine of this type (seconds of
+# import no daemon without one should pay); without the opcua extra the constructor says which
+ua = ua_map = AlarmEvents = Refused = Security = close_quietly = None
+
+
+def _import_opcua() -> None:
+    global ua, ua_map, AlarmEvents, Refused, Security, close_quietly
     from asyncua import ua
 
     from lathed import ua_map
@@ -63,7 +69,8 @@ class OpcUaCNC(CncDriver):
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
         if (why := missing("asyncua")) is not None:
-            raise section.error("plugin", f"the opcua_cnc driver needs {why}")
+            raise section.error("plugin", f"the opcua_cnc driver cannot run: {why}")
+        _import_opcua()
         self.kind = section.getstr("kind", "lathe", choices=("lathe", "mill", "grinder"))
         self.security = Security(section)
         self.where = self.security.url

@@ -155,6 +155,13 @@ def test_installed_config_checks_and_a_missing_extra_is_named(root, tmp_path):
     assert r.returncode == 78
     assert r.stderr.splitlines() == [f"lathed: {cfg}: [analyzer.central] plugin: the postgres_sink plugin needs "
                                      "psycopg, which is not installed: pip install 'lathed[postgres]'"]
+    # the lathe over OPC UA: its driver and the simulated control's server need the opcua extra
+    ua = ROOT / "etc" / "lathed-cell-opcua.toml"
+    r = _py(root, lathed, "--check-config", str(ua), cwd=tmp_path)
+    extra = "cannot run: asyncua is not installed: pip install 'lathed[opcua]'"
+    assert r.returncode == 78 and r.stderr.splitlines() == [
+        f"lathed: {ua}: [machine.lathe] plugin: the opcua_cnc driver {extra}",
+        f"lathed: {ua}: [simulator] opcua_port: the simulated control's OPC UA server {extra}"], r.stderr
 
 
 def _exec_paths(unit: str) -> list[str]:

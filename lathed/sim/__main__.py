@@ -36,6 +36,7 @@ from collections import deque
 from pathlib import Path
 
 from lathed.analysis.process_damping import FlankWear
+from lathed.extras import missing
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
@@ -43,8 +44,6 @@ from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, MAX_OUTAGE_S, par
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
 from lathed.sim.mtconnect_agent import MTConnectAgent
-from lathed.sim.opcua_peer import OpcUaPeer
-from lathed.sim.pki import ensure_pki
 from lathed.sim.registers import CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_MAP, N_CELL_REGISTERS, N_REGISTERS
 from lathed.sim.serial_peer import NullModem, SerialPeer
 from lathed.sim.vibration_peer import VibrationPeer
@@ -62,8 +61,11 @@ class Simulator:
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write)
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.agent = MTConnectAgent(args.host, args.mtconnect_port) if args.mtconnect_port else None
-        self.opcua = (OpcUaPeer(args.host, args.opcua_port, ensure_pki(Path(args.opcua_pki)), self._lathe_write)
-                      if args.opcua_port else None)
+        self.opcua = None
+        if args.opcua_port:      # asyncua (the opcua extra) only where the control serves OPC UA
+            from lathed.sim.opcua_peer import OpcUaPeer
+            from lathed.sim.pki import ensure_pki
+            self.opcua = OpcUaPeer(args.host, args.opcua_port, ensure_pki(Path(args.opcua_pki)), self._lathe_write)
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
         self.mill_peer = self.grinder_peer = self.robot_peer = None
@@ -401,6 +403,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--load-s", type=float, default=LOAD_S, help="seconds to load a part")
     p.add_argument("--retract-s", type=float, default=RETRACT_S, help="seconds to retract and unload")
     args = p.parse_args(argv)
+    if args.opcua_port and (why := missing("asyncua")):
+        p.error(f"--opcua-port: the simulated control's OPC UA server cannot run: {why}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         p.error("--time-scale must be > 0")
     try:

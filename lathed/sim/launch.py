@@ -13,6 +13,7 @@ from pathlib import Path
 import structlog
 
 from lathed.config import Section
+from lathed.extras import missing
 from lathed.sim.program import MAX_DEPTH_MM
 from lathed.sim.serial_peer import link_dir_problem
 
@@ -47,6 +48,8 @@ class SimulatorSettings:
         # password made by the simulator in opcua_pki (a directory of the runtime dir's, like its ttys)
         self.opcua_port = sec.getint("opcua_port", 0, minval=0, maxval=65535)
         self.opcua_pki = sec.getstr("opcua_pki", str(runtime_dir / "sim" / "pki"))
+        if self.opcua_port and (why := missing("asyncua")):
+            raise sec.error("opcua_port", f"the simulated control's OPC UA server cannot run: {why}")
         # asyncua builds its server's address space before the simulator is READY: seconds, tens on a
         # loaded host
         self.ready_timeout = 60.0 if self.opcua_port else 20.0
