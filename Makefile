@@ -42,6 +42,7 @@ bench-loop: $(STAMP)
 	$(BIN)/python bench/bench_loop.py
 	$(BIN)/python bench/bench_loop.py --avoid
 	$(BIN)/python bench/bench_loop.py --remember
+	$(BIN)/python bench/bench_loop.py --opcua
 bench-thermal: $(STAMP)
 	$(BIN)/python bench/bench_thermal.py
 bench-store: $(STAMP)

@@ -33,10 +33,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def config(tmp: Path) -> Path:
-    """A copy of etc/ (relative paths keep working) on free ports and private paths."""
+def config(tmp: Path, name: str = "lathed.toml") -> Path:
+    """A copy of etc/ (relative paths keep working) on free ports and private paths; ``name``:
+    which shipped config (etc/lathed-cell-opcua.toml: the lathe over OPC UA)."""
     shutil.copytree(ROOT / "etc", tmp / "etc")
-    text = (tmp / "etc" / "lathed.toml").read_text()
+    text = (tmp / "etc" / name).read_text()
     ports = {}
     for m in sorted(set(re.findall(r"\b(1502\d)\b", text))):
         ports[m] = str(free_port())
@@ -44,7 +45,7 @@ def config(tmp: Path) -> Path:
         text = re.sub(rf"\b{old}\b", new, text)
     text = text.replace("{runtime_dir}/sim/", f"{tmp}/")
     text = text.replace("[daemon]", f'[daemon]\nstate_dir = "{tmp}/state"\nruntime_dir = "{tmp}/run"', 1)
-    cfg = tmp / "etc" / "lathed.toml"
+    cfg = tmp / "etc" / name
     cfg.write_text(text)
     return cfg
 

@@ -15,6 +15,9 @@ Three instants per cut, all on the wall clock of the vibration stream:
            (the daemon's command_sent event, recorded once the write returned,
            is shown for comparison)
 
+Cuts begun before the lathe's driver was first seen connected are left out (the daemon and
+the simulator start together).
+
 Target (issue 4): visible -> write under 3 revolutions + 20 ms, per cut.
 Target (issue 12, ``avoid = false``): every 3 mm cut is above the limit from its
 entry, so the speed must be written within 3 revolutions + 20 ms of the cut's
@@ -31,13 +34,16 @@ the first 3 mm pass at each speed is caught by detection and cured, and the
 next ones entering at that speed are given the cure (``trigger =
 "remembered"``).
 
+``--opcua`` runs the second shipped config (etc/lathed-cell-opcua.toml): the lathe over its
+control's OPC UA server (Basic256Sha256 SignAndEncrypt, a user), the write received there.
+
 ``--override`` writes the speed as a spindle override instead (the map's commanded speed
 read-only, its override writable), as most controls take it.  ``--no-read-on`` leaves
 out the shipped map's ``read_on`` (the spindle load read at
 the chip's entry as well as every 100 ms), for the entry figures without it.
 
     .venv/bin/python bench/bench_loop.py [--cuts 12] [--timeout 210] [--avoid | --remember] [--load-scaled]
-        [--override] [--no-read-on]
+        [--override] [--no-read-on] [--opcua]
 """
 from __future__ import annotations
 
@@ -104,6 +110,14 @@ def sim_status(sock: Path) -> dict | None:
         return None
 
 
+def lathe_connected(sock: Path) -> bool:
+    try:
+        st = call("status", {}, sock_path=sock, timeout=2.0)
+    except Exception:
+        return False
+    return any(m["name"] == "lathe" and m["state"] == "connected" for m in st["machines"])
+
+
 def events(sock: Path, kind: str) -> list[dict]:
     return call("events", {"limit": 5000, "kind": kind}, sock_path=sock, timeout=10.0)
 
@@ -123,6 +137,8 @@ def main() -> int:
     ap.add_argument("--override", action="store_true",
                     help="the speed written as a spindle override (spindle_override_pct writable, "
                          "spindle_rpm_cmd read-only), as most controls take it")
+    ap.add_argument("--opcua", action="store_true",
+                    help="the lathe over OPC UA (etc/lathed-cell-opcua.toml), not Modbus")
     ap.add_argument("--no-read-on", action="store_true",
                     help="the spindle load only at its 100 ms poll (the shipped map also reads it at the "
                          "chip's entry: read_on)")
@@ -131,7 +147,8 @@ def main() -> int:
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        cfg = config(tmp)
+        cfg = config(tmp, "lathed-cell-opcua.toml" if a.opcua else "lathed.toml")
+        cfg_name = "the lathe over OPC UA (etc/lathed-cell-opcua.toml)" if a.opcua else "default config"
         # the program's constant-speed passes: a G96 face's speed drifts, so the simulator does not
         # time its visible-chatter instant (revolutions counted at the entry speed)
         passes = [f"{c.rpm:g},{c.depth_mm:g},{c.feed_mm_rev:g},{c.length_mm:g}" for c in DEFAULT_PROGRAM
@@ -146,13 +163,21 @@ def main() -> int:
         if not a.remember:
             text = text.replace("\nremember = true", "\nremember = false", 1)
         if a.override:
-            for old, new in (('spindle_rpm_cmd = { address = 0, type = "float32", writable = true, unit = "r/min" }',
-                              'spindle_rpm_cmd = { address = 0, type = "float32", unit = "r/min" }'),
-                             ('spindle_override_pct = { address = 4, type = "float32", unit = "%" }',
-                              'spindle_override_pct = { address = 4, type = "float32", unit = "%", writable = true }')):
+            swap = (('spindle_rpm_cmd = { node = "ns=cnc;s=/Channel/Spindle/cmdSpeed", unit = "r/min", writable = true }',
+                     'spindle_rpm_cmd = { node = "ns=cnc;s=/Channel/Spindle/cmdSpeed", unit = "r/min" }'),
+                    ('spindle_override_pct = { node = "ns=cnc;s=/Channel/Spindle/speedOvr", unit = "%" }',
+                     'spindle_override_pct = { node = "ns=cnc;s=/Channel/Spindle/speedOvr", unit = "%", writable = true }')
+                    ) if a.opcua else (
+                    ('spindle_rpm_cmd = { address = 0, type = "float32", writable = true, unit = "r/min" }',
+                     'spindle_rpm_cmd = { address = 0, type = "float32", unit = "r/min" }'),
+                    ('spindle_override_pct = { address = 4, type = "float32", unit = "%" }',
+                     'spindle_override_pct = { address = 4, type = "float32", unit = "%", writable = true }'))
+            for old, new in swap:
                 if old not in text:
-                    raise SystemExit(f"bench_loop.py: etc/lathed.toml no longer maps {old.split()[0]} as expected")
+                    raise SystemExit(f"bench_loop.py: etc/{cfg.name} no longer maps {old.split()[0]} as expected")
                 text = text.replace(old, new)
+        if a.no_read_on and a.opcua:
+            raise SystemExit("bench_loop.py: --no-read-on is for the Modbus map (OPC UA sends the load as it changes)")
         if a.no_read_on:
             text, n = re.subn(r', read_on = \[[^]]*\]', "", text)
             if not n:
@@ -166,13 +191,17 @@ def main() -> int:
         sim_sock, daemon_sock = tmp / "run" / "sim.sock", tmp / "run" / "lathed.sock"
         parts: dict[int, dict] = {}
         overruns = 0
+        linked = None      # when the lathe was first seen connected: a cut begun before it is not the loop's
         try:
             while time.monotonic() - t_start < a.timeout:
                 st = sim_status(sim_sock)
+                if linked is None and lathe_connected(daemon_sock):
+                    linked = time.time()
                 if st is not None:
                     overruns = st["overruns"]
                     for p in st["parts"]:          # the sim keeps the last 64 parts; we poll every 1 s
-                        parts[p["part"]] = p
+                        if linked is not None and (p["cut_start_wall"] or 0) > linked:
+                            parts[p["part"]] = p
                     done = [p for p in parts.values() if p["cut_end_s"] is not None and p["part"] < st["part"]]
                     if sum(a.avoid or a.remember or p["visible_wall"] is not None for p in done) >= a.cuts:
                         break
@@ -185,7 +214,7 @@ def main() -> int:
             stop(proc, tmp)
 
     if a.avoid or a.remember:
-        return report_entry(parts, alarms, acts, a.cuts, overruns, "avoid" if a.avoid else "remember")
+        return report_entry(parts, alarms, acts, a.cuts, overruns, "avoid" if a.avoid else "remember", cfg_name)
     rows = []
     finished = sorted((p for p in parts.values() if p["cut_end_s"] is not None), key=lambda p: p["part"])
     for p in finished:
@@ -203,7 +232,7 @@ def main() -> int:
             break
     stable = sum(1 for p in finished if p["visible_wall"] is None)
 
-    print(f"Closed loop on the simulated lathe, {DEPTH_MM:g} mm cuts, default config "
+    print(f"Closed loop on the simulated lathe, {DEPTH_MM:g} mm cuts, {cfg_name} "
           f"({len(rows)} chattering cuts, {stable} cuts never visibly chattering, sim overruns {overruns})\n")
     print("| speed r/min | cuts | visible -> write ms, median / max | in revolutions | "
           "within 3 rev + 20 ms | visible -> alarm ms (detection) | alarm -> write ms (pipeline) "
@@ -233,10 +262,11 @@ def main() -> int:
     return 0
 
 
-def report_entry(parts: dict, alarms: list[dict], acts: list[dict], cuts: int, overruns: int, option: str) -> int:
+def report_entry(parts: dict, alarms: list[dict], acts: list[dict], cuts: int, overruns: int, option: str,
+                 cfg_name: str) -> int:
     finished = sorted((p for p in parts.values() if p["cut_end_s"] is not None and p["cut_start_wall"]),
                       key=lambda p: p["part"])[:cuts]
-    print(f"Closed loop on the simulated lathe, {DEPTH_MM:g} mm cuts, default config with {option} = true "
+    print(f"Closed loop on the simulated lathe, {DEPTH_MM:g} mm cuts, {cfg_name} with {option} = true "
           f"({len(finished)} cuts, sim overruns {overruns})\n")
     print("| speed r/min | cuts | cut start -> write ms, median / max | in revolutions | visibly chattered | "
           "visible -> write ms | within 3 rev + 20 ms of visible, or never visible | chatter alarms "

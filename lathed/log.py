@@ -1,6 +1,6 @@
 """structlog, configured once: JSON lines for journald, readable on a terminal.
 
-The standard-library loggers of pymodbus and python-can go through the same
+The standard-library loggers of pymodbus, python-can and asyncua go through the same
 renderer, so every line of the daemon has one format.
 """
 from __future__ import annotations
@@ -37,5 +37,8 @@ def setup(level: str = "info", json_lines: bool | None = None) -> None:
     root.handlers[:] = [handler]
     root.setLevel(level.upper())
     # the libraries are chatty at debug; their warnings and errors matter
-    for noisy in ("pymodbus", "can"):
+    for noisy in ("pymodbus", "can", "asyncua"):
         logging.getLogger(noisy).setLevel(max(logging.WARNING, root.level))
+    # an OPC UA client's refused session or lost link is one line of the driver's (opcua_cnc):
+    # the library's own account of it (the fault, the channel it could not close) is the same
+    logging.getLogger("asyncua.client").setLevel(max(logging.ERROR, root.level))

@@ -78,7 +78,7 @@ import asyncio
 import contextlib
 import math
 import time
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 
 from pymodbus import FramerType
@@ -87,17 +87,15 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from lathed import hookimpl
 from lathed.bus import Sample
+from lathed.cnc import ACTION_TARGETS, CncDriver
 from lathed.command import Command
 from lathed.config import Section
-from lathed.driver import Driver
-from lathed.machine import MachineModel
 from lathed.modbus_identity import read_identity, read_identity_map
 from lathed.plausible import Plausibility
 
 DT = AsyncModbusTcpClient.DATATYPE
 TYPES = {"int16": (DT.INT16, 1), "uint16": (DT.UINT16, 1), "int32": (DT.INT32, 2),
          "uint32": (DT.UINT32, 2), "float32": (DT.FLOAT32, 2)}
-ACTION_REGISTERS = {"spindle_rpm": "spindle_rpm_cmd", "offset_x_um": "offset_x_um"}
 READ_ON_MIN_S = 0.05   # a trigger's reads at most this often: a flapping source costs 20 reads/s, deferred not lost
 MAX_READ = 125   # registers per Modbus read request (protocol limit)
 
@@ -151,7 +149,7 @@ class Register:
 
 
 # what lathed writes: an action's register, the override a speed is commanded by, the heartbeat
-WRITABLE = (*ACTION_REGISTERS.values(), "spindle_override_pct", "heartbeat")
+WRITABLE = (*ACTION_TARGETS.values(), "spindle_override_pct", "heartbeat")
 
 
 def read_register_map(sec: Section, default_poll: float, plausible: Plausibility | None = None) -> dict[str, Register]:
@@ -214,8 +212,7 @@ def poll_groups(regs: dict[str, Register]) -> dict[float, list[tuple[int, int, l
     return {p: read_plan([r for r in regs.values() if r.poll == p]) for p in periods}
 
 
-class ModbusCNC(Driver):
-    role = "machine"
+class ModbusCNC(CncDriver):
     STATES = {0: "idle", 1: "running", 2: "alarm"}
 
     def __init__(self, name: str, section: Section):
@@ -237,8 +234,8 @@ class ModbusCNC(Driver):
         self.timeout = section.getduration("timeout", 1.0, minval=0.05, maxval=60)
         self.registers = read_register_map(section.getsection("registers"), self.poll, self.plausible)
         slowest = max(r.poll for r in self.registers.values())
-        self.stale_after = section.getduration("stale_after", max(2.0, 3 * slowest), minval=0.05)
-        if self.stale_after <= slowest:
+        stale_after = section.getduration("stale_after", max(2.0, 3 * slowest), minval=0.05)
+        if stale_after <= slowest:
             raise section.error("stale_after", f"must be longer than the slowest poll ({slowest:g} s), "
                                                "or every value of that group is always stale")
         thr = self.registers.get("threading")
@@ -248,7 +245,8 @@ class ModbusCNC(Driver):
             raise section.error("registers", f"threading is polled every {thr.poll:g} s: poll it with the "
                                              f"fastest group ({fastest:g} s), it holds every command back")
         # how old a threading reading may be for a command to pass: two polls and an answer's wait
-        self.threading_max_age = 2 * fastest + self.timeout
+        self.setup_cnc(section, set(self.registers), {n for n, r in self.registers.items() if r.writable},
+                       "registers", stale_after, threading_max_age=2 * fastest + self.timeout)
         self.groups = poll_groups(self.registers)
         # trigger -> the read plan of the registers it reads at once
         self.read_on = {t: read_plan([r for r in self.registers.values() if t in r.read_on])
@@ -257,33 +255,13 @@ class ModbusCNC(Driver):
         self._wake = asyncio.Event()
         self.reads_on: Counter = Counter()     # trigger -> reads it caused
         self._read_on_t: dict[str, float] = {}  # trigger -> monotonic time of its last read
-        self.actions = tuple(a for a, reg in ACTION_REGISTERS.items()
-                             if reg in self.registers and self.registers[reg].writable)
-        # a control that takes the spindle speed only as an override (Fanuc's SOV through the
-        # PMC, Siemens' DBB19): the spindle_rpm action is written as a percentage of the
-        # programmed speed, and released (back to 100 %) when the analysis is done with it
         ovr = self.registers.get("spindle_override_pct")
-        self.speed_by_override = "spindle_rpm" not in self.actions and ovr is not None and ovr.writable
-        self.override_range = (section.getfloat("override_min_pct", 50.0, minval=1.0, maxval=100.0),
-                               section.getfloat("override_max_pct", 150.0, minval=100.0, maxval=254.0))
-        self.override_step = section.getfloat("override_step_pct", 1.0, minval=0.01, maxval=50.0)
         if self.speed_by_override:
-            if "spindle_rpm_cmd" not in self.registers:
-                # the measured speed lags a write and a ramp (the override just written over a
-                # speed not yet reached gives a wrong programmed speed), and a G96 drift is seen
-                # only in the commanded one: an override beyond the speed the guard checked
-                raise section.error("registers", "a writable spindle_override_pct needs spindle_rpm_cmd (the "
-                                                 "commanded speed) mapped: the override is a percentage of the "
-                                                 "programmed speed, which the measured speed does not give")
             res = ovr.scale if ovr.type != "float32" else 0.0
             if res and abs(self.override_step / res - round(self.override_step / res)) > 1e-6:
                 raise section.error("override_step_pct", f"{self.override_step:g} % is not a whole number of "
                                                          f"the override register's {res:g} % steps: the control "
                                                          "would round it past the speed the guard checked")
-            self.actions += ("spindle_rpm",)
-        self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last polls
-        self._ours: float | None = None           # the override lathed wrote and has not released
-        self._pending: float | None = None        # one written whose answer never came (it may hold)
         taken = {a: r.name for r in self.registers.values() for a in range(r.address, r.address + r.count)}
         self.identity_map = read_identity_map(section.getsection("identity", required=False), taken,
                                               self.identification)
@@ -304,15 +282,9 @@ class ModbusCNC(Driver):
         self.beats = 0
         self.client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
         self.link: SerialLink | None = None
-        self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t)
-        self.model = MachineModel(self.kind, self.stale_after, self._record)
         self.polls = 0
         self.reads: Counter = Counter()    # poll period -> reads of that group
         self.errors: Counter = Counter()
-
-    def _record(self, kind: str, payload: dict) -> None:
-        if self.ctx is not None:
-            self.ctx.record(kind, payload)
 
     async def connect(self) -> None:
         # pymodbus's own reconnect is off: the supervisor owns retries and backoff
@@ -325,23 +297,12 @@ class ModbusCNC(Driver):
         # the first read proves the controller answers: an open port is not a machine. Nothing
         # is written before run(): the supervisor first confirms the peer is this machine
         await self._read_group(self.groups[min(self.groups)])
-        self._held_at_connect()
+        self.held_at_connect()
         self.model.link_up()
 
     async def identify(self) -> dict[str, str]:
         """The identity registers ([<machine>.identity]) as the control serves them now."""
         return await read_identity(self.client, self.identity_map, self.unit, self._turn, self.timeout, self.where)
-
-    def _held_at_connect(self) -> None:
-        """An override the link comes up to that lathed did not write is the operator's, or an
-        earlier process's (one that died on a control without the heartbeat): said, never undone."""
-        ovr = self._fresh("spindle_override_pct") if self.speed_by_override else None
-        if ovr is None or ovr == 100.0 or (self._ours is not None and abs(ovr - self._ours) <= 1e-3 * self._ours):
-            return
-        payload = {"machine": self.name, "override_pct": ovr}
-        if self.ctx is not None:
-            self.ctx.log.warning("override_found_held", **payload)
-        self._record("override_found_held", payload)
 
     async def _open(self, client) -> None:
         try:
@@ -401,6 +362,9 @@ class ModbusCNC(Driver):
             self.client.close()
         self.client = None
 
+    def linked(self) -> bool:
+        return self.client is not None
+
     def _turn(self):
         """The bus for one request: RTU machines on one adapter take turns."""
         return self.link.lock if self.link is not None else contextlib.nullcontext()
@@ -443,11 +407,7 @@ class ModbusCNC(Driver):
                 v = r.decode(rr.registers[off:off + r.count])
                 # a float32 NaN or an implausible speed must reach neither the
                 # machine model nor current() (the guard's step reference)
-                if self.ctx.bus.publish(Sample(self.name, r.name, v, r.unit, now)):
-                    if r.name == "spindle_rpm_cmd" and self.speed_by_override:
-                        self._cmd_seen.append((v, self.values.get("spindle_override_pct", (None, 0))[0]))
-                    self.values[r.name] = (v, now)
-                    self.model.reading(r.name, v, now, alarm_from_state="alarm_code" not in self.registers)
+                self.take(r.name, v, r.unit, now)
         self.polls += 1
         self.mark_data()
 
@@ -518,69 +478,14 @@ class ModbusCNC(Driver):
                 async with asyncio.timeout(max(0.0, wake_at - time.monotonic())):
                     await self._wake.wait()
 
-    def _programmed(self) -> tuple[float, float] | None:
-        """(present override %, programmed speed): the commanded speed over the override."""
-        ovr, now = self._fresh("spindle_override_pct"), self.current("spindle_rpm")
-        if ovr is None or now is None or not ovr > 0 or not now > 0:
-            return None
-        return ovr, now * 100.0 / ovr
-
-    def _override_for(self, rpm: float) -> tuple[float, float]:
-        """(override %, the speed it gives) for a speed the guard passed: a percentage of the
-        programmed speed on the control's step, rounded towards the present override, so the
-        spindle lands between its present speed and the one asked, never beyond."""
-        p = self._programmed()
-        if p is None:
-            raise ConnectionError("no fresh spindle override and speed to take the programmed speed from")
-        ovr, base = p
-        exact = 100.0 * rpm / base
-        if abs(exact - 100.0) < 0.05:
-            return 100.0, base       # the programmed speed (a release; G96 drifts between the reads)
-        if self._speed_drifting():
-            # an override scales the programmed speed, and under G96 that moves on its own: the
-            # spindle would leave the speed the guard checked, by as much as the face drifts
-            raise ValueError(f"the control's programmed speed is moving on its own (constant surface "
-                             f"speed, G96): an override would take the spindle past the {rpm:.0f} r/min "
-                             f"the guard checked; not written")
-        q = exact / self.override_step
-        q = (math.floor(q + 1e-9) if exact >= ovr else math.ceil(q - 1e-9)) * self.override_step
-        lo, hi = self.override_range
-        if not lo <= q <= hi:
-            raise ValueError(f"{rpm:.0f} r/min is a spindle override of {q:g} % of the programmed "
-                             f"{base:.0f} r/min, beyond the control's {lo:g}..{hi:g} %")
-        return q, base * q / 100.0
-
-    def _speed_drifting(self) -> bool:
-        """The control in constant surface speed: its css_active register (Fanuc's CSS, F2.2)
-        where mapped, else the commanded speed changed at each of the last two polls while
-        the override held (a new S word changes it once): slower, a G96 face's first
-        revolutions are not seen so."""
-        css = self._fresh("css_active")
-        if css is not None:
-            return css >= 0.5
-        seen = list(self._cmd_seen)[-3:]
-        return len(seen) == 3 and all(b[1] == a[1] and abs(b[0] - a[0]) > 5e-4 * max(a[0], 1.0)
-                                      for a, b in zip(seen, seen[1:]))
-
-    def released(self, action: str) -> float | None:
-        """What ``action`` goes back to when the analysis is done with it: the programmed
-        speed (an override of 100 %) where the speed is written as an override, which holds
-        part after part; None where the program's next speed word takes over anyway, and
-        where the override there is not the one lathed wrote (the operator's, or one left
-        by an earlier run, which the control's heartbeat watchdog takes back)."""
-        p = self._programmed() if action == "spindle_rpm" and self.speed_by_override else None
-        if p is None or not any(v is not None and abs(p[0] - v) <= 1e-3 * v for v in (self._ours, self._pending)):
-            return None
-        return p[1]
-
     async def execute(self, cmd: Command) -> dict | None:
         detail = None
         if cmd.action == "spindle_rpm" and self.speed_by_override:
-            value, rpm = self._override_for(float(cmd.value))
+            value, rpm = self.override_for(float(cmd.value))
             reg = self.registers["spindle_override_pct"]
             detail = {"override_pct": value, "rpm_effective": round(rpm, 1)}
         else:
-            value, reg = float(cmd.value), self.registers.get(ACTION_REGISTERS.get(cmd.action, ""))
+            value, reg = float(cmd.value), self.registers.get(ACTION_TARGETS.get(cmd.action, ""))
             if cmd.action not in self.actions or reg is None or not reg.writable:
                 # only the supervisor calls this, after the guard; anything else is a bug
                 raise PermissionError(f"{self.name}: no writable register for action {cmd.action!r}")
@@ -593,70 +498,18 @@ class ModbusCNC(Driver):
             if why is not None:
                 raise PermissionError(why)
             if detail is not None:
-                self._pending = value    # a write the control applied but answered late is still ours
+                self.override_written(value, None, pending=True)   # applied but answered late: still ours
             rr = await self.client.write_registers(reg.address, reg.encode(value), device_id=self.unit)
         if rr.isError():
             raise ModbusException(f"controller refused write of {value:g} to {reg.name}: {rr}")
-        now = time.time()
-        self.values[reg.name] = (value, now)
         if detail is not None:
-            self._ours, self._pending = (None if value == 100.0 else value), None
-        if detail is not None and "spindle_rpm_cmd" in self.registers:
-            self.values["spindle_rpm_cmd"] = (rpm, now)      # the commanded speed it gives
+            self.override_written(value, rpm)
+        else:
+            self.values[reg.name] = (value, time.time())
         return detail
 
-    def runs_at(self, cmd: Command) -> tuple[float, str] | None:
-        """The speed an S word runs at where the operator's spindle override, read, is not
-        100 %: the control multiplies the two (the guard holds that to the range too)."""
-        if cmd.action != "spindle_rpm" or self.speed_by_override:
-            return None
-        ovr = self._fresh("spindle_override_pct")
-        if ovr is None or ovr == 100.0 or not math.isfinite(ovr):
-            return None
-        return float(cmd.value) * ovr / 100.0, f"with the control's spindle override at {ovr:g} %"
-
-    def interlock(self, cmd: Command) -> str | None:
-        """A thread being cut (the map's ``threading`` register: 1 from a thread's first pass
-        to its last, or a rigid tap's): no speed and no offset may change, a release neither;
-        the passes must follow one helix at one speed (the control's lag follows the speed),
-        and an offset would step the flank. Not read lately, a thread may be on: the same."""
-        if "threading" not in self.registers:
-            return None
-        read = self.values.get("threading")
-        if read is None or self.client is None:
-            return f"machine {self.name}'s threading signal not read yet: a thread may be being cut"
-        v, t = read
-        if time.time() - t > self.threading_max_age:
-            return (f"machine {self.name}'s threading signal not read within {self.threading_max_age:g} s: "
-                    f"a thread may be being cut")
-        if v != 0:      # anything but 0 (a PLC's TRUE as -1, a scaled bit, the whole F2 byte)
-            return (f"machine {self.name} is cutting a thread (threading = {v:g}): its speed and offsets "
-                    f"must not change until the thread's last pass")
-        return None
-
-    def _fresh(self, name: str) -> float | None:
-        v = self.values.get(name)
-        if v is None or self.client is None or time.time() - v[1] > self.stale_after:
-            return None
-        return v[0]
-
-    def quantities(self) -> frozenset[str]:
-        return frozenset(self.registers)      # every register is read and published
-
-    def current(self, action: str) -> float | None:
-        if action == "spindle_rpm":
-            if "spindle_rpm_cmd" in self.registers:
-                return self._fresh("spindle_rpm_cmd")
-            return self._fresh("spindle_rpm")
-        if action == "offset_x_um":
-            return self._fresh("offset_x_um")
-        return None
-
     def status(self) -> dict:
-        now = time.time()
-        values = {n: {"value": v, "unit": self.registers[n].unit, "age_s": round(now - t, 3),
-                      "stale": self.client is None or now - t > self.stale_after}
-                  for n, (v, t) in self.values.items()}
+        values = self.value_status({n: r.unit for n, r in self.registers.items()})
         return {"spindle_rpm": self.model.live("spindle_rpm"), "machine_state": self.model.state(),
                 "model": self.model.snapshot(), "values": values, "polls": self.polls,
                 "reads_by_period_s": {f"{p:g}": n for p, n in sorted(self.reads.items())},

@@ -238,10 +238,10 @@ def pytest_sessionfinish(session, exitstatus):
     gc.collect()
 
 
-def shipped_config(tmp: Path) -> tuple[Path, Path]:
-    """etc/lathed.toml on free ports, with its state and sockets in ``tmp``."""
-    text = (ROOT / "etc" / "lathed.toml").read_text()
-    for port in ("15020", "15021", "15022"):
+def shipped_config(tmp: Path, name: str = "lathed.toml") -> tuple[Path, Path]:
+    """etc/lathed.toml (or another shipped config) on free ports, with its state and sockets in ``tmp``."""
+    text = (ROOT / "etc" / name).read_text()
+    for port in ("15020", "15021", "15022", "15024"):
         text = text.replace(port, str(free_port()))
     text = text.replace('name = "sim-cell-1"', f'name = "web-test"\nstate_dir = "{tmp / "state"}"\n'
                                                 f'runtime_dir = "{tmp / "run"}"')

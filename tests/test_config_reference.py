@@ -19,14 +19,17 @@ GETTERS = {"get", "getstr", "getint", "getfloat", "getbool", "getduration", "get
 SECTION_MAKERS = {"getsection", "subsections", "without"}
 SECTION_ATTRS = {"daemon", "store", "simulator", "framework", "section"}
 # tables named by the user's own keys: their entries' fields are keys, their names are not
-USER_NAMED = {"registers", "items", "params", "plausible", "identity"}   # identity: by [identification]'s keys
+USER_NAMED = {"registers", "items", "params", "plausible", "identity",   # identity: by [identification]'s keys
+              "nodes", "namespaces", "states"}
 # ... of which these also take keys of their own beside the named entries (plausible's confirm)
 OWN_SCALARS = {"plausible"}
 # keys a module reads through a helper with a computed name (a loop over a tuple of names)
 INDIRECT = {"mqtt_sink": {"ca_file", "cert_file", "key_file"},
             "framework": {"manufacturer", "model", "serial_number"}}
-# modules a plugin reads part of its table through (modbus_cnc's identity registers)
-HELPER_MODULES = {"modbus_cnc": ("lathed/modbus_identity.py",)}
+# modules a plugin reads part of its table through (its identity registers, a protocol's session,
+# its map, the CNC's shared keys)
+HELPER_MODULES = {"modbus_cnc": ("lathed/cnc.py", "lathed/modbus_identity.py"),
+                  "opcua_cnc": ("lathed/cnc.py", "lathed/ua_session.py", "lathed/ua_map.py", "lathed/ua_alarms.py")}
 FRAMEWORK_MODULES = ("lathed/config.py", "lathed/supervisor.py", "lathed/safety.py", "lathed/plausible.py",
                      "lathed/driver.py", "lathed/analyzer.py")
 

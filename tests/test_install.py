@@ -177,6 +177,15 @@ def test_installed_config_checks_and_a_missing_extra_is_named(root, tmp_path):
                                      f"psycopg, which is not installed: in the service's venv ({root / LIBDIR.lstrip('/')}) add it from "
                                      "the lathed source with `sudo make install PREFIX=/usr EXTRAS=postgres`, then "
                                      "`sudo systemctl restart lathed`"]
+    # the lathe over OPC UA: its driver and the simulated control's server need the opcua extra
+    ua = ROOT / "etc" / "lathed-cell-opcua.toml"
+    r = _py(root, lathed, "--check-config", str(ua), cwd=tmp_path)
+    extra = (f"cannot run: asyncua is not installed: in the service's venv ({root / LIBDIR.lstrip('/')}) add it "
+             "from the lathed source with `sudo make install PREFIX=/usr EXTRAS=opcua`, then "
+             "`sudo systemctl restart lathed`")
+    assert r.returncode == 78 and r.stderr.splitlines() == [
+        f"lathed: {ua}: [machine.lathe] plugin: the opcua_cnc driver {extra}",
+        f"lathed: {ua}: [simulator] opcua_port: the simulated control's OPC UA server {extra}"], r.stderr
 
 
 def _exec_paths(unit: str) -> list[str]:

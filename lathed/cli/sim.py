@@ -130,7 +130,7 @@ def register(sub) -> None:
     d = s.add_parser("depth", help="override the depth of cut (mm), or 'program' to go back")
     d.add_argument("value", type=depth_value, help="mm, or 'program'")
     o = s.add_parser("outage", help="take a peer down and bring it back")
-    o.add_argument("peer", choices=("modbus", "vibration", "serial", "mill", "grinder", "robot"))
+    o.add_argument("peer", choices=("modbus", "vibration", "serial", "opcua", "mill", "grinder", "robot"))
     o.add_argument("seconds", type=outage_seconds)
     st = s.add_parser("status", help="the simulator's state")
     for c in (d, o, st):

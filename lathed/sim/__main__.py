@@ -6,6 +6,8 @@ accelerometer DAQ as a framed TCP stream. Optionally its neighbours: a mill
 on Modbus TCP (``--mill-port``), a grinder on Modbus RTU over a null-modem
 pseudo-terminal pair (``--grinder-link``), a robot arm on CAN through a
 serial-line CAN adapter (slcan) on a pseudo-terminal (``--robot-link``).
+The lathe's control can be an OPC UA server as well (``--opcua-port``, security on, its
+certificates in ``--opcua-pki``: lathed.sim.opcua_peer, lathed.sim.pki).
 A JSON-lines control socket lets an operator or a test change the cut,
 take a peer down or raise an alarm:
 
@@ -14,7 +16,7 @@ take a peer down or raise an alarm:
                             in the wall time of the vibration stream's t0 stamps)
     {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
     {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
-        peer: modbus | vibration | serial (the lathe's), mill, grinder
+        peer: modbus | vibration | serial | opcua (the lathe's), mill, grinder
         (server gone, RS-485 line cut), robot (the arm powered off: CAN silent)
     {"cmd": "alarm", "args": {"machine": "mill", "code": 42}}   (0 clears)
 
@@ -34,6 +36,7 @@ from collections import deque
 from pathlib import Path
 
 from lathed.analysis.process_damping import FlankWear
+from lathed.extras import missing
 from lathed.sim.can_peer import CanPeer
 from lathed.analysis.modal import parse_mode
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
@@ -61,6 +64,12 @@ class Simulator:
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
         self.agent = (MTConnectAgent(args.host, args.mtconnect_port, serial_number=args.lathe_serial)
                       if args.mtconnect_port else None)
+        self.opcua = None
+        if args.opcua_port:      # asyncua (the opcua extra) only where the control serves OPC UA
+            from lathed.sim.opcua_peer import OpcUaPeer
+            from lathed.sim.pki import ensure_pki
+            self.opcua = OpcUaPeer(args.host, args.opcua_port, ensure_pki(Path(args.opcua_pki)), self._lathe_write,
+                                   serial_number=args.lathe_serial)
         self.serial = SerialPeer(Path(args.serial_link))
         self.mill = self.grinder = self.robot = None
         self.mill_peer = self.grinder_peer = self.robot_peer = None
@@ -98,6 +107,10 @@ class Simulator:
         if self.agent is not None:
             self.agent.update(self.lathe.registers())
             await self.agent.start()
+        if self.opcua is not None:
+            # before READY and the physics: asyncua builds its address space for seconds (tens on a
+            # loaded host), holding the interpreter; the machine's other servers would not answer
+            await self._start_opcua()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
                 await peer.start()
@@ -127,6 +140,9 @@ class Simulator:
                  "serial": self.args.serial_link, "tty": tty, "control": self.args.control}
         if self.agent is not None:
             ready["mtconnect"] = [self.args.host, self.args.mtconnect_port]
+        if self.opcua is not None:
+            ready["opcua"] = self.opcua.url
+            ready["opcua_pki"] = str(self.opcua.pki.root)
         if self.mill_peer:
             ready["mill"] = [self.args.host, self.args.mill_port]
         if self.grinder_peer:
@@ -158,6 +174,8 @@ class Simulator:
         await self.vibration.stop()
         if self.agent is not None:
             await self.agent.stop()
+        if self.opcua is not None:
+            await self.opcua.stop()
         self.serial.close()
         for peer in (self.mill_peer, self.grinder_peer):
             if peer is not None:
@@ -184,13 +202,22 @@ class Simulator:
                 self.vibration.send(t0, self.lathe.block_rpm, data)
                 self.produced += BLOCK
             self._pmc_watchdog()
-            if self.modbus.up or self.agent is not None:
+            if self.modbus.up or self.agent is not None or self.opcua is not None:
                 regs = self.lathe.registers()
                 if self.modbus.up:
                     self.modbus.block.update(regs)
                 if self.agent is not None and self.agent.up:
                     self.agent.update(regs)
+                if self.opcua is not None and self.opcua.up:
+                    await self.opcua.update(regs, self.lathe.phase)
             await asyncio.sleep(max(0.0, start + (self.produced + BLOCK) / rate - time.time()))
+
+    async def _start_opcua(self) -> None:
+        try:
+            await self.opcua.start()
+        except OSError as e:   # the port taken: no READY, the daemon says why
+            raise SystemExit(f"lathed-sim: cannot serve OPC UA at {self.opcua.url}: {e.strerror or e}") from None
+        await self.opcua.update(self.lathe.registers(), self.lathe.phase)
 
     def _wall(self, sim_t: float) -> float | None:
         for s0, w0 in reversed(self._clock):
@@ -283,6 +310,7 @@ class Simulator:
                     "visible_at": self.lathe.record.visible_wall,
                     "parts": [r.as_dict() for r in list(self.lathe.parts)[-max(1, int(args.get("parts", 16))):]],
                     "peers": {"modbus": self.modbus.up, "vibration": self.vibration.server is not None,
+                              **({"opcua": self.opcua.up} if self.opcua else {}),
                               "serial": self.serial.master is not None,
                               **({"mill": self.mill_peer.up} if self.mill_peer else {}),
                               **({"grinder": self.grinder_peer.up} if self.grinder_peer else {}),
@@ -307,6 +335,8 @@ class Simulator:
             seconds = float(seconds)
             fns = {"modbus": self.modbus.outage, "vibration": self._vibration_outage,
                    "serial": self._serial_outage}
+            if self.opcua:
+                fns["opcua"] = self.opcua.outage
             if self.mill_peer:
                 fns["mill"] = self.mill_peer.outage
             if self.grinder_peer:
@@ -372,6 +402,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--mill-port", type=int, default=0, help="serve the mill on this Modbus TCP port (0: no mill)")
     p.add_argument("--mtconnect-port", type=int, default=0,
                    help="serve the lathe as an MTConnect agent on this HTTP port too (0: none)")
+    p.add_argument("--opcua-port", type=int, default=0,
+                   help="serve the lathe's control as an OPC UA server on this port too (0: none)")
+    p.add_argument("--opcua-pki", default="/tmp/lathed-sim/pki",
+                   help="the simulated plant's OPC UA certificates and password: made there if missing")
     p.add_argument("--grinder-link", default="",
                    help="serve the grinder on Modbus RTU; path of the symlink to its tty (empty: no grinder)")
     p.add_argument("--robot-link", default="",
@@ -387,6 +421,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--load-s", type=float, default=LOAD_S, help="seconds to load a part")
     p.add_argument("--retract-s", type=float, default=RETRACT_S, help="seconds to retract and unload")
     args = p.parse_args(argv)
+    if args.opcua_port and (why := missing("asyncua")):
+        p.error(f"--opcua-port: the simulated control's OPC UA server cannot run: {why}")
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         p.error("--time-scale must be > 0")
     try:

@@ -13,6 +13,7 @@ from pathlib import Path
 import structlog
 
 from lathed.config import Section
+from lathed.extras import missing
 from lathed.sim.program import MAX_DEPTH_MM
 from lathed.sim.serial_peer import link_dir_problem
 
@@ -43,6 +44,15 @@ class SimulatorSettings:
         self.mill_port = sec.getint("mill_port", 0, minval=0, maxval=65535)
         # the lathe as an MTConnect agent too (read-only, beside its Modbus server; 0: none)
         self.mtconnect_port = sec.getint("mtconnect_port", 0, minval=0, maxval=65535)
+        # the lathe's control as an OPC UA server too (security on; 0: none), its certificates and
+        # password made by the simulator in opcua_pki (a directory of the runtime dir's, like its ttys)
+        self.opcua_port = sec.getint("opcua_port", 0, minval=0, maxval=65535)
+        self.opcua_pki = sec.getstr("opcua_pki", str(runtime_dir / "sim" / "pki"))
+        if self.opcua_port and (why := missing("asyncua")):
+            raise sec.error("opcua_port", f"the simulated control's OPC UA server cannot run: {why}")
+        # asyncua builds its server's address space before the simulator is READY: seconds, tens on a
+        # loaded host
+        self.ready_timeout = 60.0 if self.opcua_port else 20.0
         self.grinder_link = sec.getstr("grinder_link", "")
         self.robot_link = sec.getstr("robot_link", "")
         # the lathe's true dynamics and program, when they are to differ from the built-in ones
@@ -61,15 +71,17 @@ class SimulatorSettings:
                 except ValueError as e:
                     raise sec.error(key, str(e)) from None
         sec.check_unused()
-        for key in ("serial_link", "grinder_link", "robot_link"):
+        for key in ("serial_link", "grinder_link", "robot_link", "opcua_pki"):
             link = getattr(self, key)
             problem = link and link_dir_problem(Path(link).parent, create=False)
             if problem:
-                raise sec.error(key, f"unsafe place for the simulator's tty link: {problem}")
+                what = "certificates" if key == "opcua_pki" else "tty link"
+                raise sec.error(key, f"unsafe place for the simulator's {what}: {problem}")
 
     def link_problems(self) -> list[str]:
         """Make the links' directories (0700) and check them again, now."""
-        return [p for link in (self.serial_link, self.grinder_link, self.robot_link)
+        return [p for link in (self.serial_link, self.grinder_link, self.robot_link,
+                               self.opcua_pki if self.opcua_port else "")
                 if link and (p := link_dir_problem(Path(link).parent, create=True))]
 
     def argv(self) -> list[str]:
@@ -81,6 +93,8 @@ class SimulatorSettings:
             a += ["--mill-port", str(self.mill_port)]
         if self.mtconnect_port:
             a += ["--mtconnect-port", str(self.mtconnect_port)]
+        if self.opcua_port:
+            a += ["--opcua-port", str(self.opcua_port), "--opcua-pki", self.opcua_pki]
         if self.grinder_link:
             a += ["--grinder-link", self.grinder_link]
         if self.robot_link:
@@ -111,7 +125,7 @@ class SimulatorFailed(Exception):
         self.process = process
 
 
-async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subprocess.Process | None:
+async def spawn(s: SimulatorSettings, timeout: float | None = None) -> asyncio.subprocess.Process | None:
     """The simulator started and listening; None when the config says it runs elsewhere
     (``spawn = false``). Raises SimulatorFailed with its reason: the daemon must not go on to
     command whatever else answers at its addresses."""
@@ -124,7 +138,7 @@ async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subproce
     # drivers before the simulator (--exit-with-parent covers lathed dying)
     proc = await asyncio.create_subprocess_exec(*s.argv(), stdout=asyncio.subprocess.PIPE, start_new_session=True)
     try:
-        line = await asyncio.wait_for(proc.stdout.readline(), timeout)
+        line = await asyncio.wait_for(proc.stdout.readline(), timeout or s.ready_timeout)
     except asyncio.TimeoutError:
         line = b""
     if not line.startswith(b"READY "):
@@ -139,7 +153,7 @@ async def spawn(s: SimulatorSettings, timeout: float = 20.0) -> asyncio.subproce
             except asyncio.TimeoutError:
                 pass
             why = (f"exited with code {proc.returncode} before it was ready" if proc.returncode is not None
-                   else f"not ready within {timeout:g} s")
+                   else f"not ready within {timeout or s.ready_timeout:g} s")
         await stop(proc)
         raise SimulatorFailed(f"the simulator did not start: {why}", proc)
     log.info("simulator_ready", pid=proc.pid, **json.loads(line[6:]))
