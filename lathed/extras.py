@@ -11,7 +11,7 @@ import importlib.util
 from types import ModuleType
 
 EXTRAS = {"psycopg": "postgres", "matplotlib": "plots", "asyncua": "opcua", "aiomqtt": "mqtt",
-          "h5py": "recordings", "nptdms": "recordings"}   # module -> extra that installs it
+          "h5py": "recordings", "nptdms": "recordings", "sounddevice": "audio"}   # module -> extra that installs it
 
 
 class MissingExtra(ImportError):
