@@ -35,41 +35,54 @@ class DeviceGone(ConnectionError):
 class SampleClock:
     """The device's sample clock against the host's: a straight line through (sample index,
     host time of that sample) pairs, one kept every ``every_s`` over ``span_s``. The line
-    dates a block from its index, without the scheduling jitter of each callback's stamp;
+    dates a block from its index, without the scheduling jitter of each callback's stamp
+    (a callback is only ever late: the line runs along the early stamps, a low quantile);
     once the pairs span ``fit_s`` its slope is the device's true rate (its crystal against
-    the host's clock), before that the nominal one."""
+    the host's clock), before that the nominal one. Stamps away from the line by more than
+    ``step_s`` several times in a row are a step between the clocks (samples an overrun
+    discarded, a device that stalled): the line starts again from them (``steps``)."""
 
-    def __init__(self, rate_hz: float, every_s: float = 0.5, span_s: float = 120.0, fit_s: float = 20.0) -> None:
+    def __init__(self, rate_hz: float, every_s: float = 0.5, span_s: float = 120.0, fit_s: float = 20.0,
+                 step_s: float = 0.03) -> None:
         self.rate = float(rate_hz)
-        self.fit_s = fit_s
-        self._fitted = False
         self.every = int(every_s * rate_hz)
+        self.fit_s, self.step_s = fit_s, step_s
         self._pts: deque[tuple[int, float]] = deque(maxlen=max(4, int(span_s / every_s)))
         self._line: tuple[float, float, int] | None = None     # host t at index i0, s per sample, i0
+        self._fitted = False
+        self._off = 0                 # stamps in a row off the line
+        self.steps = 0
 
     def reset(self) -> None:
         self._pts.clear()
         self._line = None
         self._fitted = False
+        self._off = 0
 
     def add(self, index: int, host_t: float) -> None:
         if self._pts and index - self._pts[-1][0] < self.every:
             return
+        if self._line is not None and abs(host_t - self.t(index)) > self.step_s:
+            self._off += 1
+            if self._off < 3:
+                return
+            self.steps += 1
+            self.reset()
+        else:
+            self._off = 0
         self._pts.append((index, host_t))
         i = np.array([p[0] for p in self._pts], dtype=np.float64)
         t = np.array([p[1] for p in self._pts])
         i0 = int(i[0])
-        self._fitted = False
-        if i[-1] - i[0] >= self.fit_s * self.rate:
-            slope, icept = np.polyfit(i - i0, t - t[0], 1)
-            # a clock 1 % off is not a sound card's crystal: a stall or a jump, keep the nominal
-            if abs(slope * self.rate - 1.0) < 0.01:
-                self._line, self._fitted = (t[0] + icept, slope, i0), True
-                return
-        # too short a span to tell the device's rate from the stamps' jitter: the nominal
-        # rate, the offset from every stamp
+        di, dt = i - i0, t - t[0]
         slope = 1.0 / self.rate
-        self._line = (t[0] + float(np.mean((t - t[0]) - (i - i0) * slope)), slope, i0)
+        self._fitted = False
+        if di[-1] >= self.fit_s * self.rate:
+            fit = np.polyfit(di, dt, 1)[0]
+            # a clock 1 % off is not a sound card's crystal: keep the nominal
+            if abs(fit * self.rate - 1.0) < 0.01:
+                slope, self._fitted = fit, True
+        self._line = (t[0] + float(np.quantile(dt - di * slope, 0.1)), slope, i0)
 
     def t(self, index: int) -> float | None:
         if self._line is None:
@@ -80,7 +93,6 @@ class SampleClock:
     @property
     def measured_rate(self) -> float | None:
         return 1.0 / self._line[1] if self._fitted else None
-
 
 Listener = Callable[[np.ndarray, dict], None]
 

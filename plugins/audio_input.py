@@ -141,20 +141,15 @@ class AudioInput(Driver):
         self.blocks += 1
 
     def _lost(self, frames: int, meta: dict) -> int:
-        """Samples missing before this block: blocks the helper could not hand over (exact),
-        and where PortAudio flags an overrun, what the host clock says it skipped (the
-        device's ADC stamps are the host's clock read at each period: they jitter by a
-        quarter period, so they date a gap but cannot find one)."""
+        """Samples known missing before this block: blocks the helper could not hand over.
+        What an overrun discarded is not known (PortAudio says only that it did; the ADC
+        stamps are the host's clock read at each period, jittering by a quarter of one):
+        it is counted as an overrun, and the clock line steps over it (SampleClock)."""
         dropped = meta["dropped"]
         if self._dropped0 is None:
             self._dropped0 = dropped           # what the helper dropped before we attached
         lost = (dropped - self._dropped0) * frames
         self._dropped0 = dropped
-        if meta["overflow"]:
-            expect = self.clock.t(self.seq + lost)
-            gap = 0 if expect is None else int(round((meta["host_t"] - expect) * self.rate))
-            if gap > frames // 2:
-                lost += gap
         return lost
 
     def _report(self) -> None:
@@ -179,6 +174,7 @@ class AudioInput(Driver):
                 "channel": self.channel, "keyphasor_channel": self.kp_channel or None, "rate_hz": self.rate,
                 "rate_measured_hz": None if measured is None else round(measured, 3),
                 "clock_drift_ppm": None if measured is None else round((measured / self.rate - 1) * 1e6, 1),
+                "clock_steps": self.clock.steps,
                 "quantity": self.calibration.quantity, "unit": self.calibration.unit,
                 "calibration": self.calibration.text, "highpass_hz": self.highpass_hz,
                 "mains_hz": self.mains_hz or None,

@@ -91,6 +91,7 @@ def test_blocks_are_calibrated_dc_free_and_dated_on_both_clocks(jack_server, mon
         player = Player(jack_server, idle=0.25 + tone(1000.0, 0.1, 0.5))     # 1 kHz on a DC offset
         try:
             player.connect()
+            await rig.drain()
             await rig.blocks(0.5)          # the high-pass settles; the connection's first blocks pass
             await rig.drain()
             t_wall = time.time()
@@ -102,7 +103,7 @@ def test_blocks_are_calibrated_dc_free_and_dated_on_both_clocks(jack_server, mon
     got, t_wall, st = asyncio.run(main())
     # one stream on the device's clock: consecutive, no sample lost
     seqs = [b.seq for b in got]
-    assert all(b - a == 1024 for a, b in zip(seqs, seqs[1:])), seqs
+    assert all(b - a == 1024 for a, b in zip(seqs, seqs[1:])), np.diff(seqs)
     assert all(b.rate_hz == RATE and b.quantity == "acceleration" and b.rpm is None for b in got)
     x = np.concatenate([b.data for b in got]).astype(float)
     # 0.5 of full scale, 5 V full scale, 100 mV/g: 0.5 * 5 / 0.1 g
@@ -111,10 +112,12 @@ def test_blocks_are_calibrated_dc_free_and_dated_on_both_clocks(jack_server, mon
     assert abs(x.mean()) < 0.01 * amp              # the DC offset is gone
     # dated on the host's clock: the first block began within a block and the latency of now
     assert abs(got[0].t0 - t_wall) < 0.2
-    # the line through the callbacks' stamps dates each block from its index: a block later
-    # (within the millisecond a new stamp moves the line), not the stamps' own jitter
-    steps = np.diff([b.t0 for b in got])
-    assert np.all(np.abs(steps - 1024 / RATE) < 1e-3), steps
+    # the line along the callbacks' stamps dates each block from its index: a block later,
+    # within the few milliseconds a new stamp moves the line, not the stamps' own jitter;
+    # but for a step the clocks took (the dummy backend's server stalled on this busy
+    # machine: a device that stopped for a while), which is counted
+    off = np.diff([b.t0 for b in got]) - 1024 / RATE
+    assert len(off[off > 0.01]) <= st["clock_steps"] and np.all(off > -0.01), off
     assert st["device"] == "system" and st["hostapi"] == "JACK Audio Connection Kit"
     assert st["lost_samples"] == 0 and st["clipped_samples"] == 0
     assert st["calibration"] == "100 mV/g, interface full scale 5 V"
@@ -153,3 +156,170 @@ def test_config_errors_name_the_key(keys, problem):
         cfg = {"device": "system"}
     with pytest.raises(ConfigError, match=problem):
         AudioInput("accel", Section("t.toml", "sensor.accel", cfg))
+
+
+def pulses(rpm: float, seconds: float, rate: int = RATE, amp: float = 0.8) -> np.ndarray:
+    """A once-per-revolution mark as an AC-coupled input shows it: a spike up at its edge."""
+    n = int(seconds * rate)
+    x = np.zeros(n)
+    per = rate * 60.0 / rpm
+    for k in range(int(n / per) + 1):
+        i = int(round(k * per))
+        x[i:i + 24] += amp * np.exp(-np.arange(len(x[i:i + 24])) / 6.0)
+    return x
+
+
+def test_keyphasor_channel_gives_the_speed_on_the_device_clock(jack_server, monkeypatch):
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor(keyphasor_channel=2)
+    noise = np.random.default_rng(1).normal(0, 0.05, RATE)
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        player = Player(jack_server, channels=2, idle=np.column_stack([noise, pulses(1500, 1.0)]))
+        try:
+            player.connect()
+            await rig.drain()
+            await rig.blocks(0.5)
+            await rig.drain()
+            at_1500 = await rig.blocks(1.0)
+            player.play(np.column_stack([np.tile(noise, 3), pulses(1800, 3.0)]))
+            await rig.blocks(1.0)          # the segment reaches the capture
+            at_1800 = await rig.blocks(1.0)
+            return at_1500, at_1800, drv.status()
+        finally:
+            player.close()
+            await rig.stop()
+    at_1500, at_1800, st = asyncio.run(main())
+    # 1920 and 1600 samples a revolution, the edges found to a fraction of a sample
+    assert all(b.rpm == pytest.approx(1500, rel=2e-4) for b in at_1500), [b.rpm for b in at_1500]
+    assert all(b.rpm == pytest.approx(1800, rel=2e-4) for b in at_1800), [b.rpm for b in at_1800]
+    assert st["keyphasor_pulses"] > 60
+
+
+def test_mains_lines_are_notched_and_the_rest_kept(jack_server, monkeypatch):
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor(mains_hz=50)
+    t = np.arange(RATE) / RATE
+    hum = sum(0.05 * np.sin(2 * np.pi * 50 * k * t + k) for k in (1, 2, 3, 6))
+    chatter = 0.2 * np.sin(2 * np.pi * 725 * t)
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        player = Player(jack_server, idle=hum + chatter)
+        try:
+            player.connect()
+            await rig.drain()
+            await rig.blocks(1.0)          # the notches' ring-in (5 time constants)
+            await rig.drain()
+            return await rig.blocks(2.0)
+        finally:
+            player.close()
+            await rig.stop()
+    got = asyncio.run(main())
+    x = np.concatenate([b.data for b in got]).astype(float)
+    scale = 5 / 0.1 * G0
+    spec = np.abs(np.fft.rfft(x * np.hanning(len(x)))) * 4 / len(x) / scale
+    f = np.fft.rfftfreq(len(x), 1 / RATE)
+
+    def at(hz):
+        return spec[np.argmin(np.abs(f - hz))]
+    assert at(725) == pytest.approx(0.2, rel=0.06)                 # within half a dB
+    for k in (1, 2, 3, 6):
+        assert at(50 * k) < 0.05 / 100, (50 * k, at(50 * k))       # 40 dB down at least
+
+
+def test_blocks_the_daemon_did_not_take_are_counted_and_the_index_keeps_time(jack_server, monkeypatch):
+    """A loop held for 3 s (more than the helper holds): blocks are dropped in the helper,
+    counted as lost samples, recorded, and the device-clock index jumps by them."""
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor()
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        try:
+            before = (await rig.blocks(0.3))[-1]
+            time.sleep(3.0)                # the fault: an event loop that does not run
+            after = await rig.blocks(5.0)
+            return before, after, drv.status(), rig.events
+        finally:
+            await rig.stop()
+    before, after, st, events = asyncio.run(main())
+    seqs = [before.seq] + [b.seq for b in after]
+    jumps = [(a, b) for a, b in zip(seqs, seqs[1:]) if b - a != 1024]
+    assert len(jumps) == 1 and st["gaps"] == 1, jumps
+    a, b = jumps[0]
+    assert b - a - 1024 == st["lost_samples"] > 0
+    # the index stays on time: what was lost plus what came is the time that passed
+    assert after[-1].t0 - before.t0 == pytest.approx((after[-1].seq - before.seq) / RATE, abs=0.05)
+    assert "audio_samples_lost" in [k for k, _ in events]
+
+
+def test_device_gone_is_said_retried_and_back(jack_server, monkeypatch):
+    """The audio server stopped (as a USB device pulled): the run ends with 'device gone',
+    a reconnection while it is away says so, and once it is back the stream goes on."""
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor(timeout="500ms")
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        first = (await rig.blocks(0.3))[-1]
+        jack_server.stop()
+        with pytest.raises(DeviceGone) as gone:
+            await rig.blocks(60.0, timeout=10.0)
+        await rig.drv.close()
+        with pytest.raises(DeviceGone) as away:
+            await rig.drv.connect()
+        await rig.drv.close()
+        jack_server.start()
+        await rig.start()
+        await rig.drain()
+        back = await rig.blocks(0.5)
+        st = drv.status()
+        await rig.stop()
+        return first, str(gone.value), str(away.value), back, st
+    first, gone, away, back, st = asyncio.run(main())
+    assert gone.startswith("device gone: system: ") and "\n" not in gone, gone
+    assert away.startswith("device gone: no input device matching 'system'"), away
+    assert back[0].seq > first.seq + 1024 and st["helper_starts"] == 3
+    assert all(b - a == 1024 for a, b in zip([x.seq for x in back], [x.seq for x in back[1:]]))
+
+
+def test_two_sensors_share_one_device(jack_server, monkeypatch):
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    a = sensor()
+    b = AudioInput("mic", Section("t.toml", "sensor.mic", {"device": "system", "rate": RATE, "channel": 2,
+                                                            "sensitivity_mv_pa": 50.0, "full_scale_v": 1.0}))
+
+    async def main():
+        ra, rb = Rig(a), Rig(b)
+        rb.sub = b.ctx.bus.subscribe("mic", maxsize=100000)
+        await ra.start()
+        await rb.start()
+        player = Player(jack_server, channels=2, idle=np.column_stack([tone(500, 0.1, 0.1), tone(800, 0.1, 0.2)]))
+        try:
+            player.connect()
+            await ra.blocks(0.5)
+            await rb.blocks(0.5)
+            await ra.drain()
+            await rb.drain()
+            return await ra.blocks(0.5), await rb.blocks(0.5)
+        finally:
+            player.close()
+            await ra.stop()
+            await rb.stop()
+    xa, xb = asyncio.run(main())
+    assert a.dev is b.dev and a.dev.starts == 1
+    assert xb[0].quantity == "sound_pressure"
+    ya, yb = (np.concatenate([x.data for x in xs]).astype(float) for xs in (xa, xb))
+    assert np.sqrt(2) * ya.std() == pytest.approx(0.1 * 5 / 0.1 * G0, rel=0.02)
+    assert np.sqrt(2) * yb.std() == pytest.approx(0.2 * 1 / 0.05, rel=0.02)        # Pa

@@ -139,8 +139,7 @@ class Keyphasor:
 
     A revolution starts where the signal rises through half its running peak, re-armed once
     it has fallen below a fifth of it; pulses closer than a revolution at ``max_rpm`` are one.
-    The speed decays to what the time since the last pulse allows (a spindle stopping), and is
-    None after a revolution at ``min_rpm`` with no pulse (stopped, or the keyphasor lost)."""
+    """
 
     def __init__(self, rate_hz: float, min_rpm: float = 30.0, max_rpm: float = 30000.0) -> None:
         self.rate = float(rate_hz)
@@ -192,13 +191,14 @@ class Keyphasor:
 
     def rpm(self, now: int) -> float | None:
         """The speed at stream sample ``now``: over the last revolution, or lower where no pulse
-        has come for longer than that; None with no pulse for a revolution at min_rpm."""
+        has come for a quarter revolution more than that (slowing down); None with no pulse for
+        a revolution at min_rpm."""
         if self.revolution is None or not self.marks:
             return None
         since = now - self.marks[-1]
         if since > self.max_gap:
             return None
-        return 60.0 * self.rate / max(self.revolution, since)
+        return 60.0 * self.rate / (since if since > 1.25 * self.revolution else self.revolution)
 
     def phase(self, at: float) -> float | None:
         """The spindle angle (radians, 0 at the last pulse) at stream sample ``at``."""
