@@ -27,6 +27,7 @@ from lathed.args import Args
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
 from lathed.push import PushHub
+from lathed.recorder import Recorder
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import MIGRATIONS, Store, connect
@@ -148,6 +149,11 @@ class Daemon:
         self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers,
                             quantities)
         self.control.register("subscribe", self.push.subscribe)
+        sup = self.supervisor
+        self.recorder = Recorder(self.bus, lambda: {n: r.obj for n, r in sup.runners.items()},
+                                 lambda: {n: r.obj for n, r in sup.analyzer_runners.items()}, sup.machine_status,
+                                 self.settings.name)
+        self.control.register("record", self.recorder.request)
         try:
             await self.control.start()
         except (SocketInUse, OSError) as e:
