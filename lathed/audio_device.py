@@ -52,6 +52,7 @@ class SampleClock:
         self._fitted = False
         self._off = 0                 # stamps in a row off the line
         self.steps = 0
+        self.stepped_s = 0.0          # the steps, added up (s; > 0: the host's clock went ahead)
 
     def reset(self) -> None:
         self._pts.clear()
@@ -62,11 +63,13 @@ class SampleClock:
     def add(self, index: int, host_t: float) -> None:
         if self._pts and index - self._pts[-1][0] < self.every:
             return
-        if self._line is not None and abs(host_t - self.t(index)) > self.step_s:
+        off = None if self._line is None else host_t - self.t(index)
+        if off is not None and abs(off) > self.step_s:
             self._off += 1
             if self._off < 3:
                 return
             self.steps += 1
+            self.stepped_s += off
             self.reset()
         else:
             self._off = 0

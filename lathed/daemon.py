@@ -383,7 +383,8 @@ class Daemon:
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
                            "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
                                        "refused": self.control.refused, "evicted": self.control.evicted,
-                                       **self.push.stats()}},
+                                       **self.push.stats()},
+                           "recordings": self.recorder.stats()},
                 **self.supervisor.status()}
 
     async def _cmd_plugins(self, args: dict) -> Any:

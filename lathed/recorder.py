@@ -46,6 +46,11 @@ class Recorder:
         self.daemon_name = daemon_name
         self.active: set[Recording] = set()
 
+    def stats(self) -> list[dict]:
+        """The recordings being streamed now (lathectl status)."""
+        return [{"source": r.source, "recording": r.recording, "samples": r.samples_recorded,
+                 "seconds": r.seconds, "cuts": r.cuts, "cuts_ended": r.cuts_ended} for r in self.active]
+
     async def request(self, args: dict) -> Stream:
         a = Args("record", args)
         source = a.getstr("source", maxlen=64)

@@ -31,7 +31,7 @@ class Sight:
             err = status.get("error")
             why = f"{self.source}: {err}, {status['state']}" if err else f"{self.source} {status.get('describe')}"
         elif self._last is not None and now - self._last > self.stale_s:
-            why = f"{self.source}: no samples for {now - self._last:.1f} s"
+            why = f"{self.source}: no signal for {now - self._last:.1f} s"
         if why is None:
             return False
         went = self.blind is None and self.seen

@@ -70,7 +70,8 @@ class AudioInput(Driver):
         self.clock = SampleClock(self.rate)
         self.info: dict = {}
         self.seq = 0                   # the next sample's index on the device clock, over reconnections
-        self.blocks = self.overruns = self.lost_samples = self.gaps = self.clipped = 0
+        self.blocks = self.overruns = self.lost_samples = self.gaps = self.clipped = self.silent_blocks = 0
+        self._silent = False
         self.cond: Conditioner | None = None
         self.keyphasor: Keyphasor | None = None
         self._gone: asyncio.Future | None = None
@@ -87,6 +88,7 @@ class AudioInput(Driver):
         self.keyphasor = Keyphasor(self.rate) if self.kp_channel else None
         self.clock.reset()
         self._dropped0 = None
+        self._frame_t = time.monotonic()
         self.info = await self.dev.attach(self, self._on_block, self._on_gone, self.timeout)
         if self._end_t is not None:
             # the device clock ran on while it was gone: the index keeps the time between
@@ -97,7 +99,7 @@ class AudioInput(Driver):
             done, _ = await asyncio.wait({self._gone}, timeout=self.timeout)
             if done:
                 raise DeviceGone(self._gone.result())
-            age = time.time() - (self.last_data_t or 0.0)
+            age = time.monotonic() - self._frame_t
             if age > 3 * self.timeout + 1.0:      # the helper itself hung: close() stops it
                 raise DeviceGone(f"device gone: no samples from {self.info.get('name', self.device)} "
                                  f"for {age:.1f} s")
@@ -111,6 +113,7 @@ class AudioInput(Driver):
 
     # -- each block ----------------------------------------------------------------------
     def _on_block(self, data: np.ndarray, meta: dict) -> None:
+        self._frame_t = time.monotonic()
         frames = len(data)
         lost = self._lost(frames, meta)
         if meta["overflow"]:
@@ -122,9 +125,20 @@ class AudioInput(Driver):
         if meta["overflow"] or lost:
             self._report()
         x = data[:, self.channel - 1]
+        self.clock.add(self.seq, meta["host_t"])
+        if not x.any():
+            # exact digital silence is no sensor (an input with nothing plugged in, a stream
+            # not yet fed): counted and said, not published, so an analyzer is blind, not calm
+            self.silent_blocks += 1
+            self.seq += frames
+            if not self._silent:
+                self._silent = True
+                self.ctx.log.warning("audio_input_silent", device=self.info.get("name", self.device),
+                                     channel=self.channel, why="digital silence: nothing connected to the input?")
+            return
+        self._silent = False
         self.clipped += int(np.count_nonzero(np.abs(x) >= CLIP))
         y = self.cond.process(x)
-        self.clock.add(self.seq, meta["host_t"])
         t0 = self.clock.t(self.seq)
         rpm = None
         if self.keyphasor is not None:
@@ -174,12 +188,13 @@ class AudioInput(Driver):
                 "channel": self.channel, "keyphasor_channel": self.kp_channel or None, "rate_hz": self.rate,
                 "rate_measured_hz": None if measured is None else round(measured, 3),
                 "clock_drift_ppm": None if measured is None else round((measured / self.rate - 1) * 1e6, 1),
-                "clock_steps": self.clock.steps,
+                "clock_steps": self.clock.steps, "clock_stepped_s": round(self.clock.stepped_s, 4),
                 "quantity": self.calibration.quantity, "unit": self.calibration.unit,
                 "calibration": self.calibration.text, "highpass_hz": self.highpass_hz,
                 "mains_hz": self.mains_hz or None,
                 "blocks": self.blocks, "samples": self.seq, "overruns": self.overruns,
                 "lost_samples": self.lost_samples, "gaps": self.gaps, "clipped_samples": self.clipped,
+                "silent_blocks": self.silent_blocks,
                 "keyphasor_pulses": self.keyphasor.pulses if self.keyphasor else None,
                 "latency_ms": None if self.info.get("latency_s") is None else round(1000 * self.info["latency_s"], 1),
                 "helper_starts": self.dev.starts}

@@ -123,6 +123,27 @@ def test_blocks_are_calibrated_dc_free_and_dated_on_both_clocks(jack_server, mon
     assert st["calibration"] == "100 mV/g, interface full scale 5 V"
 
 
+def test_digital_silence_is_no_signal_not_a_calm_one(jack_server, monkeypatch):
+    """An input with nothing connected gives exact zeros: counted, said once, not published
+    (an analyzer is blind then, not calm)."""
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor()
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        try:
+            async with asyncio.timeout(20):
+                while drv.status()["silent_blocks"] < 20:
+                    await asyncio.sleep(0.05)
+            return drv.status(), [m for m in list(rig.sub._items) if isinstance(m, Block)]
+        finally:
+            await rig.stop()
+    st, blocks = asyncio.run(main())
+    assert blocks == [] and st["blocks"] == 0 and st["samples"] >= 20 * 1024
+
+
 def test_unknown_device_is_gone_with_the_devices_listed(jack_server, monkeypatch):
     for k, v in jack_server.env.items():
         monkeypatch.setenv(k, v)
@@ -243,12 +264,16 @@ def test_blocks_the_daemon_did_not_take_are_counted_and_the_index_keeps_time(jac
     async def main():
         rig = Rig(drv)
         await rig.start()
+        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
         try:
+            player.connect()
+            await rig.drain()
             before = (await rig.blocks(0.3))[-1]
             time.sleep(3.0)                # the fault: an event loop that does not run
             after = await rig.blocks(5.0)
             return before, after, drv.status(), rig.events
         finally:
+            player.close()
             await rig.stop()
     before, after, st, events = asyncio.run(main())
     seqs = [before.seq] + [b.seq for b in after]
@@ -256,8 +281,10 @@ def test_blocks_the_daemon_did_not_take_are_counted_and_the_index_keeps_time(jac
     assert len(jumps) == 1 and st["gaps"] == 1, jumps
     a, b = jumps[0]
     assert b - a - 1024 == st["lost_samples"] > 0
-    # the index stays on time: what was lost plus what came is the time that passed
-    assert after[-1].t0 - before.t0 == pytest.approx((after[-1].seq - before.seq) / RATE, abs=0.05)
+    # the index stays on time: what was lost plus what came is the time that passed (and any
+    # step the clocks took: the dummy backend's server stalls on a busy machine)
+    assert after[-1].t0 - before.t0 - st["clock_stepped_s"] == pytest.approx((after[-1].seq - before.seq) / RATE,
+                                                                             abs=0.05)
     assert "audio_samples_lost" in [k for k, _ in events]
 
 
@@ -271,7 +298,11 @@ def test_device_gone_is_said_retried_and_back(jack_server, monkeypatch):
     async def main():
         rig = Rig(drv)
         await rig.start()
+        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
+        player.connect()
+        await rig.drain()
         first = (await rig.blocks(0.3))[-1]
+        player.close()
         jack_server.stop()
         with pytest.raises(DeviceGone) as gone:
             await rig.blocks(60.0, timeout=10.0)
@@ -281,9 +312,12 @@ def test_device_gone_is_said_retried_and_back(jack_server, monkeypatch):
         await rig.drv.close()
         jack_server.start()
         await rig.start()
+        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
+        player.connect()
         await rig.drain()
         back = await rig.blocks(0.5)
         st = drv.status()
+        player.close()
         await rig.stop()
         return first, str(gone.value), str(away.value), back, st
     first, gone, away, back, st = asyncio.run(main())
