@@ -21,6 +21,7 @@ import numpy as np
 import structlog
 
 from lathed.audio_capture import FRAME, MAGIC, OVERFLOW
+from lathed.driver import LinkDown
 
 log = structlog.get_logger("lathed.audio")
 
@@ -28,7 +29,7 @@ START_TIMEOUT_S = 15.0     # PortAudio's first scan of ALSA devices can take sec
 STOP_TIMEOUT_S = 1.0
 
 
-class DeviceGone(ConnectionError):
+class DeviceGone(LinkDown):
     """The device (or the audio server behind it) went away; its message says why."""
 
 

@@ -29,7 +29,8 @@ class Sight:
         why = None
         if status is not None and status.get("state") != "connected":
             err = status.get("error")
-            why = f"{self.source}: {err}, {status['state']}" if err else f"{self.source} {status.get('describe')}"
+            # an error: it failed, and is being tried again (connecting or waiting to)
+            why = f"{self.source}: {err}, retrying" if err else f"{self.source} {status.get('describe')}"
         elif self._last is not None and now - self._last > self.stale_s:
             why = f"{self.source}: no signal for {now - self._last:.1f} s"
         if why is None:

@@ -44,8 +44,11 @@ class JackServer:
         self.log = b""
 
     def start(self) -> None:
+        # synchronous (-S): each cycle waits for every client (up to -t ms), so a client the busy
+        # test machine runs late stalls the dummy device a moment (a step of its clock, which
+        # the driver follows) instead of playing zeros for the period it missed
         self.proc = subprocess.Popen(
-            ["jackd", "--no-realtime", "-n", self.name, "-d", "dummy", "-r", str(self.rate),
+            ["jackd", "--no-realtime", "-S", "-t", "5000", "-n", self.name, "-d", "dummy", "-r", str(self.rate),
              "-p", str(self.period), "-C", str(self.capture), "-P", "0"],
             env={**os.environ, **self.env}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             start_new_session=True)

@@ -194,7 +194,11 @@ def test_a_device_gone_mid_cut_is_said_and_the_analyzer_is_blind(cell):
     # plugged in again: it comes back by itself, and the analyzer sees again
     cell.server.start()
     wait_until(lambda: cell.d.item("sensors", "accel")["state"] == "connected", 30, what="the sensor back")
+    # connected, but its input silent (nothing plays into it yet): still blind, no signal
+    an = wait_until(lambda: (a := cell.d.item("analyzers", "chatter"))["blind"] != blind[0]["payload"]["why"]
+                    and a, 10, what="blind for no signal")
+    assert an["cut_state"] == "blind" and "no signal" in an["blind"], an
+    cell.player = cell._player()           # the accelerometer's signal again
     wait_until(lambda: cell.d.item("analyzers", "chatter")["cut_state"] != "blind", 10, what="sight back")
     assert cell.events("chatter_sight_back")
-    cell.player = cell._player()
     assert "Traceback" not in cell.d.output(), line

@@ -66,6 +66,8 @@ class Capture:
         self.keyphasor: list[list[float]] = []    # [WAV second, r/min] where the block carried one
         self.stop: str | None = None
         self._last = [0, 0.0]                     # [samples written, host time just after them]
+        self._offs: list[int] = []                # every block's first sample and its date, to map
+        self._t0s: list[float] = []               # the samples' host times exactly
 
     def block(self, seq: int, t0: float, rpm: float | None, rate: float, b64: str) -> None:
         raw = base64.b64decode(b64)
@@ -86,8 +88,12 @@ class Capture:
         elif seq < self.next_seq:           # a restarted stream counted from an earlier index
             self.gaps.append([round(self.wav.frames / rate, 6), 0])
         offset = self.wav.frames
-        if not self.clock or offset - self.clock[-1][0] >= rate:
+        # the sidecar's clock: a point a second, and one wherever the daemon's dating of the
+        # blocks stepped (its line re-anchored: a stalled device, an overrun)
+        if not self.clock or offset - self.clock[-1][0] >= rate or abs(t0 - self._last[1]) > 5e-4:
             self.clock.append([offset, t0])
+        self._offs.append(offset)
+        self._t0s.append(t0)
         if rpm is not None and (not self.keyphasor or abs(rpm - self.keyphasor[-1][1]) > 1e-3 * rpm):
             self.keyphasor.append([round(offset / rate, 6), rpm])
         self.wav.write(raw)
@@ -95,19 +101,13 @@ class Capture:
         self._last = [offset + len(raw) // 4, t0 + len(raw) // 4 / rate]
 
     def seconds(self, t: float) -> float:
-        """A host time as seconds from the WAV's first sample (through the blocks' own dates;
-        before the first or after the last, at the device's rate)."""
-        import numpy as np
-        pts = self.clock + [self._last]
-        i = np.array([p[0] for p in pts], dtype=float)
-        tt = np.array([p[1] for p in pts])
-        if t <= tt[0]:
-            at = i[0] + (t - tt[0]) * self.rate
-        elif t >= tt[-1]:
-            at = i[-1] + (t - tt[-1]) * self.rate
-        else:
-            at = float(np.interp(t, tt, i))
-        return round(at / self.rate, 6)
+        """A host time as seconds from the WAV's first sample: within the block it falls in, as
+        the daemon dated that block (before the first or after the last, at the device's rate)."""
+        import bisect
+        if not self._t0s:
+            return 0.0
+        k = max(0, bisect.bisect_right(self._t0s, t) - 1)
+        return round((self._offs[k] + (t - self._t0s[k]) * self.rate) / self.rate, 6)
 
 
 def sidecar(first: dict, cap: Capture, samples: list, why: str) -> dict:
