@@ -197,7 +197,7 @@ class AudioInput(Driver):
                 "silent_blocks": self.silent_blocks,
                 "keyphasor_pulses": self.keyphasor.pulses if self.keyphasor else None,
                 "latency_ms": None if self.info.get("latency_s") is None else round(1000 * self.info["latency_s"], 1),
-                "helper_starts": self.dev.starts}
+                "helper_starts": self.dev.starts, "helper_pid": self.info.get("pid")}
 
 
 def _calibration(section: Section) -> Calibration:
