@@ -160,6 +160,11 @@ def status(sock: Path) -> dict:
     return json.loads(r.stdout) if r.returncode == 0 else {}
 
 
+def received(st: dict) -> int:
+    """Samples published by the audio sensors (1024 a block)."""
+    return 1024 * sum(s.get("blocks") or 0 for s in st.get("sensors", []) if s["name"].startswith("accel"))
+
+
 def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -181,16 +186,23 @@ def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
             helper = next(s["helper_pid"] for s in st["sensors"] if s["name"] == "accel1")
             time.sleep(warmup)
             pids = (proc.pid, helper)
+            got0 = received(status(sock))
             c0, w0 = [cpu_s(p) for p in pids], time.monotonic()
             time.sleep(seconds)
-            cpu = [100 * (cpu_s(p) - c) / (time.monotonic() - w0) for p, c in zip(pids, c0)]
+            used = [cpu_s(p) - c for p, c in zip(pids, c0)]
+            wall = time.monotonic() - w0
+            cpu = [100 * u / wall for u in used]
             rss = [rss_mb(p) for p in pids]
             st = status(sock)
+            # seconds of each channel's signal the daemon took in the window: below the wall
+            # time when it fell behind (a busy machine), and the CPU it would take at real time
+            took = (received(st) - got0) / RATE / n
             windows = sum(a.get("windows", 0) for a in st["analyzers"] if a["name"].startswith("chatter"))
             lost = sum(s.get("lost_samples", 0) or 0 for s in st["sensors"] if s["name"].startswith("accel"))
             bridge.close()
             return {"n": n, "cpu": cpu, "rss": rss, "windows": windows, "lost": lost,
-                    "underruns": bridge.underruns}
+                    "underruns": bridge.underruns, "rt": [100 * u / took for u in used] if took > 0 else cpu,
+                    "took": took, "wall": wall}
         finally:
             proc.send_signal(signal.SIGTERM)
             proc.wait(60)
@@ -210,16 +222,23 @@ def main() -> int:
     finally:
         server.stop()
     print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
-          f"RSS daemon + helper, MB | windows analysed in {a.seconds:g} s | samples lost |")
-    print("|---|---|---|---|---|")
+          f"the same per second of signal taken in | RSS daemon + helper, MB | signal taken in over "
+          f"{a.seconds:g} s | samples lost |")
+    print("|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['n']} | {sum(r['cpu']):.1f} ({r['cpu'][0]:.1f} + {r['cpu'][1]:.1f}) | "
-              f"{sum(r['rss']):.0f} ({r['rss'][0]:.0f} + {r['rss'][1]:.0f}) | {r['windows']} | {r['lost']} |")
+              f"{sum(r['rt']):.1f} | {sum(r['rss']):.0f} ({r['rss'][0]:.0f} + {r['rss'][1]:.0f}) | "
+              f"{r['took']:.1f} s a channel | {r['lost']} |")
     if len(rows) > 1:
         x = np.array([r["n"] for r in rows], float)
         cpu = np.polyfit(x, [sum(r["cpu"]) for r in rows], 1)[0]
+        rt = np.polyfit(x, [sum(r["rt"]) for r in rows], 1)[0]
         rss = np.polyfit(x, [sum(r["rss"]) for r in rows], 1)[0]
-        print(f"| each added channel (least-squares slope) | {cpu:+.2f} % | {rss:+.1f} MB | | |")
+        print(f"| each added channel (least-squares slope) | {cpu:+.2f} % | {rt:+.2f} % | {rss:+.1f} MB | | |")
+    behind = [r["n"] for r in rows if r["took"] < 0.95 * r["wall"]]
+    if behind:
+        print(f"\nnote: with {', '.join(map(str, behind))} channel(s) the daemon took in less signal than the "
+              "window's time (the machine was too busy): read the per-second-of-signal column", file=sys.stderr)
     return 0
 
 

@@ -106,8 +106,15 @@ def main(argv: list[str] | None = None) -> int:
         say("ERROR", {"error": f"{info['name']}: {e}"})
         return 3
     say("READY", {**info, "rate_hz": stream.samplerate, "latency_s": stream.latency, "pid": os.getpid()})
-    # the daemon closing our stdin (or dying) is the end
-    threading.Thread(target=lambda: (sys.stdin.buffer.read(), os._exit(0)), daemon=True).start()
+    def end_on_eof() -> None:
+        # the daemon closing our stdin (or dying) is the end: the stream closed if it closes
+        # in a second (the audio server gone, PortAudio's JACK host API hangs there for ever)
+        sys.stdin.buffer.read()
+        closing = threading.Thread(target=stream.close, daemon=True)
+        closing.start()
+        closing.join(1.0)
+        os._exit(0)
+    threading.Thread(target=end_on_eof, daemon=True).start()
     while True:
         try:
             data, frames, flags, adc, host_t = blocks.get(timeout=a.stall)

@@ -26,7 +26,7 @@ from lathed.driver import LinkDown
 log = structlog.get_logger("lathed.audio")
 
 START_TIMEOUT_S = 15.0     # PortAudio's first scan of ALSA devices can take seconds
-STOP_TIMEOUT_S = 1.0
+STOP_TIMEOUT_S = 2.0       # the helper closes its stream within a second of its stdin's end
 
 
 class DeviceGone(LinkDown):
