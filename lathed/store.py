@@ -394,6 +394,7 @@ KINDS = frozenset({
     "command_sent", "command_refused", "command_failed", "speed_not_released", "override_found_held",
     "implausible_value", "alarm_raised", "alarm_cleared", "mtconnect_gap", "part_counter_reset",
     "chatter_alarm", "chatter_cleared", "chatter_blind", "chatter_sight_back", "unusable_vibration_rate", "cut",
+    "audio_samples_lost",
     "suppression_action", "suppression_proposed", "suppression_mode", "suppression_exhausted",
     "suppression_advice", "suppression_advice_lifted", "suppression_cures_forgotten", "spindle_not_following",
     "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",

@@ -211,24 +211,19 @@ def _calibration(section: Section) -> Calibration:
                                   f"uncalibrated = true; got {', '.join(given) or 'none'}")
     key = given[0]
     if key == "sensitivity_mv_g":
-        return Calibration.iepe(section.getfloat(key, above=0.0, maxval=1e5),
+        return Calibration.iepe(section.getfloat("sensitivity_mv_g", above=0.0, maxval=1e5),
                                 section.getfloat("full_scale_v", above=0.0, maxval=1000.0))
     if key == "counts_per_m_s2":
-        return Calibration.digital(section.getfloat(key, above=0.0, maxval=1e12),
+        return Calibration.digital(section.getfloat("counts_per_m_s2", above=0.0, maxval=1e12),
                                    section.getint("bits", 24, minval=16, maxval=32))
     if key == "sensitivity_mv_pa":
-        return Calibration.microphone(section.getfloat(key, above=0.0, maxval=1e5),
+        return Calibration.microphone(section.getfloat("sensitivity_mv_pa", above=0.0, maxval=1e5),
                                       section.getfloat("full_scale_v", above=0.0, maxval=1000.0))
-    if not section.getbool(key):
-        raise section.error(key, "false is no calibration: give one of the others, or true")
+    if not section.getbool("uncalibrated"):
+        raise section.error("uncalibrated", "false is no calibration: give one of the others, or true")
     return Calibration.uncalibrated()
 
 
 @hookimpl
 def lathed_driver_types():
     return {"audio_input": AudioInput}
-
-
-@hookimpl
-def lathed_event_kinds():
-    return ["audio_samples_lost"]
