@@ -112,7 +112,7 @@ class Recording(Stream):
 
     def _tap(self, msg) -> None:
         if isinstance(msg, Block):
-            if msg.source != self.source:
+            if msg.source != self.source or self.end is not None:
                 return
             self.last_block_t = time.monotonic()
             if not self.recording:
