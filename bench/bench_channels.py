@@ -215,7 +215,7 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0)
     a = ap.parse_args()
     ns = [int(x) for x in a.channels.split(",")]
-    server = JackServer(rate=RATE, capture=max(ns))
+    server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
     server.start()
     try:
         rows = [run(n, server, a.warmup, a.seconds) for n in ns]

@@ -32,18 +32,38 @@ def have_jackd() -> bool:
     return shutil.which("jackd") is not None or os.path.exists("/usr/bin/jackd")
 
 
+def _leftover(name: str) -> list[int]:
+    """jackd processes serving ``name`` (a test run killed before it stopped its server)."""
+    pids = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                args = open(f"/proc/{d}/cmdline", "rb").read().split(b"\0")
+            except OSError:
+                continue
+            if args and args[0].endswith(b"jackd") and name.encode() in args:
+                pids.append(int(d))
+    return pids
+
+
 class JackServer:
-    def __init__(self, rate: int = 48000, period: int = 1024, capture: int = 2) -> None:
+    """A JACK server under a name of this test process's own: one name per pytest worker (a
+    fixed few, because JACK keeps a small table of server names in shared memory, and a
+    server killed before it could clean up leaves its entry behind for its name's next use)."""
+
+    def __init__(self, rate: int = 48000, period: int = 1024, capture: int = 2, name: str | None = None) -> None:
         if not have_jackd():
             raise RuntimeError("no jackd; run `bash tests/ensure_jack.sh`")
         self.rate, self.period, self.capture = rate, period, capture
-        self.name = f"lathed-{uuid.uuid4().hex[:10]}"
+        self.name = name or f"lathed-test-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
         self.env = {"JACK_DEFAULT_SERVER": self.name, "JACK_NO_START_SERVER": "1",
                     "JACK_NO_AUDIO_RESERVATION": "1"}
         self.proc: subprocess.Popen | None = None
         self.log = b""
 
     def start(self) -> None:
+        for pid in _leftover(self.name):
+            os.kill(pid, signal.SIGKILL)
         # synchronous (-S): each cycle waits for every client (up to -t ms), so a client the busy
         # test machine runs late stalls the dummy device a moment (a step of its clock, which
         # the driver follows) instead of playing zeros for the period it missed

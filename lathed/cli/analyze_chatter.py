@@ -131,11 +131,11 @@ def run(args, extra_detectors: dict | None = None) -> int:
         return 2
     try:
         var = getattr(args, "var", None)
+        sig = read_signal(args.file, args.channel, args.rate, var)
         side = read_sidecar(args.file)
         if side is None and args.rpm is None:
             _err(f"--rpm is required: {args.file} has no sidecar from lathectl record to give the speed")
             return 2
-        sig = read_signal(args.file, args.channel, args.rate, var)
         # --var names FILE's variable: a reference of another format (a WAV) is read without it
         ref = (read_signal(args.reference, args.channel, args.rate, var if takes_var(args.reference) else None)
                if args.reference else None)
