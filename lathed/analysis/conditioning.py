@@ -55,6 +55,18 @@ class OnePole:
         self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     def run(self, u: np.ndarray) -> np.ndarray:
+        if len(u) <= self.chunk:          # a block in one piece: the common case, no copy
+            n = len(u)
+            if n not in self._powers:
+                k = np.arange(n, dtype=np.float64)
+                self._powers[n] = (self.p ** k, self.p ** -k)
+            fwd, back = self._powers[n]
+            w = np.multiply(back, u)
+            np.cumsum(w, out=w)
+            w += self.p * self.w
+            w *= fwd
+            self.w = float(w[-1])
+            return w
         out = np.empty(len(u))
         for i in range(0, len(u), self.chunk):
             seg = u[i:i + self.chunk]
@@ -119,14 +131,18 @@ class Conditioner:
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """One block of full-scale samples -> physical units (float32)."""
-        y = x.astype(np.float64) * self.scale
+        y = x.astype(np.float64)
+        y *= self.scale
         if self._hp is not None:
             pole, g = self._hp
             if self._x_last is None:
                 self._x_last = y[0]          # started at the first sample's level: no step from a DC offset
-            dx = np.diff(y, prepend=self._x_last)
+            dx = np.empty_like(y)
+            dx[0] = y[0] - self._x_last
+            np.subtract(y[1:], y[:-1], out=dx[1:])
+            dx *= g
             self._x_last = y[-1]
-            y = pole.run(g * dx)
+            y = pole.run(dx)
         if self.comb is not None:
             y = self.comb.run(y)
         return y.astype(np.float32)
