@@ -278,9 +278,11 @@ def test_blocks_the_daemon_did_not_take_are_counted_and_the_index_keeps_time(jac
     before, after, st, events = asyncio.run(main())
     seqs = [before.seq] + [b.seq for b in after]
     jumps = [(a, b) for a, b in zip(seqs, seqs[1:]) if b - a != 1024]
-    assert len(jumps) == 1 and st["gaps"] == 1, jumps
-    a, b = jumps[0]
-    assert b - a - 1024 == st["lost_samples"] > 0
+    # every jump of the index is samples counted lost (a busy machine may add a gap of its own)
+    assert jumps and st["gaps"] == len(jumps), jumps
+    assert sum(b - a - 1024 for a, b in jumps) == st["lost_samples"]
+    # the held loop's: more than the helper holds (2 s) and the pipe took, less than 3 s
+    assert 0.2 * RATE < jumps[0][1] - jumps[0][0] - 1024 < 3 * RATE, jumps
     # the index stays on time: what was lost plus what came is the time that passed (and any
     # step the clocks took: the dummy backend's server stalls on a busy machine)
     assert after[-1].t0 - before.t0 - st["clock_stepped_s"] == pytest.approx((after[-1].seq - before.seq) / RATE,
