@@ -312,11 +312,15 @@ def _plot(args, sig, det, wins, side=None) -> int:
             a2.plot([l0, t[-1] if l1 is None else l1], [det.threshold * 1.5] * 2, color="tab:purple", lw=3,
                     label="alarm (live)" if k == 0 else None)
         track = side.get("speed_keyphasor") or side.get("speed") or []
+        # the speed before the recording began is its speed at 0 s
+        before = [r for r in track if r[0] <= 0]
+        track = ([[0.0, before[-1][1]]] if before else []) + [r for r in track if r[0] > 0]
         if track and args.rpm is None:
             a3 = a2.twinx()
             a3.step([r[0] for r in track] + [t[-1]], [r[1] for r in track] + [track[-1][1]], where="post",
                     color="tab:gray", lw=0.8)
             a3.set_ylabel("spindle speed (r/min)", color="tab:gray")
+            a3.set_ylim(0, 1.25 * max(r[1] for r in track))
     a2.set_xlabel("time (s)")
     a2.set_ylabel(f"{det.name} index")
     a2.legend(fontsize=8)
