@@ -215,12 +215,16 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=30.0)
     a = ap.parse_args()
     ns = [int(x) for x in a.channels.split(",")]
-    server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
-    server.start()
-    try:
-        rows = [run(n, server, a.warmup, a.seconds) for n in ns]
-    finally:
-        server.stop()
+    rows = []
+    for n in ns:
+        # a server of its own for each run: a client the last daemon's helper left as it
+        # stopped would hold a synchronous server's cycles
+        server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
+        server.start()
+        try:
+            rows.append(run(n, server, a.warmup, a.seconds))
+        finally:
+            server.stop()
     print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
           f"the same per second of signal taken in | RSS daemon + helper, MB | signal taken in over "
           f"{a.seconds:g} s | samples lost |")

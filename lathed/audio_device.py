@@ -14,6 +14,7 @@ import json
 import os
 import signal
 import sys
+import weakref
 from collections import deque
 from typing import Callable
 
@@ -119,7 +120,9 @@ class AudioDevice:
 
     def __init__(self, device: str, hostapi: str | None, rate: float, block: int) -> None:
         self.device, self.hostapi, self.rate, self.block = device, hostapi, rate, block
-        self.claims: dict[object, int] = {}          # sensor -> channels it needs (highest index + 1)
+        # sensor -> channels it needs (highest index + 1); weak: a sensor a reload built to
+        # compare and dropped claims nothing
+        self.claims: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
         self.listeners: dict[object, tuple[Listener, Callable[[str], None]]] = {}
         self.proc: asyncio.subprocess.Process | None = None
         self.info: dict | None = None
