@@ -211,3 +211,8 @@ def test_seconds_end_after_that_much_signal():
     f = rec.frame()
     assert len(f["blocks"]) == 5 and f["end"] == {"why": "0.1 s recorded"}       # 5 x 1024 >= 4800
     rec.close()
+
+
+def test_a_missing_file_is_said_before_the_missing_speed(tmp_path):
+    code, out, err = analyze(str(tmp_path / "gone.wav"))
+    assert code == 66 and "no such file" in err and "--rpm" not in err, err
