@@ -20,7 +20,9 @@ from tests.conftest import BIN, Daemon, sim_call, sim_config, wait_until
 from tests.jack_fixtures import JackServer, Player, have_jackd
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "turning-chatter"
-pytestmark = [pytest.mark.skipif(not (REAL / "README.md").exists(), reason=f"no shared recordings at {REAL}"),
+# one daemon for the module, running a minute or more
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not (REAL / "README.md").exists(), reason=f"no shared recordings at {REAL}"),
               pytest.mark.skipif(not have_jackd(), reason="no jackd: run `bash tests/ensure_jack.sh`")]
 
 RATE = 48000
