@@ -29,6 +29,7 @@ test: $(STAMP)
 	bash tests/ensure_chromium.sh
 	bash tests/ensure_mosquitto.sh
 	bash tests/ensure_node_opcua.sh
+	bash tests/ensure_jack.sh
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 # Benchmarks: each prints a Markdown table (docs/benchmarks.md).
@@ -65,7 +66,12 @@ bench-plant-mqtt: $(STAMP)
 	bash tests/ensure_mosquitto.sh
 	$(BIN)/python bench/bench_plant_mqtt.py
 bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store bench-stability \
-	bench-hostile bench-web bench-plant
+	bench-hostile bench-web bench-plant bench-channels
+# issue 37: audio accelerometers, 1/2/4/8 channels at 51.2 kS/s each with a chatter analyzer
+# (a JACK server with its dummy backend stands in for the interface: tests/ensure_jack.sh)
+bench-channels: $(STAMP)
+	bash tests/ensure_jack.sh
+	$(BIN)/python bench/bench_channels.py
 # issue 15: both plant protocols
 bench-plant: bench-plant-mqtt bench-plant-opcua
 
@@ -79,7 +85,7 @@ bench-plant: bench-plant-mqtt bench-plant-opcua
 # rewritten to the final ones (scripts' #! lines, bytecode's file names).
 PREFIX ?= /usr
 DESTDIR ?=
-EXTRAS ?=                       # e.g. EXTRAS=postgres,plots,opcua,mqtt,recordings (opcua: for lathed-opcua)
+EXTRAS ?=                       # e.g. EXTRAS=postgres,plots,opcua,mqtt,recordings,audio (opcua: lathed-opcua, opcua_cnc)
 LIBDIR = $(PREFIX)/lib/lathed
 BINDIR = $(PREFIX)/bin
 DOCDIR = $(PREFIX)/share/doc/lathed
@@ -151,4 +157,4 @@ uninstall:
 
 .PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile bench-web bench-plant bench-plant-mqtt bench-plant-opcua
+	bench-stability bench-hostile bench-web bench-plant bench-plant-mqtt bench-plant-opcua bench-channels

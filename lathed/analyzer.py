@@ -65,6 +65,13 @@ class Analyzer:
         naming no such instance, naming the key (inputs() and machines() only say it exists)."""
         return {}
 
+    def recording_context(self, source: str) -> dict[str, Any] | None:
+        """What an analyst needs beside a recording of sensor ``source`` (``lathectl record``),
+        if this analyzer reads it: its machine (whose speed and tool are recorded too), tool,
+        material, detector and its parameters. It must publish ``cutting`` (1/0) for a
+        recording of the next N cuts. None: it does not read ``source``."""
+        return None
+
     async def run(self) -> None:
         """Analyse until cancelled; an exception is reported and the analyzer restarted."""
         raise NotImplementedError

@@ -78,14 +78,16 @@ def _connect(path: Path, timeout: float) -> socket.socket:
     return s
 
 
-def subscribe(args: dict[str, Any], sock_path: str | Path | None = None, timeout: float = 10.0):
-    """``subscribe`` (lathed.push): yields the snapshot, then each pushed frame. A daemon
-    that goes silent for ``timeout`` (it sends a frame every second) or closes ends it
-    with DaemonUnavailable; a refusal or a drop with RemoteError."""
+def subscribe(args: dict[str, Any], sock_path: str | Path | None = None, timeout: float = 10.0,
+              cmd: str = "subscribe"):
+    """``subscribe`` (lathed.push), or another streaming command (``record``): yields the
+    first reply, then each pushed frame. A daemon that goes silent for ``timeout`` (it sends
+    a frame every second) or closes ends it with DaemonUnavailable; a refusal or a drop
+    with RemoteError."""
     path = Path(sock_path) if sock_path else default_socket()
     s = _connect(path, timeout)
     try:
-        s.sendall(json.dumps({"cmd": "subscribe", "args": args}).encode() + b"\n")
+        s.sendall(json.dumps({"cmd": cmd, "args": args}).encode() + b"\n")
         f = s.makefile("rb")
         first = True
         while True:

@@ -28,6 +28,7 @@ from lathed.audit import AuditReserve, ReserveError
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
 from lathed.push import PushHub
+from lathed.recorder import Recorder
 from lathed.plugins import PluginLoader, load_all
 from lathed.sdnotify import notify, watchdog_interval
 from lathed.store import MIGRATIONS, Store, connect
@@ -153,6 +154,11 @@ class Daemon:
         self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers,
                             quantities)
         self.control.register("subscribe", self.push.subscribe)
+        sup = self.supervisor
+        self.recorder = Recorder(self.bus, lambda: {n: r.obj for n, r in sup.runners.items()},
+                                 lambda: {n: r.obj for n, r in sup.analyzer_runners.items()}, sup.machine_status,
+                                 self.settings.name)
+        self.control.register("record", self.recorder.request)
         try:
             await self.control.start()
         except (SocketInUse, OSError) as e:
@@ -395,7 +401,8 @@ class Daemon:
                            {"pid": self.sim_process.pid, "returncode": self.sim_process.returncode},
                            "control": {"clients": self.control.clients, "max_clients": self.control.max_clients,
                                        "refused": self.control.refused, "evicted": self.control.evicted,
-                                       **self.push.stats()}},
+                                       **self.push.stats()},
+                           "recordings": self.recorder.stats()},
                 **self.supervisor.status()}
 
     async def _cmd_plugins(self, args: dict) -> Any:

@@ -21,6 +21,11 @@ if TYPE_CHECKING:
 
     from lathed.command import Command
 
+class LinkDown(ConnectionError):
+    """A link or device that is down (a sensor unplugged, an audio server gone): the driver's
+    state, not a bug, so status and log say its message alone, without type or source line."""
+
+
 REPORT_EVERY_S = 60.0    # an implausible value is logged and recorded at most this often per quantity and reason
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from types import ModuleType
 
 EXTRAS = {"psycopg": "postgres", "matplotlib": "plots", "asyncua": "opcua", "aiomqtt": "mqtt",
-          "h5py": "recordings", "nptdms": "recordings"}   # module -> extra that installs it
+          "h5py": "recordings", "nptdms": "recordings", "sounddevice": "audio"}   # module -> extra that installs it
 
 
 INSTALL_MARK = "lathed-install"   # in sys.prefix: "prefix=/usr" of the `make install` that made this venv

@@ -61,6 +61,9 @@ class PluginInfo:
 
 def _one_line(exc: BaseException) -> str:
     """The exception as one line, with the plugin file and line where it arose."""
+    from lathed.driver import LinkDown
+    if isinstance(exc, LinkDown):
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
     where = ""
     tb = traceback.extract_tb(exc.__traceback__)
     if tb:

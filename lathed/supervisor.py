@@ -501,7 +501,8 @@ class Supervisor:
         r = self.runners.get(name)
         if r is None:
             return None
-        return {"state": r.state, "describe": r.describe(), **r.obj.status()}
+        return {"state": r.state, "describe": r.describe(), "error": r.last_error if r.state != "connected" else None,
+                **r.obj.status()}
 
     def status(self) -> dict[str, Any]:
         now = time.time()

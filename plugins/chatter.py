@@ -70,6 +70,7 @@ and the band apply from the next cut.
 """
 from __future__ import annotations
 
+import asyncio
 import math
 import time
 
@@ -80,6 +81,7 @@ from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section
 from lathed.display import packed, thin
+from lathed.sight import CHECK_EVERY_S, Sight
 
 EYE_POINTS = 600   # chaos-eye points sent to a screen
 EYE_MIN_S = 0.5    # a display eye (detectors other than chaos_sync) is drawn at most this often
@@ -161,6 +163,7 @@ class ChatterAnalyzer(Analyzer):
         self.unusable_blocks = 0
         self._bad_rates: set[float] = set()
         self.lag_ms: float | None = None
+        self.sight = Sight(self.input)          # blind while the accelerometer is gone
         self.alarm_started: float | None = None
 
     def inputs(self) -> list[str]:
@@ -168,6 +171,12 @@ class ChatterAnalyzer(Analyzer):
 
     def refers(self) -> dict[str, tuple[str, str, str | None]]:
         return {"input": (self.input, "sensor", "accelerometer"), "machine": (self.machine, "machine", None)}
+
+    def recording_context(self, source: str) -> dict | None:
+        if source != self.input:
+            return None
+        return {"machine": self.machine, "tool": self.tool, "material": self.material,
+                "detector": self.detector_name, "params": dict(self.params), "cut_from": list(self.cut_from)}
 
     def reconfigure(self, section: Section) -> None:
         """New detector parameters (checked by the reload): alarm levels at once, without
@@ -190,6 +199,7 @@ class ChatterAnalyzer(Analyzer):
 
     async def run(self) -> None:
         sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096, name=self.name)
+        watch = asyncio.create_task(self._watch_sight())
         try:
             while True:
                 msg = await sub.get()
@@ -198,6 +208,7 @@ class ChatterAnalyzer(Analyzer):
                 elif isinstance(msg, Block):
                     self._on_block(msg)
         finally:
+            watch.cancel()
             self.ctx.bus.unsubscribe(sub)
 
     def _on_machine(self, s: Sample) -> None:
@@ -323,7 +334,32 @@ class ChatterAnalyzer(Analyzer):
         self.ctx.bus.publish(Sample(self.name, "cut_contact", 1.0, "", t))   # cut records count from it
         self.ctx.log.info("cut_contact", by=by)
 
+    async def _watch_sight(self) -> None:
+        while True:
+            await asyncio.sleep(CHECK_EVERY_S)
+            if self.sight.check(self.ctx.machine_status(self.input), time.monotonic()):
+                # the signal is gone, not calm: said, and the alarm left as it was
+                why = self.sight.blind
+                self.ctx.bus.publish(Sample(self.name, "blind", 1.0, "", time.time()))
+                self.ctx.log.warning("chatter_blind", why=why, cutting=self.cutting)
+                self.ctx.record("chatter_blind", {"machine": self.machine, "input": self.input, "why": why,
+                                                  "cutting": self.cutting,
+                                                  "alarm": bool(self.detector is not None and self.detector.alarm)})
+
+    def _sight_back(self) -> None:
+        """Blocks again after blindness: a cut's baseline and revolution history span the gap."""
+        blind_s = None if self.sight.since is None else round(time.monotonic() - self.sight.since, 3)
+        self.ctx.bus.publish(Sample(self.name, "blind", 0.0, "", time.time()))
+        self.ctx.log.info("chatter_sight_back", blind_s=blind_s)
+        self.ctx.record("chatter_sight_back", {"machine": self.machine, "input": self.input, "blind_s": blind_s})
+        if self.cutting:
+            if self.detector is not None and self.detector.alarm:
+                self._cleared("the accelerometer came back: the baseline is learned again")
+            self._learn_afresh()
+
     def _on_block(self, b: Block) -> None:
+        if self.sight.block(time.monotonic()):
+            self._sight_back()
         data = b.data
         self._dwell_over(b.t0, "block")
         if "vibration" in self.seen or "feed" in self.seen:
@@ -454,14 +490,16 @@ class ChatterAnalyzer(Analyzer):
     def status(self) -> dict:
         w = self.last
         idx = None if w is None or math.isnan(w.index) else round(w.index, 3)
-        return {"detector": self.detector_name, "cut_state": self.state, "cutting": self.cutting,
+        blind = self.sight.blind
+        return {"detector": self.detector_name, "cut_state": "blind" if blind else self.state,
+                "blind": blind, "cutting": self.cutting,
                 "cut_from": self.cut_from, "cut_seen_by": self.cut_by, "index": idx,
                 "threshold": None if w is None else w.threshold,
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
                 "alarms": self.alarms, "windows": self.windows, "unusable_blocks": self.unusable_blocks,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
                 "chip_seen_by": self.chip_by, "dwells": self.dwells,
-                "summary": f"{self.state}" + (f" (cut seen by {self.cut_by}" + (
+                "summary": (f"blind ({blind})" if blind else f"{self.state}") + (f" (cut seen by {self.cut_by}" + (
                     "" if self.chip_by in (None, self.cut_by) else f", chip by {self.chip_by}") + ")"
                     if self.cut_by else "")
                            + (f", index {idx} / threshold {w.threshold:g}" if idx else "")

@@ -26,7 +26,7 @@ def pins() -> dict[str, str]:
     return found
 
 
-FIELD_EXTRAS = ("postgres", "plots", "opcua", "mqtt", "recordings")     # not "test": a field install has no test tools
+FIELD_EXTRAS = ("postgres", "plots", "opcua", "mqtt", "recordings", "audio")     # not "test": a field install has no test tools
 
 
 def test_every_runtime_dependency_is_pinned_within_its_range():

@@ -496,3 +496,29 @@ def test_median_abs_is_numpys_bit_for_bit():
         for _ in range(20):
             x = rng.standard_normal(n) * rng.uniform(0.1, 10.0)
             assert median_abs(x) == float(np.median(np.abs(x))), n
+
+
+@pytest.mark.parametrize("name", ["sync_cusum", "chaos_sync"])
+def test_history_sized_to_the_speed_gives_the_same_windows(name, monkeypatch):
+    """A detector keeps the history its speed needs (growing for a slower one), not 10 s of
+    every per-sample buffer (12-16 MB a channel): its windows are those of one that keeps all."""
+    import lathed.analysis.detectors as dets
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=51200 * 12)
+    speeds = [1500.0 if i < 51200 * 6 else 200.0 for i in range(0, len(x), 1024)]
+
+    def windows():
+        det = make_detector(name, 51200.0)
+        out = {}
+        for k, i in enumerate(range(0, len(x), 1024)):
+            out.update({w.t_s: (w.index, w.alarm, w.judged) for w in det.process(x[i:i + 1024], speeds[k])})
+        return out, len(det._x)
+    small, size = windows()
+    monkeypatch.setattr(dets, "_HIST_START", dets._HIST)
+    full, _ = windows()
+    assert len(small) > 100 and all(full[t] == w or np.isnan(w[0]) and np.isnan(full[t][0])
+                                    for t, w in small.items())
+    # but a window the slower speed's first revolution would reach before the kept history
+    # for: across the speed change, never judged
+    assert all(not full[t][2] for t in set(full) - set(small)) and len(full) - len(small) <= 2
+    assert size < dets._HIST // 4          # 200 r/min at 51.2 kS/s: grown, still a fraction of the most

@@ -75,7 +75,7 @@ def test_in_the_service_venv_a_missing_extra_says_make_install_with_those_it_has
     # this venv has every extra but postgres: the line keeps them all
     assert extras.missing("psycopg") == (
         f"psycopg is not installed: in the service's venv ({tmp_path}) add it from the lathed source with "
-        "`sudo make install PREFIX=/opt/plant EXTRAS=mqtt,opcua,plots,postgres,recordings`, "
+        "`sudo make install PREFIX=/opt/plant EXTRAS=audio,mqtt,opcua,plots,postgres,recordings`, "
         "then `sudo systemctl restart lathed-opcua`")
     assert "pip install" not in extras.missing("psycopg")
     (tmp_path / extras.INSTALL_MARK).unlink()          # a venv of one's own: pip it is

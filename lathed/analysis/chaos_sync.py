@@ -81,7 +81,7 @@ class ChaosSyncDetector(RevolutionDetector):
     def _reset_extra(self) -> None:
         self._w = gl_weights(self.params["p"], int(self.params["memory"]))
         self._zi = np.zeros(len(self._w) - 1)
-        self._buffers()
+        self._history()
         if self._fixed_baseline is None:
             self.sigma = None
         self._sig_learn: list[float] = []
@@ -92,10 +92,10 @@ class ChaosSyncDetector(RevolutionDetector):
     def _lead(self) -> int:
         return int(self.params["memory"])
 
-    def _buffers(self) -> list[np.ndarray]:
+    def _history(self) -> dict[str, np.ndarray]:
         if not hasattr(self, "_e"):
             self._e = np.empty_like(self._x)
-        return super()._buffers() + [self._e]
+        return {**super()._history(), "_e": self._e}
 
     def _new_samples(self, start: int, end: int) -> None:
         # the GL derivative of the revolution difference, once per sample, state carried

@@ -61,7 +61,9 @@ import numpy as np
 from lathed.analysis.cut_state import SlidingQuantile
 
 MIN_WINDOW_SAMPLES = 16
-_HIST = 1 << 19   # samples of history kept (10 s at 51.2 kS/s)
+_HIST = 1 << 19   # most samples of history kept (10 s at 51.2 kS/s): sets the lowest speed followed
+_HIST_START = 1 << 15   # history a detector starts with (0.6 s at 51.2 kS/s: 2 revolutions at 200 r/min);
+                        # it grows to what a slower speed needs, up to _HIST (most cuts never need it)
 LOAD_STEP = 1.3       # load_scaled: a level rising this much within a revolution waits for the load
 LOAD_WAIT_S = 0.3     # ... for at most this long (a 100 ms poll and its jitter; a load that stops coming)
 FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
@@ -171,9 +173,9 @@ class RevolutionDetector:
                              f"at least {1.0 / short:g} Hz ({MIN_WINDOW_SAMPLES} samples per "
                              f"{self.params['min_window_s']:g} s window)")
         self.threshold = self.params["threshold"]
-        self._x = np.empty(_HIST)
-        self._th = np.empty(_HIST)
-        self._d = np.empty(_HIST)     # revolution difference x(theta) - x(theta - 2 pi)
+        self._x = np.empty(_HIST_START)
+        self._th = np.empty(_HIST_START)
+        self._d = np.empty(_HIST_START)     # revolution difference x(theta) - x(theta - 2 pi)
         self._fixed_baseline: float | None = None
         self.reset()
 
@@ -265,10 +267,10 @@ class RevolutionDetector:
     # -- streaming ----------------------------------------------------------------
     def _append(self, x: np.ndarray, rpm: float) -> None:
         k = len(x)
-        if self._n + k > _HIST:
-            keep = min(self._n, _HIST // 2)
+        if self._n + k > len(self._x):
+            keep = min(self._n, len(self._x) // 2)
             cut = self._n - keep
-            for buf in self._buffers():
+            for buf in self._history().values():
                 buf[:keep] = buf[cut:self._n]
             self._n = keep
             self._since_idx = max(self._since_idx - cut, -1)
@@ -282,9 +284,16 @@ class RevolutionDetector:
         self._d[n0:self._n] = self._x[n0:self._n] - self._delayed(n0, self._n)
         self._new_samples(n0, self._n)
 
-    def _buffers(self) -> list[np.ndarray]:
-        """Per-sample history arrays kept aligned (subclasses add theirs)."""
-        return [self._x, self._th, self._d]
+    def _history(self) -> dict[str, np.ndarray]:
+        """Per-sample history arrays kept aligned, by attribute (subclasses add theirs)."""
+        return {"_x": self._x, "_th": self._th, "_d": self._d}
+
+    def _grow(self, size: int) -> None:
+        """Room for ``size`` samples of history, the valid ones kept (a slower speed's windows)."""
+        for name, buf in self._history().items():
+            new = np.empty(size)
+            new[:self._n] = buf[:self._n]
+            setattr(self, name, new)
 
     def _new_samples(self, start: int, end: int) -> None:
         """Hook: samples start..end (buffer indices) were appended, with ``_d``."""
@@ -314,6 +323,10 @@ class RevolutionDetector:
             self._rpm = None
             return []
         self.too_slow = False
+        # history for two windows and their revolution, and the block: a trim keeps half
+        room = min(_HIST, 1 << (2 * (need + len(x)) - 1).bit_length())
+        if room > len(self._x):
+            self._grow(room)
         self._append(x, rpm)
         if self._next_end is None:
             self._next_end = need

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import math
 import struct
 import warnings
 from dataclasses import dataclass, field
@@ -436,3 +438,49 @@ def _check_values(sig: Signal) -> None:
     if np.ptp(sig.data) == 0:
         raise RecordingError(f"{sig.source}: the signal is constant ({sig.data[0]:g}); "
                              "sensor disconnected or the wrong column?")
+
+
+# -- lathectl record's sidecar -----------------------------------------------------------------
+SIDECAR_FORMAT = "lathed-recording/1"
+
+
+def read_sidecar(path: str | Path) -> dict | None:
+    """What ``lathectl record`` wrote beside a WAV (the same name, .json): calibration, the
+    speed over time, the cuts, the live analyzer's alarms, tool, material, detector; every time
+    in seconds from the WAV's first sample. None for a file without one; RecordingError (one
+    line, naming the sidecar and the key) for one that cannot be used."""
+    p = Path(path)
+    side = p.with_suffix(".json")
+    if p.suffix.lower() != ".wav" or not side.is_file():
+        return None
+    try:
+        meta = json.loads(side.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise RecordingError(f"{side}: cannot read the recording's sidecar ({e})", missing=True) from None
+    except ValueError as e:
+        raise RecordingError(f"{side}: the recording's sidecar is not JSON ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != SIDECAR_FORMAT:
+        raise RecordingError(f"{side}: format {meta.get('format') if isinstance(meta, dict) else meta!r} is not "
+                             f"{SIDECAR_FORMAT!r} (lathectl record's sidecar)")
+    rate = meta.get("rate_hz")
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (math.isfinite(rate) and rate > 0):
+        raise RecordingError(f"{side}: rate_hz: {rate!r} is not a sample rate")
+    for key, lo in (("speed", 0.0), ("speed_keyphasor", 0.0), ("alarms", None), ("index", None)):
+        track = meta.get(key, [])
+        if not isinstance(track, list):
+            raise RecordingError(f"{side}: {key}: expected a list of [seconds, value]")
+        for i, row in enumerate(track):
+            if not (isinstance(row, list) and len(row) == 2 and all(_finite(v) for v in row)
+                    and (lo is None or row[1] > lo)):
+                raise RecordingError(f"{side}: {key}[{i}]: {row!r} is not [seconds, value]"
+                                     + (" with a speed > 0" if lo is not None else ""))
+    cuts = meta.get("cuts", [])
+    if not isinstance(cuts, list) or not all(
+            isinstance(c, list) and len(c) == 2 and _finite(c[0]) and (c[1] is None or _finite(c[1]) and c[1] >= c[0])
+            for c in cuts):
+        raise RecordingError(f"{side}: cuts: expected a list of [start, end] seconds (end null: still cutting)")
+    return meta
+
+
+def _finite(v) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)

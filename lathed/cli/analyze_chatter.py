@@ -2,12 +2,17 @@
 
     lathectl analyze chatter FILE --rpm N [--rate HZ] [--channel K] [--var NAME]
         [--reference REF] [--detector NAME] [--param KEY=VALUE ...] [--json] [--plot OUT.png]
+    lathectl analyze chatter REC.wav     (made by lathectl record: its sidecar REC.json
+                                          gives the speed, the cuts and the detector)
     lathectl analyze chatter --params [NAME]     (a detector's options, then exit)
 
 FILE is WAV, CSV (time_s and value columns, or one column with --rate), a
 MATLAB .mat (--var names the variable: samples, or time and value columns; v7.3
 needs the recordings extra) or an NI TDMS file (--var GROUP/CHANNEL; the
-recordings extra).
+recordings extra). A WAV from ``lathectl record`` is replayed as the live analyzer ran
+(lathed.analysis.replay): each cut from its start, at the recorded speed, with the
+detector and parameters it used (--rpm, --detector, --param override them); the JSON adds
+cuts_s and live_alarm_spans_s (what the daemon raised while recording).
 
 ``--json`` prints one object: verdict, first_alarm_s,
 chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
@@ -81,13 +86,14 @@ def register_analyze(sub) -> None:
     p.add_argument("--var", metavar="NAME", help="variable of a .mat file or GROUP/CHANNEL (or a unique "
                    "CHANNEL) of a TDMS file (default: its only numeric one); a .mat's first column of "
                    "evenly increasing times is the time")
-    p.add_argument("--rpm", type=spindle_rpm, required=True, help="spindle speed in r/min")
+    p.add_argument("--rpm", type=spindle_rpm, help="spindle speed in r/min (required but for a "
+                   "lathectl record WAV, whose sidecar has the speed over time)")
     p.add_argument("--rate", type=positive, metavar="HZ", help="sample rate of a CSV without time_s")
     p.add_argument("--channel", type=_channel, default=0, metavar="K",
                    help="WAV channel / CSV signal column, from 0 (default 0)")
     p.add_argument("--reference", metavar="REF", help="recording of a stable cut at the same speed "
                    "to learn the baseline from")
-    p.add_argument("--detector", default=DEFAULT_DETECTOR, metavar="NAME",
+    p.add_argument("--detector", metavar="NAME",
                    help=f"one of {', '.join(BUILTIN_DETECTORS)} or a plugin's (default {DEFAULT_DETECTOR})")
     p.add_argument("--param", type=_param, action="append", default=[], metavar="KEY=VALUE",
                    help="a detector option, as in [analyzer.chatter.params] (repeat for more)")
@@ -113,10 +119,11 @@ def run(args, extra_detectors: dict | None = None) -> int:
     import numpy as np
 
     from lathed.analysis.detectors import DETECTORS, make_detector
-    from lathed.analysis.recording import RecordingError, read_signal, takes_var
+    from lathed.analysis.recording import RecordingError, read_sidecar, read_signal, takes_var
+    from lathed.analysis.replay import live_spans, replay
     from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
 
-    if not (args.rpm > 0 and math.isfinite(args.rpm)):
+    if args.rpm is not None and not (args.rpm > 0 and math.isfinite(args.rpm)):
         _err(f"spindle speed must be > 0 r/min, got {args.rpm} (--rpm)")
         return 2
     params = once(getattr(args, "param", None) or [], "--param")
@@ -125,6 +132,10 @@ def run(args, extra_detectors: dict | None = None) -> int:
     try:
         var = getattr(args, "var", None)
         sig = read_signal(args.file, args.channel, args.rate, var)
+        side = read_sidecar(args.file)
+        if side is None and args.rpm is None:
+            _err(f"--rpm is required: {args.file} has no sidecar from lathectl record to give the speed")
+            return 2
         # --var names FILE's variable: a reference of another format (a WAV) is read without it
         ref = (read_signal(args.reference, args.channel, args.rate, var if takes_var(args.reference) else None)
                if args.reference else None)
@@ -135,6 +146,13 @@ def run(args, extra_detectors: dict | None = None) -> int:
         _err(f"sample rate {sig.rate_hz:g} Hz is outside the {VIB_RATE_MIN:g}..{VIB_RATE_MAX:g} Hz of an "
              f"accelerometer recording ({args.file})")
         return EX_DATAERR
+    if side is not None:
+        # the detector the daemon ran, unless told otherwise; the exact device rate (a WAV
+        # header holds whole hertz)
+        args.detector = args.detector or side.get("detector") or DEFAULT_DETECTOR
+        params = params or dict(side.get("params") or {})
+        sig.rate_hz = float(side["rate_hz"]) if round(side["rate_hz"]) == sig.rate_hz else sig.rate_hz
+    args.detector = args.detector or DEFAULT_DETECTOR
     try:
         det = make_detector(args.detector, sig.rate_hz, extra=extra_detectors, **params)
     except ValueError as e:
@@ -150,14 +168,26 @@ def run(args, extra_detectors: dict | None = None) -> int:
                 _err(f"reference rate {ref.rate_hz:g} Hz differs from the recording's "
                      f"{sig.rate_hz:g} Hz ({args.reference})")
                 return EX_DATAERR
-            det.learn_reference(ref.data, args.rpm)
-        wins = _run_detector(det, sig.data, args.rpm)
+            ref_rpm = args.rpm
+            if ref_rpm is None:     # the recording's speed at its first cut
+                from lathed.analysis.replay import speed_at
+                ref_rpm = speed_at(side.get("speed_keyphasor") or side.get("speed") or [],
+                                   (side.get("cuts") or [[0.0]])[0][0])
+            det.learn_reference(ref.data, ref_rpm)
+        if side is not None:
+            wins, cut_spans = replay(det, sig.data, sig.rate_hz, side, args.rpm, side.get("block") or 1024)
+        else:
+            wins = _run_detector(det, sig.data, args.rpm)
     except ValueError as e:
         _err(f"{e} ({args.file})")
         return EX_DATAERR
-    if not wins and det.too_slow:
+    if not wins and det.too_slow and args.rpm is not None:
         _err(f"spindle speed {args.rpm:g} r/min is below the lowest the {det.name} detector "
              f"follows ({det.min_rpm:.0f} r/min at {sig.rate_hz:g} Hz) (--rpm)")
+        return EX_DATAERR
+    if not wins and side is not None:
+        _err(f"no complete window in the recorded cuts ({len(side.get('cuts') or [])} cut(s) in "
+             f"{sig.duration_s:.3g} s) ({args.file})")
         return EX_DATAERR
     if not wins:
         rev = 60.0 / args.rpm
@@ -182,6 +212,13 @@ def run(args, extra_detectors: dict | None = None) -> int:
         "notes": sig.notes,
         "baseline": "reference" if ref is not None else "recording start",
     }
+    if side is not None:
+        out.update(baseline="reference" if ref is not None else "each cut's start (as live)",
+                   cuts_s=[[round(a, 6), round(b, 6)] for a, b in cut_spans],
+                   live_alarm_spans_s=[[a, b] for a, b in live_spans(side.get("alarms") or [])],
+                   speed_from="--rpm" if args.rpm is not None else
+                   ("keyphasor" if side.get("speed_keyphasor") else f"{side.get('machine')} spindle_rpm"),
+                   tool=side.get("tool"), material=side.get("material"), sensitivity=side.get("sensitivity"))
     caveat = []
     if not alarms and ref is None:
         # no growth from the start is also what a recording that chatters from its first
@@ -196,14 +233,20 @@ def run(args, extra_detectors: dict | None = None) -> int:
         out["notes"] = out["notes"] + [msg]
         _err(f"warning: {msg}")
     if args.plot:
-        code = _plot(args, sig, det, wins)
+        code = _plot(args, sig, det, wins, side)
         if code:
             return code
     if args.json:
         print(json.dumps(out))
     else:
+        speed = f"{args.rpm:g} r/min" if args.rpm is not None else f"speed from {out['speed_from']}"
         print(f"{args.file}: {out['verdict']}  ({det.name}, {len(wins)} windows, "
-              f"{sig.duration_s:.3g} s at {sig.rate_hz:g} Hz, {args.rpm:g} r/min)")
+              f"{sig.duration_s:.3g} s at {sig.rate_hz:g} Hz, {speed})")
+        if side is not None:
+            live = out["live_alarm_spans_s"]
+            print(f"{len(out['cuts_s'])} cut(s) replayed as the daemon ran them; live, while recording: "
+                  + (", ".join(f"alarm {a:.3f}-{b:.3f} s" if b is not None else f"alarm {a:.3f} s to the end"
+                               for a, b in live) or "no alarm"))
         if alarms:
             f = out["chatter_frequency_hz"]
             print(f"first alarm at {out['first_alarm_s']:.4f} s"
@@ -229,10 +272,11 @@ def _alarm_spans(wins) -> list[tuple[float, float | None]]:
     return spans
 
 
-def _plot(args, sig, det, wins) -> int:
+def _plot(args, sig, det, wins, side=None) -> int:
     import numpy as np
 
     from lathed.analysis.detectors import make_detector
+    from lathed.analysis.replay import live_spans, replay
 
     import matplotlib
     matplotlib.use("Agg")
@@ -240,7 +284,9 @@ def _plot(args, sig, det, wins) -> int:
 
     # the chaos eye is drawn whatever detector decided
     eye = det if det.name == "chaos_sync" else make_detector("chaos_sync", sig.rate_hz)
-    if eye is not det:
+    if eye is not det and side is not None:
+        replay(eye, sig.data, sig.rate_hz, side, args.rpm, side.get("block") or 1024)
+    elif eye is not det:
         _run_detector(eye, sig.data, args.rpm)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.5))
     if eye.eye_baseline is not None:
@@ -258,6 +304,23 @@ def _plot(args, sig, det, wins) -> int:
     a2.axhline(det.threshold, color="k", ls="--", lw=0.8, label="threshold")
     for k, (t0, t1) in enumerate(_alarm_spans(wins)):   # each alarm from raised to cleared
         a2.axvspan(t0, t[-1] if t1 is None else t1, color="tab:red", alpha=0.1, label="alarm" if k == 0 else None)
+    if side is not None:
+        for k, (c0, c1) in enumerate(side.get("cuts") or []):
+            a2.axvspan(c0, t[-1] if c1 is None else c1, color="tab:green", alpha=0.06,
+                       label="cut (daemon)" if k == 0 else None)
+        for k, (l0, l1) in enumerate(live_spans(side.get("alarms") or [])):
+            a2.plot([l0, t[-1] if l1 is None else l1], [det.threshold * 1.5] * 2, color="tab:purple", lw=3,
+                    label="alarm (live)" if k == 0 else None)
+        track = side.get("speed_keyphasor") or side.get("speed") or []
+        # the speed before the recording began is its speed at 0 s
+        before = [r for r in track if r[0] <= 0]
+        track = ([[0.0, before[-1][1]]] if before else []) + [r for r in track if r[0] > 0]
+        if track and args.rpm is None:
+            a3 = a2.twinx()
+            a3.step([r[0] for r in track] + [t[-1]], [r[1] for r in track] + [track[-1][1]], where="post",
+                    color="tab:gray", lw=0.8)
+            a3.set_ylabel("spindle speed (r/min)", color="tab:gray")
+            a3.set_ylim(0, 1.25 * max(r[1] for r in track))
     a2.set_xlabel("time (s)")
     a2.set_ylabel(f"{det.name} index")
     a2.legend(fontsize=8)

@@ -67,6 +67,9 @@ def cmd_status(args: argparse.Namespace) -> int:
     if dropped:     # an analysis fell behind its samples and missed these
         print("bus: samples missed by a subscriber behind: "
               + ", ".join(f"{n} {c}" for n, c in sorted(dropped.items())))
+    for r in d.get("recordings") or []:     # lathectl record streaming to a client now
+        print(f"recording {r['source']}: " + (f"{r['samples']} samples" if r["recording"] else "waiting for a cut")
+              + (f", cut {r['cuts_ended'] + 1} of {r['cuts']}" if r["cuts"] and r["recording"] else ""))
     print("machines:")
     for m in st["machines"] or [{"name": "(none)"}]:
         if "state" not in m:

@@ -15,6 +15,7 @@ take a peer down or raise an alarm:
                             chatter became visible and the speed writes received,
                             in the wall time of the vibration stream's t0 stamps)
     {"cmd": "set", "args": {"depth_mm": 3.0}}        (null: back to the program)
+    {"cmd": "set", "args": {"rpm": 425}}             (every part's programmed speed; null: the program's)
     {"cmd": "outage", "args": {"peer": "modbus", "seconds": 10}}
         peer: modbus | vibration | serial | opcua (the lathe's), mill, grinder
         (server gone, RS-485 line cut), robot (the arm powered off: CAN silent)
@@ -325,6 +326,13 @@ class Simulator:
                 if d is not None and not (isinstance(d, (int, float)) and 0 <= d <= MAX_DEPTH_MM):
                     raise ValueError(f"depth_mm must be null or in [0, {MAX_DEPTH_MM:g}]")
                 self.lathe.depth_override_mm = d
+            if "rpm" in args:
+                r = args["rpm"]
+                if r is not None and (isinstance(r, bool) or not isinstance(r, (int, float))
+                                      or not 60 <= r <= self.lathe.max_rpm):
+                    raise ValueError(f"rpm must be null or in [60, {self.lathe.max_rpm:g}]")
+                self.lathe.rpm_program_override = None if r is None else float(r)
+                return {"depth_mm": self.lathe.depth_mm, "rpm": self.lathe.rpm_program_override}
             return {"depth_mm": self.lathe.depth_mm}
         if cmd == "outage":
             peer, seconds = args.get("peer"), args.get("seconds", 10)

@@ -203,6 +203,7 @@ class SimLathe:
         self.accel_rpm_s = accel_rpm_s
         self.max_rpm = max_rpm
         self.depth_override_mm = depth_override_mm
+        self.rpm_program_override: float | None = None   # every part's programmed speed (None: the program's)
         # the true dynamics: by default the model the default configuration gives the daemon;
         # other modes or Kf make an effect the daemon's model lacks (issue 16's tests);
         # flank: the tool's worn land (process damping, issue 12), None for a sharp tool
@@ -295,6 +296,8 @@ class SimLathe:
     @property
     def program_rpm(self) -> float:
         """The speed the program asks for now (under G96 it follows the tool's diameter)."""
+        if self.rpm_program_override is not None:
+            return self.rpm_program_override
         return self.part.program_rpm(self.y_mm)
 
     @property

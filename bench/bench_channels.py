@@ -1,0 +1,250 @@
+"""Per-channel cost of audio accelerometers: 1, 2, 4, 8 channels at 51.2 kS/s, each with its
+own chatter analyzer, on the default config (the simulated lathe and its line).
+
+A JACK server (dummy backend, 8 capture ports at 51.2 kS/s; tests/ensure_jack.sh installs
+it) stands in for an 8-input IEPE interface; a JACK client in this process plays the
+simulator's own accelerometer stream (the cut it simulates, lathed.wire over TCP) into
+every port. The daemon's sensors accel1..N read channels 1..N of the device through one
+capture helper (lathed.audio_capture); chatter1..N analyse them. CPU is user+system time
+of the daemon and of its capture helper over the window, as a share of one core; memory
+is their resident set at the window's end (every detector's history full by then), less
+the JACK server's shared memory the helper maps (an audio server's, not lathed's).
+
+    .venv/bin/python bench/bench_channels.py [--channels 1,2,4,8] [--warmup 20] [--seconds 30]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+from bench.bench_daemon import config as default_config, cpu_s  # noqa: E402
+from lathed.wire import VIB_HEADER, unpack_vibration_header  # noqa: E402
+from tests.jack_fixtures import JackServer, jack  # noqa: E402
+
+BIN = Path(sys.executable).parent
+RATE = 51200
+FULL_SCALE = 5.0 * 1000 / 100.0 * 9.80665      # m/s² at full scale: 100 mV/g into a 5 V interface
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory less shared memory (RssShmem): a JACK client maps the server's 100 MB
+    /dev/shm segment, the audio server's memory (an ALSA device has none)."""
+    f = {k: int(v.split()[0]) for k, v in (ln.split(":", 1) for ln in
+                                           Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in ln)
+         if k in ("VmRSS", "RssShmem")}
+    return (f["VmRSS"] - f.get("RssShmem", 0)) / 1024
+
+
+def sensors(n: int) -> str:
+    return "".join(f"""
+[sensor.accel{k}]
+plugin = "audio_input"
+device = "system"
+rate = {RATE}
+block = 1024
+channel = {k}
+sensitivity_mv_g = 100.0
+full_scale_v = 5.0
+""" for k in range(1, n + 1))
+
+
+def config(tmp: Path, n: int) -> Path:
+    cfg = default_config(tmp)
+    text = cfg.read_text()
+    m = re.search(r"^\[sensor\.accel\]\n.*?(?=^\s*$)", text, re.S | re.M)
+    text = text[:m.start()] + sensors(n) + text[m.end():]
+    chatter = re.search(r"^\[analyzer\.chatter\]\n.*?(?=^\s*$)", text, re.S | re.M).group(0)
+    text = text.replace(chatter, chatter.replace('input = "accel"', 'input = "accel1"'))
+    extra = "".join("\n" + chatter.replace("[analyzer.chatter]", f"[analyzer.chatter{k}]")
+                    .replace('input = "accel"', f'input = "accel{k}"') + "\n" for k in range(2, n + 1))
+    cfg.write_text(text + extra)
+    return cfg
+
+
+class Bridge:
+    """The simulator's accelerometer stream played into N JACK ports (the same signal on each)."""
+
+    def __init__(self, server: JackServer, port: int, channels: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.buf: deque[np.ndarray] = deque()
+        self.have = 0
+        self.underruns = 0
+        self.started = False
+        self.lock = threading.Lock()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.client = jack.Client("bridge", servername=server.name, no_start_server=True)
+        self.ports = [self.client.outports.register(f"out_{i}") for i in range(channels)]
+        self.client.set_process_callback(self._process)
+        self.client.activate()
+
+    def _exact(self, n: int) -> bytes:
+        out = b""
+        while len(out) < n:
+            chunk = self.sock.recv(n - len(out))
+            if not chunk:
+                raise ConnectionError("the simulator closed its stream")
+            out += chunk
+        return out
+
+    def _read(self) -> None:
+        try:
+            while True:
+                channels, n, _, _, _, _ = unpack_vibration_header(self._exact(VIB_HEADER.size))
+                x = np.frombuffer(self._exact(4 * n * channels), "<f4").reshape(n, channels)[:, 0] / FULL_SCALE
+                with self.lock:
+                    self.buf.append(x.astype(np.float32))
+                    self.have += n
+                    while self.have > 2 * RATE:          # more than 2 s ahead: the oldest go
+                        self.have -= len(self.buf.popleft())
+        except (ConnectionError, OSError):
+            pass
+
+    def _process(self, frames: int) -> None:
+        out = np.zeros(frames, np.float32)
+        with self.lock:
+            if not self.started and self.have >= 0.3 * RATE:
+                self.started = True               # a third of a second ahead: the jitter's margin
+            if self.started:
+                i = 0
+                while i < frames and self.buf:
+                    b = self.buf[0]
+                    k = min(frames - i, len(b))
+                    out[i:i + k] = b[:k]
+                    i += k
+                    self.have -= k
+                    if k == len(b):
+                        self.buf.popleft()
+                    else:
+                        self.buf[0] = b[k:]
+                if i < frames:
+                    self.underruns += 1
+        for p in self.ports:
+            p.get_array()[:] = out
+
+    def connect(self, n: int) -> None:
+        deadline = time.monotonic() + 30
+        while True:
+            ins = [p.name for p in self.client.get_ports("PortAudio:.*", is_input=True, is_audio=True)]
+            if len(ins) >= n:
+                break
+            if time.monotonic() > deadline:
+                raise SystemExit(f"the daemon's capture never opened {n} channels (JACK ports: {ins})")
+            time.sleep(0.1)
+        for k in range(n):
+            self.client.connect(self.ports[k], f"PortAudio:in_{k}")
+
+    def close(self) -> None:
+        self.client.deactivate()
+        self.client.close()
+        self.sock.close()
+
+
+def status(sock: Path) -> dict:
+    r = subprocess.run([str(BIN / "lathectl"), "--socket", str(sock), "status", "--json"], capture_output=True,
+                       text=True, timeout=30)
+    return json.loads(r.stdout) if r.returncode == 0 else {}
+
+
+def received(st: dict) -> int:
+    """Samples published by the audio sensors (1024 a block)."""
+    return 1024 * sum(s.get("blocks") or 0 for s in st.get("sensors", []) if s["name"].startswith("accel"))
+
+
+def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        cfg = config(tmp, n)
+        text = cfg.read_text()
+        vport = int(re.search(r"^vibration_port = (\d+)", text, re.M).group(1))
+        sock = tmp / "run" / "lathed.sock"
+        proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, env={**os.environ, **server.env})
+        try:
+            deadline = time.monotonic() + 60
+            while not (st := status(sock)) or any(s["state"] != "connected" for s in st["sensors"]
+                                                  if s["name"].startswith("accel")):
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise SystemExit(f"{n} channels: the daemon's sensors did not connect ({st.get('sensors')})")
+                time.sleep(0.5)
+            bridge = Bridge(server, vport, n)
+            bridge.connect(n)
+            helper = next(s["helper_pid"] for s in st["sensors"] if s["name"] == "accel1")
+            time.sleep(warmup)
+            pids = (proc.pid, helper)
+            got0 = received(status(sock))
+            c0, w0 = [cpu_s(p) for p in pids], time.monotonic()
+            time.sleep(seconds)
+            used = [cpu_s(p) - c for p, c in zip(pids, c0)]
+            wall = time.monotonic() - w0
+            cpu = [100 * u / wall for u in used]
+            rss = [rss_mb(p) for p in pids]
+            st = status(sock)
+            # seconds of each channel's signal the daemon took in the window: below the wall
+            # time when it fell behind (a busy machine), and the CPU it would take at real time
+            took = (received(st) - got0) / RATE / n
+            windows = sum(a.get("windows", 0) for a in st["analyzers"] if a["name"].startswith("chatter"))
+            lost = sum(s.get("lost_samples", 0) or 0 for s in st["sensors"] if s["name"].startswith("accel"))
+            bridge.close()
+            return {"n": n, "cpu": cpu, "rss": rss, "windows": windows, "lost": lost,
+                    "underruns": bridge.underruns, "rt": [100 * u / took for u in used] if took > 0 else cpu,
+                    "took": took, "wall": wall}
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(60)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--channels", default="1,2,4,8")
+    ap.add_argument("--warmup", type=float, default=20.0)
+    ap.add_argument("--seconds", type=float, default=30.0)
+    a = ap.parse_args()
+    ns = [int(x) for x in a.channels.split(",")]
+    rows = []
+    for n in ns:
+        # a server of its own for each run: a client the last daemon's helper left as it
+        # stopped would hold a synchronous server's cycles
+        server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
+        server.start()
+        try:
+            rows.append(run(n, server, a.warmup, a.seconds))
+        finally:
+            server.stop()
+    print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
+          f"the same per second of signal taken in | RSS daemon + helper, MB | signal taken in over "
+          f"{a.seconds:g} s | samples lost |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['n']} | {sum(r['cpu']):.1f} ({r['cpu'][0]:.1f} + {r['cpu'][1]:.1f}) | "
+              f"{sum(r['rt']):.1f} | {sum(r['rss']):.0f} ({r['rss'][0]:.0f} + {r['rss'][1]:.0f}) | "
+              f"{r['took']:.1f} s a channel | {r['lost']} |")
+    if len(rows) > 1:
+        x = np.array([r["n"] for r in rows], float)
+        cpu = np.polyfit(x, [sum(r["cpu"]) for r in rows], 1)[0]
+        rt = np.polyfit(x, [sum(r["rt"]) for r in rows], 1)[0]
+        rss = np.polyfit(x, [sum(r["rss"]) for r in rows], 1)[0]
+        print(f"| each added channel (least-squares slope) | {cpu:+.2f} % | {rt:+.2f} % | {rss:+.1f} MB | | |")
+    behind = [r["n"] for r in rows if r["took"] < 0.95 * r["wall"]]
+    if behind:
+        print(f"\nnote: with {', '.join(map(str, behind))} channel(s) the daemon took in less signal than the "
+              "window's time (the machine was too busy): read the per-second-of-signal column", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,223 @@
+"""Conditioning an audio-class sensor's samples: calibration to physical units, DC removal,
+mains lines notched out, and a once-per-revolution keyphasor read as the spindle's speed and
+phase on the device's own clock. Pure numpy/scipy, per block, state carried between blocks
+(lathed.audio_device and plugins/audio_input.py use it; docs/sensors.md).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+G0 = 9.80665             # m/s² per g
+MAINS_WIDTH_HZ = 1.5     # each mains notch's width: the grid's frequency wanders by a tenth of a hertz
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What a full-scale float sample (+-1.0) is in physical units."""
+    scale: float             # unit per full scale
+    quantity: str            # "acceleration" | "sound_pressure" | "vibration" (uncalibrated)
+    unit: str                # "m/s²" | "Pa" | "FS"
+    text: str                # how it was given, for status and a recording's sidecar
+
+    @staticmethod
+    def iepe(sensitivity_mv_g: float, full_scale_v: float) -> Calibration:
+        """An analogue accelerometer (IEPE/ICP) into an interface whose full scale is ``full_scale_v``."""
+        return Calibration(full_scale_v * 1000.0 / sensitivity_mv_g * G0, "acceleration", "m/s²",
+                           f"{sensitivity_mv_g:g} mV/g, interface full scale {full_scale_v:g} V")
+
+    @staticmethod
+    def digital(counts_per_m_s2: float, bits: int) -> Calibration:
+        """A digital (USB audio class) accelerometer: counts of its ``bits``-bit word per m/s²."""
+        return Calibration(float(1 << (bits - 1)) / counts_per_m_s2, "acceleration", "m/s²",
+                           f"{counts_per_m_s2:g} counts per m/s², {bits}-bit")
+
+    @staticmethod
+    def microphone(sensitivity_mv_pa: float, full_scale_v: float) -> Calibration:
+        return Calibration(full_scale_v * 1000.0 / sensitivity_mv_pa, "sound_pressure", "Pa",
+                           f"{sensitivity_mv_pa:g} mV/Pa, interface full scale {full_scale_v:g} V")
+
+    @staticmethod
+    def uncalibrated() -> Calibration:
+        return Calibration(1.0, "vibration", "FS", "uncalibrated (full scale = 1)")
+
+
+class OnePole:
+    """w[n] = p w[n-1] + u[n] for a real pole 0 < p < 1, on whole blocks with numpy (scipy.signal
+    would cost the daemon 70 MB and seconds to import): w = p^n (p w[-1] + cumsum(p^-n u)),
+    in chunks short enough that p^-n stays below 1e4."""
+
+    def __init__(self, p: float) -> None:
+        self.p, self.w = float(p), 0.0
+        self.chunk = max(16, int(9.2 / -math.log(self.p)))
+        self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def run(self, u: np.ndarray) -> np.ndarray:
+        if len(u) <= self.chunk:          # a block in one piece: the common case, no copy
+            n = len(u)
+            if n not in self._powers:
+                k = np.arange(n, dtype=np.float64)
+                self._powers[n] = (self.p ** k, self.p ** -k)
+            fwd, back = self._powers[n]
+            w = np.multiply(back, u)
+            np.cumsum(w, out=w)
+            w += self.p * self.w
+            w *= fwd
+            self.w = float(w[-1])
+            return w
+        out = np.empty(len(u))
+        for i in range(0, len(u), self.chunk):
+            seg = u[i:i + self.chunk]
+            n = len(seg)
+            if n not in self._powers:
+                k = np.arange(n, dtype=np.float64)
+                self._powers[n] = (self.p ** k, self.p ** -k)
+            fwd, back = self._powers[n]
+            w = fwd * (self.p * self.w + np.cumsum(back * seg))
+            out[i:i + n] = w
+            self.w = float(w[-1])
+        return out
+
+
+class MainsComb:
+    """Notches at the mains frequency and every harmonic of it: y[n] = x[n] - x[n-N] + rho y[n-N],
+    N = rate / mains (a fraction of a sample read by linear interpolation), each notch
+    ``width_hz`` wide at -3 dB, the gain between them within +0.5 dB. The delay is a whole
+    mains period, so a block is worked in chunks of a period, each from history alone."""
+
+    def __init__(self, rate_hz: float, mains_hz: float, width_hz: float = MAINS_WIDTH_HZ) -> None:
+        period = rate_hz / mains_hz
+        self.n0, self.frac = int(period), period - int(period)
+        self.rho = min(0.999, max(0.5, 1.0 - math.pi * width_hz / mains_hz))
+        self._hx: np.ndarray | None = None
+        self._hy = np.zeros(self.n0 + 1)
+
+    def run(self, x: np.ndarray) -> np.ndarray:
+        if self._hx is None:
+            self._hx = np.full(self.n0 + 1, x[0])      # as if the first level had always been there
+        out = np.empty(len(x))
+        f, hx, hy = self.frac, self._hx, self._hy
+        for i in range(0, len(x), self.n0):
+            c = x[i:i + self.n0]
+            n = len(c)
+            # hx[k] is x[start - n0 - 1 + k]: x[n - N] is between hx[j + 1] and hx[j]
+            xd = (1 - f) * hx[1:1 + n] + f * hx[:n]
+            yd = (1 - f) * hy[1:1 + n] + f * hy[:n]
+            y = c - xd + self.rho * yd
+            out[i:i + n] = y
+            hx = np.concatenate((hx, c))[-(self.n0 + 1):]
+            hy = np.concatenate((hy, y))[-(self.n0 + 1):]
+        self._hx, self._hy = hx, hy
+        return out
+
+
+class Conditioner:
+    """Scale, then a first-order high-pass (DC removal, ``highpass_hz``; 0: off), then notches
+    at the mains frequency and all its harmonics (``mains_hz``; 0: off). State runs on from
+    block to block; numpy only."""
+
+    def __init__(self, rate_hz: float, scale: float, highpass_hz: float = 0.0, mains_hz: float = 0.0) -> None:
+        self.scale = float(scale)
+        self._hp = None
+        if highpass_hz > 0:
+            # bilinear first-order high-pass: (1 + a) / 2 (1 - z^-1) / (1 - a z^-1)
+            k = math.tan(math.pi * highpass_hz / rate_hz)
+            a = (1 - k) / (1 + k)
+            self._hp = (OnePole(a), (1 + a) / 2)
+        self._x_last: float | None = None
+        self.comb = MainsComb(rate_hz, mains_hz) if mains_hz > 0 else None
+
+    def process(self, x: np.ndarray) -> np.ndarray:
+        """One block of full-scale samples -> physical units (float32)."""
+        y = x.astype(np.float64)
+        y *= self.scale
+        if self._hp is not None:
+            pole, g = self._hp
+            if self._x_last is None:
+                self._x_last = y[0]          # started at the first sample's level: no step from a DC offset
+            dx = np.empty_like(y)
+            dx[0] = y[0] - self._x_last
+            np.subtract(y[1:], y[:-1], out=dx[1:])
+            dx *= g
+            self._x_last = y[-1]
+            y = pole.run(dx)
+        if self.comb is not None:
+            y = self.comb.run(y)
+        return y.astype(np.float32)
+
+
+class Keyphasor:
+    """Once-per-revolution pulses (a proximity probe or an optical mark through an audio input,
+    AC-coupled: a spike at each edge) -> the sample of each revolution's start, on the device's
+    clock, and the speed over the last revolution.
+
+    A revolution starts where the signal rises through half its running peak, re-armed once
+    it has fallen below a fifth of it; pulses closer than a revolution at ``max_rpm`` are one.
+    """
+
+    def __init__(self, rate_hz: float, min_rpm: float = 30.0, max_rpm: float = 30000.0) -> None:
+        self.rate = float(rate_hz)
+        self.min_gap = self.rate * 60.0 / max_rpm
+        self.max_gap = self.rate * 60.0 / min_rpm
+        self.peak = 0.0
+        self._decay = 0.5 ** (1.0 / (2.0 * self.rate))     # the peak halves in 2 s
+        self._armed = True
+        self._prev = 0.0                 # the last sample of the block before
+        self.marks: list[float] = []     # revolution starts (stream sample index, fractional), recent
+        self.pulses = 0
+        self.revolution: float | None = None   # samples in the last revolution
+
+    def process(self, x: np.ndarray, start: int) -> list[float]:
+        """Samples ``start``.. of the stream; returns the revolution starts found in them."""
+        x = np.asarray(x, dtype=np.float64)
+        if len(x) == 0:
+            return []
+        top = float(np.max(np.abs(x)))
+        self.peak = max(top, self.peak * self._decay ** len(x))
+        hi, lo = 0.5 * self.peak, 0.2 * self.peak
+        found = []
+        i = 0
+        prev = self._prev
+        while hi > 0 and i < len(x):
+            if not self._armed:
+                below = np.flatnonzero(x[i:] < lo)
+                if below.size == 0:
+                    break
+                i += int(below[0])
+                self._armed = True
+            above = np.flatnonzero(x[i:] >= hi)
+            if above.size == 0:
+                break
+            j = i + int(above[0])
+            before = x[j - 1] if j > 0 else prev
+            frac = (hi - before) / (x[j] - before) if x[j] != before else 0.0
+            at = start + j - 1 + min(max(frac, 0.0), 1.0)
+            self._armed = False
+            if not self.marks or at - self.marks[-1] >= self.min_gap:
+                if self.marks and at - self.marks[-1] <= self.max_gap:
+                    self.revolution = at - self.marks[-1]
+                self.marks = (self.marks + [at])[-64:]
+                self.pulses += 1
+                found.append(at)
+            i = j + 1
+        self._prev = float(x[-1])
+        return found
+
+    def rpm(self, now: int) -> float | None:
+        """The speed at stream sample ``now``: over the last revolution, or lower where no pulse
+        has come for a quarter revolution more than that (slowing down); None with no pulse for
+        a revolution at min_rpm."""
+        if self.revolution is None or not self.marks:
+            return None
+        since = now - self.marks[-1]
+        if since > self.max_gap:
+            return None
+        return 60.0 * self.rate / (since if since > 1.25 * self.revolution else self.revolution)
+
+    def phase(self, at: float) -> float | None:
+        """The spindle angle (radians, 0 at the last pulse) at stream sample ``at``."""
+        if self.revolution is None or not self.marks:
+            return None
+        return 2 * math.pi * ((at - self.marks[-1]) / self.revolution % 1.0)
