@@ -12,7 +12,7 @@ advice and the cuts that ended chattering, beside the same with "move".  Then:
 
 The given model is the simulator's lathe (regen.DEFAULT_MODES, DEFAULT_KF);
 the cuts come from true dynamics that differ from it by one undeclared effect
-(lathed.analysis.stability_cases: the dominant mode 12 % higher, a missing
+(lathed.analysis.stability.cases: the dominant mode 12 % higher, a missing
 mode at 950 Hz, process damping 20/n, Kf 45 % higher) or by none.  Labels are
 the true lobes with the documented noise model (the limit a cut meets scatters
 5 % log-normal, chatter frequencies 0.5 %), C cuts per data set in random
@@ -38,8 +38,8 @@ import numpy as np
 
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.speed_selection import Advice, Cut, SpindleLimits, lobe_grid, lobe_policy
-from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
-from lathed.analysis.stability_refit import StabilityModel, refit
+from lathed.analysis.stability.cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
+from lathed.analysis.stability import StabilityModel, refit
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 
 
@@ -121,7 +121,7 @@ def run_program(model, true, program, rng, grid, when: str = "hold", boundary_si
     rated-speed fallback under the programmed speed x MAX_SPEED_RATIO, ``when`` no speed
     within reach chatters per the model: hold and advise, or move) picks the next speed from
     ``model``'s lobes.  A speed chatters when the depth is above the true limit there times
-    exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds (rows of
+    exp(N(0, boundary_sigma)) (stability.cases' noise model).  Returns the cut speeds (rows of
     the refit's cuts, in order) and counts: cuts that chattered at entry, moves, moves to a
     speed that chattered again (re-chatters), re-chatters at a speed the model called stable
     (a promise broken, not a speed chosen for want of a stable one), cuts held with advice,

@@ -103,9 +103,9 @@ out.  Without ``tool_number`` (or without the register) the model is taken
 for every tool, as before.
 
 ``lathectl stability refit`` refits the modal model on this machine's
-recorded cuts (lathed.analysis.stability_refit) and adopts the result only
+recorded cuts (lathed.analysis.stability.refit) and adopts the result only
 when it classifies the held-out cuts better: saved as a new version
-(lathed.analysis.stability_files), recorded as ``stability_model_adopted``,
+(lathed.analysis.stability.files), recorded as ``stability_model_adopted``,
 and from then on (also after a restart) the lobes of speed selection and of
 cut-entry avoidance are the adopted model's.  A refit that adds nothing is
 recorded as ``stability_refit_not_adopted`` with the reason.
@@ -121,7 +121,7 @@ from dataclasses import replace
 import numpy as np
 
 from lathed import hookimpl
-from lathed.analysis import stability_files
+from lathed.analysis.stability import files as stability_files
 from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
 from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
@@ -129,7 +129,7 @@ from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, 
                                              LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
                                              VariationSelection, lobe_grid, lobe_policy, reach)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation, ramp_time_s
-from lathed.analysis.stability_refit import StabilityModel, refit
+from lathed.analysis.stability import StabilityModel, refit
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator

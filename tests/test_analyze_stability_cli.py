@@ -6,7 +6,7 @@ import sys
 import pytest
 
 from lathed.analysis.cuts import write_cuts_csv
-from lathed.analysis.stability_cases import generate_cuts, true_dynamics
+from lathed.analysis.stability.cases import generate_cuts, true_dynamics
 from lathed.cli import analyze_stability
 
 MODEL = ["--mode", "620,0.035,3e7,30", "--mode", "1450,0.05,9e7,60", "--kf", "2e9"]

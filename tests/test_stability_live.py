@@ -11,7 +11,7 @@ import subprocess
 import pytest
 
 from lathed.analysis.cuts import load_cuts_csv
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability import StabilityModel
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 from tests.conftest import BIN, DEPTH_REGISTER, Daemon, sim_config, wait_until
 from tests.test_suppression_live import default_table, events

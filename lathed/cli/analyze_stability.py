@@ -75,7 +75,7 @@ def _stage(label: str, r) -> str:
 
 def run(args) -> int:
     from lathed.analysis.cuts import CutsCsvError, load_cuts_csv
-    from lathed.analysis.stability_refit import StabilityModel, refit
+    from lathed.analysis.stability import StabilityModel, refit
     try:
         cuts = load_cuts_csv(args.cuts)
     except CutsCsvError as e:

@@ -15,7 +15,7 @@ import json
 import re
 from pathlib import Path
 
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability.model import StabilityModel
 from lathed.atomic import write_atomic
 
 FORMAT = "lathed-stability-model"

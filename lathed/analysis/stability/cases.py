@@ -1,7 +1,7 @@
 """Cuts from a lathe whose true dynamics differ from the model it was given:
 the test and benchmark data of the stability refit.
 
-Labels come from the true model's lobes (lathed.analysis.stability_refit
+Labels come from the true model's lobes (lathed.analysis.stability.model
 .limit_depth), not from running lathed.analysis.regen.simulate_cut on every
 cut: a cut there takes about a second to simulate, a refit needs hundreds.
 The true lobes are what the regenerative simulator converges to (tests/test_regen
@@ -25,7 +25,7 @@ import numpy as np
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.modal import Mode
 from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability.model import StabilityModel
 
 GIVEN = StabilityModel(DEFAULT_MODES, DEFAULT_KF)
 
