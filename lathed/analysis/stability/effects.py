@@ -14,6 +14,7 @@ from lathed.analysis.cuts import Cuts
 from lathed.analysis.modal import Mode
 from lathed.analysis.stability.model import StabilityModel
 from lathed.analysis.stability.residual import unexplained
+from lathed.analysis.stability.start import frequency_groups, mode_below
 
 # Cost of a cut the model calls stable that chatters, relative to the other
 # error: it sends the spindle into chatter, the other only forgoes a speed.
@@ -122,12 +123,30 @@ def search(cost: Callable[[StabilityModel], float], make: Callable[[float], Effe
     return best
 
 
+def relocations(base: StabilityModel, cuts: Cuts) -> list[float]:
+    """Natural frequencies the chatter says a mode has where no mode of ``base`` is: one
+    for each group of measured chatter frequencies that the model's modes and predicted
+    chatter frequencies leave mostly unexplained."""
+    out = []
+    for g in frequency_groups(cuts):
+        _, fp = base.limit(cuts.rpm[g])
+        if np.mean(unexplained(base, cuts.chatter_frequency_hz[g], np.nan_to_num(fp))) > 0.5:
+            out.append(mode_below(cuts.chatter_frequency_hz[g]))
+    return out
+
+
 def fit_candidates(base: StabilityModel, fit: Fit, have: set[str]) -> list[tuple[float, Effect]]:
     """Each candidate effect fitted on the training cuts: (cost, effect)."""
     out: list[tuple[float, Effect]] = []
-    for i, _ in enumerate(base.modes):
+    moves = relocations(base, fit.cuts)
+    for i, mode in enumerate(base.modes):
         if f"natural_frequency{i}" not in have:
-            c, e = search(fit, lambda s, i=i: Effect("natural_frequency", (s,), i), base, np.geomspace(0.8, 1.25, 23))
+            grid = np.geomspace(0.8, 1.25, 23)
+            # chatter where no mode is: the grid also reaches each such place within a factor 2
+            # (a mode moved there is the simpler answer than a second mode beside it)
+            far = [fn / mode.fn_hz for fn in moves if 0.5 <= fn / mode.fn_hz <= 2.0]
+            grid = np.unique(np.r_[grid, *[x * np.geomspace(0.95, 1.05, 11) for x in far]])
+            c, e = search(fit, lambda s, i=i: Effect("natural_frequency", (s,), i), base, grid)
             if e:
                 out.append((c, e))
         if f"damping{i}" not in have:
