@@ -397,7 +397,8 @@ KINDS = frozenset({
     "suppression_action", "suppression_proposed", "suppression_mode", "suppression_exhausted",
     "suppression_advice", "suppression_advice_lifted", "suppression_cures_forgotten", "spindle_not_following",
     "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",
-    "stability_refit_not_adopted",
+    "stability_refit_not_adopted", "stability_model_learned", "stability_model_withdrawn",
+    "stability_learn_not_trusted",
     "compensation", "thermal_measurement", "thermal_refit", "thermal_touchoff", "thermal_model_unreadable",
     "part_completed", "part_abnormal", "part_unobserved", "part_inspected",
 })
