@@ -114,6 +114,36 @@ RATED_RPM = 750.0
 COUNTS = ("entered", "moves", "rechatter", "broken", "held", "ended_chattering")
 
 
+def run_cut(policy, true, rpm0: float, depth: float, rng, rows: list, n: dict, boundary_sigma: float = 0.05) -> None:
+    """One cut at ``rpm0``, ``depth`` (m) under ``policy`` on a lathe whose dynamics are
+    ``true``: its speeds appended to ``rows`` (rpm, depth mm, chatter, frequency), its
+    counts added to ``n`` (see run_program)."""
+    rpm, t, moved, promised = rpm0, 0.0, False, False
+    while True:
+        b, f = true.limit(rpm)
+        chatter = bool(depth >= b[0] * np.exp(boundary_sigma * rng.standard_normal()))
+        rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
+        if not chatter:
+            break
+        n["rechatter"] += moved
+        n["broken"] += moved and promised
+        n["entered"] += not moved
+        t += 1e6                   # past any hold: each verdict is after the settle
+        d = policy.observe(t, rpm, True, float(f[0]))
+        if d is None or isinstance(d, Advice):
+            n["held"] += isinstance(d, Advice)
+            n["ended_chattering"] += 1
+            break
+        rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
+        n["moves"] += 1
+
+
+def rows_cuts(rows: list) -> Cuts:
+    r = np.array(rows, dtype=object)
+    return Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
+                            r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
+
+
 def run_program(model, true, program, rng, grid, when: str = "hold", boundary_sigma: float = 0.05):
     """Each cut of ``program`` (rpm, depth m) as the daemon's suppression runs it on a lathe
     whose dynamics are ``true``: entered at its speed; while it chatters, the cut's policy
@@ -131,28 +161,8 @@ def run_program(model, true, program, rng, grid, when: str = "hold", boundary_si
     for rpm0, depth in program:
         policy = lobe_policy(model, Cut(depth, 0.25e-3, 0.03, 1.5e9), LIMITS, rpm0, MAX_SPEED_RATIO, RATED_RPM,
                              grid=grid, settle_revs=20.0, when_no_stable_speed=when)
-        rpm, t, moved, promised = rpm0, 0.0, False, False
-        while True:
-            b, f = true.limit(rpm)
-            chatter = bool(depth >= b[0] * np.exp(boundary_sigma * rng.standard_normal()))
-            rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
-            if not chatter:
-                break
-            n["rechatter"] += moved
-            n["broken"] += moved and promised
-            n["entered"] += not moved
-            t += 1e6                   # past any hold: each verdict is after the settle
-            d = policy.observe(t, rpm, True, float(f[0]))
-            if d is None or isinstance(d, Advice):
-                n["held"] += isinstance(d, Advice)
-                n["ended_chattering"] += 1
-                break
-            rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
-            n["moves"] += 1
-    r = np.array(rows, dtype=object)
-    cuts = Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
-                            r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
-    return cuts, n
+        run_cut(policy, true, rpm0, depth, rng, rows, n, boundary_sigma)
+    return rows_cuts(rows), n
 
 
 def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.6, 1.6),
