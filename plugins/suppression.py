@@ -109,6 +109,10 @@ when it classifies the held-out cuts better: saved as a new version
 and from then on (also after a restart) the lobes of speed selection and of
 cut-entry avoidance are the adopted model's.  A refit that adds nothing is
 recorded as ``stability_refit_not_adopted`` with the reason.
+
+With strategy "lobes" and no ``modes`` the model is learned from these cut
+records (lathed_plugins.stability_learning; docs/stability.md): model-free
+until a learn is trusted, then its lobes.
 """
 from __future__ import annotations
 

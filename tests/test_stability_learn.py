@@ -113,6 +113,9 @@ def test_the_learner_learns_as_cuts_grow_uses_a_trusted_model_and_withdraws_one_
     stiff = replace(LATHE, modes=(replace(LATHE_MODES[0], k_n_per_m=1e10), LATHE_MODES[1]))
     l.model = stiff
     assert l.consider(_learned(None, False, 70), cuts) == "withdrawn" and l.model is None
+    # learning on the newest cut speeds only: the next learn counts from all that were recorded
+    l.consider(_learned(None, False, 70), cuts, seen=2000)
+    assert l.next_at == 2500
 
 
 @pytest.mark.parametrize("factor", [1.35, 0.65])
