@@ -37,9 +37,9 @@ TRUST_FALSE_STABLE = 0.05
 # speed selection judges a speed over, LobeSelection.band)
 TRUST_DEPTH_SPREAD = 0.30
 TRUST_SPEED_SPREAD = 0.03
-BOOTSTRAP = 12
+BOOTSTRAP = 10
 # each resample's fit starts at the model fitted on every cut, with smaller steps and fewer evaluations
-BOOTSTRAP_EVALUATIONS = 120
+BOOTSTRAP_EVALUATIONS = 80
 BOOTSTRAP_STEP = 0.5
 # A fit with process damping is chosen when the later cuts' likelihood favours it this much
 # (paired z over the cuts)
@@ -81,6 +81,7 @@ class Baseline:
     depth_mm: float
     accuracy: float
     false_stable_rate: float
+    predicted: np.ndarray = field(repr=False, default=None)     # chatter, on the later cuts
 
 
 @dataclass
@@ -141,7 +142,7 @@ def baseline(train: Cuts, later: Cuts) -> Baseline:
     t = float(cand[int(np.argmin(err))])
     pred = later.depth_mm >= t
     n = max(len(later), 1)
-    return Baseline(t, float(np.mean(pred == later.chatter)), float(np.sum(~pred & later.chatter)) / n)
+    return Baseline(t, float(np.mean(pred == later.chatter)), float(np.sum(~pred & later.chatter)) / n, pred)
 
 
 def _paired_z(a: np.ndarray, b: np.ndarray) -> float:
@@ -237,7 +238,11 @@ def learn(cuts: Cuts, *, kf: float = DEFAULT_KF, rpm_range: tuple[float, float] 
         why.append(f"on the later {a.n} cut speeds accuracy {100 * a.accuracy:.1f} % and false stable "
                    f"{100 * a.false_stable_rate:.1f} %, not >= {100 * TRUST_ACCURACY:.0f} % and <= "
                    f"{100 * TRUST_FALSE_STABLE:.0f} %")
-    if a.accuracy < base.accuracy:
+    # worse than the depth threshold beyond one standard error of the cuts they disagree on
+    pred = r.model.predict_chatter(later)[0]
+    worse = int(np.sum((pred != later.chatter) & (base.predicted == later.chatter)))
+    better = int(np.sum((pred == later.chatter) & (base.predicted != later.chatter)))
+    if worse > better and (worse - better) >= math.sqrt(worse + better):
         why.append(f"on the later cut speeds it classifies worse than a depth threshold "
                    f"({100 * a.accuracy:.1f} % against {100 * base.accuracy:.1f} %)")
     spread_need = []
