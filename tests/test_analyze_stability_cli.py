@@ -113,7 +113,7 @@ def lathe_csv(tmp_path_factory):
     from lathed.sim.lathe import LATHE_KF, LATHE_MODES
     lathe = StabilityModel(LATHE_MODES, LATHE_KF)
     path = tmp_path_factory.mktemp("cuts") / "lathe.csv"
-    write_cuts_csv(generate_cuts(lathe, 120, given=lathe, seed=5), path)
+    write_cuts_csv(generate_cuts(lathe, 80, given=lathe, seed=5), path)
     return path
 
 
@@ -121,14 +121,14 @@ def test_without_a_modal_model_it_learns_one_from_the_cuts_and_says_how_sure(lat
     png = tmp_path / "learned.png"
     code, out, err = _run([str(lathe_csv), "--plot", str(png)], capsys)
     assert code == 0, err
-    assert "no modal model given, learned from the first 84 cuts alone" in out
+    assert "no modal model given, learned from the first 56 cuts alone" in out
     assert re.search(r"^mode 1: 1[89]\d\.\d Hz", out, re.M), out
     assert "minimum stable depth:" in out and "90 %:" in out
     assert "trusted: classifies the later cuts well" in out and out.count("best speed:") >= 1
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     code, out, err = _run([str(lathe_csv), "--json"], capsys)
     doc = json.loads(out)["learned"]
-    assert code == 0 and doc["trusted"] is True and doc["why_not"] == [] and doc["cuts"] == 120
+    assert code == 0 and doc["trusted"] is True and doc["why_not"] == [] and doc["cuts"] == 80
     assert doc["model"]["modes"][0]["fn_hz"] == pytest.approx(190.0, rel=0.02)
     lo_hi = doc["b_min_mm"]
     assert lo_hi[1] <= lo_hi[0] <= lo_hi[2] and all(p["rpm"][1] <= p["rpm"][0] <= p["rpm"][2] for p in doc["best_rpm"])

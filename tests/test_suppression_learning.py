@@ -61,13 +61,13 @@ def test_with_no_modal_model_suppression_is_model_free_and_learns_only_once_it_h
 
 @pytest.mark.timeout(300)     # a learn is seconds of one core; a loaded machine gives less
 def test_a_trusted_learn_is_used_saved_and_kept_over_a_restart_and_a_tap_test_supersedes_it(h):
-    h.add_cuts(generate_cuts(LATHE, 150, given=LATHE, seed=5))
-    an = start(h.an, learn=True)             # due at start: 150 >= MIN_CUTS
+    h.add_cuts(generate_cuts(LATHE, 100, given=LATHE, seed=5))
+    an = start(h.an, learn=True)             # due at start: 100 >= MIN_CUTS
     (ev,) = h.events("stability_model_learned")
-    assert ev["file"] == an.model_name == "lathe-v1.json" and ev["model_before"] == "none" and ev["cuts"] == 150
+    assert ev["file"] == an.model_name == "lathe-v1.json" and ev["model_before"] == "none" and ev["cuts"] == 100
     assert ev["learned"]["trusted"] and ev["learned"]["best_rpm"]
     doc = json.loads((an.models_dir / "lathe-v1.json").read_text())
-    assert doc["base"] is None and doc["learned"]["cuts"] == 150 and doc["tool"] == "T0101"
+    assert doc["base"] is None and doc["learned"]["cuts"] == 100 and doc["tool"] == "T0101"
     model = StabilityModel.from_json(doc["model"])
     assert model.modes[0].fn_hz == pytest.approx(190.0, rel=0.02)
     # the next cut's policy takes the learned lobes
