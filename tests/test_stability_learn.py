@@ -13,7 +13,7 @@ from lathed.analysis.cuts import Cuts
 from lathed.analysis.stability import StabilityModel, refit, residual
 from lathed.analysis.stability.cases import generate_cuts, true_dynamics
 from lathed.analysis.stability.learn import (MIN_CHATTER, MIN_CUTS, Learned, Learner, _choose, learn, pockets,
-                                             speed_grid)
+                                             speed_grid, wilson_low)
 from lathed.analysis.stability.start import frequency_groups, propose
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 
@@ -129,3 +129,11 @@ def test_a_start_35_percent_off_in_frequency_moves_the_mode_and_adds_no_phantom(
     a, b = residual(r.model, later, margins=False), residual(right.model, later, margins=False)
     assert a.accuracy >= b.accuracy - 0.01
 
+
+
+def test_a_few_later_cuts_all_right_are_not_yet_evidence_enough(lathe_cuts):
+    lr = learn(lathe_cuts[0].take(np.arange(45)))
+    assert lr.model is not None and lr.after.n == 14
+    assert not lr.trusted and any("95 % sure above" in w for w in lr.why_not), lr.why_not
+    assert wilson_low(12, 12) == pytest.approx(0.816, abs=1e-3) and wilson_low(0, 0) == 0.0
+    assert wilson_low(88, 90) == pytest.approx(0.935, abs=1e-3)
