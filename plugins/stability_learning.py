@@ -10,7 +10,7 @@ worker process, off the loop.  A trusted learn is saved as a new version
 ``stability_model_learned`` and used from the next cut; a learn that is not
 trusted is recorded as ``stability_learn_not_trusted`` with why and about
 how many cut speeds it needs; a model in use that the newest later cuts
-judge below the bar is recorded as ``stability_model_withdrawn`` and the
+judge surely below the bar is recorded as ``stability_model_withdrawn`` and the
 analyzer goes back to model-free.  Not an entry point: the suppression
 plugin owns one.
 """
