@@ -116,6 +116,7 @@ def run_from_zero(true: StabilityModel, program, rng, test) -> dict:
     learn, then that model's lobes; learning again as the cut speeds grow."""
     learner, grid, rows = Learner(), None, []
     thirds = [dict.fromkeys(COUNTS, 0) for _ in range(3)]
+    free = [0, 0]           # cuts run model-free, their re-chatters
     curve, trusted_at, learn_s = [], None, []
     for i, (rpm0, depth) in enumerate(program):
         cut = Cut(depth, 0.25e-3, 0.03, 1.5e9)
@@ -124,7 +125,12 @@ def run_from_zero(true: StabilityModel, program, rng, test) -> dict:
         else:
             policy = lobe_policy(learner.model, cut, LIMITS, rpm0, MAX_SPEED_RATIO, RATED_RPM, grid=grid,
                                  settle_revs=20.0)
-        run_cut(policy, true, rpm0, depth, rng, rows, thirds[min(2, 3 * i // len(program))])
+        third = thirds[min(2, 3 * i // len(program))]
+        before = third["rechatter"]
+        run_cut(policy, true, rpm0, depth, rng, rows, third)
+        if learner.model is None:
+            free[0] += 1
+            free[1] += third["rechatter"] - before
         if learner.due(len(rows)):
             cuts = rows_cuts(rows)
             t0 = time.process_time()
@@ -135,7 +141,7 @@ def run_from_zero(true: StabilityModel, program, rng, test) -> dict:
                 trusted_at = trusted_at or i + 1
             acc = residual(learner.model, test, margins=False).accuracy if learner.model is not None else None
             curve.append((i + 1, len(rows), what, acc))
-    return {"thirds": thirds, "curve": curve, "trusted_at": trusted_at, "learn_s": learn_s}
+    return {"thirds": thirds, "curve": curve, "trusted_at": trusted_at, "learn_s": learn_s, "free": free}
 
 
 def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tuple[str, int, int]]:
@@ -146,17 +152,19 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
           "(the frequency rule, the rated speed as its fallback) until a learn is trusted, then the learned "
           "lobes (hold when no speed within reach is stable), learning again each time the cut speeds grow by "
           "a quarter (stability.learn.Learner, as the daemon). Re-chatters: moves to a speed that chatters "
-          "again, in each third of the program (summed over the programs).\n")
+          "again, in each third of the program (summed over the programs); and per cut, over the cuts run "
+          "model-free (before a learn was trusted, or after one was withdrawn) against the last third.\n")
     print("| undeclared effect | trusted from cut (median) | re-chatters first third | middle | last | last / first | "
-          "moves first third | last | held with advice | accuracy of the model in use at the end | learn s (median) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "re-chatters per cut model-free | last third | last / model-free | moves first third | last | "
+          "held with advice | accuracy of the model in use at the end | learn s (median) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     given = StabilityModel(LATHE_MODES, LATHE_KF)
     b_min = float(given.limit(np.geomspace(300, 6000, 2000))[0].min())
     out = []
     for eff in ("none", *UNDECLARED):
         true = true_dynamics(eff, given)
         test = generate_cuts(true, TEST_CUTS, given=given, seed=77)
-        rc, mv, held, at, accs, ls, curves = [0, 0, 0], [0, 0, 0], 0, [], [], [], []
+        rc, mv, held, at, accs, ls, curves, free = [0, 0, 0], [0, 0, 0], 0, [], [], [], [], [0, 0]
         for s in range(seeds):
             rng = np.random.default_rng(3000 + s)
             program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
@@ -167,18 +175,24 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
                 mv[k] += r["thirds"][k]["moves"]
                 held += r["thirds"][k]["held"]
             at.append(r["trusted_at"] or n_cuts + 1)
+            free = [free[0] + r["free"][0], free[1] + r["free"][1]]
             accs.append(r["curve"][-1][3] if r["curve"] and r["curve"][-1][3] is not None else float("nan"))
             ls += r["learn_s"]
             curves.append(r["curve"])
         ratio = f"{rc[2] / rc[0]:.2f}" if rc[0] else "-"
         acc = statistics.median(accs)
-        print(f"| {eff} | {statistics.median(at):.0f} | {rc[0]} | {rc[1]} | {rc[2]} | {ratio} | {mv[0]} | {mv[2]} | "
+        last_n = seeds * (n_cuts - 2 * n_cuts // 3)
+        per_free = free[1] / free[0] if free[0] else float("nan")
+        per_last = rc[2] / last_n
+        ratio2 = f"{per_last / per_free:.2f}" if per_free > 0 else "-"
+        print(f"| {eff} | {statistics.median(at):.0f} | {rc[0]} | {rc[1]} | {rc[2]} | {ratio} | "
+              f"{per_free:.3f} ({free[0]} cuts) | {per_last:.3f} | {ratio2} | {mv[0]} | {mv[2]} | "
               f"{held} | {100 * acc:.1f} % | {statistics.median(ls):.1f} |", flush=True)
         out.append((eff, rc[0], rc[2]))
         for c in curves[:1]:
             print("|  | learns (cut, cut speeds, verdict, accuracy of the model in use): "
                   + "; ".join(f"{i}, {n}, {w}, {'-' if a is None else f'{100 * a:.1f} %'}" for i, n, w, a in c)
-                  + " |" + " |" * 10)
+                  + " |" + " |" * 13)
     print()
     return out
 
