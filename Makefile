@@ -50,6 +50,7 @@ bench-store: $(STAMP)
 	$(BIN)/python bench/bench_store.py
 bench-stability: $(STAMP)
 	$(BIN)/python bench/bench_stability.py
+	$(BIN)/python bench/stability_learn.py
 # issue 18: 10 minutes of hostile load (DURATION=60 for a quick look)
 DURATION ?= 600
 bench-hostile: $(STAMP)

@@ -12,7 +12,7 @@ advice and the cuts that ended chattering, beside the same with "move".  Then:
 
 The given model is the simulator's lathe (regen.DEFAULT_MODES, DEFAULT_KF);
 the cuts come from true dynamics that differ from it by one undeclared effect
-(lathed.analysis.stability_cases: the dominant mode 12 % higher, a missing
+(lathed.analysis.stability.cases: the dominant mode 12 % higher, a missing
 mode at 950 Hz, process damping 20/n, Kf 45 % higher) or by none.  Labels are
 the true lobes with the documented noise model (the limit a cut meets scatters
 5 % log-normal, chatter frequencies 0.5 %), C cuts per data set in random
@@ -38,8 +38,8 @@ import numpy as np
 
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.speed_selection import Advice, Cut, SpindleLimits, lobe_grid, lobe_policy
-from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
-from lathed.analysis.stability_refit import StabilityModel, refit
+from lathed.analysis.stability.cases import GIVEN, UNDECLARED, generate_cuts, simulate_labels, true_dynamics
+from lathed.analysis.stability import StabilityModel, refit
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 
 
@@ -114,6 +114,36 @@ RATED_RPM = 750.0
 COUNTS = ("entered", "moves", "rechatter", "broken", "held", "ended_chattering")
 
 
+def run_cut(policy, true, rpm0: float, depth: float, rng, rows: list, n: dict, boundary_sigma: float = 0.05) -> None:
+    """One cut at ``rpm0``, ``depth`` (m) under ``policy`` on a lathe whose dynamics are
+    ``true``: its speeds appended to ``rows`` (rpm, depth mm, chatter, frequency), its
+    counts added to ``n`` (see run_program)."""
+    rpm, t, moved, promised = rpm0, 0.0, False, False
+    while True:
+        b, f = true.limit(rpm)
+        chatter = bool(depth >= b[0] * np.exp(boundary_sigma * rng.standard_normal()))
+        rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
+        if not chatter:
+            break
+        n["rechatter"] += moved
+        n["broken"] += moved and promised
+        n["entered"] += not moved
+        t += 1e6                   # past any hold: each verdict is after the settle
+        d = policy.observe(t, rpm, True, float(f[0]))
+        if d is None or isinstance(d, Advice):
+            n["held"] += isinstance(d, Advice)
+            n["ended_chattering"] += 1
+            break
+        rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
+        n["moves"] += 1
+
+
+def rows_cuts(rows: list) -> Cuts:
+    r = np.array(rows, dtype=object)
+    return Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
+                            r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
+
+
 def run_program(model, true, program, rng, grid, when: str = "hold", boundary_sigma: float = 0.05):
     """Each cut of ``program`` (rpm, depth m) as the daemon's suppression runs it on a lathe
     whose dynamics are ``true``: entered at its speed; while it chatters, the cut's policy
@@ -121,7 +151,7 @@ def run_program(model, true, program, rng, grid, when: str = "hold", boundary_si
     rated-speed fallback under the programmed speed x MAX_SPEED_RATIO, ``when`` no speed
     within reach chatters per the model: hold and advise, or move) picks the next speed from
     ``model``'s lobes.  A speed chatters when the depth is above the true limit there times
-    exp(N(0, boundary_sigma)) (stability_cases' noise model).  Returns the cut speeds (rows of
+    exp(N(0, boundary_sigma)) (stability.cases' noise model).  Returns the cut speeds (rows of
     the refit's cuts, in order) and counts: cuts that chattered at entry, moves, moves to a
     speed that chattered again (re-chatters), re-chatters at a speed the model called stable
     (a promise broken, not a speed chosen for want of a stable one), cuts held with advice,
@@ -131,28 +161,8 @@ def run_program(model, true, program, rng, grid, when: str = "hold", boundary_si
     for rpm0, depth in program:
         policy = lobe_policy(model, Cut(depth, 0.25e-3, 0.03, 1.5e9), LIMITS, rpm0, MAX_SPEED_RATIO, RATED_RPM,
                              grid=grid, settle_revs=20.0, when_no_stable_speed=when)
-        rpm, t, moved, promised = rpm0, 0.0, False, False
-        while True:
-            b, f = true.limit(rpm)
-            chatter = bool(depth >= b[0] * np.exp(boundary_sigma * rng.standard_normal()))
-            rows.append((rpm, depth * 1e3, chatter, float(f[0]) if chatter else np.nan))
-            if not chatter:
-                break
-            n["rechatter"] += moved
-            n["broken"] += moved and promised
-            n["entered"] += not moved
-            t += 1e6                   # past any hold: each verdict is after the settle
-            d = policy.observe(t, rpm, True, float(f[0]))
-            if d is None or isinstance(d, Advice):
-                n["held"] += isinstance(d, Advice)
-                n["ended_chattering"] += 1
-                break
-            rpm, moved, promised = d.rpm_after, True, bool(d.expected_stable)
-            n["moves"] += 1
-    r = np.array(rows, dtype=object)
-    cuts = Cuts.from_arrays(r[:, 0].astype(float), r[:, 1].astype(float), r[:, 2].astype(bool),
-                            r[:, 3].astype(float), machine="sim-lathe", tool="CNMG120408", material="C45")
-    return cuts, n
+        run_cut(policy, true, rpm0, depth, rng, rows, n, boundary_sigma)
+    return rows_cuts(rows), n
 
 
 def bench_closed_loop(seeds: int, n_cuts: int, depths: tuple[float, float] = (0.6, 1.6),

@@ -5,7 +5,7 @@
 Tool 1 is the tap-tested turning tool (the refit tests' GIVEN model).  Tool 2 is a slender
 boring bar in the same turret: the same workpiece mode, its own tool mode at 350 Hz
 (zeta 0.02, k 3e7 N/m), so its limit is 0.6 mm where tool 1's is 2.4.  Labels come from
-each tool's true lobes (lathed.analysis.stability_cases, as the refit benchmark's).
+each tool's true lobes (lathed.analysis.stability.cases, as the refit benchmark's).
 
 1. The refit: 300 of tool 1's cuts (its mode shifted: the refit's ``natural_frequency``
    case, an effect the model lacks), alone (what the refit reads with ``tool_number``
@@ -27,8 +27,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from lathed.analysis.cuts import Cuts  # noqa: E402
 from lathed.analysis.speed_selection import Cut, FrequencySelection, LobeSelection, SpindleLimits, reach  # noqa: E402
-from lathed.analysis.stability_cases import GIVEN, generate_cuts, true_dynamics  # noqa: E402
-from lathed.analysis.stability_refit import StabilityModel, refit  # noqa: E402
+from lathed.analysis.stability.cases import GIVEN, generate_cuts, true_dynamics  # noqa: E402
+from lathed.analysis.stability import StabilityModel, refit  # noqa: E402
 from lathed.sim.lathe import BORING_BAR  # noqa: E402
 
 BAR = StabilityModel((GIVEN.modes[0], BORING_BAR), GIVEN.kf)     # the simulated turret's tool 2

@@ -103,12 +103,16 @@ out.  Without ``tool_number`` (or without the register) the model is taken
 for every tool, as before.
 
 ``lathectl stability refit`` refits the modal model on this machine's
-recorded cuts (lathed.analysis.stability_refit) and adopts the result only
+recorded cuts (lathed.analysis.stability.refit) and adopts the result only
 when it classifies the held-out cuts better: saved as a new version
-(lathed.analysis.stability_files), recorded as ``stability_model_adopted``,
+(lathed.analysis.stability.files), recorded as ``stability_model_adopted``,
 and from then on (also after a restart) the lobes of speed selection and of
 cut-entry avoidance are the adopted model's.  A refit that adds nothing is
 recorded as ``stability_refit_not_adopted`` with the reason.
+
+With strategy "lobes" and no ``modes`` the model is learned from these cut
+records (lathed_plugins.stability_learning; docs/stability.md): model-free
+until a learn is trusted, then its lobes.
 """
 from __future__ import annotations
 
@@ -121,15 +125,15 @@ from dataclasses import replace
 import numpy as np
 
 from lathed import hookimpl
-from lathed.analysis import stability_files
 from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
 from lathed.analysis.cut_log import CutTracker, cut_rows
 from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
                                              LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
-                                             VariationSelection, lobe_grid, lobe_policy, reach)
+                                             VariationSelection, lobe_grid, lobe_policy, model_free_policy, reach)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation, ramp_time_s
-from lathed.analysis.stability_refit import StabilityModel, refit
+from lathed.analysis.stability import StabilityModel, refit
+from lathed.analysis.stability import files as stability_files
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
@@ -138,6 +142,7 @@ from lathed.command import Command
 from lathed.config import Section
 from lathed.control import RequestError, offload
 from lathed.display import rounded
+from lathed_plugins.stability_learning import LearnedStability
 
 LOBE_POINTS = 600      # points of the lobe chart sent to a screen
 LOBE_CAP_MM = 20.0
@@ -205,8 +210,8 @@ class SuppressionAnalyzer(Analyzer):
             # its swing would pass the speed cap at every alarm: refused there, so refuse it here
             raise section.error("ssv_amplitude", f"{self.variation.amplitude_ratio:g} swings the speed above "
                                 f"max_speed_ratio = {self.max_speed_ratio:g} x the programmed speed")
-        if self.strategy_name == "lobes" and not modes:
-            raise section.error("modes", 'strategy "lobes" needs a modal model: modes = ["FN,ZETA,K[,THETA]", ...]')
+        # strategy "lobes" without a tap test: the model is learned from the cut records
+        self.learning = self.strategy_name == "lobes" and not modes
         if self.avoid and self.strategy_name != "lobes":
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.tool = section.getstr("tool", "")
@@ -214,10 +219,11 @@ class SuppressionAnalyzer(Analyzer):
         self.tool_number: int | None = section.getint("tool_number", None, minval=0, maxval=9999)
         self.material = section.getstr("material", "")
         self.program_depth_mm = section.getfloat("depth_mm", 0.0, minval=0.0, maxval=50.0) or None
-        # the tap test's model; the lobes in use are it or the adopted refit of it
+        # the tap test's model; the lobes in use are it or the adopted refit of it, or a learned one
         self.configured = StabilityModel(modes, kf) if modes else None
         self.lobes = self.configured
-        self.model_name = "configured"
+        self.model_name = "configured" if modes else "none"
+        self.learned = LearnedStability(self, kf) if self.learning else None
         self.policy_model = self.model_name   # the model the running cut's policy was built with
         self._models_loaded = False
         self._refitting = False
@@ -297,10 +303,12 @@ class SuppressionAnalyzer(Analyzer):
             hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
             return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
                                grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
+        if self.strategy_name == "lobes":      # another turret tool; no model learned yet
+            return model_free_policy(cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
+                                     self.settle_revs)
         limits = reach(self.limits, self.rpm, self.max_speed_ratio)
         rated = RatedSpeed(self.rated_rpm, lobes, cut, limits=limits)
         strategy = {"frequency": lambda: FrequencySelection(limits, cut),
-                    "lobes": lambda: FrequencySelection(limits, cut),     # model-free for another tool
                     "rated": lambda: rated,
                     "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
         fallback = None if self.strategy_name in ("rated", "variation") else rated
@@ -318,6 +326,8 @@ class SuppressionAnalyzer(Analyzer):
         if self.remember and not self._memory_loaded:
             self._memory_loaded = True
             await asyncio.to_thread(self._load_memory)
+        if self.learned is not None:
+            await self.learned.start()
         sub = self.ctx.bus.subscribe(self.chatter, self.machine, maxsize=4096, name=self.name)
         ended = "analyzer failed"     # the supervisor restarts it; the cut so far is kept
         try:
@@ -337,6 +347,8 @@ class SuppressionAnalyzer(Analyzer):
             self._stop_ssv()
             # a cut the daemon stops in is evidence too, up to now: recorded, never lost
             self._cut_ended(time.time(), ended=ended)
+            if self.learned is not None:
+                await self.learned.stop()
 
     async def _on_machine(self, s: Sample) -> None:
         if s.quantity == "spindle_rpm":
@@ -496,6 +508,8 @@ class SuppressionAnalyzer(Analyzer):
         rec["model"] = self.policy_model if self.policy is not None else self.model_name
         self.cuts_recorded += 1
         self.ctx.record("cut", rec)
+        if self.learned is not None:
+            self.learned.cut_recorded(rec)
         if self.remember:
             what = self.memory.learn(rec)
             if what:
@@ -551,12 +565,13 @@ class SuppressionAnalyzer(Analyzer):
         out = {"tool": self.tool or None, "material": self.material or None}
         if self.tool_number is not None:
             out["tool_number"] = self.tool_number
-        return {"base": self.configured.to_json(), **out} if include_base else out
+        base = None if self.configured is None else self.configured.to_json()   # None: learned
+        return {"base": base, **out} if include_base else out
 
     def _load_adopted(self) -> None:
         """The newest adopted model of this machine, if it was refitted from the model and set-up
         configured now; a damaged file is said (event) and the previous version tried."""
-        if self.configured is None or not self.models_dir.is_dir():
+        if (self.configured is None and not self.learning) or not self.models_dir.is_dir():
             return
         files = stability_files.versions(self.models_dir, self.machine)
         for i, path in enumerate(reversed(files)):
@@ -582,13 +597,23 @@ class SuppressionAnalyzer(Analyzer):
             self.ctx.log.info("stability_model_loaded", file=path.name)
             return
 
+    def use_model(self, model: StabilityModel | None, grid, name: str) -> None:
+        """The lobes from the next cut on (the present cut finishes on the ones it began with)."""
+        self.lobes, self.grid, self.model_name = model, grid, name
+
+    def _mine(self, rec: dict) -> bool:
+        """A cut record of this set-up (tool, material; the model's turret tool)."""
+        return ((rec.get("tool"), rec.get("material")) == (self.tool or None, self.material or None)
+                and (self.tool_number is None or rec.get("tool_number") in (None, self.tool_number)))
+
     def _cut_records(self) -> list[dict]:
         rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'cut' AND source = ? ORDER BY id",
                                     (self.name,))
         return [p for r in rows if (p := json.loads(r["payload"])).get("machine") == self.machine]
 
-    def _refit(self, holdout: float) -> tuple[dict, object]:
-        """The refit of the model in use on this set-up's recorded cuts (a worker thread)."""
+    def _setup_cuts(self, what: str):
+        """This set-up's recorded cuts as the refit's (the newest MAX_REFIT_SPEEDS cut speeds),
+        what was left out and why, and how many records there were (a worker thread)."""
         records = self._cut_records()
         mine = [r for r in records if (r.get("tool"), r.get("material")) == (self.tool or None, self.material or None)]
         setup = len(mine)
@@ -601,19 +626,25 @@ class SuppressionAnalyzer(Analyzer):
             skipped[f"cuts with another turret tool than {self.tool_number}"] = setup - len(mine)
         left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
         if cuts is None:
-            raise RequestError(f"stability refit: {len(records)} cut(s) of {self.machine} recorded, none usable "
+            raise RequestError(f"{what}: {len(records)} cut(s) of {self.machine} recorded, none usable "
                                f"(left out: {left_out})")
         if len(cuts) > MAX_REFIT_SPEEDS:
             # the refit's time grows faster than the cuts (3 s on 1,000, 20 s on 3,000); the newest tell most
             skipped[f"older than the newest {MAX_REFIT_SPEEDS} cut speeds"] = len(cuts) - MAX_REFIT_SPEEDS
             cuts = cuts.take(np.arange(len(cuts) - MAX_REFIT_SPEEDS, len(cuts)))
+        return cuts, skipped, len(records)
+
+    def _refit(self, holdout: float) -> tuple[dict, object]:
+        """The refit of the model in use on this set-up's recorded cuts (a worker thread)."""
+        cuts, skipped, n_records = self._setup_cuts("stability refit")
         try:
             r = refit(self.lobes, cuts, holdout_fraction=holdout)
         except ValueError as e:
+            left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
             raise RequestError(f"stability refit on {len(cuts)} cut speeds of {self.machine}: {e} "
                                f"(left out: {left_out})") from None
         out = {"machine": self.machine, "setup": self._setup_json(include_base=False),
-               "model_before_name": self.model_name, "cut_records": len(records), "left_out": skipped,
+               "model_before_name": self.model_name, "cut_records": n_records, "left_out": skipped,
                **r.to_json(), "adopt": bool(r.effects)}
         out["reason"] = r.conclusion if r.effects else "; ".join([r.conclusion, *r.rejected])
         return out, r
@@ -628,17 +659,25 @@ class SuppressionAnalyzer(Analyzer):
 
     async def _stability(self, args: dict) -> dict:
         a = Args("stability", args)
-        action = a.getstr("action", "status", choices=("status", "refit"))
+        action = a.getstr("action", "status", choices=("status", "refit", "learn"))
         dry = a.getbool("dry_run", False)
         holdout = a.getfloat("holdout", 0.3, minval=0.05, maxval=0.9)
         by = a.getstr("by", None)
         a.check_unused()
         if action == "status":
             return self.stability_status()
+        if action == "learn":
+            if self.learned is None:
+                raise RequestError(f"stability learn: {self.name} has a modal model configured; refit it on the "
+                                   f"cuts instead (lathectl stability refit)")
+            require_operator("stability learn")
+            return await self.learned.learn_requested(by)
         if not dry:
             require_operator("stability refit")
         if self.configured is None:
-            raise RequestError(f"stability refit: {self.name} has no modal model (modes, kf) to refit")
+            raise RequestError(f"stability refit: {self.name} has no modal model (modes, kf) to refit"
+                               + ("; it learns one from the cut records (lathectl stability learn)"
+                                  if self.learned is not None else ""))
         if self._refitting:
             raise RequestError("stability refit: a refit is already running; wait for its result")
         self._refitting = True
@@ -676,6 +715,7 @@ class SuppressionAnalyzer(Analyzer):
                 "configured": None if self.configured is None else self.configured.to_json(),
                 "tool": self.tool or None, "material": self.material or None,
                 "cuts_recorded": self.cuts_recorded,
+                "learning": None if self.learned is None else self.learned.status(),
                 "last_refit": None if self.last_refit is None else
                 {k: self.last_refit.get(k) for k in ("adopt", "reason", "model_after_name", "dry_run")}}
 
@@ -932,6 +972,8 @@ class SuppressionAnalyzer(Analyzer):
                            + (", avoids predicted chatter at cut entry" if self.avoid else "")
                            + (f", remembers {len(self.memory.cures)} cure(s)" if self.remember else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
+                           + (", no model yet: learns one from the cuts" if self.learned is not None and self.lobes is None
+                              else "")
                            + (f" (tool {self.tool_number})" if self.lobes is not None and self.tool_number is not None
                               else "")
                            + (f"; tool {self.cut.tool_number} has no model: model-free"

@@ -1,12 +1,13 @@
 import argparse
 import json
+import re
 import subprocess
 import sys
 
 import pytest
 
 from lathed.analysis.cuts import write_cuts_csv
-from lathed.analysis.stability_cases import generate_cuts, true_dynamics
+from lathed.analysis.stability.cases import generate_cuts, true_dynamics
 from lathed.cli import analyze_stability
 
 MODEL = ["--mode", "620,0.035,3e7,30", "--mode", "1450,0.05,9e7,60", "--kf", "2e9"]
@@ -104,3 +105,43 @@ def test_a_misspelled_optional_column_is_said(tmp_path, capsys):
     code, out, err = _run([str(p), *MODEL], capsys)
     assert code == 0 and err.count("\n") == 1
     assert err.startswith(f"lathectl: warning: {p}:1: column(s) 'chatter_freq_hz' ignored (known: machine,"), err
+
+
+@pytest.fixture(scope="module")
+def lathe_csv(tmp_path_factory):
+    from lathed.analysis.stability import StabilityModel
+    from lathed.sim.lathe import LATHE_KF, LATHE_MODES
+    lathe = StabilityModel(LATHE_MODES, LATHE_KF)
+    path = tmp_path_factory.mktemp("cuts") / "lathe.csv"
+    write_cuts_csv(generate_cuts(lathe, 80, given=lathe, seed=5), path)
+    return path
+
+
+def test_without_a_modal_model_it_learns_one_from_the_cuts_and_says_how_sure(lathe_csv, tmp_path, capsys):
+    png = tmp_path / "learned.png"
+    code, out, err = _run([str(lathe_csv), "--plot", str(png)], capsys)
+    assert code == 0, err
+    assert "no modal model given, learned from the first 56 cuts alone" in out
+    assert re.search(r"^mode 1: 1[89]\d\.\d Hz", out, re.M), out
+    assert "minimum stable depth:" in out and "90 %:" in out
+    assert "trusted: classifies the later cuts well" in out and out.count("best speed:") >= 1
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    code, out, err = _run([str(lathe_csv), "--json"], capsys)
+    doc = json.loads(out)["learned"]
+    assert code == 0 and doc["trusted"] is True and doc["why_not"] == [] and doc["cuts"] == 80
+    assert doc["model"]["modes"][0]["fn_hz"] == pytest.approx(190.0, rel=0.02)
+    lo_hi = doc["b_min_mm"]
+    assert lo_hi[1] <= lo_hi[0] <= lo_hi[2] and all(p["rpm"][1] <= p["rpm"][0] <= p["rpm"][2] for p in doc["best_rpm"])
+
+
+def test_without_a_modal_model_too_few_cuts_is_one_line_exit_65(tmp_path, capsys):
+    path = tmp_path / "few.csv"
+    write_cuts_csv(generate_cuts(true_dynamics("none"), 30, seed=12), path)
+    code, out, err = _run([str(path)], capsys)
+    assert code == 65 and out == "" and err.count("\n") == 1
+    assert "30 cut speeds; a model needs at least 40" in err
+
+
+def test_a_modal_model_without_its_kf_is_a_usage_error(lathe_csv, capsys):
+    code, out, err = _run([str(lathe_csv), "--mode", "190,0.03,7.5e7,0"], capsys)
+    assert code == 2 and err.startswith("lathectl: --kf is needed with --mode")

@@ -13,8 +13,8 @@ import structlog
 
 from lathed.analysis.cut_log import cut_rows
 from lathed.analysis.speed_selection import LobeSelection, lobe_grid
-from lathed.analysis.stability_cases import GIVEN, generate_cuts, true_dynamics
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability.cases import GIVEN, generate_cuts, true_dynamics
+from lathed.analysis.stability import StabilityModel
 from lathed.analyzer import AnalyzerContext
 from lathed.bus import Bus, Sample
 from lathed.config import Section

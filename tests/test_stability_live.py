@@ -11,7 +11,7 @@ import subprocess
 import pytest
 
 from lathed.analysis.cuts import load_cuts_csv
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability import StabilityModel
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
 from tests.conftest import BIN, DEPTH_REGISTER, Daemon, sim_config, wait_until
 from tests.test_suppression_live import default_table, events
@@ -124,3 +124,55 @@ def test_the_simulators_true_dynamics_and_program_are_checked_and_passed_on(tmp_
         with pytest.raises(ConfigError) as e:
             SimulatorSettings(Section("t.toml", "simulator", {key: value}), tmp_path)
         assert "[simulator]" in str(e.value) and key in str(e.value) and problem in str(e.value), str(e.value)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)     # a learn takes seconds of one core; a loaded CI machine gives less
+def test_with_no_modal_model_the_daemon_answers_model_free_learns_from_its_cuts_and_then_uses_the_lobes(tmp_path):
+    # issue 41: no tap test. The store holds the cuts of earlier shifts (recorded as the daemon
+    # records them, on the simulated lathe's true lobes); the daemon learns from them at start.
+    import numpy as np
+    from lathed.analysis.stability.cases import generate_cuts
+    from lathed.store import Store
+    lathe = StabilityModel(LATHE_MODES, LATHE_KF)
+    earlier = generate_cuts(lathe, 100, given=lathe, seed=8)
+    store = Store(tmp_path / "state" / "lathed.db", machine_id="test-cell")
+    for i in range(len(earlier)):
+        ch = bool(earlier.chatter[i])
+        f = float(earlier.chatter_frequency_hz[i])
+        store.record_future("cut", "suppress", {
+            "machine": "lathe", "tool": "T0101", "material": "C45", "tool_number": 1,
+            "depth_mm": float(earlier.depth_mm[i]), "depth_from": "register", "feed_mm_rev": 0.3,
+            "outcome": "chatter" if ch else "stable",
+            "speeds": [{"rpm": float(earlier.rpm[i]), "outcome": "chatter" if ch else "stable", "steady": True,
+                        "chatter_frequency_hz": f if ch and np.isfinite(f) else None}]}).result()
+    store.close()
+    suppress = default_table("suppress").replace("\nremember = true", "\nremember = false")
+    suppress = "\n".join(line for line in suppress.splitlines() if not line.startswith("modes ="))
+    assert 'strategy = "lobes"' in suppress and not any(line.startswith("modes") for line in suppress.splitlines())
+    program = [f"{rpm},3.0,0.3,24" for rpm in (2250, 2500, 3250)]
+    cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + suppress,
+                            simulator=f"program = {json.dumps(program)}\nload_s = 0.3\nretract_s = 0.2\n",
+                            registers=DEPTH_REGISTER)
+    d = Daemon(cfg, paths["socket"])
+    try:
+        d.wait_ready()
+        learned = wait_until(lambda: events(d, "stability_model_learned"), timeout=480, interval=1.0,
+                             what="a model learned from the recorded cuts")[0]
+        name = learned["payload"]["file"]
+        assert name == "lathe-v1.json" and learned["payload"]["model_before"] == "none"
+        model = StabilityModel.from_json(learned["payload"]["learned"]["model"])
+        assert model.modes[0].fn_hz == pytest.approx(LATHE_MODES[0].fn_hz, rel=0.02)
+        # from then on a chatter alarm is answered from the learned lobes
+        act = wait_until(lambda: [a for a in events(d, "suppression_action") if a["t"] > learned["t"]
+                                  and a["payload"]["model"] == name], timeout=90, interval=0.5,
+                         what="an action chosen by the learned lobes")[0]["payload"]
+        assert act["strategy"] == "sss_lobes"
+        assert act["expected_b_lim_mm"] == pytest.approx(float(model.limit(act["rpm_after"])[0][0]) * 1e3, rel=0.005)
+        # before it, any answer was model-free, and said so
+        assert all(a["payload"]["model"] is None and a["payload"]["strategy"] in ("sss_frequency", "rated_speed")
+                   for a in events(d, "suppression_action") if a["t"] < learned["t"])
+        st = d.ctl("stability", "status").stdout
+        assert f"model {name}" in st and "learning from the cuts" in st
+    finally:
+        d.stop()

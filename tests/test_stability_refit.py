@@ -6,8 +6,10 @@ import pytest
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
-from lathed.analysis.stability_cases import GIVEN, UNDECLARED, generate_cuts, true_dynamics
-from lathed.analysis.stability_refit import Effect, StabilityModel, _Fit, _joint, compose, refit, residual
+from lathed.analysis.stability.cases import GIVEN, UNDECLARED, generate_cuts, true_dynamics
+from lathed.analysis.stability import StabilityModel, refit, residual
+from lathed.analysis.stability.effects import Effect, Fit, compose
+from lathed.analysis.stability.refit import _joint
 
 
 def test_limit_per_speed_matches_the_lobes():
@@ -78,7 +80,7 @@ def test_no_library_effect_is_said_plainly():
 def test_lobe_labels_agree_with_the_regenerative_simulator(effect):
     # the generator labels by the true lobes; the simulator, cutting with the
     # true dynamics, must agree away from the limit and chatter at the frequency given
-    from lathed.analysis.stability_cases import simulate_labels
+    from lathed.analysis.stability.cases import simulate_labels
     true = true_dynamics(effect)
     rpm = np.array([900.0, 2600.0, 4500.0])
     b, f = true.limit(rpm)
@@ -94,6 +96,6 @@ def test_joint_refit_keeps_an_effect_on_an_added_mode_in_its_place():
     cuts = generate_cuts(true_dynamics("second_mode"), 200, seed=5)
     added = Effect("second_mode", (950.0, 0.03, 2.0e7, 0.0))
     chosen = [added, Effect("natural_frequency", (1.02,), len(GIVEN.modes)), Effect("cutting_coefficient", (1.1,))]
-    out = _joint(GIVEN, chosen, _Fit(cuts))
+    out = _joint(GIVEN, chosen, Fit(cuts))
     assert [e.name for e in out] == [e.name for e in chosen] and out[1].mode == len(GIVEN.modes)
     assert len(compose(GIVEN, out).modes) == len(GIVEN.modes) + 1

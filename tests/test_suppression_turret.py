@@ -13,7 +13,7 @@ import pytest
 from lathed.bus import Sample
 from lathed.config import ConfigError
 from lathed.control import RequestError
-from lathed.analysis.stability_cases import generate_cuts, true_dynamics
+from lathed.analysis.stability.cases import generate_cuts, true_dynamics
 from tests.test_suppression_hold import _cut, make  # noqa: F401  (make: the fixture)
 
 

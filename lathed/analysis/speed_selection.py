@@ -447,3 +447,12 @@ def lobe_policy(lobes: StabilityLobes, cut: Cut, limits: SpindleLimits, rpm_prog
     return SuppressionPolicy(LobeSelection(lobes, cut, within, grid=grid), within,
                              fallback=RatedSpeed(rated_rpm, lobes, cut, limits=within), settle_revs=settle_revs,
                              when_no_stable_speed=when_no_stable_speed)
+
+
+def model_free_policy(cut: Cut, limits: SpindleLimits, rpm_programmed: float | None, max_speed_ratio: float,
+                      rated_rpm: float, settle_revs: float = 20.0) -> SuppressionPolicy:
+    """One cut's policy with no model for it (another turret tool; a model not learned yet, or
+    not trusted): the frequency rule within reach, the rated speed as its fallback."""
+    within = reach(limits, rpm_programmed, max_speed_ratio)
+    return SuppressionPolicy(FrequencySelection(within, cut), within,
+                             fallback=RatedSpeed(rated_rpm, None, cut, limits=within), settle_revs=settle_revs)

@@ -1,7 +1,8 @@
 """``lathectl analyze stability``: check the stability lobes against cuts,
-find the effect the modal model lacks, report before/after.
+find the effect the modal model lacks, report before/after; with no modal
+model given, learn one from the cuts alone (docs/stability.md).
 
-    lathectl analyze stability CUTS.csv --mode FN,ZETA,K[,THETA_DEG] ... --kf KF
+    lathectl analyze stability CUTS.csv [--mode FN,ZETA,K[,THETA_DEG] ... --kf KF]
         [--machine M] [--tool T] [--material X] [--holdout 0.3] [--plot OUT.png] [--json]
 
 CUTS.csv is the cut-record format of lathed.analysis.cuts.  The earlier cuts
@@ -30,18 +31,20 @@ def _fraction(text: str) -> float:
 
 def register_analyze(sub) -> None:
     p = sub.add_parser("stability", help="stability lobes against recorded cuts: the effect the model lacks, "
-                                         "accuracy before/after",
+                                         "accuracy before/after; without --mode, a model learned from the cuts",
                        description="Classify recorded cuts with the stability lobes of a modal model, then add "
                                    "the candidate effects (natural frequency, damping, cutting coefficient, "
-                                   "second mode, process damping) that classify held-out cuts better.")
+                                   "second mode, process damping) that classify held-out cuts better. Without "
+                                   "--mode, learn the model from the cuts alone (chatter frequencies and depths) "
+                                   "and say how sure it is.")
     p.add_argument("cuts", metavar="CUTS.csv", help="cut records: machine, tool, material, rpm, depth_mm, "
                                                      "feed_mm_rev, outcome, [chatter_frequency_hz]")
-    p.add_argument("--mode", dest="modes", action="append", type=mode, required=True,
-                   metavar="FN,ZETA,K[,THETA_DEG]",
+    p.add_argument("--mode", dest="modes", action="append", type=mode, metavar="FN,ZETA,K[,THETA_DEG]",
                    help="structural mode: natural frequency Hz, damping ratio, stiffness N/m, "
-                        "angle from the surface normal (repeat for several modes)")
-    p.add_argument("--kf", type=positive, required=True, metavar="N_PER_M2",
-                   help="cutting-force coefficient along the chip-thickness direction")
+                        "angle from the surface normal (repeat for several modes); none: learned from the cuts")
+    p.add_argument("--kf", type=positive, metavar="N_PER_M2",
+                   help="cutting-force coefficient along the chip-thickness direction (needed with --mode; "
+                        "learning takes 2e9 unless given: the cuts show only stiffness / Kf)")
     p.add_argument("--machine", help="use only the cuts of this machine")
     p.add_argument("--tool", help="use only the cuts of this tool")
     p.add_argument("--material", help="use only the cuts in this material")
@@ -75,7 +78,7 @@ def _stage(label: str, r) -> str:
 
 def run(args) -> int:
     from lathed.analysis.cuts import CutsCsvError, load_cuts_csv
-    from lathed.analysis.stability_refit import StabilityModel, refit
+    from lathed.analysis.stability import StabilityModel, refit
     try:
         cuts = load_cuts_csv(args.cuts)
     except CutsCsvError as e:
@@ -95,14 +98,22 @@ def run(args) -> int:
         names = ", ".join("/".join(s) for s in setups[:4]) + (", ..." if len(setups) > 4 else "")
         return fail(f"{args.cuts} holds cuts of {len(setups)} set-ups (machine/tool/material: {names}): one "
                      f"modal model fits one set-up; choose with --machine, --tool, --material", EX_DATAERR)
+    if not args.modes:
+        return _learn(args, cuts, setups[0])
+    if args.kf is None:
+        return fail("--kf is needed with --mode (the cutting coefficient the modal model is for)", 2)
     try:
         base = StabilityModel(tuple(args.modes), args.kf)
         r = refit(base, cuts, holdout_fraction=args.holdout)
     except ValueError as e:
         return fail(f"{e} ({args.cuts})", EX_DATAERR)
     if args.plot:
+        curves = [(r.base, f"given model, held-out accuracy {_pct(r.before.accuracy)}", "given")]
+        if r.effects:
+            names = ", ".join(e.effect.name.replace("_", " ") for e in r.effects)
+            curves.append((r.model, f"refit (+ {names}), held-out accuracy {_pct(r.after.accuracy)}", "fit"))
         try:
-            _plot(args.plot, r, setups[0])
+            _plot(args.plot, r.train, r.heldout, curves, setups[0])
         except OSError as e:
             return fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
     if args.json:
@@ -141,28 +152,84 @@ def run(args) -> int:
     return 0
 
 
-def _plot(path: str, r, setup) -> None:
+def _learn(args, cuts, setup) -> int:
+    """No modal model given: the model from the cuts alone, how sure it is, and its speeds
+    only when it is trusted."""
+    from lathed.analysis.stability.learn import learn
+    from lathed.analysis.stability.start import DEFAULT_KF
+    kf = args.kf or DEFAULT_KF
+    try:
+        lr = learn(cuts, kf=kf, holdout_fraction=args.holdout)
+    except ValueError as e:
+        return fail(f"{e} ({args.cuts})", EX_DATAERR)
+    if lr.model is None:
+        return fail(f"no model learned from {args.cuts}: {'; '.join(lr.why_not)}"
+                    + (f" (about {lr.cuts_needed} cut speeds needed)" if lr.cuts_needed else ""), EX_DATAERR)
+    if args.plot:
+        later = cuts.take(range(lr.train, len(cuts)))
+        try:
+            _plot(args.plot, cuts.take(range(lr.train)), later,
+                  [(lr.model, f"learned from the cuts ({'trusted' if lr.trusted else 'not trusted'}), "
+                              f"accuracy on the later cuts {_pct(lr.after.accuracy)}", "fit")], setup)
+        except OSError as e:
+            return fail(f"cannot write plot {args.plot}: {e.strerror or e}", EX_CANTCREAT)
+    if args.json:
+        print(json.dumps({"source": args.cuts, "setup": dict(zip(("machine", "tool", "material"), setup)),
+                          "learned": lr.to_json()}, indent=1))
+        return 0
+    print(f"cuts: {len(cuts)} of {'/'.join(setup)} from {args.cuts}: no modal model given, learned from the "
+          f"first {lr.train} cuts alone (Kf {kf:.3g} N/m^2 taken: the cuts show stiffness / Kf), judged on the "
+          f"last {lr.heldout}")
+    for i, m in enumerate(lr.model.modes):
+        print(f"mode {i + 1}: {m.fn_hz:.1f} Hz, zeta {m.zeta:.4f}, k {m.k_n_per_m:.3g} N/m")
+    if lr.model.process_damping:
+        print(f"process damping: added damping ratio {lr.model.process_damping:.3g}/n")
+    print(f"the limit scatters {100 * lr.sigma:.1f} % from cut to cut (fitted)")
+    print(_stage("start", lr.start))
+    for e in lr.effects:
+        print(f"found: {e.description} (held-out errors {e.heldout_errors_before} -> {e.heldout_errors_after}, "
+              f"kept by {e.kept_by})")
+    print(_stage("learned", lr.after) + f"; a depth threshold ({lr.baseline.depth_mm:.3f} mm): accuracy "
+          f"{_pct(lr.baseline.accuracy)}, false stable {_pct(lr.baseline.false_stable_rate)}")
+    b = lr.b_min_mm
+    print(f"minimum stable depth: {b.value:.3f} mm (90 %: {b.lo:.3f}-{b.hi:.3f}) over "
+          f"{lr.rpm_range[0]:.0f}-{lr.rpm_range[1]:.0f} r/min")
+    if lr.trusted:
+        for p in lr.pockets:
+            print(f"best speed: {p.rpm.value:.0f} r/min (90 %: {p.rpm.lo:.0f}-{p.rpm.hi:.0f}), limit "
+                  f"{p.limit_mm:.3f} mm")
+        if not lr.pockets:
+            print("best speed: no pocket in this speed range rises above the lobes' floor")
+        print("trusted: classifies the later cuts well, no worse than a depth threshold, and its intervals are narrow")
+    else:
+        for w in lr.why_not:
+            print(f"not trusted: {w}")
+        print(f"no speed recommended from a model not trusted; about {lr.cuts_needed} cut speeds in all would "
+              f"settle it")
+    return 0
+
+
+def _plot(path: str, train, heldout, curves, setup) -> None:
+    """The cuts (fitted on, held out) with each of ``curves``: (model, label, "given" | "fit")."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import matplotlib.ticker
     import numpy as np
 
-    rpm = np.r_[r.train.rpm, r.heldout.rpm]
-    depth = np.r_[r.train.depth_mm, r.heldout.depth_mm]
-    chatter = np.r_[r.train.chatter, r.heldout.chatter]
-    held = np.r_[np.zeros(len(r.train), bool), np.ones(len(r.heldout), bool)]
+    rpm = np.r_[train.rpm, heldout.rpm]
+    depth = np.r_[train.depth_mm, heldout.depth_mm]
+    chatter = np.r_[train.chatter, heldout.chatter]
+    held = np.r_[np.zeros(len(train), bool), np.ones(len(heldout), bool)]
     lo, hi = rpm.min() / 1.05, rpm.max() * 1.05
     n = np.geomspace(lo, hi, 3000)
     fig, ax = plt.subplots(figsize=(10, 6.2))
-    b_old, _ = r.base.limit(n)
-    ax.plot(n, b_old * 1e3, color="0.45", lw=1.3, ls="--",
-            label=f"given model, held-out accuracy {_pct(r.before.accuracy)}")
-    if r.effects:
-        b_new, _ = r.model.limit(n)
-        names = ", ".join(e.effect.name.replace("_", " ") for e in r.effects)
-        ax.plot(n, b_new * 1e3, color="C0", lw=1.8,
-                label=f"refit (+ {names}), held-out accuracy {_pct(r.after.accuracy)}")
+    for model, label, kind in curves:
+        b, _ = model.limit(n)
+        if kind == "given":
+            ax.plot(n, b * 1e3, color="0.45", lw=1.3, ls="--", label=label)
+        else:
+            ax.plot(n, b * 1e3, color="C0", lw=1.8, label=label)
     for ch, mk, col, name in ((False, "o", "C2", "stable"), (True, "x", "C3", "chatter")):
         for h, alpha in ((False, 0.35), (True, 0.9)):
             sel = (chatter == ch) & (held == h)

@@ -4,6 +4,7 @@ stability model refitted on them and adopted by the daemon.
 
     lathectl cuts [--machine M] [--since 2h|2026-11-23T08:00] [--limit N] [--json | --csv [FILE]]
     lathectl stability refit [--machine M] [--dry-run] [--holdout 0.3] [--json]
+    lathectl stability learn [--machine M] [--json]    (no modal model configured: learned from the cuts)
 """
 from __future__ import annotations
 
@@ -86,17 +87,41 @@ def _analyzer(args) -> str | None:
 
 
 def run_stability(args) -> int:
+    if args.dry_run and args.action != "refit":
+        return fail(f"--dry-run is for refit, not {args.action}", 2)
     req = {"action": args.action, "analyzer": _analyzer(args)}
     if args.action == "refit":
         req.update(dry_run=args.dry_run, holdout=args.holdout)
     # a refit on thousands of cuts takes tens of seconds (lathectl's usual wait is 10 s)
-    r = call("stability", req, sock_path=args.socket, timeout=REFIT_TIMEOUT_S if args.action == "refit" else 10.0)
+    r = call("stability", req, sock_path=args.socket,
+             timeout=REFIT_TIMEOUT_S if args.action in ("refit", "learn") else 10.0)
     if args.json:
         print_json(r)
         return 0
     if args.action == "status":
         print(f"{r['machine']}: model {r['model']} ({r['tool'] or '-'}/{r['material'] or '-'}), "
               f"{r['cuts_recorded']} cut(s) recorded since start")
+        le = r.get("learning")
+        if le is not None:
+            last = le["last"]
+            print(f"learning from the cuts: {le['cut_speeds']} usable cut speed(s), next learn at {le['next_learn_at']}"
+                  + (" (running)" if le["running"] else "")
+                  + ("" if last is None else f"; last: {last['summary']}"))
+        return 0
+    if args.action == "learn":
+        print(f"cuts: {r['cuts']} cut speeds from {r['cut_records']} cut record(s) of {r['machine']}")
+        for why, n in r["left_out"].items():
+            print(f"left out: {n} {why}")
+        print(r["summary"])
+        for p in r["best_rpm"]:
+            print(f"best speed: {p['rpm'][0]:.0f} r/min (90 % {p['rpm'][1]:.0f}-{p['rpm'][2]:.0f}), "
+                  f"limit {p['limit_mm']:.3f} mm")
+        print({"adopted": f"learned and in use: {r['model_name']}",
+               "withdrawn": "the model in use is withdrawn: suppression is model-free until a learn is trusted",
+               "kept": f"not trusted; {r['model_name']} stays in use",
+               "not trusted": "not trusted: suppression stays model-free"
+                              + (f" (about {r['cuts_needed']} cut speeds needed)" if r["cuts_needed"] else "")}
+              [r["verdict"]])
         return 0
     from lathed.cli.analyze_stability import _stage
     print(f"cuts: {r['cuts']} cut speeds from {r['cut_records']} cut record(s) of {r['machine']}: fitted on the "
@@ -155,8 +180,9 @@ def register(sub) -> None:
     p.set_defaults(func=run_cuts)
 
     p = sub.add_parser("stability", help="the stability model: status; refit it on the recorded cuts and adopt "
-                                         "it when it classifies held-out cuts better")
-    p.add_argument("action", choices=("status", "refit"), nargs="?", default="status")
+                                         "it when it classifies held-out cuts better; learn it from the cuts "
+                                         "where no modal model is configured")
+    p.add_argument("action", choices=("status", "refit", "learn"), nargs="?", default="status")
     p.add_argument("--machine", help="the machine (its suppression analyzer)")
     p.add_argument("--analyzer", help="which suppression analyzer (instead of --machine)")
     p.add_argument("--dry-run", action="store_true", help="report, adopt nothing")

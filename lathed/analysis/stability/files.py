@@ -3,8 +3,8 @@
     <state_dir>/stability-models/<machine>-v<N>.json
 
 A file holds the model adopted (modes, Kf, process damping), the model it
-was refitted from (``base``), the set-up (tool, material) and the figures
-that justified it.  An adopted model is used only while the configured
+was refitted from (``base``; null for a model learned from the cuts alone),
+the set-up (tool, material) and the figures that justified it.  An adopted model is used only while the configured
 model and set-up are the ones it was refitted from: a new tap test or
 another material in the configuration supersedes it.  Written with
 lathed.atomic (a power cut leaves the old or the new file).
@@ -15,7 +15,7 @@ import json
 import re
 from pathlib import Path
 
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability.model import StabilityModel
 from lathed.atomic import write_atomic
 
 FORMAT = "lathed-stability-model"
@@ -48,7 +48,8 @@ def load(path: Path) -> tuple[StabilityModel, dict]:
         raise ValueError(f"{path.name} is not a {FORMAT} file")
     try:
         model = StabilityModel.from_json(doc["model"])
-        StabilityModel.from_json(doc["base"])
+        if doc["base"] is not None:          # null: learned from the cuts, no tap test
+            StabilityModel.from_json(doc["base"])
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path.name}: malformed model: {type(e).__name__}: {e}") from None
     return model, doc

@@ -1,7 +1,7 @@
 """Cuts from a lathe whose true dynamics differ from the model it was given:
 the test and benchmark data of the stability refit.
 
-Labels come from the true model's lobes (lathed.analysis.stability_refit
+Labels come from the true model's lobes (lathed.analysis.stability.model
 .limit_depth), not from running lathed.analysis.regen.simulate_cut on every
 cut: a cut there takes about a second to simulate, a refit needs hundreds.
 The true lobes are what the regenerative simulator converges to (tests/test_regen
@@ -25,7 +25,7 @@ import numpy as np
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.modal import Mode
 from lathed.analysis.regen import DEFAULT_KF, DEFAULT_MODES
-from lathed.analysis.stability_refit import StabilityModel
+from lathed.analysis.stability.model import StabilityModel
 
 GIVEN = StabilityModel(DEFAULT_MODES, DEFAULT_KF)
 
@@ -110,3 +110,27 @@ def simulate_labels(true: StabilityModel, cuts: Cuts, *, revolutions: float = 15
         freq[i] = round(float(f[band][np.argmax(spec[band])]), 1)
     return Cuts(cuts.machine, cuts.tool, cuts.material, cuts.rpm, cuts.depth_mm, cuts.feed_mm_rev, chatter, freq,
                 cuts.line, cuts.source, cuts.ignored_columns)
+
+
+def random_machine(seed: int) -> tuple[StabilityModel, dict]:
+    """A lathe none of the above: one or two modes (the first 120-900 Hz, damping 1.5-6 %, at
+    0-45 deg; the second 2-4x higher and stiffer), Kf 1.5-3 GN/m^2, process damping on one in
+    three, and its own noise (the limit's scatter 3-8 %, chatter frequencies 0.3-1 %).  For
+    judging the model learned from cuts on machines it was not developed on.  Returns the
+    model and generate_cuts' keyword arguments for it (depths around its own critical depth)."""
+    rng = np.random.default_rng(seed)
+    kf = float(rng.uniform(1.5e9, 3e9))
+    fn = float(np.exp(rng.uniform(np.log(120), np.log(900))))
+    z = float(rng.uniform(0.015, 0.06))
+    b_min = float(np.exp(rng.uniform(np.log(0.5e-3), np.log(3e-3))))
+    th = float(rng.uniform(0, 45))
+    u = np.cos(np.radians(th)) ** 2
+    modes = [Mode(fn, z, b_min * u * kf / (2 * z * (1 + z)) / u ** 2, th)]
+    if rng.random() < 0.5:
+        z2 = float(rng.uniform(0.02, 0.06))
+        k2 = modes[0].k_n_per_m * float(rng.uniform(1.5, 4.0))
+        modes.append(Mode(fn * float(rng.uniform(2.0, 4.0)), z2, k2, float(rng.uniform(0, 60))))
+    pd = float(z * 500 * rng.uniform(0.5, 2.0)) if rng.random() < 1 / 3 else 0.0
+    true = StabilityModel(tuple(modes), kf, pd)
+    return true, {"given": true, "boundary_sigma": float(rng.uniform(0.03, 0.08)),
+                  "freq_sigma": float(rng.uniform(0.003, 0.01))}
