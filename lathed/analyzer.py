@@ -5,7 +5,7 @@ Analyzers never talk to hardware: every command goes through
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Awaitable, Callable, ClassVar
 
 from lathed.config import Section
 
@@ -45,6 +45,15 @@ async def _no_release(machine: str, action: str, source: str) -> None:
 
 
 class Analyzer:
+    """Every method has a default: an analyzer overrides what it uses (docs/plugins.md)."""
+
+    # it forwards the store's records elsewhere (a sink): retention waits for its progress
+    forwards_records: ClassVar[bool] = False
+    # keys of its table a configuration reload (SIGHUP) may change without a restart
+    LIVE_KEYS: ClassVar[frozenset[str]] = frozenset()
+    # the machine it works on, if one (lathectl status)
+    machine: str | None = None
+
     def __init__(self, name: str, section: Section):
         self.name = name
         self.ctx: AnalyzerContext | None = None
@@ -70,6 +79,16 @@ class Analyzer:
         if this analyzer reads it: its machine (whose speed and tool are recorded too), tool,
         material, detector and its parameters. It must publish ``cutting`` (1/0) for a
         recording of the next N cuts. None: it does not read ``source``."""
+        return None
+
+    def offset_pace(self) -> tuple[float, float] | None:
+        """(µm a write, µm/s) at most, for an analyzer that phases in an offset: the
+        supervisor refuses a config whose machine's guard would refuse such writes."""
+        return None
+
+    def live_view(self) -> dict | None:
+        """What the operator page and lathectl's live views draw for it (a snapshot, pushed
+        to subscribers); None: nothing to draw."""
         return None
 
     async def run(self) -> None:

@@ -20,6 +20,7 @@ from lathed import __version__
 from lathed import config as configmod
 from lathed import instance
 from lathed import log as logmod
+from lathed.analyzer import Analyzer
 from lathed.bus import Bus
 from lathed.cli import EX_CANTCREAT
 from lathed.client import SOCKET_NAME, default_runtime_dir, default_state_dir
@@ -144,13 +145,14 @@ class Daemon:
             self.control.register(name, getattr(self, f"_cmd_{name}"))
         names = {**{n: r.category for n, r in self.supervisor.runners.items()},
                  **{n: "analyzer" for n in self.supervisor.analyzer_runners}}
+        # an analyzer that keeps the base's live_view has nothing to draw
         views = {n: r.obj.live_view for n, r in self.supervisor.analyzer_runners.items()
-                 if callable(getattr(r.obj, "live_view", None))}
+                 if type(r.obj).live_view is not Analyzer.live_view}
         runners = self.supervisor.runners
 
         def quantities(name: str) -> frozenset[str] | None:
-            fn = getattr(runners[name].obj, "quantities", None) if name in runners else None
-            return fn() if callable(fn) else None     # a driver's, where its config fixes them
+            # a driver's, where its config fixes them
+            return runners[name].obj.quantities() if name in runners else None
         self.push = PushHub(self.bus, self.store, names, self.status, views, self.settings.control_max_subscribers,
                             quantities)
         self.control.register("subscribe", self.push.subscribe)
@@ -175,7 +177,7 @@ class Daemon:
         starting = asyncio.create_task(self._start_drivers())
         self.state = "running"
         # the machines this daemon runs, by kind: a plant view (lathectl plant) lists them from the central store
-        machines = {n: getattr(drv, "kind", None) for n, (inst, drv) in self.plan.drivers.items()
+        machines = {n: drv.kind for n, (inst, drv) in self.plan.drivers.items()
                     if inst.category == "machine"}
         self.supervisor.record("daemon_started", "lathed", {"version": __version__, "pid": os.getpid(),
                                                             "machines": machines})
@@ -237,7 +239,7 @@ class Daemon:
             except configmod.ConfigError as e:
                 problems = str(e).splitlines()
             else:
-                live = {n: set(getattr(an, "LIVE_KEYS", ())) for n, (_, an) in self.plan.analyzers.items()}
+                live = {n: set(an.LIVE_KEYS) for n, (_, an) in self.plan.analyzers.items()}
                 ch = reloadmod.diff(self.cfg, cfg, live)
                 problems = ch.refused
             if problems:

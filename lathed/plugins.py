@@ -21,8 +21,11 @@ from typing import Any
 import pluggy
 
 from lathed import hookspecs
+from lathed.analyzer import Analyzer
+from lathed.driver import Driver
 
 GROUP = "lathed.plugins"
+BASES = {"lathed_driver_types": Driver, "lathed_analyzer_types": Analyzer}
 IMPORT_TIMEOUT_S = 30.0   # per plugin; numpy/scipy imports on a busy 2-core PC take seconds
 
 
@@ -133,7 +136,12 @@ class PluginLoader:
                 if not isinstance(types, dict):
                     raise TypeError(f"{hook} must return a dict, got {type(types).__name__}")
                 table = self._types.setdefault(hook, {})
+                base = BASES.get(hook)
                 for tname, obj in types.items():
+                    if base is not None and not (isinstance(obj, type) and issubclass(obj, base)):
+                        # the contract: every optional method has the base class's default
+                        raise TypeError(f"{hook}: type {tname!r} is {obj!r}, not a subclass of "
+                                        f"{base.__module__}.{base.__name__}")
                     if tname in table:
                         raise ValueError(f"{hook}: type {tname!r} is already provided by plugin "
                                          f"{table[tname][1]!r}")

@@ -95,7 +95,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                                                             "caps every wait; give retry_initial <= retry_max")
             obj = cls(inst.name, inst.section)
             inst.section.check_unused()
-            if inst.category == "machine" and getattr(obj, "role", None) != "machine":
+            if inst.category == "machine" and obj.role != "machine":
                 raise inst.section.error("plugin", f"{inst.plugin!r} is a {obj.role} driver; "
                                                    "use it under [sensor.*]")
         except ConfigError as e:
@@ -143,7 +143,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                 if problem:
                     plan.errors.append(f"{cfg.path}: [analyzer.{name}] {key}: {problem}")
         # an offset phased in faster than the machine's guard passes is refused at every write
-        pace = getattr(an, "offset_pace", lambda: None)()
+        pace = an.offset_pace()
         for m in an.machines() if pace is not None else ():
             lim, (per_write, per_s) = plan.limits.get(m), pace
             if lim is not None and per_write > lim.offset_step_max_um:
@@ -156,7 +156,7 @@ def build(cfg: Config, loader: PluginLoader, strict: bool) -> Plan:
                                    f"{lim.offset_rate_max_um_s:g}: such writes would be refused")
     # and a driver may listen only to instances that exist (a read_on trigger)
     for name, (inst, drv) in plan.drivers.items():
-        for src, (table, key) in getattr(drv, "listens", dict)().items():
+        for src, (table, key) in drv.listens().items():
             if src not in plan.analyzers and src not in plan.drivers and src not in broken \
                     and not any(k.endswith(f".{src}") for k in plan.skipped):
                 plan.errors.append(f"{cfg.path}: [{inst.category}.{name}{table}] {key}: {src!r} is not a "
@@ -170,7 +170,7 @@ def record_sinks(cfg: Config, loader: PluginLoader) -> list[str]:
     it has not forwarded is kept. One whose plugin type did not load may be a sink: counted."""
     types = loader.analyzer_types()
     return [inst.name for inst in cfg.instances if inst.category == "analyzer"
-            and (inst.plugin not in types or getattr(types[inst.plugin], "forwards_records", False))]
+            and (inst.plugin not in types or types[inst.plugin].forwards_records)]
 
 
 def _reference_problem(plan: Plan, ref: str, category: str, need: str | None) -> str | None:
@@ -224,7 +224,7 @@ class Supervisor:
         self._register_control = register_control
         for name, (inst, drv) in plan.drivers.items():
             drv.ctx = DriverContext(bus, log.bind(driver=name), self._recorder(name),
-                                    getattr(drv, "plausible", None))
+                                    drv.plausible)
             self.runners[name] = Runner(inst.category, name, drv, *self._retry(inst), self.record)
         self._controls: dict[str, dict[str, Any]] = {}
         for name, (inst, an) in plan.analyzers.items():
@@ -343,7 +343,7 @@ class Supervisor:
         on the control when lathed stops, and go stale as the spindle cools."""
         out = {}
         for name, r in self.runners.items():
-            if r.state == "connected" and "offset_x_um" in getattr(r.obj, "actions", ()):
+            if r.state == "connected" and "offset_x_um" in r.obj.actions:
                 v = r.obj.current("offset_x_um")
                 if v is not None:
                     out[name] = round(v, 2)     # a float32 register's -4.670000076 is -4.67 µm
@@ -533,7 +533,7 @@ class Supervisor:
             else:
                 analyzers.append(entry)
         for name, r in self.analyzer_runners.items():
-            machine = getattr(r.obj, "machine", None)   # the machine it works on, if one
+            machine = r.obj.machine
             analyzers.append({"name": name, "plugin": self.plan.analyzers[name][0].plugin, "state": r.state,
                               "detail": r.describe(), "last_error": r.last_error,
                               "machine": machine if isinstance(machine, str) else None, **_safe(r.obj.status)})

@@ -42,9 +42,21 @@ def lathed_driver_types():
 '''
 CLASH = '''
 from lathed import hookimpl
+from lathed.driver import Driver
+class Other(Driver):
+    pass
 @hookimpl
 def lathed_driver_types():
-    return {"modbus_cnc": object}
+    return {"modbus_cnc": Other}
+'''
+NOT_A_DRIVER = '''
+from lathed import hookimpl
+class Loose:
+    async def run(self):
+        pass
+@hookimpl
+def lathed_driver_types():
+    return {"loose": Loose}
 '''
 
 
@@ -62,6 +74,7 @@ def test_dropin_good_and_broken(tmp_path):
     (tmp_path / "b_broken.py").write_text(BROKEN_IMPORT)
     (tmp_path / "c_badhook.py").write_text(BROKEN_HOOK)
     (tmp_path / "d_clash.py").write_text(CLASH)
+    (tmp_path / "e_loose.py").write_text(NOT_A_DRIVER)
     loader = load_all([tmp_path])
     by = {p.name: p for p in loader.plugins}
     assert by["a_counter"].error is None and by["a_counter"].provides == ["counter"]
@@ -71,6 +84,9 @@ def test_dropin_good_and_broken(tmp_path):
     assert "already provided by plugin 'modbus_cnc'" in by["d_clash"].error
     assert loader.driver_types()["modbus_cnc"].__name__ == "ModbusCNC"   # the clash did not replace it
     assert "counter" in loader.driver_types()
+    # the contract is the base class's: a type outside it is refused at load, naming the base
+    assert by["e_loose"].error.startswith("TypeError: lathed_driver_types: type 'loose' is <class ")
+    assert "not a subclass of lathed.driver.Driver" in by["e_loose"].error and "loose" not in loader.driver_types()
 
 
 def test_missing_dropin_dir_is_reported(tmp_path):

@@ -17,7 +17,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import minimum_filter1d
 
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.stability.model import StabilityModel
@@ -187,6 +186,7 @@ def pockets(model: StabilityModel, n: np.ndarray, least: float = POCKET_MIN, mos
     top = float(np.max(b[np.isfinite(b)])) if np.isfinite(b).any() else b_min
     b = np.where(np.isfinite(b), b, 2 * top)      # above every lobe: the best there is
     half = max(1, int(round(math.log1p(POCKET_BAND) / math.log(n[1] / n[0]))))
+    from scipy.ndimage import minimum_filter1d     # scipy on first use: a daemon start need not pay it
     w = minimum_filter1d(b, 2 * half + 1, mode="nearest")
     i = np.flatnonzero((w[1:-1] > w[:-2]) & (w[1:-1] >= w[2:])) + 1
     peaks = sorted(((float(n[j]), float(w[j])) for j in i if w[j] >= least * b_min), key=lambda p: -p[1])

@@ -28,8 +28,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize
-from scipy.special import log_ndtr
 
 from lathed.analysis.cuts import Cuts
 from lathed.analysis.modal import Mode
@@ -109,6 +107,7 @@ class Likelihood:
         self.evaluations += 1
         b, fp = model.limit(self.cuts.rpm, self.cap)
         b = np.minimum(b, self.cap)
+        from scipy.special import log_ndtr     # scipy on first use: a daemon start need not pay it
         out = -log_ndtr(self.sign * np.log(self.d / b) / sigma)
         if self.has_f.any():
             fpp, fm = fp[self.has_f], self.fm[self.has_f]
@@ -181,6 +180,7 @@ def maximise(lik: Likelihood, model: StabilityModel, sigma: float = SIGMA_START,
         return lik(m, s) + 0.5 * (math.log(s / SIGMA_PRIOR[0]) / SIGMA_PRIOR[1]) ** 2
     x0, st = v.x0, step * v.steps()
     simplex = np.vstack([x0] + [x0 + st[i] * np.eye(len(x0))[i] for i in range(len(x0))])
+    from scipy.optimize import minimize
     r = minimize(cost, x0, method="Nelder-Mead",
                  options={"initial_simplex": simplex, "xatol": tolerance, "fatol": 0.02,
                           "maxfev": max_evaluations or 150 * len(x0)})
