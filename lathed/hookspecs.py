@@ -54,5 +54,5 @@ def lathed_thermal_candidates() -> list[Any]:
 @hookspec
 def lathed_event_kinds() -> list[str]:
     """Kinds of event this plugin's drivers and analyzers record beyond lathed's own
-    (``lathed.store.KINDS``): ``lathectl events --kind`` and event subscriptions take
+    (``lathed.schema.KINDS``): ``lathectl events --kind`` and event subscriptions take
     them before the first is recorded, and refuse a misspelt one."""
