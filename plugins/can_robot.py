@@ -1,32 +1,10 @@
 """A robot arm over CAN (python-can), frames decoded from a DBC file with cantools.
 
-    [machine.robot]
-    plugin = "can_robot"
-    interface = "slcan"             # any python-can interface: socketcan, slcan, pcan, virtual...
-    channel = "/dev/ttyACM1"        # its channel: can0, a serial port for slcan, a virtual bus name
-    bitrate = 500000                # optional; set on adapters that need it (slcan, pcan)
-    dbc = "robot_arm.dbc"           # frame layout; relative paths are from this config file
-    timeout = "1s"                  # no frame for this long: the bus is re-opened
-    stale_after = "1s"              # a value older than this is shown as stale
-
-Signals are found by name in whichever frame carries them, so another
-robot's DBC works if it names its signals the same: ``j1_deg`` .. ``j6_deg``
-(joint angles), ``tool_x_mm`` / ``tool_y_mm`` / ``tool_z_mm`` (tool centre
-point), ``state`` (0 idle, 1 running, 2 alarm), ``gripper`` (0 open,
-1 closed, 2 moving), ``alarm_code`` (0: none), ``cycle_count``
-(pick-and-place cycles, 16-bit, wraps) and ``program``. A signal named
-``counter`` in a frame is that frame's rolling 8-bit sequence number: gaps
-are counted as lost frames. The shipped etc/robot_arm.dbc (the simulated
-arm) puts them in four 8-byte frames, standard ids, little-endian, every 50 ms:
-
-    0x100 JointsA  j1_deg, j2_deg, j3_deg  int16 x 0.01 deg | counter u8
-    0x101 JointsB  j4_deg, j5_deg, j6_deg  int16 x 0.01 deg | counter u8
-    0x102 Tool     tool_x_mm, _y_, _z_     int16 x 0.1 mm   | counter u8
-    0x103 Status   state u8, gripper u8, alarm_code u16, cycle_count u16,
-                   program u8, counter u8
-
-Frames of unknown id are counted and ignored; frames that do not decode
-(wrong length, garbage from the adapter) are counted as malformed.
+Signals are found by name in whichever frame carries them (``j1_deg``..``j6_deg``,
+``tool_x_mm``.., ``state``, ``gripper``, ``alarm_code``, ``cycle_count``, ``program``); a
+frame's ``counter`` signal counts lost frames. Unknown ids are counted and ignored, frames
+that do not decode counted as malformed. Keys: docs/configuration.md; the shipped DBC's
+layout: docs/machines.md.
 """
 from __future__ import annotations
 

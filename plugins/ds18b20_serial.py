@@ -1,48 +1,8 @@
-"""DS18B20 temperatures from an Arduino over a serial line (format: lathed.wire).
+"""DS18B20 temperatures from an Arduino over a serial line (the line format: lathed.wire).
 
-    [sensor.temps]
-    plugin = "ds18b20_serial"
-    port = "/dev/ttyACM0"
-    baudrate = 115200
-    stale_after = "20s"     # a sensor with no valid reading for this long is stale;
-                            # no valid reading from any: the port is re-opened
-    checksum = "any"        # "crc16": refuse lines with the legacy 8-bit XOR
-    sensors = ["front_bearing", "rear_bearing", "motor", "room"]
-                            # optional: the names expected; any other is refused as unknown_sensor
-    max_sensors = 32        # without a list: names learned, at most this many at once
-    forget_after = "10min"  # a name with no valid reading for this long is forgotten
-
-The Arduino sends one line per read cycle of all its sensors, every 6 s:
-
-    T,<seq>,<uptime_ms>,<name>=<celsius>[,<name>=<celsius>...]*<CCCC>\\r\\n
-
-``seq`` counts read cycles since the Arduino booted, ``CCCC`` is the
-CRC-16 of every byte from ``T`` up to ``*`` in hex (two hex digits: the
-legacy XOR, accepted unless ``checksum = "crc16"``). Each sensor name
-(1-24 of ``A-Za-z0-9_``) becomes a quantity ``t_<name>`` in °C, which the
-framework checks for plausibility (range, rate: lathed.plausible) before it
-reaches the bus.
-
-What is rejected, and counted by reason in ``lathectl status``:
-``power_on_85`` (the DS18B20's 85.0 before its first conversion),
-``disconnected_-127`` (its reading when the wire is off), ``out_of_range``
-(outside the part's -55..125 °C), ``malformed`` (no checksum, bad checksum,
-bad fields, over-long garbage), ``weak_checksum`` (an XOR line when CRC-16
-is required), ``bad_name``, ``unknown_sensor`` (not in ``sensors``),
-``too_many_sensors`` (a new name beyond ``max_sensors``), ``duplicate`` (the
-same line, same seq and uptime, again), ``implausible`` (refused by the
-plausibility check).
-
-The sequence state recovers by itself: ``arduino_restarted`` counts the times
-its uptime went back (a reboot); ``resync`` the times seq went back while
-uptime went on (a board swap) or jumped further than the line could have
-carried lines in the uptime elapsed (a corrupted line): the new numbering
-is taken, nothing is locked out. ``lost_lines`` counts the plausible gaps in
-seq (lines sent while nobody listened, also across a reconnect). After a
-reconnect the first line is taken whatever its seq (no duplicate, no resync). A sensor that stops giving valid readings goes stale (its last
-value kept, marked stale) and is forgotten after ``forget_after``; when
-none gives one for ``stale_after`` or the port disappears (USB cable
-pulled), the port is closed and re-opened with backoff until it is back.
+Each sensor becomes a ``t_<name>`` quantity in °C; bad lines and readings are refused and
+counted by reason, the sequence resyncs by itself, and a silent port is re-opened with
+backoff. Keys: docs/configuration.md; behaviour: docs/machines.md.
 """
 from __future__ import annotations
 

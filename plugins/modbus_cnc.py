@@ -1,76 +1,11 @@
-"""CNC machines (lathe, mill, grinder) over Modbus TCP or RTU, register map in the config.
+"""CNC machines (lathe, mill, grinder) over Modbus TCP or RTU, the register map in the config.
 
-    [machine.lathe]
-    plugin = "modbus_cnc"
-    kind = "lathe"                  # lathe | mill | grinder
-    transport = "tcp"               # tcp: host, port | rtu: device, baudrate, parity, stopbits
-    host = "127.0.0.1"
-    port = 502
-    unit = 1                        # Modbus unit (device) id
-    poll = "100ms"                  # how often registers without their own poll are read
-    timeout = "1s"
-    stale_after = "2s"              # a value older than this is shown as stale
-
-    [machine.lathe.registers]
-    spindle_rpm = { address = 2, type = "float32", unit = "r/min" }
-    spindle_rpm_cmd = { address = 0, type = "float32", writable = true }
-    part_count = { address = 12, type = "int32", poll = "1s" }
-
-For RTU (RS-485): ``transport = "rtu"``, ``device = "/dev/ttyUSB0"``,
-``baudrate`` (19200), ``parity`` ("N" | "E" | "O"), ``stopbits`` (1 | 2).
-Several machines on one RS-485 bus name the same ``device``, each with its
-own ``unit``: they share one open port and take turns on it, one request
-at a time (the bus is half duplex; two clients on one adapter would read
-each other's answers). Their serial settings must agree. A machine that
-stops answering costs the others its ``timeout`` per try, and the
-supervisor's backoff spaces its tries out.
-
-A register entry: ``address`` (0-65535, holding registers), ``type`` (int16 |
-uint16 | int32 | uint32 | float32), ``word_order`` ("big": high word first,
-or "little"), ``scale`` (value = raw * scale), ``unit`` (one lathed.plausible knows, which sets
-its plausible bounds, or any with min and max in ``[machine.lathe.plausible]``), ``writable``
-(default false; only for the registers lathed writes, below), ``poll`` (its own read period; registers with the same
-period are read together, in as few requests as the protocol allows),
-``read_on`` (``["chatter.cutting", "chatter.cut_contact"]``: read it at once
-as well whenever one of these ``source.quantity`` samples says 1 on the bus;
-the spindle load at the chip's entry, which the vibration sees a fraction of
-a revolution in, instead of up to a poll later).
-
-A machine lathed writes to names where its control serves its serial number, which is
-read at every connect and compared with ``[machine.lathe.identification] serial_number``
-before anything is written (docs/safety.md)::
-
-    [machine.lathe.identity]
-    serial_number = { address = 36, words = 8 }   # ASCII, two characters a register
-
-Commands write only to registers declared writable, and only commands the
-supervisor passed through the safety guard reach ``execute``: the
-``spindle_rpm`` action writes ``spindle_rpm_cmd``, ``offset_x_um`` writes
-``offset_x_um``; nothing else is ever written.  A control that takes the speed
-only as an override maps ``spindle_override_pct`` writable and
-``spindle_rpm_cmd`` read-only: ``spindle_rpm`` is then written as a percentage
-of the programmed speed (``override_step_pct``, ``override_min_pct``,
-``override_max_pct``), rounded towards the present override, and ``released``
-gives the speed that puts it back to 100 % when the analysis is done (only an
-override lathed wrote and still finds there: one the operator has moved since is
-theirs).
-
-An override holds beyond the daemon: one lathed wrote is released when the
-daemon stops (``Supervisor.stop``), and for a daemon that dies or loses the
-link, a writable ``heartbeat`` register is written with a counter (1..32767)
-every ``heartbeat_every`` (500 ms), the one write no command asks for: it
-moves nothing. The control's PMC puts its external override back to 100 %
-when the count stops changing (the simulated control after 1.5 s).
-
-The machine model (lathed.machine) is filled from registers by name:
-``spindle_rpm``, ``part_count``, ``cycle_time_s``, ``program_number``
-(program), ``program_state`` (0 idle, 1 running, 2 alarm), ``alarm_code``
-(0: none), and ``<axis>_mm`` / ``<axis>_deg`` for axis positions (x_mm, b_deg).
-
-Every value read passes the framework's plausibility check (lathed.plausible,
-``[machine.lathe.plausible]``) before it reaches the model, the bus or
-``current()``: a float32 NaN, or a speed outside 0..100000 r/min, is refused
-and counted, and the register's last good value goes stale.
+Registers are polled by period (``read_on`` reads one at once on a bus trigger); machines on
+one RS-485 bus share one port and take turns. Only registers declared writable are written,
+only by commands the safety guard passed, and only to a control whose serial number
+(``[machine.X.identity]``) matches ``[identification]``. The CNC's commands and interlocks
+(override as speed, release, threading) are lathed.cnc's. Keys: docs/configuration.md;
+behaviour, heartbeat and overrides: docs/machines.md.
 """
 from __future__ import annotations
 

@@ -1,42 +1,9 @@
 """CNC machines that report over MTConnect (read-only): an agent's HTTP interface.
 
-    [machine.lathe2]
-    plugin = "mtconnect"
-    kind = "lathe"                     # lathe | mill | grinder
-    url = "http://10.0.4.21:8082"      # the agent (Haas NGC, Okuma, Mazak and DMG Mori ship one)
-    device = "Haas-ST10"               # where the agent serves several devices (default: all)
-    poll = "100ms"                     # how often new observations are asked for
-    timeout = "1s"
-    stale_after = "2s"
-
-    [machine.lathe2.items]             # lathed's name = the agent's dataItemId (its /probe lists them)
-    spindle_rpm = "Sspeed"             # ROTARY_VELOCITY, REVOLUTION/MINUTE
-    spindle_load_pct = "Sload"         # LOAD, PERCENT: the chatter analyzer's "load" cut source
-    program_state = "execution"        # EXECUTION: ACTIVE is running (1), anything else idle (0)
-    alarm_code = "system"              # a CONDITION: Fault is an alarm (its nativeCode, else 1)
-    part_count = "part_count"
-    tool_number = "tool"
-    x_mm = "Xpos"
-
-MTConnect is read-only, so such a machine takes no commands: chatter detection,
-part records and thermal prediction run on it, and a speed or offset asked of it
-is refused by the supervisor ("does not take 'spindle_rpm'").
-
-At connect the driver reads ``/probe`` and refuses a map naming an item the
-device lacks, or one whose units are not lathed's (a speed not in
-REVOLUTION/MINUTE, a position not in MILLIMETER, a load not in PERCENT). It then
-reads ``/current`` and, every ``poll``, ``/sample?from=N``: every observation
-since the last, in the agent's sequence order, so a value that changed and
-changed back between two polls is still seen; a value the agent does not
-observe again (it reports changes only) still holds, and is published again at
-each poll, as a Modbus register read again is.  An agent that restarted (a new
-``instanceId``) or a client that fell out of the agent's buffer (OUT_OF_RANGE)
-starts again from ``/current``, and the gap is recorded (``mtconnect_gap``),
-never skipped silently.  An UNAVAILABLE value is not published; the last one
-goes stale.  A value is stamped with its arrival less its age at the agent
-(the document's creationTime less the observation's timestamp): the spacing of
-the observations is the agent's, the clock this PC's, which the agent's may not
-match.
+``[machine.X.items]`` maps lathed's names to the agent's dataItemIds, checked against
+``/probe`` at connect; then every observation from ``/sample`` in the agent's order, an
+agent restart or buffer overrun recorded as ``mtconnect_gap``. It takes no commands.
+Keys: docs/configuration.md; behaviour: docs/machines.md.
 """
 from __future__ import annotations
 

@@ -1,38 +1,9 @@
 """CNC machines through their control's own OPC UA server; the node map in the config.
 
-    [machine.lathe]
-    plugin = "opcua_cnc"
-    kind = "lathe"                          # lathe | mill | grinder
-    url = "opc.tcp://cnc.plant.local:4840"
-    security = "SignAndEncrypt"             # Sign | SignAndEncrypt (None: loopback only)
-    policy = "Basic256Sha256"               # | Aes128Sha256RsaOaep | Aes256Sha256RsaPss
-    certificate = "pki/lathed-cert.der"     # lathed's application certificate and its key
-    private_key = "pki/lathed-key.pem"
-    server_certificate = "pki/cnc.der"      # the control's: the one certificate trusted for it
-    username = "lathed"                     # and password_file (its first line, mode 0600),
-    password_file = "pki/lathed.pass"       # or user_certificate and user_private_key
-    publish_interval = "100ms"              # the subscription's; keepalive = "500ms"
-    stale_after = "2s"                      # no publish (data or keep-alive) for this long: stale
-
-    [machine.lathe.namespaces]              # aliases of namespace URIs (mt, di, machinery built in)
-    cnc = "urn:vendor:cnc"
-
-    [machine.lathe.nodes]
-    spindle_rpm = { node = "ns=cnc;s=/Channel/Spindle/actSpeed", unit = "r/min" }
-    spindle_rpm_cmd = { node = "ns=cnc;s=/Channel/Spindle/cmdSpeed", unit = "r/min", writable = true }
-    offset_x_um = { node = "ns=cnc;s=/Tool/wearX", unit = "µm", writable = true,
-                    method = "ns=cnc;s=/Tool/SetWearX", object = "ns=cnc;s=/Tool" }
-    spindle_override_pct = { path = "mt:Monitoring/mt:Spindle/mt:Override", unit = "%" }   # from root
-    serial_number = { node = "ns=cnc;s=/Machine/SerialNumber" }     # checked against [identification]
-
-Every mapped value is read by one subscription (never polled): each publish the server sends
-is taken as a poll's frame (every value, one stamp); a keep-alive confirms the values held.
-No publish within ``stale_after`` (a hung server, a cut cable): the values go stale and the
-link is dropped and opened again (the supervisor's backoff), subscriptions made anew. The
-values and the commands are those of modbus_cnc (lathed.cnc): ``spindle_rpm_cmd`` or the
-override written for the speed, ``offset_x_um``, a ``heartbeat`` node, the ``threading``
-interlock (asked again as each command is written). Before the first command the control's
-nameplate nodes must match ``[machine.NAME.identification]``. docs/machines.md: OPC UA.
+Every mapped value is read by one subscription (each publish a frame; a keep-alive confirms
+them; none within ``stale_after``: stale, the link reopened). Commands and interlocks are
+lathed.cnc's, as for modbus_cnc; the nameplate nodes must match ``[identification]`` before
+the first command. Keys: docs/configuration.md; behaviour and security: docs/machines.md.
 """
 from __future__ import annotations
 

@@ -1,26 +1,10 @@
 """Store-and-forward of every record to one central PostgreSQL database.
 
-    [analyzer.central]
-    plugin = "postgres_sink"
-    dsn = "host=db.plant port=5432 dbname=lathed user=lathed"
-    batch = 500              # records per PostgreSQL transaction
-    interval = "1s"          # how often to look for new records when caught up
-    timeout = "30s"          # a statement that takes longer counts as an outage
-
-Records are committed to the local SQLite store first; this sink forwards
-them in outbox order. Each row keeps the daemon's identity and its uuid, the
-central tables' primary key, and is inserted with ON CONFLICT DO NOTHING: a
-batch resent after a crash between the central commit and the local progress
-update is not duplicated. Progress (forwarded up to outbox id N) lives in
-SQLite, so it survives restarts. When PostgreSQL is down, ``run()`` raises;
-the supervisor retries with backoff while records wait locally.
-
-A row the server refuses for its content (a NUL character in a text, a
-value out of a column's range) would stop every row behind it. Such a batch
-is sent again row by row, each in a savepoint: the refused rows are set
-aside in the local ``forward_refused`` table, recorded as a
-``forward_refused`` event with the server's reason, counted in the status,
-and the rest goes on. The rows themselves stay in the local store.
+Records are committed locally first and forwarded in outbox order with ON CONFLICT DO
+NOTHING on (daemon identity, uuid), so a batch resent after a crash is not duplicated; the
+progress lives in SQLite. A batch the server refuses for its content is sent again row by
+row, each in a savepoint: refused rows are set aside in ``forward_refused`` and recorded,
+the rest goes on. Keys: docs/configuration.md; behaviour: docs/records.md.
 """
 from __future__ import annotations
 
