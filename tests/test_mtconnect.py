@@ -186,7 +186,11 @@ def test_a_lathe_read_over_mtconnect_raises_chatter_alarms_and_flags_parts_live(
         d.wait_ready()
         alarms = wait_until(lambda: events(d, "chatter_alarm"), timeout=60, interval=0.2, what="a chatter alarm")
         p = alarms[0]["payload"]
-        assert p["machine"] == "mt" and p["cut_seen_by"] in ("load", "vibration") and p["load_pct"] > 20
+        assert p["machine"] == "mt" and p["cut_seen_by"] in ("load", "vibration")
+        # the load the agent reports reaches the analyzer: an alarm within a revolution or two of
+        # the chip's entry may come before the agent's next observation of it (100 ms), a later one not
+        wait_until(lambda: [a for a in events(d, "chatter_alarm") if a["payload"]["load_pct"] > 20], timeout=60,
+                   interval=0.3, what="an alarm with the cut's spindle load read over MTConnect")
         assert p["tool_number"] == 1 and round(p["rpm"]) == 2000
         wait_until(lambda: sim_call(paths["sim"], "status")["part"] >= 3, timeout=60, interval=0.3,
                    what="three parts")
