@@ -1,119 +1,6 @@
-"""Chatter suppression: on a chatter alarm, change the spindle speed (numeric core:
-lathed.analysis.speed_selection, lathed.analysis.speed_variation).
-
-    [analyzer.suppress]
-    plugin = "suppression"
-    chatter = "chatter"          # the chatter analyzer it listens to
-    machine = "lathe"            # the machine it commands (through the safety guard)
-    mode = "auto"                # auto: act on alarms | manual: operator acts | off
-    strategy = "lobes"           # lobes | frequency | rated | variation
-    rated_rpm = 750.0            # the paper's rule; also the fallback of lobes/frequency
-    modes = ["190,0.03,7.5e7,0"] # modal model FN,ZETA,K[,THETA] (a tap test); needed by "lobes"
-    kf = 2.0e9                   # cutting coefficient along the chip thickness, N/m²
-    kt = 1.5e9                   # tangential coefficient (spindle torque), N/m²
-    diameter_mm = 30.0           # workpiece diameter, for torque and removal rate
-    x_axis = "radius"            # the x_mm register is the tool tip's radius (or "diameter"):
-                                 # the part's diameter read from it at every poll (default off: diameter_mm)
-    max_rpm = 6000.0             # the spindle's envelope (min_rpm 100, below it)
-    max_speed_ratio = 1.3        # never more than this times the programmed speed (tool life)
-    peak_torque_nm = 35.8
-    base_rpm = 1500.0            # torque flat up to here, constant power above; at most max_rpm
-    accel_rpm_s = 3000.0
-    settle_revs = 20.0           # revolutions at a new speed before judging again
-    avoid = false                # also act at cut entry when the lobes predict chatter (strategy lobes)
-    remember = true              # give a pass entering at a speed it chattered at the speed that cured it
-    when_no_stable_speed = "hold" # lobes: every speed within reach chatters at this depth -> hold | move
-    ssv = "sine"                 # variation: sine | triangle | square
-    ssv_amplitude = 0.1          # variation: amplitude / mean speed
-    ssv_period = "500ms"
-    tool = "T0101"               # the set-up the modal model is for: recorded with every cut
-    tool_number = 1              # its turret position (the machine's tool_number register); optional
-    material = "C45"
-    depth_mm = 1.2               # the programmed depth of cut, when the machine reports none
-
-Every action is recorded as ``suppression_action`` with its critical values
-(index and threshold, chatter frequency, speed before and after, strategy,
-whether the guard let it through). ``lathectl suppress auto|manual|off``
-changes the mode; ``lathectl suppress now`` acts on the present chatter
-(manual mode). Policy: see SuppressionPolicy (never oscillates).
-
-When the lobes (the cut's model: configured or adopted) say that every speed
-within reach chatters at the cut's depth (b_lim below the depth at each), a
-move would only trade one chatter for another.  With ``when_no_stable_speed
-= "hold"`` (the default) the speed is kept, no command is sent, and
-``suppression_advice`` is recorded once for the cut: the depth, the model's
-limit here and at the best speed within reach, and the cure (a cut below the
-depth the lobe rule calls stable here, or a stiffer set-up).  Where some
-speed's limit is above the depth but not by the 1.15 margin, it still moves
-there (most such moves cure the cut).  The chatter goes on, so the part is
-flagged as any chattering part is.  "move" keeps the paper's behaviour (the
-most stable speed, then the rated speed): for a model one suspects of being
-pessimistic, or to gather cuts at other speeds for a refit.  Holding needs
-the depth: with none known (no register, no spindle-load estimate yet, no
-``depth_mm``) the lobes cannot say that every speed chatters, and
-suppression moves as before.
-
-The depth the lobes need comes from a depth_of_cut_mm register where the
-machine has one, else from the spindle load (spindle_load_pct: the cutting
-torque over the no-chip load, Kt * b * feed * D/2 = torque, solved for b;
-it needs kt, peak_torque_nm, diameter_mm and the feed register right),
-else the programmed ``depth_mm``.
-
-With ``avoid = true`` the lobes are also used before any alarm: when a cut
-starts at a depth the lobes call unstable at the programmed speed (the same
-rule the lobes strategy picks speeds by: the worst b_lim within +-3 % of
-the speed under 1.15 x depth), the speed is changed at once, through the
-same policy and guard, and recorded with ``trigger = "predicted"``. A cut
-unstable from entry grows its chatter from the first revolution, and a
-detector that learns its baseline on that cut sees it only once it has
-grown; the model sees it before. Off by default: it trusts the modal model
-(a tap test) to move speeds no alarm has asked for.
-
-With ``remember = true`` (any strategy) the cures are remembered
-(lathed.analysis.cures): when a pass chattered at the speed it entered at
-and suppression cured it at another, the next pass entering within 2 % of
-that speed, at least 0.9 x as deep, with the configured tool and material
-and the same tool number where the machine reports one (``tool_number``),
-is moved to the cure as soon as its depth is measured (the depth register,
-else the spindle load's estimate: a programmed depth_mm is not evidence),
-through the same policy and guard, recorded with ``trigger =
-"remembered"``.  A cure that chatters anyway is dropped and the one found
-after it remembered.  The memory is rebuilt from the store's newest cut
-records at start; ``lathectl suppress forget`` (operator) clears it, for a new tool or
-set-up, and the clearing is recorded so a restart does not bring it back.
-
-Every cut (entry to exit) leaves a ``cut`` record (lathed.analysis.cut_log):
-the set-up, depth and feed, each speed it turned at with its verdict, the
-first alarm (time, revolution, chatter frequency), the actions and whether
-the cut ended cured.  ``lathectl cuts`` lists them, ``--csv`` exports them
-for ``lathectl analyze stability``.  The depth is the machine's
-depth_of_cut_mm register, else the deepest the spindle load showed during
-the cut (``depth_from = "spindle load"``; the estimate is also published as
-``depth_est_mm``, which the parts' records take), else the programmed ``depth_mm``,
-else unknown (null): such cuts are recorded but the refit cannot use them
-(it says how many it left out).
-
-A turret holds tools of other dynamics than the one the tap test measured.
-With ``tool_number`` set and the machine reporting its ``tool_number``
-register, a cut with another tool is not judged by the lobes: no prediction
-at entry (``avoid``), no hold with advice, and a chatter alarm is answered
-model-free (the ``frequency`` strategy, the rated speed as its fallback);
-its actions and cut record say ``model = null``, and the refit leaves it
-out.  Without ``tool_number`` (or without the register) the model is taken
-for every tool, as before.
-
-``lathectl stability refit`` refits the modal model on this machine's
-recorded cuts (lathed.analysis.stability.refit) and adopts the result only
-when it classifies the held-out cuts better: saved as a new version
-(lathed.analysis.stability.files), recorded as ``stability_model_adopted``,
-and from then on (also after a restart) the lobes of speed selection and of
-cut-entry avoidance are the adopted model's.  A refit that adds nothing is
-recorded as ``stability_refit_not_adopted`` with the reason.
-
-With strategy "lobes" and no ``modes`` the model is learned from these cut
-records (lathed_plugins.stability_learning; docs/stability.md): model-free
-until a learn is trusted, then its lobes.
-"""
+"""Chatter suppression: on a chatter alarm, change the spindle speed through the safety guard.
+The strategies are in suppression_strategies.py, the stability model's refits in
+suppression_models.py. Behaviour: docs/chatter.md; keys: docs/configuration.md."""
 from __future__ import annotations
 
 import asyncio
@@ -126,30 +13,27 @@ import numpy as np
 
 from lathed import hookimpl
 from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
-from lathed.analysis.cut_log import CutTracker, cut_rows
+from lathed.analysis.cut_log import CutTracker
 from lathed.analysis.modal import parse_mode
-from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
-                                             LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
-                                             VariationSelection, lobe_grid, lobe_policy, model_free_policy, reach)
-from lathed.analysis.speed_variation import KINDS, SpeedVariation, ramp_time_s
-from lathed.analysis.stability import StabilityModel, refit
-from lathed.analysis.stability import files as stability_files
+from lathed.analysis.speed_selection import Advice, Cut, Decision, LobeSelection, SpindleLimits, SuppressionPolicy, lobe_grid
+from lathed.analysis.speed_variation import ramp_time_s
+from lathed.analysis.stability import StabilityModel
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
-from lathed.control import RequestError, offload
+from lathed.control import RequestError
 from lathed.display import rounded
 from lathed_plugins.stability_learning import LearnedStability
+from lathed_plugins.suppression_models import ModelRefits, left_out, setup_rows
+from lathed_plugins.suppression_strategies import STRATEGIES, check_keys
 
 LOBE_POINTS = 600      # points of the lobe chart sent to a screen
 LOBE_CAP_MM = 20.0
 
 MODES = ("auto", "manual", "off")
-STRATEGIES = ("lobes", "frequency", "rated", "variation")
-SSV_STEP_S = 0.05     # speed commands while modulating
 MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
 MEMORY_RECORDS = 5000     # cut records the remembered cures are rebuilt from at start: the newest
 FOLLOW_SLACK_S = 1.0      # a commanded speed not reached within the ramp and this: the CNC did not follow
@@ -164,8 +48,8 @@ class SuppressionAnalyzer(Analyzer):
         self.chatter = section.getstr("chatter")
         self.machine = section.getstr("machine")
         self.mode = section.getstr("mode", "auto", choices=MODES)
-        self.strategy_name = section.getstr("strategy", "frequency", choices=STRATEGIES)
-        self.rated_rpm = section.getfloat("rated_rpm", 750.0, above=0)
+        kind = STRATEGIES[section.getstr("strategy", "frequency", choices=tuple(STRATEGIES))]
+        check_keys(section, kind)
         texts = section.getlist("modes", [])
         try:
             modes = tuple(parse_mode(t) for t in texts)
@@ -196,24 +80,8 @@ class SuppressionAnalyzer(Analyzer):
                                             "torque) has base_rpm = max_rpm")
         self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
         self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
-        self.avoid = section.getbool("avoid", False)
+        self.strategy = kind(section, self.limits, self.max_speed_ratio, self.settle_revs)
         self.remember = section.getbool("remember", True)
-        self.when_no_stable_speed = section.getstr("when_no_stable_speed", "hold", choices=WHEN_NO_STABLE_SPEED)
-        try:
-            self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
-                                            section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
-                                            section.getduration("ssv_period", 0.5, minval=0.05, maxval=60),
-                                            self.limits.accel_rpm_per_s)
-        except ValueError as e:
-            raise section.error("ssv", str(e)) from None
-        if self.strategy_name == "variation" and self.variation.amplitude_ratio > self.max_speed_ratio - 1:
-            # its swing would pass the speed cap at every alarm: refused there, so refuse it here
-            raise section.error("ssv_amplitude", f"{self.variation.amplitude_ratio:g} swings the speed above "
-                                f"max_speed_ratio = {self.max_speed_ratio:g} x the programmed speed")
-        # strategy "lobes" without a tap test: the model is learned from the cut records
-        self.learning = self.strategy_name == "lobes" and not modes
-        if self.avoid and self.strategy_name != "lobes":
-            raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
         self.tool = section.getstr("tool", "")
         # the turret position the modal model was measured at: other tools' cuts are not its
         self.tool_number: int | None = section.getint("tool_number", None, minval=0, maxval=9999)
@@ -222,12 +90,13 @@ class SuppressionAnalyzer(Analyzer):
         # the tap test's model; the lobes in use are it or the adopted refit of it, or a learned one
         self.configured = StabilityModel(modes, kf) if modes else None
         self.lobes = self.configured
+        self.grid = None    # the lobes over the spindle's range, computed once at start
         self.model_name = "configured" if modes else "none"
+        self.learning = self.strategy.learns and not modes     # lobes without a tap test
         self.learned = LearnedStability(self, kf) if self.learning else None
+        self.refits = ModelRefits(self)
         self.policy_model = self.model_name   # the model the running cut's policy was built with
         self._models_loaded = False
-        self._refitting = False
-        self.last_refit: dict | None = None
         self.cut = CutTracker(self.machine, self.tool, self.material)
         self.memory = CureMemory(self.tool, self.material)
         self._memory_loaded = False
@@ -239,7 +108,6 @@ class SuppressionAnalyzer(Analyzer):
         self.held_back: str | None = None      # the machine's interlock refused this cut's speed (a thread)
         self._shallower_since: float | None = None   # the cut held with advice is shallower since
         self.cuts_recorded = 0
-        self.grid = None    # the lobes over the spindle's range, computed once at start
         self._lobe_view = None
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
@@ -249,7 +117,6 @@ class SuppressionAnalyzer(Analyzer):
         self._avoided: set[str] = set()
         self.feed_mm = 0.3
         self.rpm: float | None = None
-        self.part_count: float | None = None
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
         self.actions = 0                       # a count: the records keep every action
         self.last_action: dict | None = None
@@ -258,9 +125,9 @@ class SuppressionAnalyzer(Analyzer):
         self.last_was_advice = False     # which of last_action / last_advice came last (for a screen)
         self.pending: Decision | None = None
         self.pending_trigger = "alarm"
-        self._ssv_task: asyncio.Task | None = None
         self.alarm_wall_t: float | None = None
         self.latency_ms: list[float] = []
+
 
     def inputs(self) -> list[str]:
         return [self.machine]
@@ -293,26 +160,11 @@ class SuppressionAnalyzer(Analyzer):
         return self.tool_number is None or self.cut.tool_number in (None, self.tool_number)
 
     def _policy(self) -> SuppressionPolicy:
-        cut = self._cut()
         # a cut keeps the lobes it started with: an adoption mid-cut applies from the next cut;
         # another turret tool's cut has none (its dynamics are not the tap test's)
         lobes = self.lobes if self._model_applies() else None
         self.policy_model = self.model_name if lobes is not None else None
-        if self.strategy_name == "lobes" and lobes is not None:
-            # with no depth known the lobes cannot say that every speed chatters: no hold
-            hold = self.when_no_stable_speed if self._depth_known_mm() is not None else "move"
-            return lobe_policy(self.lobes, cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
-                               grid=self.grid, settle_revs=self.settle_revs, when_no_stable_speed=hold)
-        if self.strategy_name == "lobes":      # another turret tool; no model learned yet
-            return model_free_policy(cut, self.limits, self.rpm, self.max_speed_ratio, self.rated_rpm,
-                                     self.settle_revs)
-        limits = reach(self.limits, self.rpm, self.max_speed_ratio)
-        rated = RatedSpeed(self.rated_rpm, lobes, cut, limits=limits)
-        strategy = {"frequency": lambda: FrequencySelection(limits, cut),
-                    "rated": lambda: rated,
-                    "variation": lambda: VariationSelection(self.variation)}[self.strategy_name]()
-        fallback = None if self.strategy_name in ("rated", "variation") else rated
-        return SuppressionPolicy(strategy, limits, fallback=fallback, settle_revs=self.settle_revs)
+        return self.strategy.policy(self._cut(), self.rpm, lobes, self.grid, self._depth_known_mm() is not None)
 
     # -- running -----------------------------------------------------------------
     async def run(self) -> None:
@@ -344,7 +196,7 @@ class SuppressionAnalyzer(Analyzer):
             raise
         finally:
             self.ctx.bus.unsubscribe(sub)
-            self._stop_ssv()
+            self.strategy.stop()
             # a cut the daemon stops in is evidence too, up to now: recorded, never lost
             self._cut_ended(time.time(), ended=ended)
             if self.learned is not None:
@@ -380,7 +232,7 @@ class SuppressionAnalyzer(Analyzer):
                 # the parts' records take it (lathed.records.PartTracker): a real CNC has no depth register
                 self.ctx.bus.publish(Sample(self.name, "depth_est_mm", est, "mm", s.t))
             # est None: no chip yet (a cut the cutting-feed signal started in air)
-            if self.avoid and self.in_cut and self.depth_from == "spindle load" and est is not None \
+            if self.strategy.avoid and self.in_cut and self.depth_from == "spindle load" and est is not None \
                     and not self._avoided:
                 self._avoided.add("load")
                 await self._avoid()
@@ -415,18 +267,9 @@ class SuppressionAnalyzer(Analyzer):
         return round(mm, 3)
 
     def _depth_changed(self) -> None:
-        """The depth became known, or changed, within a cut: its policy goes on (bans, budget, the
-        lobes it began with) with that depth."""
-        p = self.policy
-        if p is None or not self.in_cut:
-            return
-        cut = self._cut()
-        for attr in ("strategy", "fallback"):
-            strategy = getattr(p, attr)
-            if getattr(strategy, "cut", None) is not None:
-                setattr(p, attr, replace(strategy, cut=cut))
-        if self.strategy_name == "lobes" and self.policy_model is not None:
-            p.when_no_stable_speed = self.when_no_stable_speed
+        """The depth became known, or changed, within a cut: its policy goes on with it."""
+        if self.policy is not None and self.in_cut:
+            self.strategy.depth_changed(self.policy, self._cut(), self.policy_model is not None)
 
     def _shallower(self, t: float | None) -> None:
         """A cut held with advice (every speed within reach chatters at its depth) that has been
@@ -462,7 +305,7 @@ class SuppressionAnalyzer(Analyzer):
             self.pending = None
             self.held_back = None
             self._cut_started(time.time() if t is None else t)
-        if self.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
+        if self.strategy.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
             await self._avoid()
         if self.remember and self.in_cut:
@@ -470,7 +313,7 @@ class SuppressionAnalyzer(Analyzer):
         if was and not self.in_cut:
             self._follow, self._follow_told = None, False    # the program sets the next pass's speed
             self._cut_ended(time.time() if t is None else t)
-            self._stop_ssv()
+            self.strategy.stop()
             if self._commanded:
                 # a speed written as an override holds part after part: back to the program's
                 # (through the guard; nothing to do where the next S word takes over)
@@ -556,7 +399,7 @@ class SuppressionAnalyzer(Analyzer):
             return
         await self._decided(taken, REMEMBERED)
 
-    # -- the stability model: adopted refits ---------------------------------------------
+    # -- the stability model (refits: suppression_models.py) ----------------------------
     @property
     def models_dir(self):
         return self.ctx.store.path.parent / "stability-models"
@@ -569,33 +412,7 @@ class SuppressionAnalyzer(Analyzer):
         return {"base": base, **out} if include_base else out
 
     def _load_adopted(self) -> None:
-        """The newest adopted model of this machine, if it was refitted from the model and set-up
-        configured now; a damaged file is said (event) and the previous version tried."""
-        if (self.configured is None and not self.learning) or not self.models_dir.is_dir():
-            return
-        files = stability_files.versions(self.models_dir, self.machine)
-        for i, path in enumerate(reversed(files)):
-            older = files[-2 - i].name if i + 1 < len(files) else "configured"
-            try:
-                model, doc = stability_files.load(path)
-            except ValueError as e:
-                self.ctx.log.error("stability_model_unreadable", file=path.name, error=str(e), using=older)
-                self.ctx.record("stability_model_unreadable", {"machine": self.machine, "file": path.name,
-                                                               "error": str(e), "using": older})
-                continue
-            want = self._setup_json()
-            have = {k: doc.get(k) for k in want}
-            if have != want:
-                what = [k for k in want if have[k] != want[k]]
-                why = (f"{path.name} was refitted from another {' and '.join(what)} than the configuration "
-                       f"gives now (a new tap test or set-up supersedes it)")
-                self.ctx.log.warning("stability_model_superseded", file=path.name, why=why)
-                self.ctx.record("stability_model_superseded", {"machine": self.machine, "file": path.name,
-                                                               "why": why, "using": "configured"})
-                return
-            self.lobes, self.model_name = model, path.name
-            self.ctx.log.info("stability_model_loaded", file=path.name)
-            return
+        self.refits.load_adopted()
 
     def use_model(self, model: StabilityModel | None, grid, name: str) -> None:
         """The lobes from the next cut on (the present cut finishes on the ones it began with)."""
@@ -612,112 +429,21 @@ class SuppressionAnalyzer(Analyzer):
         return [p for r in rows if (p := json.loads(r["payload"])).get("machine") == self.machine]
 
     def _setup_cuts(self, what: str):
-        """This set-up's recorded cuts as the refit's (the newest MAX_REFIT_SPEEDS cut speeds),
-        what was left out and why, and how many records there were (a worker thread)."""
+        """This set-up's recorded cuts (the newest MAX_REFIT_SPEEDS cut speeds), what was left
+        out and why, and how many records there were (a worker thread)."""
         records = self._cut_records()
-        mine = [r for r in records if (r.get("tool"), r.get("material")) == (self.tool or None, self.material or None)]
-        setup = len(mine)
-        if self.tool_number is not None:     # the turret's other tools cut with other dynamics
-            mine = [r for r in mine if r.get("tool_number") in (None, self.tool_number)]
-        cuts, skipped = cut_rows(mine)
-        if setup < len(records):
-            skipped["cuts of another tool or material"] = len(records) - setup
-        if len(mine) < setup:
-            skipped[f"cuts with another turret tool than {self.tool_number}"] = setup - len(mine)
-        left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
+        cuts, skipped = setup_rows(records, self.tool or None, self.material or None, self.tool_number,
+                                   MAX_REFIT_SPEEDS)
         if cuts is None:
             raise RequestError(f"{what}: {len(records)} cut(s) of {self.machine} recorded, none usable "
-                               f"(left out: {left_out})")
-        if len(cuts) > MAX_REFIT_SPEEDS:
-            # the refit's time grows faster than the cuts (3 s on 1,000, 20 s on 3,000); the newest tell most
-            skipped[f"older than the newest {MAX_REFIT_SPEEDS} cut speeds"] = len(cuts) - MAX_REFIT_SPEEDS
-            cuts = cuts.take(np.arange(len(cuts) - MAX_REFIT_SPEEDS, len(cuts)))
+                               f"(left out: {left_out(skipped)})")
         return cuts, skipped, len(records)
 
-    def _refit(self, holdout: float) -> tuple[dict, object]:
-        """The refit of the model in use on this set-up's recorded cuts (a worker thread)."""
-        cuts, skipped, n_records = self._setup_cuts("stability refit")
-        try:
-            r = refit(self.lobes, cuts, holdout_fraction=holdout)
-        except ValueError as e:
-            left_out = "; ".join(f"{n} {why}" for why, n in skipped.items()) or "none"
-            raise RequestError(f"stability refit on {len(cuts)} cut speeds of {self.machine}: {e} "
-                               f"(left out: {left_out})") from None
-        out = {"machine": self.machine, "setup": self._setup_json(include_base=False),
-               "model_before_name": self.model_name, "cut_records": n_records, "left_out": skipped,
-               **r.to_json(), "adopt": bool(r.effects)}
-        out["reason"] = r.conclusion if r.effects else "; ".join([r.conclusion, *r.rejected])
-        return out, r
-
-    def _adopt(self, out: dict, r, by: str | None) -> str:
-        doc = {**self._setup_json(), "machine": self.machine, "model": r.model.to_json(),
-               "refitted_from": self.model_name, "created": time.time(), "by": by,
-               "effects": out["effects"], "before": out["before"], "after": out["after"],
-               "cuts": out["cuts"], "heldout": out["heldout"]}
-        path = stability_files.save(self.models_dir, self.machine, doc)
-        return path.name
-
     async def _stability(self, args: dict) -> dict:
-        a = Args("stability", args)
-        action = a.getstr("action", "status", choices=("status", "refit", "learn"))
-        dry = a.getbool("dry_run", False)
-        holdout = a.getfloat("holdout", 0.3, minval=0.05, maxval=0.9)
-        by = a.getstr("by", None)
-        a.check_unused()
-        if action == "status":
-            return self.stability_status()
-        if action == "learn":
-            if self.learned is None:
-                raise RequestError(f"stability learn: {self.name} has a modal model configured; refit it on the "
-                                   f"cuts instead (lathectl stability refit)")
-            require_operator("stability learn")
-            return await self.learned.learn_requested(by)
-        if not dry:
-            require_operator("stability refit")
-        if self.configured is None:
-            raise RequestError(f"stability refit: {self.name} has no modal model (modes, kf) to refit"
-                               + ("; it learns one from the cut records (lathectl stability learn)"
-                                  if self.learned is not None else ""))
-        if self._refitting:
-            raise RequestError("stability refit: a refit is already running; wait for its result")
-        self._refitting = True
-        try:
-            out, r = await offload(self._refit, holdout)
-            out["dry_run"] = dry
-            if dry:
-                return out
-            if not out["adopt"]:
-                self.ctx.record("stability_refit_not_adopted", {
-                    "machine": self.machine, "model": self.model_name, "reason": out["reason"],
-                    "before": out["before"], "after": out["after"], "cuts": out["cuts"], "by": by})
-                self.last_refit = out
-                return out
-            name = await asyncio.to_thread(self._adopt, out, r, by)
-            model = StabilityModel.from_json(r.model.to_json())     # as the file holds it
-            grid = await asyncio.to_thread(lobe_grid, model, self.limits)
-            before = self.model_name
-            # the next cut's policy takes the new lobes; the present cut finishes on the old
-            self.lobes, self.grid, self.model_name = model, grid, name
-            out["model_after_name"] = name
-            self.ctx.log.warning("stability_model_adopted", file=name, effects=[e["effect"] for e in out["effects"]])
-            self.ctx.record("stability_model_adopted", {
-                "machine": self.machine, "file": name, "model_before": before, "model": out["model_after"],
-                "effects": out["effects"], "before": out["before"], "after": out["after"],
-                "cuts": out["cuts"], "heldout": out["heldout"], "by": by})
-            self.last_refit = out
-            return out
-        finally:
-            self._refitting = False
+        return await self.refits.control(args)
 
     def stability_status(self) -> dict:
-        return {"machine": self.machine, "model": self.model_name,
-                "lobes": None if self.lobes is None else self.lobes.to_json(),
-                "configured": None if self.configured is None else self.configured.to_json(),
-                "tool": self.tool or None, "material": self.material or None,
-                "cuts_recorded": self.cuts_recorded,
-                "learning": None if self.learned is None else self.learned.status(),
-                "last_refit": None if self.last_refit is None else
-                {k: self.last_refit.get(k) for k in ("adopt", "reason", "model_after_name", "dry_run")}}
+        return self.refits.status()
 
     def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
         """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
@@ -826,7 +552,7 @@ class SuppressionAnalyzer(Analyzer):
                 np.asarray(d.variation.profile(0.0, d.rpm_before))), source,
                 reason=f"speed variation ({d.variation.kind})"))
             if result["sent"]:
-                self._start_ssv(d)
+                self.strategy.modulate(d, self._modulated)
                 result = {**result, "reason": "modulating"}
             self._commanded = self._commanded or not result.get("interlock")
         else:
@@ -879,27 +605,15 @@ class SuppressionAnalyzer(Analyzer):
         self.ctx.record("suppression_advice", payload)
         return payload
 
-    # -- spindle speed variation ---------------------------------------------------
-    def _start_ssv(self, d: Decision) -> None:
-        self._stop_ssv()
-        self._ssv_task = asyncio.create_task(self._ssv(d.rpm_before, d.variation))
 
-    def _stop_ssv(self) -> None:
-        if self._ssv_task is not None:
-            self._ssv_task.cancel()
-            self._ssv_task = None
-
-    async def _ssv(self, n0: float, var: SpeedVariation) -> None:
-        t0 = time.monotonic()       # its first speed was written by _act, just now
-        while True:
-            await asyncio.sleep(SSV_STEP_S)
-            n = float(np.asarray(var.profile(time.monotonic() - t0, n0)))
-            self._commanded = True       # as above: a failed write may have reached the control
-            r = await self.ctx.command(Command(self.machine, "spindle_rpm", n, self.name,
-                                               reason=f"speed variation ({var.kind})"))
-            if not r["sent"]:
-                self.ctx.log.warning("ssv_stopped", reason=r["reason"])
-                return
+    async def _modulated(self, rpm: float, kind: str) -> bool:
+        """One speed of a running modulation; False: refused, it stops."""
+        self._commanded = True       # as in _act: a failed write may have reached the control
+        r = await self.ctx.command(Command(self.machine, "spindle_rpm", rpm, self.name,
+                                           reason=f"speed variation ({kind})"))
+        if not r["sent"]:
+            self.ctx.log.warning("ssv_stopped", reason=r["reason"])
+        return r["sent"]
 
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:
@@ -914,7 +628,7 @@ class SuppressionAnalyzer(Analyzer):
             self.ctx.record("suppression_mode", {"machine": self.machine, "from": old, "to": action,
                                                  "by": by})
             if action == "off":
-                self._stop_ssv()
+                self.strategy.stop()
             return self.status()
         if action == "forget":
             n = self.memory.clear()
@@ -956,20 +670,20 @@ class SuppressionAnalyzer(Analyzer):
 
     def status(self) -> dict:
         lat = sorted(self.latency_ms)
-        return {"mode": self.mode, "strategy": self.strategy_name, "machine": self.machine,
+        return {"mode": self.mode, "strategy": self.strategy.name, "machine": self.machine,
                 "model": self.model_name, "model_tool_number": self.tool_number,
                 "cut_tool_number": self.cut.tool_number,
                 "cuts_recorded": self.cuts_recorded, "chatter_alarm": self.chat["alarm"],
                 "pending": None if self.pending is None else self.pending.record(),
                 "actions": self.actions, "last_action": self.last_action, "held_back": self.held_back,
-                "when_no_stable_speed": self.when_no_stable_speed if self.strategy_name == "lobes" else None,
+                "when_no_stable_speed": self.strategy.when_no_stable_speed,
                 "advisories": self.advisories, "last_advice": self.last_advice,
                 "last_was_advice": self.last_was_advice,
                 "alarm_to_write_ms_median": lat[len(lat) // 2] if lat else None,
-                "avoid": self.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
+                "avoid": self.strategy.avoid, "depth_mm": round(self.depth_mm, 3), "depth_from": self.depth_from,
                 "remember": self.remember, "cures": [c.to_json() for c in self.memory.cures],
-                "summary": f"mode {self.mode}, strategy {self.strategy_name}"
-                           + (", avoids predicted chatter at cut entry" if self.avoid else "")
+                "summary": f"mode {self.mode}, strategy {self.strategy.name}"
+                           + (", avoids predicted chatter at cut entry" if self.strategy.avoid else "")
                            + (f", remembers {len(self.memory.cures)} cure(s)" if self.remember else "")
                            + (f", model {self.model_name}" if self.lobes is not None else "")
                            + (", no model yet: learns one from the cuts" if self.learned is not None and self.lobes is None
