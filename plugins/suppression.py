@@ -7,7 +7,6 @@ import asyncio
 import json
 import math
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -15,20 +14,19 @@ from lathed import hookimpl
 from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
 from lathed.analysis.cut_log import CutTracker
 from lathed.analysis.modal import parse_mode
-from lathed.analysis.speed_selection import Advice, Cut, Decision, LobeSelection, SpindleLimits, SuppressionPolicy, lobe_grid
-from lathed.analysis.speed_variation import ramp_time_s
+from lathed.analysis.speed_selection import Advice, Cut, Decision, SuppressionPolicy, lobe_grid
 from lathed.analysis.stability import StabilityModel
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
 from lathed.bus import Sample
-from lathed.command import Command
 from lathed.config import Section
 from lathed.control import RequestError
 from lathed.display import rounded
 from lathed_plugins.stability_learning import LearnedStability
+from lathed_plugins.suppression_commands import SpindleCommands
 from lathed_plugins.suppression_models import ModelRefits, left_out, setup_rows
-from lathed_plugins.suppression_strategies import STRATEGIES, check_keys
+from lathed_plugins.suppression_strategies import STRATEGIES, check_keys, predicted_unstable
 
 LOBE_POINTS = 600      # points of the lobe chart sent to a screen
 LOBE_CAP_MM = 20.0
@@ -36,8 +34,6 @@ LOBE_CAP_MM = 20.0
 MODES = ("auto", "manual", "off")
 MAX_REFIT_SPEEDS = 2000   # cut speeds a daemon refit uses: the newest
 MEMORY_RECORDS = 5000     # cut records the remembered cures are rebuilt from at start: the newest
-FOLLOW_SLACK_S = 1.0      # a commanded speed not reached within the ramp and this: the CNC did not follow
-FOLLOW_BAND = 0.02        # ... to within this share of it
 SHALLOWER = 0.9           # a cut held with advice that gets this much shallower ...
 SHALLOWER_HELD_S = 0.5    # ... for this long (not the tool's exit, a poll or two) is decided afresh
 
@@ -49,7 +45,7 @@ class SuppressionAnalyzer(Analyzer):
         self.machine = section.getstr("machine")
         self.mode = section.getstr("mode", "auto", choices=MODES)
         kind = STRATEGIES[section.getstr("strategy", "frequency", choices=tuple(STRATEGIES))]
-        check_keys(section, kind)
+        check_keys(section, kind)      # a key of another strategy is refused, not ignored
         texts = section.getlist("modes", [])
         try:
             modes = tuple(parse_mode(t) for t in texts)
@@ -61,26 +57,8 @@ class SuppressionAnalyzer(Analyzer):
         # the X axis tells the diameter being cut (a profile, another part) where diameter_mm is one number
         self.x_axis = section.getstr("x_axis", "", choices=("", "radius", "diameter"))
         self.x_radius_m: float | None = None     # the tool tip's radius, from the x_mm register
-        max_rpm = section.getfloat("max_rpm", 6000.0, above=0)
-        self.limits = SpindleLimits(
-            max_rpm=max_rpm,
-            min_rpm=section.getfloat("min_rpm", 100.0, minval=0),
-            peak_torque_nm=section.getfloat("peak_torque_nm", 35.8, above=0),
-            # the default at most the top speed: a slow spindle's max_rpm alone is not an error
-            base_rpm=section.getfloat("base_rpm", min(1500.0, max_rpm), above=0),
-            accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
-        lim = self.limits
-        if lim.min_rpm >= lim.max_rpm:      # no speed would be within reach: every alarm exhausted
-            raise section.error("min_rpm", f"{lim.min_rpm:g} r/min is not below max_rpm {lim.max_rpm:g} r/min")
-        if lim.base_rpm > lim.max_rpm:
-            # the torque is flat up to base_rpm: above max_rpm it only inflates the power, which no
-            # speed in reach uses, so the number would be taken and mean nothing (or be a swap)
-            raise section.error("base_rpm", f"{lim.base_rpm:g} r/min is above max_rpm {lim.max_rpm:g} r/min; "
-                                            "a spindle with its peak torque over its whole range (constant "
-                                            "torque) has base_rpm = max_rpm")
-        self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
-        self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
-        self.strategy = kind(section, self.limits, self.max_speed_ratio, self.settle_revs)
+        self.strategy = kind(section)
+        self.limits = self.strategy.limits
         self.remember = section.getbool("remember", True)
         self.tool = section.getstr("tool", "")
         # the turret position the modal model was measured at: other tools' cuts are not its
@@ -102,9 +80,7 @@ class SuppressionAnalyzer(Analyzer):
         self._memory_loaded = False
         self._recalled = False                 # the pass in the cut has been given its cure
         self._told_exhausted: SuppressionPolicy | None = None   # the cut's policy said it had no speed left
-        self._follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
-        self._follow_told = False              # ... and the cut's spindle was said not to follow
-        self._commanded = False                # a speed was sent in this cut: released at its end
+        self.commands = SpindleCommands(self)
         self.held_back: str | None = None      # the machine's interlock refused this cut's speed (a thread)
         self._shallower_since: float | None = None   # the cut held with advice is shallower since
         self.cuts_recorded = 0
@@ -206,8 +182,7 @@ class SuppressionAnalyzer(Analyzer):
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
             self.cut.speed(s.t, s.value)
-            if self._follow is not None:
-                self._followed(s.value, s.t)
+            self.commands.speed(s.value, s.t)
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.feed_mm = s.value
             self.cut.feed_mm_rev = s.value
@@ -311,22 +286,9 @@ class SuppressionAnalyzer(Analyzer):
         if self.remember and self.in_cut:
             await self._recall()
         if was and not self.in_cut:
-            self._follow, self._follow_told = None, False    # the program sets the next pass's speed
             self._cut_ended(time.time() if t is None else t)
             self.strategy.stop()
-            if self._commanded:
-                # a speed written as an override holds part after part: back to the program's
-                # (through the guard; nothing to do where the next S word takes over)
-                self._commanded = False
-                r = await self.ctx.release(self.machine, "spindle_rpm", self.name)
-                if r is not None and not r["sent"] and r.get("interlock"):
-                    # a thread begun: held back by the supervisor, sent at the thread's end
-                    self.ctx.log.info("speed_release_deferred", machine=self.machine, why=r["reason"])
-                elif r is not None and not r["sent"]:
-                    # the next parts run at the override until someone resets it: said loudly
-                    payload = {"machine": self.machine, "why": r["reason"]}
-                    self.ctx.log.error("speed_not_released", **payload)
-                    self.ctx.record("speed_not_released", payload)
+            await self.commands.cut_ended()
             if self.depth_from == "spindle load":
                 self.depth_mm = 0.0
             self._avoided.clear()
@@ -446,27 +408,15 @@ class SuppressionAnalyzer(Analyzer):
         return self.refits.status()
 
     def predicted_unstable(self, rpm: float, depth_mm: float) -> tuple[bool, float]:
-        """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
-        n, _, worst = self.grid
-        w = float(np.interp(rpm, n, worst))
-        return w < LobeSelection.margin * depth_mm / 1000, w * 1000
+        return predicted_unstable(self.grid, rpm, depth_mm)
 
     async def _avoid(self) -> None:
         if (self.mode == "off" or self.rpm is None or self.rpm <= 0 or self.grid is None
                 or self.policy_model is None):     # another turret tool: the lobes are not its
             return
-        unstable, b_mm = self.predicted_unstable(self.rpm, self.depth_mm)
-        if not unstable:
-            return
-        d = self.policy.observe(time.monotonic(), self.rpm, True)
-        if d is None:
-            return
-        if isinstance(d, Advice):
+        d = self.strategy.predicted(self.policy, self.grid, self.rpm, self.depth_mm)
+        if d is not None:
             await self._decided(d, "predicted")
-            return
-        await self._decided(replace(d, reason=f"predicted at cut entry: {self.depth_mm:g} mm deep, the lobes "
-                                              f"allow {b_mm:.2f} mm at {self.rpm:.0f} r/min; {d.reason}"),
-                            "predicted")
 
     async def _decided(self, d: Decision | Advice, trigger: str) -> None:
         """Auto: act. Manual: hold it for ``lathectl suppress now`` and record the proposal.
@@ -515,22 +465,6 @@ class SuppressionAnalyzer(Analyzer):
             return
         await self._decided(d, "alarm")
 
-    def _followed(self, rpm: float, t: float) -> None:
-        """Did the spindle reach the speed sent?  A write the control accepted but does not obey
-        (an override or speed clamp on the control, a program that sets S again) is said once a cut:
-        suppression's evidence assumes the new speed."""
-        target, sent_t, by = self._follow
-        if abs(rpm - target) <= FOLLOW_BAND * target:
-            self._follow = None
-        elif t > by:
-            self._follow, self._follow_told = None, True
-            if self.policy is not None:
-                self.policy.ban(target)         # not asked for again this cut (a clamp on the control)
-            self.ctx.record("spindle_not_following", {"machine": self.machine, "sent_rpm": round(target, 1),
-                                                      "rpm": rpm, "after_s": round(t - sent_t, 2)})
-            self.ctx.log.warning("spindle_not_following", machine=self.machine, sent_rpm=round(target, 1),
-                                 rpm=rpm, after_s=round(t - sent_t, 2))
-
     def _exhausted(self) -> None:
         """Chatter goes on and suppression has no speed left to try in this cut: said once."""
         p = self._told_exhausted = self.policy
@@ -546,37 +480,14 @@ class SuppressionAnalyzer(Analyzer):
         payload = {**d.record(), "machine": self.machine, "mode": self.mode, "trigger": trigger,
                    # the stability model whose lobes chose the speed (a cut keeps the one it began with)
                    "model": self.policy_model if self.policy is not None else self.model_name}
-        if d.variation is not None:
-            # the modulation's first speed, asked here: refused, nothing modulates
-            result = await self.ctx.command(Command(self.machine, "spindle_rpm", float(
-                np.asarray(d.variation.profile(0.0, d.rpm_before))), source,
-                reason=f"speed variation ({d.variation.kind})"))
-            if result["sent"]:
-                self.strategy.modulate(d, self._modulated)
-                result = {**result, "reason": "modulating"}
-            self._commanded = self._commanded or not result.get("interlock")
-        else:
-            result = await self.ctx.command(Command(self.machine, "spindle_rpm", float(d.rpm_after), source,
-                                                    reason=f"chatter suppression ({d.strategy})",
-                                                    context={"strategy": d.strategy}))
+        result = await self.commands.send(d, source)
         if result.get("interlock"):
             # a thread being cut: its speed holds to its last pass; this cut asks nothing more
             self.held_back = result["reason"]
-        elif d.variation is None:
-            if not result["sent"] and self.policy is not None:
-                self.policy.ban(d.rpm_after)    # refused by the guard: never asked for again this part
-            # a write that failed may still have reached the control: the cut's end asks the
-            # driver, which releases only what it finds of lathed's
-            self._commanded = True
-            if result["sent"] and self.rpm is not None and not self._follow_told:
-                now = time.time()
-                # an override lands on the control's step: the speed it gives, not the one asked
-                self._follow = (float(result.get("rpm_effective", d.rpm_after)), now, now + FOLLOW_SLACK_S
-                                + ramp_time_s(self.rpm, d.rpm_after, self.limits.accel_rpm_per_s))
-            if result["sent"] and self.alarm_wall_t is not None and trigger == "alarm":
-                # from the first alarm window's sample time to the write's return
-                self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
-                payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
+        elif d.variation is None and result["sent"] and self.alarm_wall_t is not None and trigger == "alarm":
+            # from the first alarm window's sample time to the write's return
+            self.latency_ms.append(1000 * (time.time() - self.alarm_wall_t))
+            payload["alarm_to_write_ms"] = round(self.latency_ms[-1], 1)
         payload.update(sent=result["sent"], refused=result["reason"], by=source)
         if self.cut.active:
             # alarms count against the new speed once the policy's hold (ramp, settle) is over
@@ -605,15 +516,6 @@ class SuppressionAnalyzer(Analyzer):
         self.ctx.record("suppression_advice", payload)
         return payload
 
-
-    async def _modulated(self, rpm: float, kind: str) -> bool:
-        """One speed of a running modulation; False: refused, it stops."""
-        self._commanded = True       # as in _act: a failed write may have reached the control
-        r = await self.ctx.command(Command(self.machine, "spindle_rpm", rpm, self.name,
-                                           reason=f"speed variation ({kind})"))
-        if not r["sent"]:
-            self.ctx.log.warning("ssv_stopped", reason=r["reason"])
-        return r["sent"]
 
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:

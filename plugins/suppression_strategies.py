@@ -11,9 +11,9 @@ from typing import Awaitable, Callable
 import numpy as np
 
 from lathed.analysis.lobes import StabilityLobes
-from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Cut, Decision, FrequencySelection, RatedSpeed,
-                                             SpindleLimits, SuppressionPolicy, VariationSelection, lobe_policy,
-                                             model_free_policy, reach)
+from lathed.analysis.speed_selection import (WHEN_NO_STABLE_SPEED, Advice, Cut, Decision, FrequencySelection,
+                                             LobeSelection, RatedSpeed, SpindleLimits, SuppressionPolicy,
+                                             VariationSelection, lobe_policy, model_free_policy, reach)
 from lathed.analysis.speed_variation import KINDS, SpeedVariation
 from lathed.config import Section
 
@@ -29,8 +29,10 @@ class Strategy:
     learns = False            # without ``modes``, learns a model from the cut records
     when_no_stable_speed: str | None = None
 
-    def __init__(self, section: Section, limits: SpindleLimits, max_speed_ratio: float, settle_revs: float):
-        self.limits, self.max_speed_ratio, self.settle_revs = limits, max_speed_ratio, settle_revs
+    def __init__(self, section: Section):
+        self.limits = spindle_limits(section)
+        self.settle_revs = section.getfloat("settle_revs", 20.0, minval=0, maxval=1000)
+        self.max_speed_ratio = section.getfloat("max_speed_ratio", 1.3, minval=1.0, maxval=10.0)
         self.avoid = section.getbool("avoid", False)
         if self.avoid and not self.predicts:
             raise section.error("avoid", 'predicting chatter at cut entry needs strategy = "lobes" (and its modes)')
@@ -48,6 +50,10 @@ class Strategy:
         if policy.fallback is not None:
             policy.fallback = replace(policy.fallback, cut=cut)
 
+    def predicted(self, policy: SuppressionPolicy, grid, rpm: float, depth_mm: float) -> Decision | Advice | None:
+        """At cut entry (with ``avoid``): a move when the model calls the programmed speed unstable."""
+        return None
+
     def modulate(self, d: Decision, send: Callable[[float, str], Awaitable[bool]]) -> None:
         """A decision that modulates the speed was sent: keep modulating (variation only)."""
 
@@ -56,6 +62,34 @@ class Strategy:
 
     def _within(self, rpm: float | None) -> SpindleLimits:
         return reach(self.limits, rpm, self.max_speed_ratio)
+
+
+def spindle_limits(section: Section) -> SpindleLimits:
+    """The spindle's envelope, which every strategy selects within."""
+    max_rpm = section.getfloat("max_rpm", 6000.0, above=0)
+    lim = SpindleLimits(
+        max_rpm=max_rpm,
+        min_rpm=section.getfloat("min_rpm", 100.0, minval=0),
+        peak_torque_nm=section.getfloat("peak_torque_nm", 35.8, above=0),
+        # the default at most the top speed: a slow spindle's max_rpm alone is not an error
+        base_rpm=section.getfloat("base_rpm", min(1500.0, max_rpm), above=0),
+        accel_rpm_per_s=section.getfloat("accel_rpm_s", 3000.0, above=0))
+    if lim.min_rpm >= lim.max_rpm:      # no speed would be within reach: every alarm exhausted
+        raise section.error("min_rpm", f"{lim.min_rpm:g} r/min is not below max_rpm {lim.max_rpm:g} r/min")
+    if lim.base_rpm > lim.max_rpm:
+        # the torque is flat up to base_rpm: above max_rpm it only inflates the power, which no
+        # speed in reach uses, so the number would be taken and mean nothing (or be a swap)
+        raise section.error("base_rpm", f"{lim.base_rpm:g} r/min is above max_rpm {lim.max_rpm:g} r/min; "
+                                        "a spindle with its peak torque over its whole range (constant "
+                                        "torque) has base_rpm = max_rpm")
+    return lim
+
+
+def predicted_unstable(grid, rpm: float, depth_mm: float) -> tuple[bool, float]:
+    """The lobes' verdict on a cut: (unstable, worst b_lim in mm within +-3 % of ``rpm``)."""
+    n, _, worst = grid
+    w = float(np.interp(rpm, n, worst))
+    return w < LobeSelection.margin * depth_mm / 1000, w * 1000
 
 
 def _rated_rpm(section: Section) -> float:
@@ -67,8 +101,8 @@ class FrequencyStrategy(Strategy):
     name = "frequency"
     keys = ("rated_rpm",)
 
-    def __init__(self, section: Section, *shared):
-        super().__init__(section, *shared)
+    def __init__(self, section: Section):
+        super().__init__(section)
         self.rated_rpm = _rated_rpm(section)
 
     def policy(self, cut, rpm, lobes, grid, depth_known):
@@ -83,8 +117,8 @@ class RatedStrategy(Strategy):
     name = "rated"
     keys = ("rated_rpm",)
 
-    def __init__(self, section: Section, *shared):
-        super().__init__(section, *shared)
+    def __init__(self, section: Section):
+        super().__init__(section)
         self.rated_rpm = _rated_rpm(section)
 
     def policy(self, cut, rpm, lobes, grid, depth_known):
@@ -100,8 +134,8 @@ class LobesStrategy(Strategy):
     predicts = True
     learns = True
 
-    def __init__(self, section: Section, *shared):
-        super().__init__(section, *shared)
+    def __init__(self, section: Section):
+        super().__init__(section)
         self.rated_rpm = _rated_rpm(section)
         self.when_no_stable_speed = section.getstr("when_no_stable_speed", "hold", choices=WHEN_NO_STABLE_SPEED)
 
@@ -118,14 +152,24 @@ class LobesStrategy(Strategy):
         if modelled:
             policy.when_no_stable_speed = self.when_no_stable_speed
 
+    def predicted(self, policy, grid, rpm, depth_mm):
+        unstable, b_mm = predicted_unstable(grid, rpm, depth_mm)
+        if not unstable:
+            return None
+        d = policy.observe(time.monotonic(), rpm, True)
+        if d is None or isinstance(d, Advice):
+            return d
+        return replace(d, reason=f"predicted at cut entry: {depth_mm:g} mm deep, the lobes allow {b_mm:.2f} mm "
+                                 f"at {rpm:.0f} r/min; {d.reason}")
+
 
 class VariationStrategy(Strategy):
     """Keep the speed and modulate it (spindle speed variation)."""
     name = "variation"
     keys = ("ssv", "ssv_amplitude", "ssv_period")
 
-    def __init__(self, section: Section, *shared):
-        super().__init__(section, *shared)
+    def __init__(self, section: Section):
+        super().__init__(section)
         try:
             self.variation = SpeedVariation(section.getstr("ssv", "sine", choices=KINDS),
                                             section.getfloat("ssv_amplitude", 0.1, above=0, maxval=0.5),
