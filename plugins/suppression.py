@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import time
 
 import numpy as np
 
 from lathed import hookimpl
 from lathed.analysis.cures import TRIGGER as REMEMBERED, CureMemory
+from lathed.analysis.cut_geometry import CutGeometry
 from lathed.analysis.cut_log import CutTracker
 from lathed.analysis.modal import parse_mode
 from lathed.analysis.speed_selection import Advice, Cut, Decision, SuppressionPolicy, lobe_grid
@@ -52,13 +52,13 @@ class SuppressionAnalyzer(Analyzer):
         except ValueError as e:
             raise section.error("modes", str(e)) from None
         kf = section.getfloat("kf", 2.0e9, above=0)
-        self.kt = section.getfloat("kt", 1.5e9, above=0)
-        self.diameter_m = section.getfloat("diameter_mm", 30.0, above=0) / 1000
+        kt = section.getfloat("kt", 1.5e9, above=0)
+        diameter_m = section.getfloat("diameter_mm", 30.0, above=0) / 1000
         # the X axis tells the diameter being cut (a profile, another part) where diameter_mm is one number
-        self.x_axis = section.getstr("x_axis", "", choices=("", "radius", "diameter"))
-        self.x_radius_m: float | None = None     # the tool tip's radius, from the x_mm register
+        x_axis = section.getstr("x_axis", "", choices=("", "radius", "diameter"))
         self.strategy = kind(section)
         self.limits = self.strategy.limits
+        self.geometry = CutGeometry(kt, self.limits.peak_torque_nm, diameter_m, x_axis)
         self.remember = section.getbool("remember", True)
         self.tool = section.getstr("tool", "")
         # the turret position the modal model was measured at: other tools' cuts are not its
@@ -88,10 +88,8 @@ class SuppressionAnalyzer(Analyzer):
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
         self.depth_from: str | None = None      # "register" | "spindle load"
-        self.idle_load_pct: float | None = None
         self.in_cut: dict[str, bool] = {}
         self._avoided: set[str] = set()
-        self.feed_mm = 0.3
         self.rpm: float | None = None
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
         self.actions = 0                       # a count: the records keep every action
@@ -103,7 +101,6 @@ class SuppressionAnalyzer(Analyzer):
         self.pending_trigger = "alarm"
         self.alarm_wall_t: float | None = None
         self.latency_ms: list[float] = []
-
 
     def inputs(self) -> list[str]:
         return [self.machine]
@@ -121,15 +118,7 @@ class SuppressionAnalyzer(Analyzer):
         return self.depth_mm if self.depth_mm > 0 else self.program_depth_mm
 
     def _cut(self) -> Cut:
-        depth_m = max(self._depth_known_mm() or 0.0, 0.01) / 1000
-        return Cut(depth_m, self.feed_mm / 1000, self._diameter_m(depth_m), self.kt)
-
-    def _diameter_m(self, depth_m: float) -> float:
-        """The part's diameter at the cut: the tool tip's radius plus the depth, twice (the
-        X axis, with x_axis set), else the configured diameter_mm."""
-        if self.x_radius_m is not None and self.x_radius_m > 0:
-            return 2.0 * (self.x_radius_m + depth_m)
-        return self.diameter_m
+        return self.geometry.cut(self._depth_known_mm())
 
     def _model_applies(self) -> bool:
         """The cut's tool is the one the modal model is for (or nothing says otherwise)."""
@@ -184,12 +173,11 @@ class SuppressionAnalyzer(Analyzer):
             self.cut.speed(s.t, s.value)
             self.commands.speed(s.value, s.t)
         elif s.quantity == "feed_mm_rev" and s.value > 0:
-            self.feed_mm = s.value
-            self.cut.feed_mm_rev = s.value
+            self.geometry.feed_mm = self.cut.feed_mm_rev = s.value
         elif s.quantity == "tool_number":
             self.cut.tool_number = int(s.value)    # a tool change between passes: its own cures
-        elif s.quantity == "x_mm" and self.x_axis:
-            self.x_radius_m = s.value / 1000 / (2.0 if self.x_axis == "diameter" else 1.0)
+        elif s.quantity == "x_mm" and self.geometry.x_axis:
+            self.geometry.x(s.value)
         elif s.quantity == "depth_of_cut_mm":
             self.depth_from = "register"
             changed = s.value > 0 and s.value != self.depth_mm
@@ -215,21 +203,12 @@ class SuppressionAnalyzer(Analyzer):
                 await self._recall()
 
     def _depth_from_load(self, load_pct: float) -> float | None:
-        """Without a depth register the lobes need the depth: the cutting torque the
-        drive reports over the spindle's no-chip load, Kt b h r = T, solved for b.
-        Returns the estimate in mm while cutting (None otherwise)."""
+        """Without a depth register the lobes need the depth: the spindle load's estimate, mm,
+        while cutting (None otherwise)."""
         if self.rpm is None or self.rpm <= 0:
             return None
-        self.idle_load_pct = load_pct if self.idle_load_pct is None else min(self.idle_load_pct, load_pct)
-        torque = (load_pct - self.idle_load_pct) / 100.0 * self.limits.peak_torque_nm
-        c = torque / (self.kt * self.feed_mm / 1000)       # b times the lever arm, m^2
-        x = self.x_radius_m
-        if x is not None and x > 0:
-            # the lever is the part's radius, x + b: Kt h b (x + b) = T, solved for b
-            mm = (-x + math.sqrt(x * x + 4.0 * max(c, 0.0))) / 2.0 * 1000
-        else:
-            mm = c / (self.diameter_m / 2) * 1000
-        if not (mm > 0.05 and self.in_cut):
+        mm = self.geometry.depth_from_load(load_pct)
+        if mm is None or not self.in_cut:
             return None
         if abs(mm - self.depth_mm) > 0.1 * self.depth_mm:
             self.depth_mm = mm
@@ -247,11 +226,8 @@ class SuppressionAnalyzer(Analyzer):
             self.strategy.depth_changed(self.policy, self._cut(), self.policy_model is not None)
 
     def _shallower(self, t: float | None) -> None:
-        """A cut held with advice (every speed within reach chatters at its depth) that has been
-        SHALLOWER x as deep for SHALLOWER_HELD_S (a profile's shallower part; not the tool's exit,
-        which the spindle load reads shallower for a poll) is decided afresh at its next alarm:
-        a stable speed may be within reach at the new depth.  ``t``: the depth's time (None: no
-        depth now)."""
+        """A cut held with advice that has been shallower for a while is decided afresh at its next
+        alarm: a stable speed may be within reach now. ``t``: the depth's time (None: no depth)."""
         p = self.policy
         if (t is None or p is None or p.advice is None or not self.in_cut
                 or not 0 < self.depth_mm < SHALLOWER * p.advice.depth_mm):
@@ -515,7 +491,6 @@ class SuppressionAnalyzer(Analyzer):
                              limit_mm=round(a.limit_mm, 3), advice=a.advice, trigger=trigger)
         self.ctx.record("suppression_advice", payload)
         return payload
-
 
     # -- operator ------------------------------------------------------------------
     async def _control(self, args: dict) -> dict:
