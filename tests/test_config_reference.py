@@ -27,9 +27,10 @@ OWN_SCALARS = {"plausible"}
 INDIRECT = {"mqtt_sink": {"ca_file", "cert_file", "key_file"},
             "framework": {"manufacturer", "model", "serial_number"}}
 # modules a plugin reads part of its table through (its identity registers, a protocol's session,
-# its map, the CNC's shared keys)
+# its map, the CNC's shared keys, suppression's strategies)
 HELPER_MODULES = {"modbus_cnc": ("lathed/cnc.py", "lathed/modbus_identity.py"),
-                  "opcua_cnc": ("lathed/cnc.py", "lathed/ua_session.py", "lathed/ua_map.py", "lathed/ua_alarms.py")}
+                  "opcua_cnc": ("lathed/cnc.py", "lathed/ua_session.py", "lathed/ua_map.py", "lathed/ua_alarms.py"),
+                  "suppression": ("plugins/suppression_strategies.py",)}
 FRAMEWORK_MODULES = ("lathed/config.py", "lathed/supervisor.py", "lathed/safety.py", "lathed/plausible.py",
                      "lathed/driver.py", "lathed/analyzer.py")
 
