@@ -12,7 +12,8 @@ from lathed.cli.main import main
     (["sim", "depth", "-1"], "outside the depths the simulated lathe cuts"),
     (["sim", "depth", "20"], "outside the depths the simulated lathe cuts (0..10 mm)"),
     (["nope"], "lathectl: argument COMMAND: invalid choice: 'nope'"),
-    (["analyze", "chatter", "x.wav"], "lathectl analyze chatter: the following arguments are required: --rpm"),
+    # --rpm is optional since a recording's sidecar (lathectl record) carries the speed
+    (["analyze", "chatter", "x.wav", "--rpm", "abc"], "lathectl analyze chatter: argument --rpm: 'abc' is not a number"),
     # type=int and type=float took these: a limit of 0 or -1 listed every cut (out[-0:]) or all but
     # one, SQL's LIMIT -3 every event; an outage of -5 s, nan or 1e12 s was sent to the simulator
     (["cuts", "--limit", "0"], "lathectl cuts: argument --limit: 0 must be at least 1"),
