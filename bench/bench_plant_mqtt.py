@@ -77,6 +77,7 @@ log_level = "warning"
 plugin = "mqtt_sink"
 host = "127.0.0.1"
 port = {broker.port}
+start_from = "oldest"      # the records filled in before the first start are the load
 batch = 500
 interval = "50ms"
 timeout = "2s"

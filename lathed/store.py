@@ -450,6 +450,14 @@ class Store:
             time.sleep(min(time.monotonic() - started, 0.25))
         return removed
 
+    def begin_progress(self, sink: str, at_end: bool) -> Future:
+        """A sink's first progress, where it has none: after every record stored so far
+        (``at_end``, read in the writer, so no record lands between) or before the first.
+        A sink with progress keeps it."""
+        return self.submit("INSERT OR IGNORE INTO forward_progress(sink, outbox_id, t) "
+                           "SELECT ?, CASE WHEN ? THEN coalesce(max(id), 0) ELSE 0 END, ? FROM outbox",
+                           (sink, at_end, time.time()))
+
     def set_progress(self, sink: str, outbox_id: int) -> Future:
         return self.submit("INSERT INTO forward_progress(sink, outbox_id, t) VALUES (?,?,?) "
                            "ON CONFLICT(sink) DO UPDATE SET outbox_id = excluded.outbox_id, t = excluded.t",

@@ -1,54 +1,11 @@
 """Store-and-forward of every record, and a few live values, to an MQTT broker.
 
-    [analyzer.mqtt]
-    plugin = "mqtt_sink"
-    host = "broker.plant.local"
-    port = 1883              # 8883 when tls = true
-    cell = "cell-1"          # the topic's <cell>; default: the daemon's name
-    username = "lathed"      # optional; password only with a username
-    password_file = "mqtt.pass"  # the password, alone in a file only lathed reads (mode 0600 or
-                             # 0640; relative to this config file); or password = "..." in the
-                             # config itself, which anyone who can read the config then sees
-    tls = true               # on when ca_file or cert_file is given
-    ca_file = "ca.crt"       # default: the system's CAs; relative paths are from this config file
-    cert_file = "client.crt" # client certificate and its key, both or neither
-    key_file = "client.key"
-    live = ["lathe.spindle_rpm", "chatter.chatter_index", "thermal.predicted_growth_um"]
-    live_every = "1s"        # each live value at most this often
-    batch = 200              # records per progress update (at most 100 await their PUBACK at once)
-    interval = "200ms"       # how often to look for new records when caught up
-    timeout = "10s"          # a connect or an acknowledgement that takes longer counts as an outage
-    keepalive = "30s"
-    protocol = "5"           # or "3.1.1": then a message the broker discards (ACL) cannot be told
-
-Topics (<machine> is the machine a record is about: its ``machine`` field,
-else the instance that wrote it; the daemon's own events and records about
-no machine use the daemon's name; segments have ``/ + #`` replaced by ``_``):
-
-    lathed/<cell>/<daemon>/state               "online" / "offline", retained; "offline" is the last will
-    lathed/<cell>/<machine>/events/<kind>      every event (chatter_alarm, alarm_raised, part_completed...)
-    lathed/<cell>/<machine>/records/<table>    workpieces, inspections, sampling_queue, experiments
-    lathed/<cell>/<source>/values/<quantity>   the configured live values
-
-Records are committed to the local SQLite store first and published in
-outbox order at QoS 1. The progress (published up to outbox id N) lives in
-SQLite, and advances only once the broker has acknowledged (PUBACK) every
-message of a batch: a broker outage or a crash loses nothing, and at worst
-sends a batch again. Each message carries ``id`` = ``<uuid>/<seq>``, where
-``seq`` is the outbox id: it grows by one per record of a daemon, so a
-subscriber sees duplicates (an id seen before) and gaps (a jump in seq),
-and orders by seq. A subscriber that must not miss what is published while
-it is away needs a persistent session (clean session off, QoS 1), and the
-broker persistence across its own restarts.
-When the broker is down, ``run()`` raises; the supervisor retries with
-backoff while records wait locally. So it does when an MQTT 5 broker
-acknowledges a message with a failure (its ACL does not let this client
-publish there): the batch is not marked sent, and the status names the
-reason until the broker's configuration is fixed.
-
-Live values are read from the bus's latest value of each configured
-``source.quantity`` every ``live_every`` and sent when new, at QoS 1 but not
-stored: while the broker is down they are dropped (the records are not).
+The topic tree, the payloads (JSON Schemas in lathed/schemas/mqtt/), start_from and
+the delivery guarantees are in docs/mqtt.md; the keys in docs/configuration.md.
+Records are committed locally first and published in outbox order at QoS 1; the
+progress moves only once the broker has acknowledged a whole batch, so an outage
+or a crash loses nothing and at worst sends a batch again (same ids). Live values
+are not stored: while the broker is down they are dropped.
 """
 from __future__ import annotations
 
@@ -129,6 +86,10 @@ class MqttSink(Analyzer):
         self.tls_context = _tls_context(section, files) if self.tls else None
         self.port = section.getint("port", 8883 if self.tls else 1883, minval=1, maxval=65535)
         self.cell = section.getstr("cell", "")
+        # where a sink with no progress yet begins; "now": a first enable on a store of
+        # months must not flood the plant's broker with history (docs/mqtt.md)
+        self.start_from = section.getstr("start_from", "now", choices=("now", "oldest"))
+        self._begun = False
         self.username = section.getstr("username", "") or None
         self.password = section.getstr("password", "") or None
         pw_file = _file(section, here, "password_file")
@@ -154,43 +115,43 @@ class MqttSink(Analyzer):
         self.last_publish_t: float | None = None
 
     # -- topics and payloads -------------------------------------------------
-    def _names(self) -> tuple[str, str]:
-        daemon = self.ctx.store.machine_id
-        return _seg(self.cell or daemon), _seg(daemon)
+    def _cell(self) -> str:
+        return _seg(self.cell or self.ctx.store.machine_id)
 
     def state_topic(self) -> str:
-        cell, daemon = self._names()
-        return f"lathed/{cell}/{daemon}/state"
+        return f"lathed/{self._cell()}/state"
 
     def record_message(self, oid: int, table: str, r: dict[str, Any]) -> tuple[str, str]:
         """The topic and JSON payload of one record row."""
-        cell, daemon = self._names()
+        cell = self._cell()
         fields = {k: (json.loads(v) if k in JSON_COLUMNS and isinstance(v, str) else v)
                   for k, v in r.items() if k not in _ROW_META}
         msg: dict[str, Any] = {"id": f"{r['uuid']}/{oid}", "uuid": r["uuid"], "seq": oid, "cell": cell,
                                "daemon": r["machine_id"], "table": table}
         if table == "events":
             payload = fields["payload"] if isinstance(fields["payload"], dict) else {"value": fields["payload"]}
-            # the daemon's own events (source "lathed") go beside its state topic
-            machine = payload.get("machine") or (daemon if fields["source"] == "lathed" else fields["source"])
-            topic = f"lathed/{cell}/{_seg(machine)}/events/{_seg(fields['kind'])}"
+            # the daemon's own events (source "lathed") are the cell's: no machine level
+            machine = payload.get("machine") or (None if fields["source"] == "lathed" else fields["source"])
+            topic = f"{_under(cell, machine)}/events/{_seg(fields['kind'])}"
             msg.update(machine=machine, kind=fields["kind"], source=fields["source"], t=fields["t"],
                        time=_iso(fields["t"]), payload=payload, units=_units(payload))
         else:
-            machine = fields.get("machine") or daemon
-            topic = f"lathed/{cell}/{_seg(machine)}/records/{table}"
+            machine = fields.get("machine") or None
+            topic = f"{_under(cell, machine)}/records/{table}"
             t = next((fields[k] for k in ("t", "end_t") if isinstance(fields.get(k), (int, float))), None)
             msg.update(machine=machine, t=t, time=_iso(t), row=fields, units=_units(fields))
         return topic, dumps(msg)
 
     def live_message(self, s) -> tuple[str, str]:
-        cell, _ = self._names()
+        cell = self._cell()
         return (f"lathed/{cell}/{_seg(s.source)}/values/{_seg(s.quantity)}",
                 dumps({"cell": cell, "source": s.source, "quantity": s.quantity, "value": s.value,
                        "unit": s.unit, "t": s.t, "time": _iso(s.t)}))
 
     # -- running -------------------------------------------------------------
     async def run(self) -> None:
+        if not self._begun:
+            await self._begin()
         try:
             await self._run()
         except (aiomqtt.MqttError, OSError, asyncio.TimeoutError) as e:
@@ -199,13 +160,27 @@ class MqttSink(Analyzer):
         finally:
             self.connected = False
 
+    async def _begin(self) -> None:
+        """The progress a sink starts from, written at its first start, broker up or not:
+        from then on a restart resumes from the progress, whatever start_from says."""
+        store = self.ctx.store
+        first = not store.query("SELECT 1 FROM forward_progress WHERE sink = ?", (self.name,))
+        # submitted before the first await: the daemon starts its analyzers before it records
+        # daemon_started, so that record is this start's, published even from "now"
+        done = store.begin_progress(self.name, at_end=self.start_from == "now")
+        await asyncio.wrap_future(done)
+        self._begun = True
+        if first:
+            self.ctx.log.info("mqtt_first_start", start_from=self.start_from,
+                              after_outbox_id=store.progress(self.name), backlog=store.backlog(self.name))
+
     async def _run(self) -> None:
-        _, daemon = self._names()
+        daemon = self.ctx.store.machine_id
         state = self.state_topic()
         session = ({"protocol": aiomqtt.ProtocolVersion.V5, "clean_start": True} if self.protocol == "5" else
                    {"protocol": aiomqtt.ProtocolVersion.V311, "clean_session": True})
         client = _Client(
-            self.host, self.port, identifier=f"lathed-{daemon}-{self.name}", username=self.username,
+            self.host, self.port, identifier=f"lathed-{_seg(daemon)}-{self.name}", username=self.username,
             password=self.password, will=aiomqtt.Will(state, "offline", qos=1, retain=True), **session,
             timeout=self.timeout, keepalive=self.keepalive, tls_context=self.tls_context,
             max_inflight_messages=INFLIGHT)
@@ -283,7 +258,7 @@ class MqttSink(Analyzer):
         if client.refused:
             raise Refused(f"MQTT broker at {self.where} discarded {len(client.refused)} message(s): "
                           f"{client.refused[0]} (its ACL must let this client publish under "
-                          f"{self.state_topic().rsplit('/', 2)[0]}/#)")
+                          f"lathed/{self._cell()}/#)")
 
     async def _live(self, client: aiomqtt.Client) -> None:
         sent: dict[tuple[str, str], float] = {}
@@ -328,6 +303,11 @@ class MqttSink(Analyzer):
 def _seg(name: str) -> str:
     """One topic level: MQTT gives / + # meanings of their own."""
     return "".join("_" if c in "/+#" else c for c in str(name)) or "_"
+
+
+def _under(cell: str, machine: str | None) -> str:
+    """The topic a record's level hangs from: its machine's, or the cell's own."""
+    return f"lathed/{cell}/{_seg(machine)}" if machine else f"lathed/{cell}"
 
 
 def _iso(t: float | None) -> str | None:

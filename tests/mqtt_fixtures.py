@@ -107,3 +107,40 @@ class Subscriber:
     def close(self) -> None:
         self.c.loop_stop()
         self.c.disconnect()
+
+
+SCHEMAS = Path(__file__).resolve().parent.parent / "lathed" / "schemas" / "mqtt"
+
+
+def schema_validator(kind: str):
+    """The published JSON Schema of a payload kind (event, record, value), checked itself first."""
+    from jsonschema import Draft202012Validator
+    schema = json.loads((SCHEMAS / f"{kind}.schema.json").read_text())
+    Draft202012Validator.check_schema(schema)
+    return Draft202012Validator(schema, format_checker=Draft202012Validator.FORMAT_CHECKER)
+
+
+def check_message(topic: str, payload: bytes, validators: dict | None = None) -> str:
+    """A published message against docs/mqtt.md's topic tree and its kind's JSON Schema;
+    returns the kind (state, event, record, value). Raises on any mismatch."""
+    validators = validators if validators is not None else {k: schema_validator(k) for k in ("event", "record", "value")}
+    parts = topic.split("/")
+    assert parts[0] == "lathed" and len(parts) in (3, 4, 5), f"{topic}: not in the topic tree"
+    if len(parts) == 3:
+        assert parts[2] == "state" and payload in (b"online", b"offline"), (topic, payload)
+        return "state"
+    level = parts[3] if len(parts) == 5 else parts[2]
+    kind = {"events": "event", "records": "record", "values": "value"}.get(level)
+    assert kind and (kind != "value" or len(parts) == 5), f"{topic}: not in the topic tree"
+    msg = json.loads(payload)
+    validators[kind].validate(msg)
+    assert msg["cell"] == parts[1], (topic, msg["cell"])
+    seg = lambda name: "".join("_" if c in "/+#" else c for c in name) if name is not None else None  # noqa: E731
+    if kind == "value":
+        assert (parts[2], parts[4]) == (seg(msg["source"]), seg(msg["quantity"])), topic
+        return kind
+    # the machine level is there exactly when the message names a machine
+    assert (parts[2] if len(parts) == 5 else None) == seg(msg["machine"]), (topic, msg["machine"])
+    assert parts[-1] == seg(msg["kind"] if kind == "event" else msg["table"]), topic
+    assert msg["id"] == f"{msg['uuid']}/{msg['seq']}", msg["id"]
+    return kind

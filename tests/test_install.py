@@ -161,6 +161,16 @@ print(lathed_plugins.chatter.__file__)
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)
+def test_the_mqtt_payload_schemas_are_installed(root):
+    # docs/mqtt.md sends a plant to them: they ship in the package, not only in the checkout
+    shipped = sorted(p.name for p in (ROOT / "lathed" / "schemas" / "mqtt").glob("*.json"))
+    lib = root / LIBDIR.lstrip("/")
+    installed = sorted(p.name for p in lib.glob("lib/python3*/site-packages/lathed/schemas/mqtt/*.json"))
+    assert shipped == installed == ["event.schema.json", "record.schema.json", "value.schema.json"]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
 def test_installed_config_checks_and_a_missing_extra_is_named(root, tmp_path):
     lathed = str(root / LIBDIR.lstrip("/") / "bin" / "lathed")
     for name in CONFIG:

@@ -20,8 +20,8 @@ from lathed.bus import Bus
 from lathed.config import ConfigError, Section
 from lathed.store import Store
 from lathed_plugins.mqtt_sink import MqttSink
-from tests.conftest import BIN, Daemon, disk_full, wait_until
-from tests.mqtt_fixtures import Broker, Subscriber
+from tests.conftest import BIN, Daemon, disk_full, shipped_config, wait_until
+from tests.mqtt_fixtures import Broker, Subscriber, check_message, schema_validator
 
 HERE = Path(__file__).resolve().parent
 OUTAGE_S = 10.0
@@ -57,47 +57,86 @@ def _local(db: Path, sql: str):
         con.close()
 
 
-def test_daemon_on_the_simulator_publishes_events_values_and_state(sim_daemon, broker):
+def _enable_shipped_sink(cfg: Path, port: int) -> None:
+    """Uncomment etc/lathed.toml's [analyzer.mqtt] as a plant would, pointed at the test broker."""
+    text = cfg.read_text()
+    head, _, rest = text.partition("# [analyzer.mqtt]\n")
+    block, sep, tail = rest.partition("\n\n")
+    block = "\n".join(line[2:] for line in ("# [analyzer.mqtt]\n" + block).splitlines())
+    for key, value in (("port", port), ("live_every", '"200ms"'),
+                       ("live", '["lathe.spindle_rpm", "chatter.chatter_index", "lathe.spindle_rmp"]')):
+        block = re.sub(rf"^{key} = .*$", f"{key} = {value}", block, count=1, flags=re.M)
+    cfg.write_text(head + block + '\nretry_initial = "100ms"\nretry_max = "500ms"\n' + sep + tail)
+
+
+def test_first_enable_on_the_shipped_config_publishes_from_now_to_the_schemas(tmp_path, broker):
+    """The plant's case: lathed has run without MQTT, then the shipped [analyzer.mqtt] is
+    uncommented. Nothing stored before is published, everything after is, on the documented
+    topics (the cell once), each message valid against its JSON Schema."""
+    cfg, sock = shipped_config(tmp_path)
+    db = tmp_path / "state" / "lathed.db"
+    d = Daemon(cfg, sock)
+    try:
+        d.wait_ready()
+        wait_until(lambda: _local(db, "SELECT count(*) FROM events WHERE kind = 'daemon_started'")[0][0], 20,
+                   what="the first run's records")
+    finally:
+        d.stop()
+    history = _local(db, "SELECT max(id) FROM outbox")[0][0]
+    assert history >= 2                                  # at least daemon_started and daemon_stopped
+    _enable_shipped_sink(cfg, broker.port)
     sub = Subscriber(broker.port)
     try:
-        d = sim_daemon(analyzers=_sink_section(broker.port, cell="cell-7", live=["lathe.spindle_rpm", "lathe.spindle_rmp"],
-                                               live_every="200ms"))
-        wait_until(lambda: sub.received("lathed/cell-7/lathe/events/part_completed"), 30,
-                   what="a part_completed event of the simulated lathe")
-        topic, msg = sub.json("lathed/cell-7/lathe/events/part_completed")[0]
+        d = Daemon(cfg, sock)
+        d.wait_ready()
+        for topic in ("lathed/sim-cell-1/lathe/events/part_completed", "lathed/sim-cell-1/lathe/events/cut",
+                      "lathed/sim-cell-1/lathe/records/workpieces", "lathed/sim-cell-1/chatter/values/chatter_index"):
+            wait_until(lambda: sub.received(topic), 60, what=topic)
+        topic, msg = sub.json("lathed/sim-cell-1/lathe/events/part_completed")[0]
         uuid, seq = msg["id"].split("/")
         assert (msg["uuid"], msg["seq"]) == (uuid, int(seq))
-        assert msg["cell"] == "cell-7" and msg["daemon"] == "test-cell" and msg["machine"] == "lathe"
+        assert msg["cell"] == "sim-cell-1" and msg["daemon"] == "web-test" and msg["machine"] == "lathe"
         assert msg["kind"] == "part_completed" and msg["source"] == "lathe" and msg["table"] == "events"
         assert msg["payload"]["kind"] == "lathe" and msg["payload"]["part_count"] >= 1
         assert msg["time"].endswith("Z") and abs(msg["t"] - time.time()) < 60
         # the message is the local record: same uuid, and its outbox id as seq
-        row = _local(d.paths["state"] / "lathed.db",
-                     f"SELECT o.id, e.kind FROM events e JOIN outbox o ON o.tbl = 'events' AND o.row_id = e.id "
-                     f"WHERE e.uuid = '{uuid}'")
+        row = _local(db, f"SELECT o.id, e.kind FROM events e JOIN outbox o ON o.tbl = 'events' AND o.row_id = e.id "
+                         f"WHERE e.uuid = '{uuid}'")
         assert row == [(int(seq), "part_completed")]
-        started = sub.json("lathed/cell-7/test-cell/events/daemon_started")
-        assert started and started[0][1]["payload"]["pid"] == d.proc.pid
+        # this start's daemon_started is the first record after the history, and published
+        started = sub.json("lathed/sim-cell-1/events/daemon_started")
+        assert len(started) == 1 and started[0][1]["payload"]["pid"] == d.proc.pid
+        assert started[0][1]["seq"] == history + 1 and started[0][1]["machine"] is None
 
-        wait_until(lambda: sub.received("lathed/cell-7/lathe/values/spindle_rpm"), 10, what="a live spindle speed")
-        _, live = sub.json("lathed/cell-7/lathe/values/spindle_rpm")[-1]
+        wait_until(lambda: sub.received("lathed/sim-cell-1/lathe/values/spindle_rpm"), 10, what="a live spindle speed")
+        _, live = sub.json("lathed/sim-cell-1/lathe/values/spindle_rpm")[-1]
         assert live["unit"] == "r/min" and live["quantity"] == "spindle_rpm" and isinstance(live["value"], float)
 
-        assert sub.received("lathed/cell-7/test-cell/state")[-1][1] == b"online"
-        late = Subscriber(broker.port, "lathed/+/+/state")   # retained: a late subscriber learns it too
+        assert sub.received("lathed/sim-cell-1/state")[-1][1] == b"online"
+        late = Subscriber(broker.port, "lathed/+/state")   # retained: a late subscriber learns it too
         wait_until(lambda: late.received(), 10, what="the retained state")
         late.close()
-        assert late.received() == [("lathed/cell-7/test-cell/state", b"online", True)]
+        assert late.received() == [("lathed/sim-cell-1/state", b"online", True)]
         st = d.item("analyzers", "mqtt")
         assert st["connected"] and st["published"] >= 2 and st["live_published"] >= 1
         # a misspelt live value is named, not silently never sent
         assert st["live_unseen"] == ["lathe.spindle_rmp"] and "no value yet on the bus for lathe.spindle_rmp" \
             in st["summary"]
         d.stop()                                   # a clean stop says "offline" itself
-        wait_until(lambda: sub.received("lathed/cell-7/test-cell/state")[-1][1] == b"offline", 10,
+        wait_until(lambda: sub.received("lathed/sim-cell-1/state")[-1][1] == b"offline", 10,
                    what="offline state after a clean stop")
     finally:
+        d.stop()
         sub.close()
+    got = sub.received()
+    seqs = [json.loads(p)["seq"] for t, p, _ in got if "/events/" in t or "/records/" in t]
+    assert min(seqs) == history + 1, f"{sum(s <= history for s in seqs)} record(s) from before the enable published"
+    # every message a real daemon on the shipped config published fits the tree and its JSON Schema
+    validators = {k: schema_validator(k) for k in ("event", "record", "value")}
+    kinds = [check_message(t, p, validators) for t, p, _ in got]
+    assert {"state", "event", "record", "value"} <= set(kinds), kinds
+    print(f"{len(got)} messages valid; kinds of event: "
+          f"{sorted({json.loads(p)['kind'] for t, p, _ in got if '/events/' in t})}")
 
 
 def _writer_config(tmp: Path, port: int, total: int, every: str = "5ms") -> tuple[Path, Path]:
@@ -179,11 +218,11 @@ def test_broker_outage_and_daemon_crash_lose_nothing(tmp_path, broker):
 
 def test_last_will_when_the_daemon_is_killed(tmp_path, broker):
     cfg, sock = _writer_config(tmp_path, broker.port, total=10)
-    sub = Subscriber(broker.port, "lathed/+/+/state")
+    sub = Subscriber(broker.port, "lathed/+/state")
     d = Daemon(cfg, sock)
     try:
         d.wait_ready()
-        wait_until(lambda: sub.received("lathed/cell-mq/cell-mq/state"), 20, what="the birth message")
+        wait_until(lambda: sub.received("lathed/cell-mq/state"), 20, what="the birth message")
         assert sub.received()[-1][1] == b"online"
         d.proc.send_signal(signal.SIGKILL)          # no clean disconnect: the broker sends the will
         d.proc.wait(10)
@@ -191,10 +230,10 @@ def test_last_will_when_the_daemon_is_killed(tmp_path, broker):
     finally:
         d.stop()
         sub.close()
-    late = Subscriber(broker.port, "lathed/+/+/state")   # retained: a late subscriber learns it too
+    late = Subscriber(broker.port, "lathed/+/state")   # retained: a late subscriber learns it too
     try:
         wait_until(lambda: late.received(), 10, what="the retained state")
-        assert late.received() == [("lathed/cell-mq/cell-mq/state", b"offline", True)]
+        assert late.received() == [("lathed/cell-mq/state", b"offline", True)]
     finally:
         late.close()
 
@@ -260,9 +299,11 @@ class Ctx:
         self.log = structlog.get_logger("test")
 
 
-def _sink(store: Store, **keys) -> MqttSink:
-    sec = Section("test.toml", "analyzer.mqtt", {"host": "127.0.0.1", "interval": "20ms", "timeout": "2s", **keys})
-    sink = MqttSink("mqtt", sec)
+def _sink(store: Store, name: str = "mqtt", **keys) -> MqttSink:
+    # these tests store records, then start the sink: from the oldest unless told
+    sec = Section("test.toml", f"analyzer.{name}", {"host": "127.0.0.1", "interval": "20ms", "timeout": "2s",
+                                                    "start_from": "oldest", **keys})
+    sink = MqttSink(name, sec)
     sec.check_unused()
     sink.ctx = Ctx(store)
     return sink
@@ -285,10 +326,15 @@ async def _until_drained(sink: MqttSink, timeout: float = 20) -> None:
 def test_broker_down_is_a_fault_with_the_cause(tmp_path):
     from tests.conftest import free_port
     store = Store(tmp_path / "a.db", machine_id="cell-a")
-    sink = _sink(store, port=free_port())
+    sink = _sink(store, port=free_port(), start_from="now")
 
     async def main():
         await store.record("tick", "w", {"seq": 0})
+        with pytest.raises(ConnectionError, match="MQTT broker at 127.0.0.1:.* unreachable"):
+            await sink.run()
+        # "now" is the first start, broker up or not: what is stored after it waits for the broker
+        assert store.backlog("mqtt") == 0
+        await store.record("tick", "w", {"seq": 1})
         with pytest.raises(ConnectionError, match="MQTT broker at 127.0.0.1:.* unreachable"):
             await sink.run()
 
@@ -296,6 +342,65 @@ def test_broker_down_is_a_fault_with_the_cause(tmp_path):
     st = sink.status()
     assert not st["connected"] and st["backlog"] == 1 and "waiting for the broker" in st["summary"]
     store.close()
+
+
+def test_start_from_now_publishes_nothing_old_and_keeps_its_place(tmp_path, broker):
+    """A first enable on a store with history: "now" publishes none of it, then every
+    new record, and after a restart what was stored while it was stopped; "oldest"
+    publishes everything."""
+    store = Store(tmp_path / "a.db", machine_id="cell-h")
+    old, new, between = 40, 5, 3
+    sub = Subscriber(broker.port)
+
+    async def add(n: int) -> None:
+        for i in range(n):
+            await store.record("tick", "w", {"seq": i})
+
+    async def running(sink: MqttSink, n: int) -> None:
+        """Start the sink, store n records, wait until it has published them all."""
+        task = asyncio.create_task(sink.run())
+        try:
+            deadline = asyncio.get_running_loop().time() + 20
+            while not sink.connected:
+                assert not task.done(), task.result()
+                assert asyncio.get_running_loop().time() < deadline, "the sink never connected"
+                await asyncio.sleep(0.01)
+            await add(n)
+            while store.backlog(sink.name) > 0:
+                assert not task.done(), task.result()
+                assert asyncio.get_running_loop().time() < deadline, f"backlog stuck at {store.backlog(sink.name)}"
+                await asyncio.sleep(0.02)
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    try:
+        async def main():
+            await add(old)
+            history = store.query("SELECT max(id) AS m FROM outbox")[0]["m"]
+            now = _sink(store, "plant", port=broker.port, cell="now", start_from="now")
+            await running(now, new)
+            assert now.published == new
+            await add(between)                  # stored while the sink is stopped
+            again = _sink(store, "plant", port=broker.port, cell="now", start_from="now")
+            await running(again, 0)
+            assert again.published == between
+            oldest = _sink(store, "historian", port=broker.port, cell="old", start_from="oldest")
+            await running(oldest, 0)
+            assert oldest.published == old + new + between
+            return history
+
+        history = asyncio.run(main())
+        wait_until(lambda: len(sub.received("lathed/old/")) >= 2 + old + new + between, 10,
+                   what="the oldest sink's messages")
+        sent_now = sorted(json.loads(p)["seq"] for t, p, _ in sub.received("lathed/now/") if "/events/" in t)
+        sent_old = sorted(json.loads(p)["seq"] for t, p, _ in sub.received("lathed/old/") if "/events/" in t)
+    finally:
+        sub.close()
+        store.close()
+    assert history == old
+    assert sent_now == list(range(old + 1, old + new + between + 1)), sent_now
+    assert sent_old == list(range(1, old + new + between + 1))
 
 
 def _openssl(*args: str, cwd: Path) -> None:
@@ -353,26 +458,72 @@ def test_every_record_table_has_its_topic_and_units(tmp_path, broker):
                                        "outcome": "partial", "chatter_alarms": 1, "abnormal": 1,
                                        "unwatched": "lathed was not running"})
         await store.add("inspections", {"t": 3.0, "part_uuid": part, "ra_um": 4.2, "measured": {"roundness_um": 3.0}})
+        await store.add("sampling_queue", {"t": 2.0, "part_uuid": part, "reason": "abnormal"})
+        await store.add("experiments", {"t": 4.0, "tool": "T0101", "material": "C45", "run": 1,
+                                        "levels": {"rpm": 1, "feed": 2}, "settings": {"rpm": 1800, "feed": 0.15},
+                                        "ra_um": 1.6, "part_uuid": part})
         await _until_drained(_sink(store, port=broker.port, cell="hall-2"))
 
     try:
         asyncio.run(main())
-        wait_until(lambda: len(sub.received("lathed/hall-2/")) >= 5, 10, what="four records and the state")
+        wait_until(lambda: len(sub.received("lathed/hall-2/")) >= 8, 10, what="six records, online and offline")
         got = {t: json.loads(p) for t, p, _ in sub.received("lathed/hall-2/") if not t.endswith("/state")}
+        # each fits the tree and its kind's JSON Schema
+        assert sorted(check_message(t, p) for t, p, _ in sub.received("lathed/hall-2/")) == \
+            ["event", "event", "record", "record", "record", "record", "state", "state"]
     finally:
         sub.close()
         store.close()
-    assert set(got) == {"lathed/hall-2/lathe/events/chatter_alarm", "lathed/hall-2/cell-a/events/config_reloaded",
-                        "lathed/hall-2/lathe/records/workpieces", "lathed/hall-2/cell-a/records/inspections"}
+    assert set(got) == {"lathed/hall-2/lathe/events/chatter_alarm", "lathed/hall-2/events/config_reloaded",
+                        "lathed/hall-2/lathe/records/workpieces", "lathed/hall-2/records/inspections",
+                        "lathed/hall-2/records/sampling_queue", "lathed/hall-2/records/experiments"}
     alarm = got["lathed/hall-2/lathe/events/chatter_alarm"]
     assert alarm["units"] == {"rpm": "r/min", "chatter_frequency_hz": "Hz", "depth_mm": "mm"}
-    assert [m["seq"] for m in sorted(got.values(), key=lambda m: m["seq"])] == [1, 2, 3, 4]
+    assert got["lathed/hall-2/events/config_reloaded"]["machine"] is None
+    assert [m["seq"] for m in sorted(got.values(), key=lambda m: m["seq"])] == [1, 2, 3, 4, 5, 6]
     wp = got["lathed/hall-2/lathe/records/workpieces"]
     assert (wp["table"], wp["uuid"], wp["t"], wp["row"]["outcome"], wp["row"]["unwatched"]) == \
         ("workpieces", part, 2.0, "partial", "lathed was not running")
-    insp = got["lathed/hall-2/cell-a/records/inspections"]
+    insp = got["lathed/hall-2/records/inspections"]
     assert insp["row"]["measured"] == {"roundness_um": 3.0} and insp["units"] == {"ra_um": "µm"}
     assert insp["time"] == "1970-01-01T00:00:03.000Z"
+
+
+def test_the_record_schema_has_every_column_of_every_table(tmp_path):
+    """record.schema.json's rows are the store's tables: a column added to a table and not to
+    the schema (or the reverse, or a wrong type or nullability) fails here."""
+    from lathed.store import FORWARDED, JSON_COLUMNS
+    store = Store(tmp_path / "a.db", machine_id="cell-s")
+    try:
+        tables = {t: store.query(f"PRAGMA table_info({t})") for t in FORWARDED if t != "events"}
+    finally:
+        store.close()
+    schema = schema_validator("record").schema
+    assert set(schema["properties"]["table"]["enum"]) == set(tables)
+    sql_type = {"TEXT": "string", "REAL": "number", "INTEGER": "integer"}
+    for table, cols in tables.items():
+        row = schema["$defs"][table]
+        cols = [c for c in cols if c["name"] not in ("id", "uuid", "machine_id")]
+        assert set(row["properties"]) == {c["name"] for c in cols} == set(row["required"]), table
+        for c in cols:
+            prop = row["properties"][c["name"]]
+            types = prop["type"] if "type" in prop else sorted({type(v).__name__ for v in prop["enum"]})
+            types = [types] if isinstance(types, str) else types
+            want = "object" if c["name"] in JSON_COLUMNS else sql_type[c["type"]]
+            assert want in types or (types == ["int"] and want == "integer"), (table, c["name"], types)
+            assert ("null" in types) == (not c["notnull"]), (table, c["name"], "nullability")
+
+
+def test_the_schemas_refuse_what_is_not_the_documented_payload():
+    event = {"id": "4af4e243-0c32-45bb-9d17-0354f7a4a430/7", "uuid": "4af4e243-0c32-45bb-9d17-0354f7a4a430",
+             "seq": 7, "cell": "c", "daemon": "c", "table": "events", "machine": None, "kind": "daemon_started",
+             "source": "lathed", "t": 3.0, "time": "1970-01-01T00:00:03.000Z", "payload": {}, "units": {}}
+    v = schema_validator("event")
+    v.validate(event)
+    for bad in ({"seq": 0}, {"time": "1970-01-01 00:00:03"}, {"units": {"x_mm": "inch"}}, {"extra": 1},
+                {"payload": [1]}, {"id": "7"}):
+        assert not v.is_valid({**event, **bad}), bad
+    assert not v.is_valid({k: x for k, x in event.items() if k != "seq"})
 
 
 def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path):
@@ -381,6 +532,7 @@ def test_a_batch_whose_progress_the_store_refused_is_not_counted(tmp_path):
     broker = Broker(tmp_path / "broker")
     broker.start()
     store = Store(tmp_path / "a.db", machine_id="cell-p")
+    store.begin_progress("mqtt", at_end=False).result(5)     # the sink began before the disk filled
     disk_full(store, "forward_progress")
     sink = _sink(store, port=broker.port)
     try:

@@ -115,7 +115,7 @@ def test_two_cells_one_database_plant_lists_both(tmp_path, pg_dsn):  # noqa: F81
 
         # and both on the one broker, each under its own cell
         for cell in ("cell-a", "cell-b"):
-            assert sub.received(f"lathed/{cell}/{cell}/state")[-1][1] == b"online"
+            assert sub.received(f"lathed/{cell}/state")[-1][1] == b"online"
             assert sub.received(f"lathed/{cell}/lathe/events/part_completed")
         assert sub.received("lathed/cell-a/mill/events/alarm_raised")
     finally:

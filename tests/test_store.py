@@ -305,6 +305,24 @@ def test_a_record_whose_waiter_was_cancelled_does_not_fail_its_committed_batch(t
     con.close()
 
 
+def test_a_sinks_first_progress_is_set_once(tmp_path):
+    """begin_progress: after every record so far, or before the first; never over a saved place."""
+    s = Store(tmp_path / "a.db")
+    try:
+        for i in range(3):
+            s.record_future("tick", "w", {"i": i})
+        s.begin_progress("now", at_end=True).result(10)
+        s.begin_progress("oldest", at_end=False).result(10)
+        assert (s.progress("now"), s.progress("oldest"), s.backlog("now"), s.backlog("oldest")) == (3, 0, 0, 3)
+        s.record_future("tick", "w", {"i": 3}).result(10)
+        s.set_progress("oldest", 2).result(10)
+        for sink in ("now", "oldest"):               # a restart: the saved place stands
+            s.begin_progress(sink, at_end=True).result(10)
+        assert (s.progress("now"), s.progress("oldest")) == (3, 2)
+    finally:
+        s.close()
+
+
 def test_a_record_taken_by_the_writer_can_no_longer_be_cancelled(tmp_path):
     import threading
     s = Store(tmp_path / "a.db")
