@@ -55,7 +55,8 @@ class JackServer:
         if not have_jackd():
             raise RuntimeError("no jackd; run `bash tests/ensure_jack.sh`")
         self.rate, self.period, self.capture = rate, period, capture
-        self.name = name or f"lathed-test-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}"
+        # one server per test process: two suites on one machine must not share a server name
+        self.name = name or f"lathed-test-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-{os.getpid()}"
         self.env = {"JACK_DEFAULT_SERVER": self.name, "JACK_NO_START_SERVER": "1",
                     "JACK_NO_AUDIO_RESERVATION": "1"}
         self.proc: subprocess.Popen | None = None
