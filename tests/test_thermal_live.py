@@ -340,3 +340,51 @@ def test_an_offset_waits_for_the_threads_end_without_asking_in_vain(monkeypatch)
     asyncio.run(run())
     assert asked and len(asked) == len(ticks) - 5, (asked, len(ticks))     # only after the thread
     assert th.refused is None and th.applied == asked[-1]
+
+
+def test_a_touch_off_while_the_offset_phases_in_says_the_new_target_at_once(monkeypatch):
+    """Touched off while the offset still lags the prediction: the status (what `lathectl thermal
+    touchoff` prints) has growth 0 and the target at the new base, not the last step's target
+    (8 µm off in a live run, until the next step)."""
+    import asyncio
+    import types
+
+    import structlog
+
+    import lathed_plugins.thermal as thermal
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    th = thermal.ThermalAnalyzer("thermal", Section("f.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe", "step": "1s"}))
+
+    async def command(cmd):
+        return {"sent": True, "reason": None}
+    th.ctx = AnalyzerContext(Bus(), structlog.get_logger("t"), lambda k, p=None: None, command,
+                             lambda *a: None, None, lambda n: None, ".")
+    th.temps = {p: 30.0 for p in th._sensor_places()}
+    th._read_at = {p: time.time() for p in th.temps}
+    th.touchoff = {"base_um": 0.0, "cold_c": dict(th.temps), "cold_t": 0.0}
+    th.pred0, th.applied = 0.0, 0.0
+    th._predictor = types.SimpleNamespace(update=lambda *a: 10.0)     # 10 µm of growth to phase in
+    ticks = []
+    real_sleep = asyncio.sleep
+
+    async def step(s):                        # the analyzer's step, counted, not waited
+        ticks.append(s)
+        if len(ticks) > 1:
+            raise asyncio.CancelledError
+        await real_sleep(0)
+    monkeypatch.setattr(thermal.asyncio, "sleep", step)
+
+    async def run():
+        try:
+            await th._tick()
+        except asyncio.CancelledError:
+            pass
+    asyncio.run(run())
+    assert th.target == -10.0 and th.applied == -th.rate * th.step      # one step phased in
+    th._touch_off("operator touched the tool off", th.applied)
+    st = th.status()
+    assert st["predicted_growth_um"] == 0.0
+    assert st["target_offset_um"] == st["touchoff"]["base_um"] == th.applied, st
