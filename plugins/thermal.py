@@ -217,6 +217,8 @@ class ThermalAnalyzer(Analyzer):
         self.ctx.record("thermal_touchoff", to)
         if to["pred0_um"] is not None:
             self.pred0 = to["pred0_um"]     # same model and predictor: only the zero moves
+            # the status says so at once, not the last step's target until the next step
+            self.prediction, self.target = self.pred0, base_um
         else:
             self._rebuild()
 

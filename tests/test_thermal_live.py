@@ -32,6 +32,9 @@ TIME_SCALE = 600.0           # a 70 min thermal hour per part: the spindle warms
 THERMAL = re.sub(r"^growth_rate_max_um_s = .*$", f"growth_rate_max_um_s = {TIME_SCALE:g}",
                  default_table("thermal"), flags=re.M)
 RATE_UM_S = float(re.search(r"^rate_um_s = ([\d.]+)", THERMAL, re.M).group(1))
+# the restart test's spindle: standing until the cold touch-off, then one speed
+STANDING_RPM = 60.0           # the slowest the simulated control takes
+RUNNING_RPM = 2500.0
 
 
 def events(d, kind: str) -> list[dict]:
@@ -180,12 +183,19 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
 def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
     """The simulator runs on by itself while the daemon restarts, as a warm lathe
     would: the compensation must go on from the touch-off stored at the first
-    start, not take the warm spindle for a cold one and phase the offset out."""
+    start, not take the warm spindle for a cold one and phase the offset out.
+
+    The spindle stands (60 r/min: no heat to speak of) until the daemon has touched off,
+    then runs at one speed, so its growth since the touch-off only rises.
+    The default program's parts alternate 1500..2500 r/min, 70 thermal minutes each: its
+    spindle cools by up to 12 µm between them, and where the daemon's start fell in that
+    cycle (2 to 15 s after the simulator's, as the host was loaded) decided the test."""
     from lathed.config import load
     from lathed.sim.launch import SimulatorSettings
     from tests.conftest import Daemon, sim_config
 
-    cfg, paths = sim_config(tmp_path, analyzers=THERMAL, time_scale=TIME_SCALE, simulator="spawn = false")
+    cfg, paths = sim_config(tmp_path, analyzers=THERMAL, time_scale=TIME_SCALE,
+                            simulator=f'spawn = false\nprogram = ["{STANDING_RPM:g},1.0"]')
     argv = SimulatorSettings(load(cfg).simulator, tmp_path / "run").argv()
     (tmp_path / "run").mkdir(exist_ok=True)
     sim = subprocess.Popen(argv, stdout=subprocess.PIPE)
@@ -195,10 +205,13 @@ def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
         d = Daemon(cfg, paths["socket"])
         daemons.append(d)
         d.wait_ready()
+        first = wait_until(lambda: events(d, "thermal_touchoff"), timeout=30, interval=0.3,
+                           what="the cold start's touch-off")
+        assert len(first) == 1 and first[0]["payload"]["base_um"] == 0.0
+        assert first[0]["payload"]["rpm"] in (None, STANDING_RPM)
+        sim_call(paths["sim"], "set", {"rpm": RUNNING_RPM})     # the program starts: the spindle warms
         wait_until(lambda: (c := events(d, "compensation")) and c[-1]["payload"]["offset_um"] < -4.0,
                    timeout=40, interval=0.3, what="an offset of more than 4 µm phased in")
-        first = events(d, "thermal_touchoff")
-        assert len(first) == 1 and first[0]["payload"]["base_um"] == 0.0
         before = thermal(d, "status")
         assert d.stop() == 0
         n_comp = len(events_in(paths["state"], "compensation"))
@@ -241,6 +254,48 @@ def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
             d.stop()
         sim.terminate()
         sim.wait(10)
+
+
+def restart_drops_um(speeds, start_steps: int) -> float:
+    """The most the predicted growth falls across the restart test's daemon restart, on the
+    simulator's own thermal model and DS18B20 readings (seed 0, as the test's simulator): the
+    daemon touches off ``start_steps`` analyzer steps after the simulator starts (its start
+    takes 2 to 15 s as the host is loaded), stops from 3 to 12 steps after the growth passed
+    the tolerance (the offset phased past -4 µm) and runs again 10 to 24 steps later."""
+    from itertools import islice
+
+    from lathed.analysis.thermal import eq14_model
+    from lathed.sim.thermal import SpindleThermal
+
+    th = SpindleThermal(room_c=20.0, seed=0)
+    for rpm in islice(speeds, start_steps):
+        th.step(STEP_S * TIME_SCALE, rpm)
+    predictor = eq14_model().predictor(th.readings(), 0.0)
+    zero = predictor.update(th.readings(), 0.0, 0.0)
+    growth = []
+    for rpm in islice(speeds, 60):
+        th.step(STEP_S * TIME_SCALE, rpm)
+        growth.append(predictor.update(th.readings(), 0.0, 0.0) - zero)
+    first = next(i for i, g in enumerate(growth) if g > 2.0) + 3
+    return max(growth[stop] - growth[again] for stop in range(first, first + 10)
+               for again in range(stop + 10, stop + 25))
+
+
+def test_the_restart_tests_spindle_does_not_cool_wherever_the_daemon_starts():
+    """The restart test's premise: its spindle, standing until the touch-off and then at one
+    speed, loses less than the test's 2 µm across the restart (the readings' 1/16 °C steps
+    and noise, not heat) however late the daemon starts. The default program's parts
+    (70 thermal minutes each at its speed) break it: its spindle cools between them."""
+    from itertools import chain, cycle, repeat
+
+    from lathed.sim.lathe import DEFAULT_PROGRAM
+
+    part_steps = 7      # a part takes about 7 s: 70 thermal minutes
+    program = [c.program_rpm(0.0) for c in DEFAULT_PROGRAM for _ in range(part_steps)]
+    for start in range(0, 19, 3):      # up to 18 s, three thermal hours
+        standing = chain(repeat(STANDING_RPM, start), repeat(RUNNING_RPM))
+        assert restart_drops_um(standing, start) < 2.0, start
+        assert restart_drops_um(cycle(program), start) > 4.0, start
 
 
 def events_in(state_dir, kind: str) -> list:
@@ -340,3 +395,51 @@ def test_an_offset_waits_for_the_threads_end_without_asking_in_vain(monkeypatch)
     asyncio.run(run())
     assert asked and len(asked) == len(ticks) - 5, (asked, len(ticks))     # only after the thread
     assert th.refused is None and th.applied == asked[-1]
+
+
+def test_a_touch_off_while_the_offset_phases_in_says_the_new_target_at_once(monkeypatch):
+    """Touched off while the offset still lags the prediction: the status (what `lathectl thermal
+    touchoff` prints) has growth 0 and the target at the new base, not the last step's target
+    (8 µm off in a live run, until the next step)."""
+    import asyncio
+    import types
+
+    import structlog
+
+    import lathed_plugins.thermal as thermal
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    th = thermal.ThermalAnalyzer("thermal", Section("f.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe", "step": "1s"}))
+
+    async def command(cmd):
+        return {"sent": True, "reason": None}
+    th.ctx = AnalyzerContext(Bus(), structlog.get_logger("t"), lambda k, p=None: None, command,
+                             lambda *a: None, None, lambda n: None, ".")
+    th.temps = {p: 30.0 for p in th._sensor_places()}
+    th._read_at = {p: time.time() for p in th.temps}
+    th.touchoff = {"base_um": 0.0, "cold_c": dict(th.temps), "cold_t": 0.0}
+    th.pred0, th.applied = 0.0, 0.0
+    th._predictor = types.SimpleNamespace(update=lambda *a: 10.0)     # 10 µm of growth to phase in
+    ticks = []
+    real_sleep = asyncio.sleep
+
+    async def step(s):                        # the analyzer's step, counted, not waited
+        ticks.append(s)
+        if len(ticks) > 1:
+            raise asyncio.CancelledError
+        await real_sleep(0)
+    monkeypatch.setattr(thermal.asyncio, "sleep", step)
+
+    async def run():
+        try:
+            await th._tick()
+        except asyncio.CancelledError:
+            pass
+    asyncio.run(run())
+    assert th.target == -10.0 and th.applied == -th.rate * th.step      # one step phased in
+    th._touch_off("operator touched the tool off", th.applied)
+    st = th.status()
+    assert st["predicted_growth_um"] == 0.0
+    assert st["target_offset_um"] == st["touchoff"]["base_um"] == th.applied, st
