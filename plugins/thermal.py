@@ -46,6 +46,7 @@ import numpy as np
 from lathed import hookimpl
 from lathed.analysis.compensation_hold import CompensationHold
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
+from lathed.analysis.thermal.loop import min_rows
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
@@ -55,10 +56,9 @@ from lathed.config import Section
 from lathed.control import RequestError
 
 
-# refit() fits on all but the newest 20 % and the residual loop needs 10 rows for
-# each of its 5 held-out time blocks: ceil(50 / 0.8) measurements at least.
+# refit() analyses all but the newest 20 %, and analyze() needs min_rows() of those.
 REFIT_HOLDOUT = 0.2
-MIN_REFIT_ROWS = math.ceil(10 * 5 / (1 - REFIT_HOLDOUT))
+MIN_REFIT_ROWS = math.ceil(min_rows() / (1 - REFIT_HOLDOUT))
 
 
 class ThermalAnalyzer(Analyzer):
@@ -355,6 +355,8 @@ class ThermalAnalyzer(Analyzer):
         ls = res.least_squares_rmse_um
         out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
                "least_squares_rmse_um": None if ls is None else round(ls, 3),
+               "baselines_rmse_um": {k: round(v, 3) for k, v in res.baselines_rmse_um.items()},
+               "handed_on": res.analysis.final.label, "why": res.why,
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
                # what each kept sensor carries: a user with many sensors sees which matter

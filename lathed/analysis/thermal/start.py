@@ -1,0 +1,120 @@
+"""Runs from several days: which start cold, which continue an earlier run, which start warm.
+
+Rises are taken from a run's first rows, which is right for a run from a cold start. A run is
+cold when the machine's own sensors agree with each other as they did at the first run's cold
+start, whatever the room air reads: a shop warms up in the morning faster than a machine's iron.
+See docs/thermal.md, "Several runs".
+"""
+from __future__ import annotations
+
+import statistics
+from typing import Sequence
+
+import numpy as np
+
+from lathed.analysis.thermal.data import ThermalData, ThermalRuns, room_column, start_temp
+
+# A heated sensor standing further above the machine's least heated sensors than at the cold
+# start, by more than this share of its rise in that run: the run did not start cold.
+WARM_START_SHARE = 0.25
+WARM_START_MIN_C = 0.25     # 4 DS18B20 steps: below it a start is cold whatever the run's rise
+
+
+def _is_room(column: str) -> bool:
+    return "room" in column or "ambient" in column
+
+
+def warm_sensors(cold: ThermalData, run: ThermalData) -> list[str]:
+    """Why ``run`` does not start cold, judged against ``cold`` (a run from a cold start): one
+    line per machine sensor that starts warm, none when it starts cold.
+
+    Each sensor's start is compared with its start in ``cold``; the common shift is what the
+    machine's least heated sensors (the lower half by their rise in ``cold``) moved by, so a
+    machine soaked overnight in a warmer or colder shop is still cold. With a single machine
+    sensor there is nothing to agree with: the room's shift, if there is a room sensor, stands
+    in."""
+    sensors = [s for s in run.sensors if s in cold.temps_c and not _is_room(s)]
+    if not sensors:
+        return []
+    d = {s: start_temp(run.time_s, run.temps_c[s]) - start_temp(cold.time_s, cold.temps_c[s]) for s in sensors}
+    span = {s: float(np.ptp(cold.rise(s))) for s in sensors}
+    if len(sensors) > 1:
+        quiet = sorted(sensors, key=lambda s: span[s])[:max(1, len(sensors) // 2)]
+        shift, against = statistics.median(d[s] for s in quiet), "the machine's least heated sensors"
+    else:
+        room = room_column([k for k in run.sensors if k in cold.temps_c])
+        shift = 0.0 if room is None else (start_temp(run.time_s, run.temps_c[room])
+                                          - start_temp(cold.time_s, cold.temps_c[room]))
+        against = "the room" if room else "its cold start"
+    out = []
+    for s in sensors:
+        above = d[s] - shift
+        if above > max(WARM_START_SHARE * span[s], WARM_START_MIN_C):
+            out.append(f"{s} starts at {start_temp(run.time_s, run.temps_c[s]):.2f} °C, {above:.2f} °C further "
+                       f"above {against} than at the cold start (it rose {span[s]:.2f} °C in that run)")
+    return out
+
+
+def continues(before: ThermalData, run: ThermalData) -> bool:
+    """Does ``run`` go on from ``before`` (its clock starts after ``before`` ends)?"""
+    return bool(run.time_s[0] > before.time_s[-1])
+
+
+def continued(before: ThermalData, run: ThermalData) -> ThermalData:
+    """``run`` with its rises and drift clock taken from ``before``'s cold start."""
+    ref = {k: before.reference_c[k] for k in run.temps_c if k in before.reference_c}
+    ref |= {k: v for k, v in run.reference_c.items() if k not in before.reference_c}
+    return ThermalData(run.time_s, run.temps_c, run.displacement_um, run.rpm, ref, before.t0_s, before.rises_from)
+
+
+def reference_test(train: ThermalData | ThermalRuns, test: ThermalData) -> tuple[ThermalData, str | None]:
+    """Make a test run's rises comparable with the fit's: a run on the (last) training run's
+    clock continues it; any other must start cold. Returns the test run and a line saying what
+    was done (None when it starts cold); ValueError when it starts warm."""
+    runs = train.runs if isinstance(train, ThermalRuns) else [train]
+    if continues(runs[-1], test):
+        return continued(runs[-1], test), (
+            f"the test run continues the training run's clock (starts at {test.time_s[0]:g} s, the training "
+            f"run ends at {runs[-1].time_s[-1]:g} s): its rises are taken from the training run's cold start, "
+            f"not from its own first rows")
+    warm = warm_sensors(runs[0], test)
+    if warm:
+        raise ValueError(f"the test run does not start cold: {'; '.join(warm)}; rises from its first rows "
+                         f"would miss the warm-up. Give a run from a cold start, one continuing the training "
+                         f"run's time_s, or use --split")
+    return test, None
+
+
+def _joined(a: ThermalData, b: ThermalData) -> ThermalData:
+    """``b`` appended to ``a`` as one run (terms with memory carry on)."""
+    cat = np.concatenate
+    return ThermalData(cat([a.time_s, b.time_s]), {k: cat([a.temps_c[k], b.temps_c[k]]) for k in a.temps_c},
+                       None if a.displacement_um is None or b.displacement_um is None
+                       else cat([a.displacement_um, b.displacement_um]),
+                       None if a.rpm is None or b.rpm is None else cat([a.rpm, b.rpm]),
+                       a.reference_c, a.t0_s, a.rises_from)
+
+
+def join_runs(runs: Sequence[tuple[str, ThermalData]]) -> tuple[ThermalData | ThermalRuns, list[str]]:
+    """Several runs (name, rows) in time order as training rows: each from its own cold start, or
+    continuing the run before it when its clock goes on from it. A run that starts warm is
+    refused (ValueError naming it). Returns the rows and a line for each continuation."""
+    if not runs:
+        raise ValueError("no run given")
+    cols = set(runs[0][1].temps_c)
+    out: list[ThermalData] = [runs[0][1]]
+    notes = []
+    for name, r in runs[1:]:
+        if set(r.temps_c) != cols:
+            raise ValueError(f"{name} has temperature columns {', '.join(sorted(r.temps_c))}, the first run "
+                             f"{', '.join(sorted(cols))}: every run needs the same ({name}, line 1)")
+        if continues(out[-1], r):
+            out[-1] = _joined(out[-1], continued(out[-1], r))
+            notes.append(f"{name} continues the run before it (its time_s goes on): one run from that cold start")
+            continue
+        warm = warm_sensors(out[0], r)
+        if warm:
+            raise ValueError(f"{name} does not start cold: {'; '.join(warm)}; rises from its first rows would "
+                             f"miss the warm-up. Give runs from a cold start, or continue a run's time_s ({name})")
+        out.append(r)
+    return (out[0] if len(out) == 1 else ThermalRuns(out)), notes
