@@ -4,7 +4,7 @@ one named, and that none is claimed where there is none."""
 import numpy as np
 import pytest
 
-from lathed.analysis.thermal import ThermalData, analyze, refit
+from lathed.analysis.thermal import Candidate, LinearTerm, ThermalData, analyze, fit_stage, refit
 from lathed.sim.thermal import EFFECTS, generate_run, random_schedule
 
 NOISE_UM = 0.5
@@ -38,8 +38,8 @@ def test_the_effect_in_the_data_is_named_and_the_test_error_falls(effect):
     a = analyze(tr, te)
     assert a.effects, f"nothing found; residual: {a.residual.note}"
     assert a.effects[0].term.effect == effect
-    fall = 1 - a.final.test_rmse_um / a.baseline.test_rmse_um
-    assert fall >= 0.60, f"{effect}: {a.baseline.test_rmse_um:.2f} -> {a.final.test_rmse_um:.2f} µm"
+    fall = 1 - a.final.test_rmse_um / a.start.test_rmse_um
+    assert fall >= 0.60, f"{effect}: {a.start.test_rmse_um:.2f} -> {a.final.test_rmse_um:.2f} µm"
     assert not a.residual.structured, a.residual.note
 
 
@@ -78,12 +78,12 @@ def test_a_periodicity_off_the_library_becomes_a_periodic_term():
     a = analyze(tr, te)
     assert [e.term.effect for e in a.effects] == ["periodic"], a.notes
     assert a.effects[0].term.params["period_s"] == pytest.approx(1200.0, rel=0.01)
-    fall = 1 - a.final.test_rmse_um / a.baseline.test_rmse_um
-    assert fall >= 0.60, (a.baseline.test_rmse_um, a.final.test_rmse_um)
+    fall = 1 - a.final.test_rmse_um / a.start.test_rmse_um
+    assert fall >= 0.60, (a.start.test_rmse_um, a.final.test_rmse_um)
     assert not a.residual.structured, a.residual.note
 
 
-class CoolantCycle:
+class CoolantCycle(Candidate):
     """A plugin's candidate: a periodic term at a known pump period."""
     name = "coolant_cycle"
 
@@ -118,8 +118,11 @@ def test_a_plugin_candidate_is_tried_and_named():
 def test_json_contract():
     tr, te = pair(("speed",))
     js = analyze(tr, te).to_json()
-    assert set(js["baseline"]) == {"terms", "rmse_um", "test_rmse_um"}
-    assert set(js["final"]) == {"terms", "rmse_um", "test_rmse_um"}
+    stage = {"model", "terms", "rmse_um", "forward_rmse_um", "test_rmse_um"}
+    assert set(js["start"]) == set(js["loop"]) == set(js["final"]) == stage
+    assert [set(b) for b in js["baselines"]] == [stage] * 3      # least squares, with the speed, ridge
+    assert js["handed_on"] == js["final"]["model"]
+    assert {"model", "forward_rmse_um", "rmse_um", "baseline"} <= set(js["comparison"]["models"][0])
     assert set(js["residual"]) == {"structured", "note"}
     e = js["effects"][0]
     assert set(e) == {"effect", "sensor", "params", "test_rmse_um"}
@@ -175,8 +178,8 @@ def test_a_lag_and_a_speed_effect_together_are_both_named():
     a = analyze(tr, te)
     names = {(e.term.effect, e.term.sensor) for e in a.effects}
     assert ("lag", "t_front_bearing_c") in names and ("speed", None) in names, a.notes
-    fall = 1 - a.final.test_rmse_um / a.baseline.test_rmse_um
-    assert fall >= 0.90, (a.baseline.test_rmse_um, a.final.test_rmse_um)
+    fall = 1 - a.final.test_rmse_um / a.start.test_rmse_um
+    assert fall >= 0.90, (a.start.test_rmse_um, a.final.test_rmse_um)
     assert a.final.test_rmse_um <= a.least_squares.test_rmse_um
 
 
@@ -194,7 +197,7 @@ def test_a_stand_in_that_entered_first_is_swapped_for_the_pair():
     a = analyze(tr, te)
     names = {(e.term.effect, e.term.sensor) for e in a.effects}
     assert ("lag", "t_front_bearing_c") in names and ("speed", None) in names, a.notes
-    assert 1 - a.final.test_rmse_um / a.baseline.test_rmse_um >= 0.90, (a.baseline.test_rmse_um,
+    assert 1 - a.final.test_rmse_um / a.start.test_rmse_um >= 0.90, (a.start.test_rmse_um,
                                                                          a.final.test_rmse_um)
 
 
@@ -206,7 +209,7 @@ def test_no_time_constant_the_run_cannot_tell_from_a_trend():
     span = float(tr.time_s[-1] - tr.time_s[0])
     taus = [t.tau_s for t in a.final.model.terms if hasattr(t, "tau_s")]
     assert taus and max(taus) <= span / 4, taus
-    assert 1 - a.final.test_rmse_um / a.baseline.test_rmse_um >= 0.90, (a.baseline.test_rmse_um,
+    assert 1 - a.final.test_rmse_um / a.start.test_rmse_um >= 0.90, (a.start.test_rmse_um,
                                                                          a.final.test_rmse_um)
 
 
@@ -216,7 +219,7 @@ def test_growth_steps_at_speed_changes_become_a_speed_step_term():
     te = data(add_speed_steps(generate_run(random_schedule(101, SHIFT_S), (), seed=101, dt_s=30.0)))
     a = analyze(tr, te)
     assert "speed_step" in [e.term.effect for e in a.effects], a.notes
-    assert 1 - a.final.test_rmse_um / a.baseline.test_rmse_um >= 0.6
+    assert 1 - a.final.test_rmse_um / a.start.test_rmse_um >= 0.6
     # without a speed column the steps cannot be fitted: they are named, with their times
     tr.rpm = None
     a = analyze(tr)
@@ -237,7 +240,7 @@ def test_a_switch_at_one_speed_is_one_step_not_a_column_per_level():
     a = analyze(tr, te)
     steps = [e.term for e in a.effects if e.term.effect == "speed_step"]
     assert steps and steps[0].above_rpm is not None and 2500 <= steps[0].above_rpm <= 3000, a.notes
-    assert 1 - a.final.test_rmse_um / a.baseline.test_rmse_um >= 0.6, (a.baseline.test_rmse_um,
+    assert 1 - a.final.test_rmse_um / a.start.test_rmse_um >= 0.6, (a.start.test_rmse_um,
                                                                         a.final.test_rmse_um)
 
 
@@ -266,9 +269,16 @@ def test_a_residual_period_is_tied_to_the_sensor_oscillating_at_it():
     assert rep.sensor == "t_motor_c" and "the period at which t_motor_c oscillates" in rep.note
 
 
+def _ls4(tr, te):
+    """Least squares on the simulation's four true sensors, fitted on the training run."""
+    from lathed.sim.thermal import TRUE_SENSORS
+    true4 = list(TRUE_SENSORS)
+    return fit_stage(tr.select(true4), [LinearTerm(k) for k in true4], te.select(true4), int(0.8 * len(tr)), "",
+                     raw=True)
+
+
 def test_sixteen_sensors_of_which_four_carry_the_growth():
-    from lathed.analysis.thermal import LinearTerm, _stage
-    from lathed.sim.thermal import TRUE_SENSORS, many_sensors
+    from lathed.sim.thermal import many_sensors
 
     def run(seed):
         return data(many_sensors(generate_run(random_schedule(seed, SHIFT_S), (), seed=seed, dt_s=60.0,
@@ -276,8 +286,7 @@ def test_sixteen_sensors_of_which_four_carry_the_growth():
     tr, te = run(3), run(103)
     assert len(tr.sensors) == 16
     a = analyze(tr, te)
-    ls4, _ = _stage(tr.select(list(TRUE_SENSORS)), [LinearTerm(k) for k in TRUE_SENSORS],
-                    te.select(list(TRUE_SENSORS)), 5, 10, [], raw=True)
+    ls4 = _ls4(tr, te)
     assert a.final.test_rmse_um <= 1.10 * ls4.test_rmse_um, (a.final.test_rmse_um, ls4.test_rmse_um)
     assert a.final.test_rmse_um < a.least_squares.test_rmse_um       # all 16 as read: far worse
     kept = {k.sensor: k for k in a.sensors}
@@ -296,7 +305,7 @@ def test_a_decoy_lagging_a_heated_sensor_does_not_keep_the_true_ones_out():
     # in for the front bearing and the motor at once; a forward pass took it
     # second and then saw no gain in either true one (6x least squares on the
     # four true sensors on the next run). The floating search finds the true set.
-    from lathed.analysis.thermal import LinearTerm, _stage, select_sensors
+    from lathed.analysis.thermal import select_sensors
     from lathed.sim.thermal import TRUE_SENSORS, many_sensors
 
     def run(seed):
@@ -306,9 +315,8 @@ def test_a_decoy_lagging_a_heated_sensor_does_not_keep_the_true_ones_out():
     chosen, _, _ = select_sensors(tr, prune=False)
     names = {t.sensor for t in chosen}
     assert names <= set(TRUE_SENSORS) and "t_front_bearing_c" in names, names
-    sel, _ = _stage(tr, chosen, te, 5, 10, [])
-    ls4, _ = _stage(tr.select(list(TRUE_SENSORS)), [LinearTerm(k) for k in TRUE_SENSORS],
-                    te.select(list(TRUE_SENSORS)), 5, 10, [], raw=True)
+    sel = fit_stage(tr, chosen, te, int(0.8 * len(tr)), "")
+    ls4 = _ls4(tr, te)
     assert sel.test_rmse_um <= 1.10 * ls4.test_rmse_um, (sel.test_rmse_um, ls4.test_rmse_um)
 
 

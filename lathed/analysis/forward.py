@@ -92,7 +92,7 @@ class Scored:
 
     def to_json(self) -> dict[str, Any]:
         r = (lambda v: None if v is None else round(v, 4))
-        return {"model": self.label, "forward_rmse": r(self.forward), "rmse": r(self.later),
+        return {"model": self.label, "forward_rmse_um": r(self.forward), "rmse_um": r(self.later),
                 "baseline": self.baseline, **({"note": self.note} if self.note else {})}
 
 

@@ -6,7 +6,7 @@ from typing import Sequence
 
 import numpy as np
 
-from lathed.analysis.forward import Fold, fold_t, rmse
+from lathed.analysis.forward import Fold, fold_t, forward_folds, rmse
 from lathed.analysis.thermal.data import ThermalData, ThermalRuns
 from lathed.analysis.thermal.fit import cached_forward, design, fit_coefficients, fit_design, forward_errors
 from lathed.analysis.thermal.report import SensorKept
@@ -76,7 +76,7 @@ def usable_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold]) -> tu
 SENSOR_ALPHA = 0.05
 
 
-def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold], max_sensors: int = 8,
+def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold] | None = None, max_sensors: int = 8,
                    min_gain: float = 0.005, alpha: float = SENSOR_ALPHA, *,
                    start: Sequence[LinearTerm] | None = None,
                    fixed: Sequence[Term] = (), prune: bool = True
@@ -96,6 +96,7 @@ def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold], max_s
     best filter): a missing effect may hide a sensor's share, and the loop decides once effects
     are in. ``start`` are sensors already chosen, ``fixed`` effect terms fitted beside them; the
     residual loop calls this again as effects enter, and last with ``prune``."""
+    folds = forward_folds(len(data)) if folds is None else folds
     keep, notes = usable_sensors(data, folds)
     y = data.displacement_um
     if y is None:

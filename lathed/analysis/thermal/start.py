@@ -2,7 +2,8 @@
 
 Rises are taken from a run's first rows, which is right for a run from a cold start. A run is
 cold when the machine's own sensors agree with each other as they did at the first run's cold
-start, whatever the room air reads: a shop warms up in the morning faster than a machine's iron.
+start, whatever the room air reads (a shop warms up in the morning faster than a machine's iron),
+as long as it is within ROOM_SLACK_C of that air.
 See docs/thermal.md, "Several runs".
 """
 from __future__ import annotations
@@ -14,10 +15,14 @@ import numpy as np
 
 from lathed.analysis.thermal.data import ThermalData, ThermalRuns, room_column, start_temp
 
-# A heated sensor standing further above the machine's least heated sensors than at the cold
-# start, by more than this share of its rise in that run: the run did not start cold.
+# A machine sensor standing further above the others than at the cold start, by more than this
+# share of its rise in that run: the run did not start cold.
 WARM_START_SHARE = 0.25
 WARM_START_MIN_C = 0.25     # 4 DS18B20 steps: below it a start is cold whatever the run's rise
+# How far a shop's air may lead or lag the machine's iron at a cold start (it warms up in the
+# morning faster than the iron): a machine further above the room than this is warm even when
+# its sensors agree with each other.
+ROOM_SLACK_C = 2.0
 
 
 def _is_room(column: str) -> bool:
@@ -28,30 +33,32 @@ def warm_sensors(cold: ThermalData, run: ThermalData) -> list[str]:
     """Why ``run`` does not start cold, judged against ``cold`` (a run from a cold start): one
     line per machine sensor that starts warm, none when it starts cold.
 
-    Each sensor's start is compared with its start in ``cold``; the common shift is what the
-    machine's least heated sensors (the lower half by their rise in ``cold``) moved by, so a
-    machine soaked overnight in a warmer or colder shop is still cold. With a single machine
-    sensor there is nothing to agree with: the room's shift, if there is a room sensor, stands
-    in."""
+    Each sensor's start is compared with its start in ``cold``. The machine is cold when its own
+    sensors agree with each other as they did then (each within its share of the run's rise of
+    their common shift, the median), whatever the room's air reads, as long as the machine is not
+    further above the room than a shop's air lags its iron (``ROOM_SLACK_C``): the only check a
+    machine whose sensors all heat alike leaves."""
     sensors = [s for s in run.sensors if s in cold.temps_c and not _is_room(s)]
     if not sensors:
         return []
-    d = {s: start_temp(run.time_s, run.temps_c[s]) - start_temp(cold.time_s, cold.temps_c[s]) for s in sensors}
+
+    def start(d: ThermalData, k: str) -> float:
+        return start_temp(d.time_s, d.temps_c[k])
+    d = {s: start(run, s) - start(cold, s) for s in sensors}
     span = {s: float(np.ptp(cold.rise(s))) for s in sensors}
-    if len(sensors) > 1:
-        quiet = sorted(sensors, key=lambda s: span[s])[:max(1, len(sensors) // 2)]
-        shift, against = statistics.median(d[s] for s in quiet), "the machine's least heated sensors"
-    else:
-        room = room_column([k for k in run.sensors if k in cold.temps_c])
-        shift = 0.0 if room is None else (start_temp(run.time_s, run.temps_c[room])
-                                          - start_temp(cold.time_s, cold.temps_c[room]))
-        against = "the room" if room else "its cold start"
+    shift = statistics.median(d.values())
+    room = room_column([k for k in run.sensors if k in cold.temps_c])
+    room_shift = None if room is None else start(run, room) - start(cold, room)
     out = []
     for s in sensors:
-        above = d[s] - shift
-        if above > max(WARM_START_SHARE * span[s], WARM_START_MIN_C):
-            out.append(f"{s} starts at {start_temp(run.time_s, run.temps_c[s]):.2f} °C, {above:.2f} °C further "
-                       f"above {against} than at the cold start (it rose {span[s]:.2f} °C in that run)")
+        allowed = max(WARM_START_SHARE * span[s], WARM_START_MIN_C)
+        if len(sensors) > 1 and d[s] - shift > allowed:
+            out.append(f"{s} starts at {start(run, s):.2f} °C, {d[s] - shift:.2f} °C further above the machine's "
+                       f"other sensors than at the cold start (it rose {span[s]:.2f} °C in that run)")
+        elif room_shift is not None and d[s] - room_shift > allowed + ROOM_SLACK_C:
+            out.append(f"{s} starts at {start(run, s):.2f} °C, {d[s] - room_shift:.2f} °C further above the room "
+                       f"than at the cold start (it rose {span[s]:.2f} °C in that run; a cold machine is within "
+                       f"{ROOM_SLACK_C:g} °C of the room's air)")
     return out
 
 
