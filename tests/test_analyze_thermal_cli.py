@@ -76,12 +76,13 @@ def test_split_judges_every_model_on_the_held_out_tail(runs, capsys):
     assert len(by) == 6 and all(m["rmse_um"] is not None for m in by.values())
     base = [m for m in by.values() if m["baseline"]]
     assert [m["model"].split(" ")[0] for m in base] == ["least", "least", "ridge"]
-    # the model handed on is the one with the least error on the newest training rows, and
-    # what the report shows for it on the tail is its test error
+    # the model handed on is the selected one only if it beats the best baseline on the newest
+    # training rows; what the report shows for it on the tail is its test error
     handed = by[doc["handed_on"]]
     assert handed.get("note") == "handed on" and handed["rmse_um"] == doc["final"]["test_rmse_um"]
-    fitted = [m for m in by.values() if m["forward_rmse_um"] is not None and not m["model"].startswith(("paper", "linear"))]
-    assert handed["forward_rmse_um"] == min(m["forward_rmse_um"] for m in fitted)
+    best = min(m["forward_rmse_um"] for m in base)
+    assert handed["forward_rmse_um"] <= best
+    assert handed["baseline"] == (doc["handed_on"] != doc["loop"]["model"])
     assert doc["baselines"][0]["test_rmse_um"] == base[0]["rmse_um"]
 
 

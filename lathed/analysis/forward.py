@@ -63,6 +63,44 @@ def fold_t(e_old: np.ndarray, e_new: np.ndarray, folds: Sequence[Fold]) -> float
     return math.copysign(math.inf, lr.mean()) if sd == 0 else float(lr.mean() / (sd / math.sqrt(len(lr))))
 
 
+def blocks(n: int, n_blocks: int = N_FOLDS) -> list[Fold]:
+    """``n`` rows cut into contiguous blocks (as folds, for ``fold_t``)."""
+    edges = np.linspace(0, n, n_blocks + 1).round().astype(int)
+    return [Fold(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+# One-sided level at which a fall in error counts as consistent across folds or blocks.
+ALPHA = 0.05
+
+
+def t_critical(n_blocks: int, alpha: float = ALPHA) -> float:
+    """Student's t quantile for ``fold_t`` over ``n_blocks``."""
+    from scipy.special import stdtrit      # scipy.stats costs a second to import
+    return float(stdtrit(n_blocks - 1, 1 - alpha)) if n_blocks > 1 else math.inf
+
+
+@dataclass
+class Verdict:
+    """Does a new model beat an old one on the same later rows: by ``min_gain`` (relative) and
+    consistently across blocks of them (``fold_t`` at one-sided ``alpha``)?"""
+    better: bool
+    gain: float
+    t: float
+    t_crit: float
+
+    def why(self) -> str:
+        return f"{100 * self.gain:.0f} % lower error, t = {self.t:.2f} across blocks of the rows (needs {self.t_crit:.2f})"
+
+
+def beats(e_old: np.ndarray, e_new: np.ndarray, min_gain: float, n_blocks: int = N_FOLDS,
+          alpha: float = ALPHA) -> Verdict:
+    """Judge ``e_new`` against ``e_old`` (errors on the same later rows, in time order)."""
+    bl = blocks(len(e_old), n_blocks)
+    gain = 1.0 - rmse(e_new) / rmse(e_old) if rmse(e_old) > 0 else 0.0
+    t, tc = fold_t(e_old, e_new, bl), t_critical(len(bl), alpha)
+    return Verdict(bool(gain >= min_gain and t >= tc), gain, t, tc)
+
+
 def improvement_z(e_old: np.ndarray, e_new: np.ndarray) -> float:
     """Diebold-Mariano statistic for the fall in squared error, with a Newey-West variance:
     neighbouring rows' errors are correlated, so a plain t-test would see significance

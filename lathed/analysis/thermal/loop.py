@@ -8,7 +8,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from lathed.analysis.forward import CONFIRM_SHARE, N_FOLDS, Scored, first_row, forward_folds, improvement_z, rmse
+from lathed.analysis.forward import CONFIRM_SHARE, N_FOLDS, Scored, beats, first_row, forward_folds, improvement_z, rmse
 from lathed.analysis.thermal.baselines import baseline_stages, fit_stage, judged
 from lathed.analysis.thermal.candidates import Candidate, SpeedStepCandidate, builtin_candidates
 from lathed.analysis.thermal.data import ROOM_REF_MIN_DT_S, ThermalData, ThermalRuns
@@ -241,9 +241,10 @@ def analyze(train: Rows, test: Rows | None = None, *,
             max_effects: int = 4, n_folds: int = N_FOLDS, min_gain: float = 0.05, min_z: float = 2.0,
             max_sensors: int = 8, current: ThermalModel | None = None) -> Analysis:
     """Select the sensors and run the residual loop on the earlier training rows (every choice
-    judged on forward folds of them), fit the plain baselines beside it, and hand on whichever of
-    the loop's model and the baselines predicts the newest training rows best (``CONFIRM_SHARE``,
-    rows no choice was made on), refitted on every training row. ``test`` (later rows, or another
+    judged on forward folds of them), fit the plain baselines beside it on the same rows, and judge
+    them all on the newest training rows (``CONFIRM_SHARE``, rows no choice was made on): the
+    selected model is handed on only if it beats the best baseline there (``beats``), else that
+    baseline is; either refitted on every training row. ``test`` (later rows, or another
     run) is only reported on, beside the paper's eq. 14 and ``current``."""
     if train.displacement_um is None:
         raise ValueError("training data has no displacement_um to fit")
@@ -275,10 +276,15 @@ def analyze(train: Rows, test: Rows | None = None, *,
                    f"{len(stage.model.names)} term(s)")
     baselines = baseline_stages(train, test, cut, folds)
     best = min(baselines, key=lambda s: s.forward_rmse_um)
+    # The selected model came out of a search over thousands of variants: it replaces the best
+    # baseline only when it predicts the newest rows better by as much as an effect must, and
+    # consistently so across them, as a sensor must to enter.
+    verdict = beats(best.forward_errors, stage.forward_errors, min_gain, n_folds)
     final = stage
-    if not stage.forward_rmse_um < best.forward_rmse_um:
-        notes.append(f"a plain baseline predicts the newest training rows better than the selected model "
-                     f"({best.forward_rmse_um:.2f} vs {stage.forward_rmse_um:.2f} µm): {best.label} is the model")
+    if not verdict.better:
+        notes.append(f"{best.label} is the model: on the newest training rows the selected model "
+                     f"({stage.forward_rmse_um:.2f} µm) does not beat it ({best.forward_rmse_um:.2f} µm) by "
+                     f"{100 * min_gain:g} % consistently ({verdict.why()})")
         final = best
     newest = train.slice(cut, n)
     if test is not None:

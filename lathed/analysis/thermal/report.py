@@ -69,7 +69,8 @@ class SensorKept:
 class Analysis:
     """``start``: linear on the selected sensors, where the residual loop starts; ``loop``: with
     the effects it found; ``baselines``: the plain models fitted on the same rows; ``final``: the
-    model handed on, the one of ``loop`` and ``baselines`` with the least forward error."""
+    model handed on, ``loop`` when it beats the best baseline on the newest training rows, else
+    that baseline."""
     start: Stage
     effects: list[EffectFound]
     loop: Stage
