@@ -47,6 +47,7 @@ from lathed import hookimpl
 from lathed.analysis.compensation_hold import CompensationHold
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
 from lathed.analysis.thermal.loop import min_rows
+from lathed.analysis.thermal.start import cold_again
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
@@ -108,6 +109,7 @@ class ThermalAnalyzer(Analyzer):
         self._probe_value: float | None = None
         self._phasing = False
         self._predictor = None
+        self._restored = False      # a stored touch-off taken up at start: is the machine cold again?
 
     def inputs(self) -> list[str]:
         return [self.input, self.machine]
@@ -198,6 +200,7 @@ class ThermalAnalyzer(Analyzer):
             t = json.loads(rows[0]["payload"])
             if t.get("machine") == self.machine:
                 self.touchoff = t
+                self._restored = True
                 self._rebuild()
 
     def _touch_off(self, reason: str, base_um: float, by: str | None = None) -> None:
@@ -219,6 +222,31 @@ class ThermalAnalyzer(Analyzer):
             self.pred0 = to["pred0_um"]     # same model and predictor: only the zero moves
         else:
             self._rebuild()
+
+    def _take_up(self) -> None:
+        """At the first full set of readings: touch off on a first start; after a restart, a
+        machine that is cold again starts a new run."""
+        if self.touchoff is None:
+            self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
+        elif self._restored:
+            self._restored = False
+            if cold_again(self.touchoff["cold_c"], self.temps):
+                self._cold_start()
+
+    def _cold_start(self) -> None:
+        """Started on a machine that is cold again (another day): rises and the drift clock from
+        now, a run of its own for the refit. The offset goes on from what it would be on the
+        cold machine under the stored touch-off: the growth since then is the model's cold
+        prediction less the prediction at the touch-off."""
+        now, prev = time.time(), self.touchoff
+        p_cold = self.model.predictor(self.temps, now).update(self.temps, self.rpm, now)
+        base = prev["base_um"] + self.sign * (p_cold - (self.pred0 if self.pred0 is not None else p_cold))
+        to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm, "base_um": base,
+              "reason": "cold start: the machine's sensors agree with each other again, a new run",
+              "by": None, "cold_c": dict(self.temps), "cold_t": now, "model": self.model_name, "pred0_um": p_cold}
+        self.touchoff = to
+        self.ctx.record("thermal_touchoff", to)
+        self._rebuild()
 
     def _rebuild(self) -> None:
         """Predictor and zero for the current model from the stored touch-off:
@@ -250,8 +278,7 @@ class ThermalAnalyzer(Analyzer):
             if stale is not None:       # nothing predicted from them, nothing asked
                 self._hold(stale, "stale")
                 continue
-            if self.touchoff is None:
-                self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
+            self._take_up()
             if self._predictor is None or self.applied is None:
                 continue
             try:

@@ -347,3 +347,56 @@ def test_an_offset_waits_for_the_threads_end_without_asking_in_vain(monkeypatch)
     asyncio.run(run())
     assert asked and len(asked) == len(ticks) - 5, (asked, len(ticks))     # only after the thread
     assert th.refused is None and th.applied == asked[-1]
+
+
+def test_a_restart_on_a_machine_cold_again_starts_a_new_run(tmp_path):
+    """Restarted the next morning: the machine's sensors agree with each other again, 2 °C warmer
+    than yesterday's cold start, the shop's air 1.5 °C off them. A new cold start is taken (rises
+    and drift clock from now, its probes a run of their own for the refit); the offset goes on
+    from the stored touch-off. A restart on a warm machine keeps the stored cold start."""
+    from lathed.analysis.thermal import ThermalRuns
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+
+    class Ctx:
+        def record(self, kind, payload):
+            recorded.append((kind, payload))
+            store.record_future(kind, "thermal", payload).result(10)
+    cold = {"front_bearing": 19.25, "rear_bearing": 19.25, "motor": 19.31, "room": 19.19}
+    try:
+        Ctx().record("thermal_touchoff", {"machine": "lathe", "t": 1000.0, "temps_c": cold, "rpm": 0.0,
+                                          "base_um": -3.0, "reason": "first start", "by": None, "cold_c": cold,
+                                          "cold_t": 1000.0, "model": "eq14", "pred0_um": None})
+
+        def started(temps):
+            an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe"}))
+            an.ctx = Ctx()
+            an.ctx.store = store
+            an._restore_touchoff()
+            an.temps = dict(temps)
+            an._take_up()
+            return an
+        recorded.clear()
+        warm = started({"front_bearing": 27.0, "rear_bearing": 24.0, "motor": 30.0, "room": 19.5})
+        assert recorded == [] and warm.touchoff["cold_t"] == 1000.0          # warm: the stored cold start stays
+        morning = {p: v + 2.0 for p, v in cold.items()} | {"room": cold["room"] + 0.5}
+        an = started(morning)
+        assert [k for k, _ in recorded] == ["thermal_touchoff"] and an.touchoff["cold_c"] == morning
+        assert an.touchoff["cold_t"] > 1000.0 and "cold start" in an.touchoff["reason"]
+        # the machine cold as at the stored (cold) touch-off: the offset in force is its base
+        assert an.touchoff["base_um"] == pytest.approx(-3.0)
+        for k in range(NEED):       # probes since each cold start form a run of their own
+            store.record_future("thermal_measurement", "thermal", {
+                "machine": "lathe", "t": 1060.0 + 60 * k if k < 40 else an.touchoff["cold_t"] + 60 * k,
+                "displacement_um": 1.0, "rpm": 2000.0,
+                "temps_c": {p: v + 0.05 * k for p, v in (cold if k < 40 else morning).items()},
+                **({"cold_c": cold, "cold_t": 1000.0} if k < 40 else
+                   {"cold_c": an.touchoff["cold_c"], "cold_t": an.touchoff["cold_t"]})}).result(10)
+        d = an._measurements()
+        assert isinstance(d, ThermalRuns) and [len(r) for r in d.runs] == [40, NEED - 40]
+    finally:
+        store.close()

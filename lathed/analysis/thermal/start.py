@@ -9,7 +9,7 @@ See docs/thermal.md, "Several runs".
 from __future__ import annotations
 
 import statistics
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -60,6 +60,26 @@ def warm_sensors(cold: ThermalData, run: ThermalData) -> list[str]:
                        f"than at the cold start (it rose {span[s]:.2f} °C in that run; a cold machine is within "
                        f"{ROOM_SLACK_C:g} °C of the room's air)")
     return out
+
+
+def cold_again(cold_c: Mapping[str, float], now_c: Mapping[str, float]) -> bool:
+    """Live, from one reading of each sensor (keys as the daemon keeps them, ``motor`` or
+    ``t_motor_c``): is the machine cold again since the cold start that read ``cold_c``, and
+    has it moved from it (another day)? Its own sensors agree with each other within
+    ``WARM_START_MIN_C`` of their common shift (no run's rise is at hand to scale it by), and it
+    is within ``ROOM_SLACK_C`` of the room's shift."""
+    keys = [k for k in now_c if k in cold_c]
+    machine = [k for k in keys if not _is_room(k)]
+    if len(machine) < 2:
+        return False            # one sensor has nothing to agree with: keep the cold start in use
+    d = {k: float(now_c[k]) - float(cold_c[k]) for k in keys}
+    shift = statistics.median(d[k] for k in machine)
+    if any(d[k] - shift > WARM_START_MIN_C for k in machine):
+        return False
+    room = next((k for k in keys if _is_room(k)), None)
+    if room is not None and any(d[k] - d[room] > WARM_START_MIN_C + ROOM_SLACK_C for k in machine):
+        return False
+    return max(abs(d[k]) for k in machine) >= WARM_START_MIN_C
 
 
 def continues(before: ThermalData, run: ThermalData) -> bool:
