@@ -241,3 +241,37 @@ def test_sim_thermal_run_writes_the_second_pass_runs(tmp_path):
     temps = [c for c in head if c.startswith("t_") and c.endswith("_c")]
     assert len(temps) == 16 and head[0] == "time_s" and head[-1] == "displacement_um"
     assert len(out.read_text().splitlines()) == 1 + 120
+
+
+def _shift(src, dst, machine_c, room_c):
+    """``src`` on another day: the iron ``machine_c`` warmer, the room's air ``room_c`` warmer."""
+    head, rows = _rows(src)
+    cols = head.split(",")
+    out = []
+    for r in rows:
+        cells = r.split(",")
+        out.append(",".join(f"{float(c) + (room_c if 'room' in k else machine_c):.4f}" if k.startswith("t_") else c
+                             for k, c in zip(cols, cells)))
+    dst.write_text("\n".join([head, *out]) + "\n")
+    return dst
+
+
+def test_several_runs_each_from_its_own_cold_start(runs, tmp_path, capsys):
+    # the second day's machine soaked 2 °C warmer, its room still 1.5 °C below it: a cold start
+    day2 = _shift(runs / "test.csv", tmp_path / "day2.csv", 2.0, 0.5)
+    code, out, err = _run([runs / "train.csv", day2, "--json"], capsys)
+    assert code == 0, err
+    doc = json.loads(out)
+    n1 = len(_rows(runs / "train.csv")[1])
+    assert set(doc["rows"]["runs"]) == {str(runs / "train.csv"), str(day2)}
+    assert doc["rows"]["used"] == n1 and doc["effects"][0]["effect"] == "speed"
+    # a really warm second run is refused, naming it
+    head, rows = _rows(runs / "test.csv")
+    half = rows[len(rows) // 2:]
+    t0 = float(half[0].split(",")[0])
+    warm = tmp_path / "warm.csv"
+    warm.write_text("\n".join([head, *(",".join([f"{float(r.split(',')[0]) - t0:.1f}", *r.split(",")[1:]])
+                                        for r in half)]) + "\n")
+    code, out, err = _run([runs / "train.csv", warm], capsys)
+    assert code == 65 and out == "" and err.startswith(f"lathectl: {warm} does not start cold: t_"), err
+    assert err.count("\n") == 1
