@@ -134,6 +134,8 @@ def test_refit_keeps_the_better_model():
     r = refit(tr)                          # against eq. 14, which does not fit this spindle
     assert r.better and r.model is r.candidate
     assert r.after_rmse_um < r.before_rmse_um
+    # no baseline fitted on the same rows does better on the newest ones
+    assert len(r.baselines_rmse_um) == 3 and r.after_rmse_um <= min(r.baselines_rmse_um.values()), r.why
     # A second refit against the model just fitted finds no real improvement.
     r2 = refit(tr, current=r.model)
     assert not r2.better and r2.model is r.model

@@ -278,3 +278,15 @@ def test_sparse_rows_take_every_rise_from_the_rooms_start():
     assert d.rise("t_hot_c")[0] == pytest.approx(3.0 * (1 - np.exp(-0.05)), abs=1e-6)
     dense = ThermalData(t / 10.0, {"t_hot_c": hot, "t_room_c": room})     # 6 s apart: each from its own start
     assert dense.rises_from is None and dense.reference_c["t_hot_c"] - dense.reference_c["t_room_c"] > 0.1
+
+
+def test_a_refit_is_adopted_only_if_it_beats_the_model_in_use_and_every_baseline():
+    from lathed.analysis.thermal.refit import adoption
+    ok, why = adoption(10.0, 5.0, {"least squares": 6.0, "ridge": 5.5}, 0.05, 40)
+    assert ok and "best: ridge, 5.50 µm" in why
+    # a baseline fitted on the same rows predicts the newest ones better: nothing adopted
+    ok, why = adoption(10.0, 5.0, {"least squares": 6.0, "ridge": 4.0}, 0.05, 40)
+    assert not ok and why == "ridge (4.00 µm) beats the new model (5.00 µm) on the newest 40 rows"
+    # not 5 % better than the model in use
+    ok, why = adoption(5.2, 5.0, {"ridge": 6.0}, 0.05, 40)
+    assert not ok and "does not beat the model in use" in why

@@ -2,6 +2,7 @@
 rows better than the model in use and than every plain baseline fitted on the same rows."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -34,7 +35,7 @@ class RefitResult:
 
 
 def refit(data: ThermalData | ThermalRuns, current: ThermalModel | None = None, *, holdout_fraction: float = 0.2,
-          min_gain: float = 0.05, extra_candidates: Sequence[Candidate] = ()) -> RefitResult:
+          min_gain: float = 0.05, extra_candidates: Sequence[Candidate] = (), **analyze_kw) -> RefitResult:
     """Analyse all but the newest ``holdout_fraction`` of ``data``; adopt the model it hands on
     only if, on those newest rows, it beats ``current`` (default eq. 14) by ``min_gain``
     (relative) and no plain baseline fitted on the same rows beats it."""
@@ -45,7 +46,7 @@ def refit(data: ThermalData | ThermalRuns, current: ThermalModel | None = None, 
     n = len(data)
     cut = int(round(n * (1 - holdout_fraction)))
     current = current or eq14_model()
-    a = analyze(data.slice(0, cut), extra_candidates=extra_candidates)
+    a = analyze(data.slice(0, cut), extra_candidates=extra_candidates, **analyze_kw)
     y = data.displacement_um[cut:]
 
     def on_tail(model: ThermalModel) -> float:
@@ -54,14 +55,19 @@ def refit(data: ThermalData | ThermalRuns, current: ThermalModel | None = None, 
 
     before, after = on_tail(current), on_tail(a.model)
     base = {s.label: on_tail(s.model) for s in a.baselines}
-    name, best = min(base.items(), key=lambda kv: kv[1])
-    if not after < (1 - min_gain) * before:
-        better, why = False, (f"the new model ({after:.2f} µm) does not beat the model in use ({before:.2f} µm) "
-                              f"by {100 * min_gain:g} % on the newest {n - cut} rows")
-    elif best < after:
-        better, why = False, (f"{name} ({best:.2f} µm) beats the new model ({after:.2f} µm) on the newest "
-                              f"{n - cut} rows")
-    else:
-        better, why = True, (f"the new model ({after:.2f} µm) beats the model in use ({before:.2f} µm) and "
-                             f"every baseline (best: {name}, {best:.2f} µm) on the newest {n - cut} rows")
+    better, why = adoption(before, after, base, min_gain, n - cut)
     return RefitResult(a.model if better else current, a.model, before, after, better, a, base, why)
+
+
+def adoption(before: float, after: float, baselines: dict[str, float], min_gain: float, rows: int) -> tuple[bool, str]:
+    """Adopt a new model whose error on the newest rows is ``after``: only if it beats the model
+    in use (``before``) by ``min_gain`` (relative) and no baseline fitted on the same rows beats
+    it there. Returns the verdict and why."""
+    name, best = min(baselines.items(), key=lambda kv: kv[1], default=("no baseline", math.inf))
+    if not after < (1 - min_gain) * before:
+        return False, (f"the new model ({after:.2f} µm) does not beat the model in use ({before:.2f} µm) "
+                       f"by {100 * min_gain:g} % on the newest {rows} rows")
+    if best < after:
+        return False, f"{name} ({best:.2f} µm) beats the new model ({after:.2f} µm) on the newest {rows} rows"
+    return True, (f"the new model ({after:.2f} µm) beats the model in use ({before:.2f} µm) and every "
+                  f"baseline (best: {name}, {best:.2f} µm) on the newest {rows} rows")
