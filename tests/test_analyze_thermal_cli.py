@@ -76,12 +76,12 @@ def test_split_judges_every_model_on_the_held_out_tail(runs, capsys):
     assert len(by) == 6 and all(m["rmse_um"] is not None for m in by.values())
     base = [m for m in by.values() if m["baseline"]]
     assert [m["model"].split(" ")[0] for m in base] == ["least", "least", "ridge"]
-    # the model handed on is the selected one only if it beats the best baseline on the newest
-    # training rows; what the report shows for it on the tail is its test error
+    # each model handed on in turn replaces the one before only by doing better on the newest
+    # training rows: never worse there than plain least squares; what the report shows for it on
+    # the tail is its test error
     handed = by[doc["handed_on"]]
     assert handed.get("note") == "handed on" and handed["rmse_um"] == doc["final"]["test_rmse_um"]
-    best = min(m["forward_rmse_um"] for m in base)
-    assert handed["forward_rmse_um"] <= best
+    assert handed["forward_rmse_um"] <= base[0]["forward_rmse_um"]
     assert handed["baseline"] == (doc["handed_on"] != doc["loop"]["model"])
     assert doc["baselines"][0]["test_rmse_um"] == base[0]["rmse_um"]
 

@@ -30,6 +30,11 @@ class Candidate:
     def refine(self, term: Term) -> list[Term]:
         return []
 
+    def for_rows(self, term: Term, data: ThermalData) -> Term:
+        """The term as fitted on ``data``, when chosen on fewer rows (a drift held at the span
+        it was fitted on takes the longer span)."""
+        return term
+
 
 _TAUS_S = tuple(float(v) for v in np.geomspace(300.0, 4 * 3600.0, 16))
 
@@ -118,6 +123,9 @@ class DriftCandidate(Candidate):
 
     def propose(self, data):
         return [DriftTerm(round(float(np.max(data.time_s - data.t0_s)) / 3600.0, 2))]
+
+    def for_rows(self, term, data):
+        return self.propose(data)[0] if term.max_h is not None else term
 
     def make_term(self, sensor, params):
         return DriftTerm(float(params["max_h"]) if "max_h" in params else None)
