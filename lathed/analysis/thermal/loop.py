@@ -277,19 +277,16 @@ def analyze(train: Rows, test: Rows | None = None, *,
     stage.label = (f"selected: {len(sensor_terms)} sensor(s) and {len(loop.effects)} effect(s), "
                    f"{len(stage.model.names)} term(s)")
     baselines = baseline_stages(train, test, cut, folds)
-    # A richer model replaces a plainer one only when it predicts the newest rows better by as
-    # much as an effect must, consistently across them (as a sensor must to enter): the
-    # baselines in order, then the selected model, which came out of a search over thousands
-    # of variants and will fit some folds by chance.
-    final = baselines[0]
-    for cand in [*baselines[1:], stage]:
-        verdict = beats(final.forward_errors, cand.forward_errors, min_gain, n_folds)
-        if verdict.better:
-            final = cand
-        elif cand is stage:
-            notes.append(f"{final.label} is the model: on the newest training rows the selected model "
-                         f"({stage.forward_rmse_um:.2f} µm) does not beat it ({final.forward_rmse_um:.2f} µm) by "
-                         f"{100 * min_gain:g} % consistently ({verdict.why()})")
+    best = min(baselines, key=lambda s: s.forward_rmse_um)
+    # The selected model came out of a search over thousands of variants and will fit some folds
+    # by chance: it replaces the best baseline only when it predicts the newest rows better by as
+    # much as an effect must, and consistently so across them, as a sensor must to enter.
+    verdict = beats(best.forward_errors, stage.forward_errors, min_gain, n_folds)
+    final = stage if verdict.better else best
+    if not verdict.better:
+        notes.append(f"{best.label} is the model: on the newest training rows the selected model "
+                     f"({stage.forward_rmse_um:.2f} µm) does not beat it ({best.forward_rmse_um:.2f} µm) by "
+                     f"{100 * min_gain:g} % consistently ({verdict.why()})")
     newest = train.slice(cut, n)
     if test is not None:
         res = residual_structure(test.time_s, test.displacement_um - final.model.predict(test), test)

@@ -69,8 +69,8 @@ class SensorKept:
 class Analysis:
     """``start``: linear on the selected sensors, where the residual loop starts; ``loop``: with
     the effects it found; ``baselines``: the plain models fitted on the same rows; ``final``: the
-    model handed on: of the baselines in order and then ``loop``, each replacing the one before
-    when it beats it on the newest training rows."""
+    model handed on: ``loop`` when it beats the best baseline on the newest training rows, else
+    that baseline."""
     start: Stage
     effects: list[EffectFound]
     loop: Stage
