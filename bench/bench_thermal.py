@@ -86,21 +86,22 @@ def bench_recovery(seeds: int, hours: float, base: int = 0) -> None:
           f"{hours:g} h each, "
           f"probe noise {NOISE_UM} µm)\n")
     print("| effect in data | named first | median test rmse before µm | after µm | median fall | "
-          "meets bar | bar reachable | baseline handed on | effects added (per pair) |")
+          "meets bar | bar reachable | handed on µm (a baseline in) | effects added (per pair) |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     misses = []
     for eff in ("none", *EFFECTS):
         effects = () if eff == "none" else (eff,)
         named = ok = reachable = base_on = 0
-        before, after, falls, added = [], [], [], []
+        before, after, falls, added, handed = [], [], [], [], []
         for s in range(base + 1, base + seeds + 1):
             tr = data(generate_run(random_schedule(s, total_s=hours * 3600), effects, seed=s, noise_um=NOISE_UM))
             te = data(generate_run(random_schedule(s + 100, total_s=hours * 3600), effects, seed=s + 100,
                                    noise_um=NOISE_UM))
             a = analyze(tr, te)
             names = [e.term.effect for e in a.effects]
-            b, f = a.start.test_rmse_um, a.final.test_rmse_um
+            b, f = a.start.test_rmse_um, a.loop.test_rmse_um
             base_on += a.final.baseline
+            handed.append(a.final.test_rmse_um)
             before.append(b)
             after.append(f)
             falls.append(1 - f / b)
@@ -118,10 +119,12 @@ def bench_recovery(seeds: int, hours: float, base: int = 0) -> None:
             ok += good
             if not good:
                 misses.append(f"{eff}, seed {s}: test rmse {b:.2f} -> {f:.2f} µm "
-                              f"({100 * (1 - f / b):.0f} % fall), added: {added[-1]}")
+                              f"({100 * (1 - f / b):.0f} % fall), added: {added[-1]}; handed on: "
+                              f"{a.final.label}, {a.final.test_rmse_um:.2f} µm")
         label = "nothing added" if eff == "none" else "named first"
         print(f"| {eff} | {named}/{seeds} ({label}) | {np.median(before):.2f} | {np.median(after):.2f} | "
-              f"{100 * np.median(falls):.0f} % | {ok}/{seeds} | {reachable}/{seeds} | {base_on}/{seeds} | "
+              f"{100 * np.median(falls):.0f} % | {ok}/{seeds} | {reachable}/{seeds} | "
+              f"{np.median(handed):.2f} ({base_on}/{seeds}) | "
               f"{' '.join(added)} |")
     print()
     for m in misses:
@@ -143,7 +146,7 @@ def _pair(case: str, s: int, hours: float) -> tuple[ThermalData, ThermalData]:
 
 
 def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tuple[bool, str]:
-    b, f = a.start.test_rmse_um, a.final.test_rmse_um
+    b, f = a.start.test_rmse_um, a.loop.test_rmse_um
     fall = 1 - f / b
     if case == "lag+speed":
         return "lag" in names and "speed" in names and fall >= 0.9, f"{100 * fall:.1f} % fall"
@@ -158,7 +161,7 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
         if unseen.any():
             seen = ~unseen
             e0 = te.displacement_um - a.start.model.predict(te)
-            e1 = te.displacement_um - a.final.model.predict(te)
+            e1 = te.displacement_um - a.loop.model.predict(te)
             f_seen = 1 - np.sqrt(np.mean(e1[seen] ** 2) / np.mean(e0[seen] ** 2))
             detail += (f"; {100 * unseen.mean():.0f} % of the test rows at a speed the training run never ran "
                        f"({', '.join(f'{v:g}' for v in np.unique(np.round(te.rpm[unseen])))} r/min), "
@@ -170,7 +173,7 @@ def _bar(case: str, a, names: list[str], tr: ThermalData, te: ThermalData) -> tu
     ls4 = fit_stage(tr.select(true4), [LinearTerm(k) for k in TRUE_SENSORS], te.select(true4), _cut(tr), "", raw=True)
     ratio = f / ls4.test_rmse_um
     # the test error split into one offset of the whole run and what varies within it
-    e, e4 = te.displacement_um - a.final.model.predict(te), te.displacement_um - ls4.model.predict(te.select(true4))
+    e, e4 = te.displacement_um - a.loop.model.predict(te), te.displacement_um - ls4.model.predict(te.select(true4))
     return ratio <= 1.10, (f"{ratio:.2f}x least squares on the 4 true ({ls4.test_rmse_um:.2f} µm); offset / sd "
                            f"{e.mean():+.2f} / {e.std():.2f} µm, on the 4 true {e4.mean():+.2f} / {e4.std():.2f}; "
                            f"growth by the first row {tr.displacement_um[0]:.1f} / {te.displacement_um[0]:.1f} µm")
@@ -195,9 +198,9 @@ def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] 
     print(f"## Second pass: combined effects, many sensors, off-library structure ({seeds} pairs, "
           f"train seed s = {base + 1}..{base + seeds}, test seed s+100, {hours:g} h each)\n")
     print("| case | bar | meets bar | bar reachable | median test rmse before µm | after µm | "
-          "least squares (all sensors) µm | handed on <= best baseline, newest training rows / test run | "
+          "least squares (all sensors) µm | handed on µm | handed on <= best baseline, newest training rows / test run | "
           "median s per analysis | effects added (per pair) |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     bars = {"lag+speed": "lag and speed named, >= 90 % fall", "periodic 20 min": "periodic at 20 min, >= 60 % fall",
             "speed steps": "speed_step named, >= 60 % fall", "none": "nothing added",
             "16 sensors, 4 true": "within 10 % of least squares on the 4 true"}
@@ -208,7 +211,7 @@ def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] 
         ok = not_worse = not_worse_cv = reachable = 0
         noise = 0.2 if case == "lag+speed" else 0.3 if case.startswith("16") else NOISE_UM
         need = {"lag+speed": 0.9, "periodic 20 min": 0.6, "speed steps": 0.6}.get(case)
-        before, after, lsq, secs, added, details = [], [], [], [], [], []
+        before, after, lsq, secs, added, details, handed = [], [], [], [], [], [], []
         for s in range(base + 1, base + seeds + 1):
             tr, te = _pair(case, s, hours)
             t0 = time.perf_counter()
@@ -232,15 +235,17 @@ def bench_second_pass(seeds: int, hours: float, base: int = 0, cases: list[str] 
                           f"({100 * (1 - t_true / a.start.test_rmse_um):.1f} % fall)"
             reachable += can
             before.append(a.start.test_rmse_um)
-            after.append(a.final.test_rmse_um)
+            after.append(a.loop.test_rmse_um)
+            handed.append(a.final.test_rmse_um)
             lsq.append(a.least_squares.test_rmse_um)
             added.append("+".join(names) or "-")
             details.append(detail)
             if not good:
-                misses.append(f"{case}, seed {s}: {a.start.test_rmse_um:.2f} -> {a.final.test_rmse_um:.2f} µm, "
+                misses.append(f"{case}, seed {s}: {a.start.test_rmse_um:.2f} -> {a.loop.test_rmse_um:.2f} µm, "
                               f"{detail}, added: {added[-1]}")
         print(f"| {case} | {bar} | {ok}/{seeds} | {reachable}/{seeds} | {np.median(before):.2f} | "
-              f"{np.median(after):.2f} | {np.median(lsq):.2f} | {not_worse_cv}/{seeds} / {not_worse}/{seeds} | "
+              f"{np.median(after):.2f} | {np.median(lsq):.2f} | {np.median(handed):.2f} | "
+              f"{not_worse_cv}/{seeds} / {not_worse}/{seeds} | "
               f"{np.median(secs):.2f} | {' '.join(added)} |")
     print()
     for m in misses:
