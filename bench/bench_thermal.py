@@ -1,6 +1,10 @@
 """Thermal residual loop: time to analyse 3000 rows, and effect recovery.
 
-    .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R] [--seed-base B]
+    .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R] [--seed-base B] [--real-splits 0.7,...]
+
+(0) The real spindle's two channels (../shared/data/real/spindle-thermal), fitted on the first
+part by time and judged on the rest: the model handed on beside each plain baseline fitted on the
+same rows, and whether it is at or below the best of them.
 
 Prints Markdown: (1) the median time of ``analyze`` on a 3000-row run
 (5 h at one row per 6 s, as in the paper) and on one 8-h shift, against the
@@ -26,8 +30,9 @@ term at 20 min, >= 60 %), growth steps at speed changes (a speed-step term,
 growth, one true sensor oscillating on its own (the selected model within
 10 % of least squares on the 4 true sensors). Every row carries plain least
 squares on all the run's sensors, on the same test rows, and counts the pairs
-where the new model is no worse than it. No open real thermal data set is
-usable offline here: all runs are synthesised (lathed.sim.thermal).
+where the new model is no worse than it. The effect tables judge the selected model (the
+effects found); "handed on" is the model analyze hands on (a baseline when the selected model
+does not beat the best baseline on the newest training rows).
 """
 from __future__ import annotations
 
