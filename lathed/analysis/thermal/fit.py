@@ -1,6 +1,7 @@
 """Least squares on a run's terms, and its errors judged forward in time (see lathed.analysis.forward)."""
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Sequence
 
 import numpy as np
@@ -87,74 +88,121 @@ def forward_errors(X: np.ndarray, y: np.ndarray, folds: Sequence[Fold], X_pred: 
 
 class ForwardCache:
     """``forward_errors`` for the selection loops, which score thousands of designs that differ
-    in a column or two: the cross-products of every pair of columns up to each fold's origin are
-    kept, so a design's forward errors cost a few small solves. Same algebra as
-    ``forward_errors`` (the ridge on standardised columns is a ridge of ``_RIDGE * rows * var``
-    on the raw ones, the variance over the fold's own rows)."""
+    in a column or two. Every column met is kept once, and the sums of products of each pair of
+    columns met together, up to each fold's origin; a design's forward errors then cost one
+    gather and a few small solves. Same algebra as ``forward_errors`` (the ridge on standardised
+    columns is a ridge of ``_RIDGE * rows * var`` on the raw ones, the variance over the fold's
+    own rows). Columns are kept less their mean (the intercept takes it up): sums of products of
+    raw rises lose digits to their common part."""
+
+    SEEN = 2048         # designs whose errors are kept (a few tens of MB on a long real run)
 
     def __init__(self, data: ThermalData | ThermalRuns, folds: Sequence[Fold]):
         self.data = data
         y = data.displacement_um
         self.folds = list(folds)
         self.o = first_row(self.folds)
-        self.origins = np.array([f.lo for f in self.folds])
         self.row_fold = np.repeat(np.arange(len(self.folds)), [f.hi - f.lo for f in self.folds])
-        self.cols: dict[str, np.ndarray] = {"1": np.ones(len(y)), "y": y}
-        self.sums: dict[tuple[str, str], np.ndarray] = {}
-        self.by_id: dict[tuple[int, bool], tuple[Term, list[str]]] = {}
+        # rows [edges[i], edges[i + 1]) add to the sums of fold i and every later one
+        self.edges = [0, *(f.lo for f in self.folds)]
+        self.n = len(y)
+        self.X = np.empty((64, self.n))                     # the columns (a row each), less their mean
+        self.shift = np.empty(64)                           # ... which is this
+        self.G = np.empty((len(self.folds), 64, 64))        # sums of products up to each origin
+        self.have = np.zeros((64, 64), dtype=bool)          # which pairs G holds
+        self.index: dict[str, int] = {}
+        self.by_repr: dict[tuple[str, bool], list[int]] = {}
+        self.by_id: dict[tuple[int, bool], tuple[Term, list[int]]] = {}
+        self.seen: OrderedDict[tuple, np.ndarray] = OrderedDict()    # the newest designs' errors
+        self.one, self.iy = self._add("1", np.ones(self.n)), self._add("y", y)
         self.rpm = data.rpm
+        self.y = y
 
-    def _keys(self, term: Term, fit: bool) -> list[str]:
-        hit = self.by_id.get((id(term), fit))
-        if hit is not None and hit[0] is term:
-            return hit[1]
-        keys = self._make_keys(term, fit)
-        self.by_id[(id(term), fit)] = (term, keys)     # the term held: its id is not reused
-        return keys
+    def _add(self, key: str, col: np.ndarray) -> int:
+        k = len(self.index)
+        if k == self.X.shape[0]:                            # room for twice as many
+            X, G, have = np.empty((2 * k, self.n)), np.empty((len(self.folds), 2 * k, 2 * k)), \
+                np.zeros((2 * k, 2 * k), dtype=bool)
+            X[:k], G[:, :k, :k], have[:k, :k] = self.X, self.G, self.have
+            self.X, self.G, self.have, self.shift = X, G, have, np.concatenate([self.shift, np.empty(k)])
+        c = 0.0 if key == "1" else float(np.mean(col))
+        self.shift[k] = c
+        self.X[k] = col - c
+        self.index[key] = k
+        return k
 
-    def _make_keys(self, term: Term, fit: bool) -> list[str]:
-        k = repr(term)
+    def _products(self, keys: np.ndarray) -> None:
+        """Fill in the sums of products G lacks among ``keys``."""
+        missing = ~self.have[keys[:, None], keys]
+        if not missing.any():
+            return
+        for i in np.flatnonzero(missing.any(axis=1)):
+            js = keys[missing[i]]
+            if len(js) == 0:
+                continue
+            k = keys[i]
+            seg = np.stack([self.X[js, a:b] @ self.X[k, a:b] for a, b in zip(self.edges[:-1], self.edges[1:])])
+            sums = np.cumsum(seg, axis=0)
+            self.G[:, k, js] = sums
+            self.G[:, js, k] = sums
+            self.have[k, js] = self.have[js, k] = True
+            missing[:, i] = False       # the pairs just filled, seen from the other side
+
+    def _keys(self, term: Term, fit: bool) -> list[int]:
+        held = self.by_id.get((id(term), fit))
+        if held is not None and held[0] is term:
+            return held[1]
+        r = repr(term)
+        hit = self.by_repr.get((r, fit))
+        if hit is None:
+            hit = self.by_repr[(r, fit)] = self._make_keys(term, r, fit)
+        self.by_id[(id(term), fit)] = (term, hit)       # the term held: its id is not reused
+        return hit
+
+    def _make_keys(self, term: Term, r: str, fit: bool) -> list[int]:
         if fit and isinstance(term, LinearTerm) and not term.filtered:
-            k, F = "fit:" + k, self.data.fit_rise(term.sensor)[:, None]
+            r, F = "fit:" + r, self.data.fit_rise(term.sensor)[:, None]
         else:
-            F = None
-        X = design(self.data, [term])        # per run for several runs: memory starts afresh in each
-        keys = [f"{k}#{i}" for i in range(X.shape[1])]
-        if keys[0] not in self.cols:
-            F = X if F is None else F
-            for i, key in enumerate(keys):
-                self.cols[key] = np.ascontiguousarray(F[:, i])
-        return keys
-
-    def _pair(self, a: str, b: str) -> np.ndarray:
-        """Sums of a*b over rows [0, origin) for each fold's origin."""
-        key = (a, b) if a <= b else (b, a)
-        out = self.sums.get(key)
-        if out is None:
-            cs = np.concatenate([[0.0], np.cumsum(self.cols[a] * self.cols[b])])
-            out = self.sums[key] = cs[self.origins]
-        return out
+            F = design(self.data, [term])        # per run for several runs: memory starts afresh in each
+        keys = [f"{r}#{i}" for i in range(F.shape[1])]
+        return [self.index[key] if key in self.index else self._add(key, np.asarray(F[:, i], dtype=float))
+                for i, key in enumerate(keys)]
 
     def errors(self, terms: Sequence[Term]) -> np.ndarray:
-        fk = [k for t in terms for k in self._keys(t, True)] + ["1"]
+        fk = [k for t in terms for k in self._keys(t, True)]
         pk = [k for t in terms for k in self._keys(t, False)]
+        seen = (tuple(fk), tuple(pk))
+        hit = self.seen.get(seen)
+        if hit is not None:         # the searches score many a design again
+            self.seen.move_to_end(seen)
+            return hit
+        e = self._errors(np.array([*fk, self.one]), pk)
+        e.flags.writeable = False
+        self.seen[seen] = e
+        if len(self.seen) > self.SEEN:
+            self.seen.popitem(last=False)
+        return e
+
+    def _errors(self, fk: np.ndarray, pk: list[int]) -> np.ndarray:
+        self._products(np.append(fk, self.iy))
         m = len(fk)
-        S = np.empty((m, m, len(self.folds)))
-        for i in range(m):
-            for j in range(i, m):
-                S[i, j] = S[j, i] = self._pair(fk[i], fk[j])
-        Sy = np.array([self._pair(k, "y") for k in fk])
-        nf = S[m - 1, m - 1]                       # rows each fold is fitted on
-        var = S[np.arange(m), np.arange(m)] / nf - (S[:, m - 1] / nf) ** 2
-        var = np.where(var > 0, var, 1.0)
-        var[-1] = 0.0
+        S = self.G[:, fk[:, None], fk]                      # folds x m x m, a copy
+        Sy = self.G[:, fk, self.iy]                         # folds x m
+        nf = S[:, -1, -1]                                   # rows each fold is fitted on
+        diag = S.reshape(len(S), m * m)[:, ::m + 1]         # a view: the ridge goes on it
+        var = diag / nf[:, None] - (S[:, :, -1] / nf[:, None]) ** 2
+        var[var <= 0] = 1.0
+        var[:, -1] = 0.0
         # every fold's fit in one batched solve, every row predicted by its fold's
-        G = np.moveaxis(S, 2, 0).copy()
-        G[:, np.arange(m), np.arange(m)] += _RIDGE * nf[:, None] * var.T
-        coef = np.linalg.solve(G, Sy.T[:, :, None])[:, :, 0][self.row_fold]
-        y = self.cols["y"][self.o:]
-        P = np.column_stack([self.cols[k][self.o:] for k in pk]) if pk else np.empty((len(y), 0))
-        return y - np.einsum("ij,ij->i", P, coef[:, :-1]) - coef[:, -1]
+        diag += _RIDGE * nf[:, None] * var
+        coef = np.linalg.solve(S, Sy[:, :, None])[:, :, 0]
+        # fitted on columns less their means, predicted from other columns (raw rises for
+        # smoothed ones) less theirs: the difference of the means moves the intercept
+        icpt = coef[:, -1] + coef[:, :-1] @ (self.shift[pk] - self.shift[fk[:-1]]) if pk else coef[:, -1]
+        e = self.X[self.iy, self.o:] - icpt[self.row_fold]
+        if pk:
+            e -= np.einsum("ji,ij->i", self.X[pk, self.o:], coef[self.row_fold, :-1])
+        return e
 
 
 def cached_forward(data: ThermalData | ThermalRuns, terms: Sequence[Term], folds: Sequence[Fold]) -> np.ndarray:
@@ -162,6 +210,6 @@ def cached_forward(data: ThermalData | ThermalRuns, terms: Sequence[Term], folds
     cache = data.__dict__.setdefault("_forward", {})
     key = tuple((f.lo, f.hi) for f in folds)
     fc = cache.get(key)
-    if fc is None or fc.cols["y"] is not data.displacement_um or fc.rpm is not data.rpm:
+    if fc is None or fc.y is not data.displacement_um or fc.rpm is not data.rpm:
         fc = cache[key] = ForwardCache(data, folds)
     return fc.errors(terms)

@@ -74,6 +74,7 @@ class ResidualLoop:
         # nothing may still carry an effect (a lag of the front bearing).
         self.view = train.select(usable_sensors(train, folds)[0])
         self.effects: list[Term] = []
+        self._usable: dict[str, bool] = {}
         self.dropped: set[tuple[str, Any]] = set()
         self.gains: dict[str, tuple[float, float]] = {}
         self.max_tau_s = float(np.max(train.time_s - train.t0_s)) / _SETTLE_TAUS
@@ -82,6 +83,12 @@ class ResidualLoop:
         self.e_cur = self.score([])[1]
 
     def usable(self, term: Term) -> bool:
+        key = repr(term)
+        if key not in self._usable:
+            self._usable[key] = self._can_use(term)
+        return self._usable[key]
+
+    def _can_use(self, term: Term) -> bool:
         if term.params.get("tau_s", 0.0) > self.max_tau_s:
             return False
         try:
