@@ -34,13 +34,46 @@ def test_schedules_differ():
 
 @pytest.mark.parametrize("effect", EFFECTS)
 def test_the_effect_in_the_data_is_named_and_the_test_error_falls(effect):
+    from lathed.analysis.thermal import residual_structure
     tr, te = pair((effect,))
     a = analyze(tr, te)
     assert a.effects, f"nothing found; residual: {a.residual.note}"
     assert a.effects[0].term.effect == effect
     fall = 1 - a.loop.test_rmse_um / a.start.test_rmse_um
     assert fall >= 0.60, f"{effect}: {a.start.test_rmse_um:.2f} -> {a.loop.test_rmse_um:.2f} µm"
-    assert not a.residual.structured, a.residual.note
+    # the effects found leave nothing on the next run; what is handed on is judged below
+    left = residual_structure(te.time_s, te.displacement_um - a.loop.model.predict(te), te)
+    assert not left.structured, left.note
+    assert a.final is a.loop or a.final is a.best_baseline("forward")
+
+
+def test_a_drift_is_handed_on_once_the_runs_span_days():
+    """Within one run the room's temperature and its lags make a clock too: the ridge baseline
+    on them follows the drift on the newest rows of the training run (here within 15 % of the
+    drift term, not beaten consistently), and is handed on; on the next day, its room on
+    another course, it is 4x worse. Two days as training rows show it: the drift is handed on."""
+    from lathed.analysis.thermal import ThermalRuns
+
+    def run(seed):
+        return data(generate_run(random_schedule(seed, SHIFT_S), ("drift",), seed=seed, noise_um=NOISE_UM))
+    days = ThermalRuns([run(TRAIN_SEED), run(TRAIN_SEED + 50)])
+    a = analyze(days, run(TEST_SEED))
+    assert [e.term.effect for e in a.effects] == ["drift"]
+    assert a.final is a.loop, a.notes
+    assert a.final.test_rmse_um <= 1.10 * NOISE_UM
+    ridge = next(b for b in a.baselines if b.model.source == "ridge_lags")
+    assert ridge.forward_rmse_um > 2 * a.loop.forward_rmse_um
+
+
+def test_a_notch_does_not_stand_in_for_a_lag_not_yet_found():
+    # Pair 5: the motor's rise has a line at 398 s (speed changes, no oscillation of its own).
+    # Chosen before any effect, a notch there (half a period of delay) stood in for the shaft's
+    # lag; the front bearing's lag then scored worse than the rear's, and the loop built on
+    # stand-ins to three effects and 1.97 µm on the next run (0.53 µm with the true lag).
+    tr, te = pair(("lag",), train_seed=5, test_seed=105)
+    a = analyze(tr, te)
+    assert [(e.term.effect, e.term.sensor) for e in a.effects] == [("lag", "t_front_bearing_c")], a.notes
+    assert a.loop.test_rmse_um <= 1.10 * NOISE_UM, a.loop.test_rmse_um
 
 
 def test_lag_time_constant_is_found():
@@ -61,7 +94,7 @@ def test_no_effect_is_claimed_on_data_without_one(seed):
     assert a.effects == []
     assert a.loop.test_rmse_um <= 1.10 * NOISE_UM
     # handed on: the selected model only if it beats the best baseline on the newest training rows
-    assert a.final in (a.loop, a.best_baseline("forward"))
+    assert a.final is a.loop or a.final is a.best_baseline("forward")
     assert not a.residual.structured
 
 
@@ -324,6 +357,20 @@ def test_a_decoy_lagging_a_heated_sensor_does_not_keep_the_true_ones_out():
     sel = fit_stage(tr, chosen, te, int(0.8 * len(tr)), "")
     ls4 = _ls4(tr, te)
     assert sel.test_rmse_um <= 1.10 * ls4.test_rmse_um, (sel.test_rmse_um, ls4.test_rmse_um)
+
+
+def test_two_days_keep_the_decoy_out():
+    """The decoy of pair 7 (above) predicts the later rows of its own run as well as the true
+    sensors; a second day, its heat on another course, tells them apart."""
+    from lathed.analysis.thermal import ThermalRuns, select_sensors
+    from lathed.sim.thermal import TRUE_SENSORS, many_sensors
+
+    def run(seed):
+        return data(many_sensors(generate_run(random_schedule(seed, SHIFT_S), (), seed=seed, dt_s=60.0,
+                                              noise_um=0.3), seed))
+    chosen, _, _ = select_sensors(ThermalRuns([run(7), run(57)]), prune=False)
+    names = {t.sensor for t in chosen}
+    assert names <= set(TRUE_SENSORS) and "t_front_bearing_c" in names, names
 
 
 @pytest.mark.parametrize("seed", [6, 7])

@@ -69,7 +69,9 @@ class ResidualLoop:
         self.train, self.test, self.folds = train, test, folds
         self.cands, self.makers = list(cands), {c.name: c for c in cands}
         self.max_effects, self.min_gain, self.min_z, self.max_sensors = max_effects, min_gain, min_z, max_sensors
-        self.sensor_terms, self.notes, self.kept = select_sensors(train, folds, max_sensors, prune=False)
+        # few sensors are taken as read until an effect is in (see select_sensors)
+        self.sensor_terms, self.notes, self.kept = select_sensors(train, folds, max_sensors, prune=False,
+                                                                  filters=False)
         # Candidates see every usable sensor, kept or not: a sensor whose linear share adds
         # nothing may still carry an effect (a lag of the front bearing).
         self.view = train.select(usable_sensors(train, folds)[0])

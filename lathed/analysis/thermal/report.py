@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from lathed.analysis.thermal.terms import Term
 
 
-@dataclass
+@dataclass(eq=False)        # one fit's result: the same stage is the same object (its errors are arrays)
 class Stage:
     """A model fitted on the training rows and its errors: in-sample, forward in time on the
     training rows (what every choice is made on), and on the later rows the report judges on

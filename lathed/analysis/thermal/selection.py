@@ -79,7 +79,7 @@ SENSOR_ALPHA = 0.05
 def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold] | None = None, max_sensors: int = 8,
                    min_gain: float = 0.005, alpha: float = SENSOR_ALPHA, *,
                    start: Sequence[LinearTerm] | None = None,
-                   fixed: Sequence[Term] = (), prune: bool = True
+                   fixed: Sequence[Term] = (), prune: bool = True, filters: bool = True
                    ) -> tuple[list[LinearTerm], list[str], list[SensorKept]]:
     """Choice of sensors (each with the filter of ``_filters`` that suits it), judged forward in
     time, at most ``max_sensors``. Sixteen sensors on one spindle mostly read the same few heats:
@@ -92,10 +92,11 @@ def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold] | None
     larger one beats significantly is kept: a forward error lower by ``min_gain`` (relative) and
     consistently so across the folds (``fold_t`` at one-sided level ``alpha``).
 
-    With no more usable sensors than ``max_sensors`` and no ``start``, all enter (each with its
-    best filter): a missing effect may hide a sensor's share, and the loop decides once effects
-    are in. ``start`` are sensors already chosen, ``fixed`` effect terms fitted beside them; the
-    residual loop calls this again as effects enter, and last with ``prune``."""
+    With no more usable sensors than ``max_sensors`` all enter, each with its best filter beside
+    ``fixed`` (as read without ``filters``): a missing effect may hide a sensor's share, and the
+    loop decides once effects are in. ``start`` are sensors already chosen, ``fixed`` effect
+    terms fitted beside them; the residual loop calls this again as effects enter, and last
+    with ``prune``."""
     folds = forward_folds(len(data)) if folds is None else folds
     keep, notes = usable_sensors(data, folds)
     y = data.displacement_um
@@ -103,10 +104,12 @@ def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold] | None
         return [LinearTerm(s) for s in keep], notes, []
     fixed = list(fixed)
     few = len(keep) <= max_sensors
-    if start is None and few:
-        start = [LinearTerm(s) for s in keep]
-        for i, s in enumerate(keep):
-            grid = _filters(data, s)
+    if few:
+        # each sensor through the filter that suits it, chosen beside the effects in: a notch
+        # delays a sensor by half its period and stands in for a lag the loop has not found yet
+        start = [LinearTerm(s) for s in keep] if start is None else [t for t in start if t.sensor in keep]
+        for i, t0 in enumerate(start if filters else ()):
+            grid = _filters(data, t0.sensor)
             if len(grid) > 1:
                 start[i] = min(grid, key=lambda t: rmse(
                     cached_forward(data, [*start[:i], t, *start[i + 1:], *fixed], folds)))
@@ -183,14 +186,15 @@ def select_sensors(data: ThermalData | ThermalRuns, folds: Sequence[Fold] | None
         # the first always enters: the growth is fitted to something
         k = next(k for k in sizes if not any(significant(best[k], best[j]) for j in sizes if j > k))
         chosen = best[k]
-    e_cur = score(chosen)[1]
-    for t in list(chosen if prune and few else ()):     # few sensors: only those that add next to nothing go
+    # Few sensors all enter; one leaves only when the forward error is lower without it, as
+    # consistently as a sensor must lower it to enter. "Adds nothing" is no reason: the folds
+    # cover the later half of the rows, where a sensor (the room's) may hardly have moved, and a
+    # sensor left out is missed on the next day whose room moves.
+    for t in list(chosen if prune and few else ()):
         rest = [o for o in chosen if o is not t]
-        if not rest:
-            break
-        e = cached_forward(data, [*rest, *fixed], folds)
-        if 1 - rmse(e_cur) / rmse(e) < min_gain / 2:
-            chosen, e_cur = rest, e
+        if rest and significant(chosen, rest):
+            chosen = rest
+    e_cur = score(chosen)[1]
     left = [s for s in keep if all(t.sensor != s for t in chosen)]
     if left:
         notes.append(f"sensor selection kept {len(chosen)} of {len(keep)}: "
