@@ -35,8 +35,10 @@ version (TOML) and records before/after.
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import math
+import pickle
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -54,7 +56,8 @@ from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
-from lathed.control import RequestError
+from lathed.control import RequestError, offload
+from lathed.worker import in_process
 
 
 # refit() analyses all but the newest 20 %, and analyze() needs min_rows() of those.
@@ -368,38 +371,45 @@ class ThermalAnalyzer(Analyzer):
         return float(t[0]), ThermalData(t - cold_t, temps, disp, rpm,
                                         reference_c={f"t_{k}_c": float(cold[k]) for k in places}, t0_s=0.0)
 
-    def _refit(self) -> tuple[dict, object]:
-        data = self._measurements()
+    async def _refit(self) -> tuple[dict, object]:
+        data = await offload(self._measurements)
+        # The daemon applies each model as growth since touch-off; judge the printed eq. 14 the
+        # same way, without the intercept it carries from the paper's machine (-222 µm), or any
+        # refit would look "better".
+        current = replace(self.model, intercept_um=0.0) if self.model.source == "eq14" else self.model
+        job = functools.partial(refit, data, current=current, holdout_fraction=REFIT_HOLDOUT,
+                                extra_candidates=self._candidates())
         try:
-            # The daemon applies each model as growth since touch-off; judge the
-            # printed eq. 14 the same way, without the intercept it carries from
-            # the paper's machine (-222 µm), or any refit would look "better".
-            current = replace(self.model, intercept_um=0.0) if self.model.source == "eq14" else self.model
-            res = refit(data, current=current, holdout_fraction=REFIT_HOLDOUT,
-                        extra_candidates=self._candidates())
+            # a process: a minute of numpy in small steps on a thread holds the GIL from the loop
+            res = await in_process(job, "lathed-thermal-refit")
         except ValueError as e:     # data the residual loop cannot use: say so, keep the model
             raise RequestError(f"refit failed on {len(data)} probe measurements: {e}") from None
+        except (pickle.PicklingError, AttributeError, TypeError) as e:
+            if "pickle" not in str(e):
+                raise
+            raise RequestError(f"refit: a thermal candidate plugin cannot be sent to the refit process ({e}): "
+                               f"define its Candidate and Term classes at module level") from None
         ls = res.least_squares_rmse_um
         out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
                "least_squares_rmse_um": None if ls is None else round(ls, 3),
                "baselines_rmse_um": {k: round(v, 3) for k, v in res.baselines_rmse_um.items()},
-               "handed_on": res.analysis.final.label, "why": res.why,
+               "handed_on": res.label, "why": res.why,
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
                # what each kept sensor carries: a user with many sensors sees which matter
                "sensors": [k.to_json() for k in res.analysis.sensors],
                "residual": res.analysis.residual.note}
-        if res.better:
-            self.models_dir.mkdir(parents=True, exist_ok=True)
-            n = 1 + max((int(p.stem.split("-v")[1]) for p in self.models_dir.glob("thermal-v*.toml")), default=0)
-            path = self.models_dir / f"thermal-v{n}.toml"
-            save_model(res.model, path, meta={"created": time.time(), "rows": len(data),
-                                              "before_rmse_um": res.before_rmse_um,
-                                              "after_rmse_um": res.after_rmse_um})
-            out["model_after"] = path.name
-        else:
-            out["model_after"] = self.model_name
+        out["model_after"] = (await offload(self._save, res, len(data))) if res.better else self.model_name
         return out, res
+
+    def _save(self, res, rows: int) -> str:
+        """A new version of the model in the state directory; its file name."""
+        self.models_dir.mkdir(parents=True, exist_ok=True)
+        n = 1 + max((int(p.stem.split("-v")[1]) for p in self.models_dir.glob("thermal-v*.toml")), default=0)
+        path = self.models_dir / f"thermal-v{n}.toml"
+        save_model(res.model, path, meta={"created": time.time(), "rows": rows, "before_rmse_um": res.before_rmse_um,
+                                          "after_rmse_um": res.after_rmse_um})
+        return path.name
 
     async def _control(self, args: dict) -> dict:
         a = Args("thermal", args)
@@ -424,7 +434,7 @@ class ThermalAnalyzer(Analyzer):
             raise RequestError("thermal: a refit is already running; wait for its result")
         self._refitting = True
         try:
-            out, res = await asyncio.to_thread(self._refit)
+            out, res = await self._refit()
         finally:
             self._refitting = False
         if res.better:
@@ -447,7 +457,7 @@ class ThermalAnalyzer(Analyzer):
         return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
                 "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused, "held": self.held,
                 "touchoff": None if to is None else {k: to[k] for k in ("t", "base_um", "reason")},
-                "last_refit": self.last_refit,
+                "last_refit": self.last_refit, "refitting": self._refitting,
                 "summary": f"model {self.model_name}, growth {growth} µm {since}, {offset}"}
 
 

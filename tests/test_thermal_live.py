@@ -5,12 +5,15 @@ Done-when item)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
+from lathed.analysis.thermal import Candidate
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
 from lathed_plugins.thermal import MIN_REFIT_ROWS
@@ -258,6 +261,47 @@ def events_in(state_dir, kind: str) -> list:
         store.close()
 
 
+class PidCandidate(Candidate):
+    """A plugin's candidate that proposes nothing and writes down the process it was asked in."""
+    name = "pid_probe"
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def propose(self, data):
+        Path(self.path).write_text(str(os.getpid()))
+        return []
+
+
+def test_a_refit_runs_in_a_process_of_its_own(tmp_path):
+    """A refit is a minute of numpy in small steps on real data: on a thread of the daemon it
+    held the GIL from the event loop and the control socket went unanswered for 10 s."""
+    import asyncio
+
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    seed_measurements(tmp_path, NEED)
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+    an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                            {"input": "temps", "machine": "lathe"}))
+    an.ctx = AnalyzerContext(Bus(), structlog.get_logger("t"), lambda k, p=None: recorded.append(k), None,
+                             lambda *a: None, store, lambda n: None, ".")
+    where = tmp_path / "pid"
+    an._candidates = lambda: [PidCandidate(where)]
+    try:
+        out = asyncio.run(an._control({"action": "refit"}))
+    finally:
+        store.close()
+    assert out["rows"] == NEED and recorded == ["thermal_refit"]
+    assert int(where.read_text()) != os.getpid()
+
+
 def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path):
     """Probe rows stored since a cold start carry its temperatures and time: the
     refit takes rises and drift hours from them, as the live prediction does,
@@ -371,20 +415,20 @@ def test_a_restart_on_a_machine_cold_again_starts_a_new_run(tmp_path):
                                           "base_um": -3.0, "reason": "first start", "by": None, "cold_c": cold,
                                           "cold_t": 1000.0, "model": "eq14", "pred0_um": None})
 
-        def started(temps):
+        def started(temps, rpm=None):
             an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
                                                     {"input": "temps", "machine": "lathe"}))
             an.ctx = Ctx()
             an.ctx.store = store
             an._restore_touchoff()
-            an.temps = dict(temps)
+            an.temps, an.rpm = dict(temps), rpm
             an._take_up()
             return an
         recorded.clear()
         warm = started({"front_bearing": 27.0, "rear_bearing": 24.0, "motor": 30.0, "room": 19.5})
         assert recorded == [] and warm.touchoff["cold_t"] == 1000.0          # warm: the stored cold start stays
         morning = {p: v + 2.0 for p, v in cold.items()} | {"room": cold["room"] + 0.5}
-        an = started(morning)
+        an = started(morning, rpm=0.0)
         assert [k for k, _ in recorded] == ["thermal_touchoff"] and an.touchoff["cold_c"] == morning
         assert an.touchoff["cold_t"] > 1000.0 and "cold start" in an.touchoff["reason"]
         # the machine cold as at the stored (cold) touch-off: the offset in force is its base

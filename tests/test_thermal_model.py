@@ -293,3 +293,23 @@ def test_a_refit_is_adopted_only_if_it_beats_the_model_in_use_and_every_baseline
     # not 5 % better than the model in use
     ok, why = adoption(5.2, 5.0, {"ridge": 6.0}, 0.05, 40)
     assert not ok and "does not beat the model in use" in why
+
+
+def test_a_refit_adopts_the_baseline_that_beats_the_analysis_choice_on_the_newest_rows():
+    # Probe rows as the daemon stores them (one a 70-min part, seed 2): the analysis hands on the
+    # ridge baseline; on the refit's newest rows plain least squares is 0.3 % better. A refit that
+    # then kept eq. 14 (31 µm there) left the machine with a model 90x worse than either.
+    from dataclasses import replace
+
+    from lathed.analysis.thermal import eq14_model, refit
+    from lathed.sim.thermal import generate_run
+    n, part_s = 90, 4200.0
+    c = generate_run([(part_s, rpm) for _ in range(n // 3) for rpm in (1500, 2000, 2500)], seed=2, dt_s=part_s,
+                     noise_um=0.3).columns
+    d = ThermalData(c["time_s"], {k: v for k, v in c.items() if k.startswith("t_")}, c["displacement_um"],
+                    c["spindle_rpm"])
+    r = refit(d, current=replace(eq14_model(), intercept_um=0.0))
+    assert r.analysis.final.model.source == "ridge_lags"
+    assert r.better and r.model is r.candidate and r.label != r.analysis.final.label, r.why
+    assert r.after_rmse_um == min(r.baselines_rmse_um.values()) and r.after_rmse_um < 0.95 * r.before_rmse_um
+    assert f"the analysis handed on {r.analysis.final.label}" in r.why

@@ -1,5 +1,6 @@
-"""The daemon's refit: fit on all but the newest rows, adopt only a model that predicts the newest
-rows better than the model in use and than every plain baseline fitted on the same rows."""
+"""The daemon's refit: analyse all but the newest rows; the model the analysis hands on and every
+plain baseline fitted on the same rows then predict the newest rows, and the best of them is
+adopted only if it beats the model in use there. See docs/thermal.md."""
 from __future__ import annotations
 
 import math
@@ -17,13 +18,14 @@ from lathed.analysis.thermal.report import Analysis
 @dataclass
 class RefitResult:
     model: ThermalModel            # the model to use from now on
-    candidate: ThermalModel        # the model the analysis handed on
+    candidate: ThermalModel        # the best on the newest rows of the analysis's model and the baselines
     before_rmse_um: float          # the model in use on the newest rows
     after_rmse_um: float           # the candidate on the same rows
     better: bool                   # adopted
     analysis: Analysis
     baselines_rmse_um: dict[str, float] = field(default_factory=dict)   # each baseline on the newest rows
     why: str = ""
+    label: str = ""                # what the candidate is
 
     @property
     def least_squares_rmse_um(self) -> float | None:
@@ -36,9 +38,10 @@ class RefitResult:
 
 def refit(data: ThermalData | ThermalRuns, current: ThermalModel | None = None, *, holdout_fraction: float = 0.2,
           min_gain: float = 0.05, extra_candidates: Sequence[Candidate] = (), **analyze_kw) -> RefitResult:
-    """Analyse all but the newest ``holdout_fraction`` of ``data``; adopt the model it hands on
-    only if, on those newest rows, it beats ``current`` (default eq. 14) by ``min_gain``
-    (relative) and no plain baseline fitted on the same rows beats it."""
+    """Analyse all but the newest ``holdout_fraction`` of ``data``; of the model it hands on and
+    the plain baselines fitted on the same rows, the one that predicts the newest rows best (the
+    analysis's on a tie) is the candidate, adopted only if it beats ``current`` (default eq. 14)
+    there by ``min_gain`` (relative)."""
     if data.displacement_um is None:
         raise ValueError("refit needs measured displacements")
     if not 0 < holdout_fraction < 1:
@@ -53,21 +56,28 @@ def refit(data: ThermalData | ThermalRuns, current: ThermalModel | None = None, 
         # predicted over every row, so terms with memory carry into the newest ones
         return rmse(y - model.predict(data)[cut:])
 
-    before, after = on_tail(current), on_tail(a.model)
+    before = on_tail(current)
     base = {s.label: on_tail(s.model) for s in a.baselines}
+    handed = on_tail(a.model) if not a.final.baseline else base[a.final.label]
+    # the analysis's model first: a baseline replaces it only by predicting the newest rows better
+    label, after = min([(a.final.label, handed), *base.items()], key=lambda kv: kv[1])
+    model = a.model if label == a.final.label else next(s.model for s in a.baselines if s.label == label)
     better, why = adoption(before, after, base, min_gain, n - cut)
-    return RefitResult(a.model if better else current, a.model, before, after, better, a, base, why)
+    if label != a.final.label:
+        why = (f"the analysis handed on {a.final.label} ({handed:.2f} µm on the newest rows); {label} predicts "
+               f"them better and is the candidate. {why}")
+    return RefitResult(model if better else current, model, before, after, better, a, base, why, label)
 
 
 def adoption(before: float, after: float, baselines: dict[str, float], min_gain: float, rows: int) -> tuple[bool, str]:
-    """Adopt a new model whose error on the newest rows is ``after``: only if it beats the model
-    in use (``before``) by ``min_gain`` (relative) and no baseline fitted on the same rows beats
-    it there. Returns the verdict and why."""
+    """Adopt a candidate whose error on the newest rows is ``after``: only if it beats the model
+    in use (``before``) by ``min_gain`` (relative) and no baseline fitted on the same rows does
+    better there. Returns the verdict and why."""
     name, best = min(baselines.items(), key=lambda kv: kv[1], default=("no baseline", math.inf))
+    if best < after:
+        return False, f"{name} ({best:.2f} µm) beats the new model ({after:.2f} µm) on the newest {rows} rows"
     if not after < (1 - min_gain) * before:
         return False, (f"the new model ({after:.2f} µm) does not beat the model in use ({before:.2f} µm) "
                        f"by {100 * min_gain:g} % on the newest {rows} rows")
-    if best < after:
-        return False, f"{name} ({best:.2f} µm) beats the new model ({after:.2f} µm) on the newest {rows} rows"
-    return True, (f"the new model ({after:.2f} µm) beats the model in use ({before:.2f} µm) and every "
-                  f"baseline (best: {name}, {best:.2f} µm) on the newest {rows} rows")
+    return True, (f"the new model ({after:.2f} µm) beats the model in use ({before:.2f} µm) and is at or below "
+                  f"every baseline (best: {name}, {best:.2f} µm) on the newest {rows} rows")
