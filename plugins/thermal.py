@@ -214,6 +214,7 @@ class ThermalAnalyzer(Analyzer):
               # the model's cold reference: kept from the first start
               "cold_c": dict(prev["cold_c"]) if prev else dict(self.temps),
               "cold_t": prev["cold_t"] if prev else now,
+              "cold_rpm": self._cold_rpm() if prev else self.rpm,
               "model": self.model_name, "pred0_um": None}
         if prev is not None and self._predictor is not None:
             # the live prediction, with the state of lagging and hysteretic terms
@@ -233,8 +234,14 @@ class ThermalAnalyzer(Analyzer):
             self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
         elif self._restored:
             self._restored = False
-            if cold_again(self.touchoff["cold_c"], self.temps):
+            # the rpm of the stored cold start: the first touch-off's (a cold start takes its own)
+            if cold_again(self.touchoff["cold_c"], self.temps, self._cold_rpm(), self.rpm):
                 self._cold_start()
+
+    def _cold_rpm(self) -> float | None:
+        """The spindle speed when the stored cold start was taken (None: not known)."""
+        to = self.touchoff
+        return to.get("cold_rpm", to.get("rpm") if to.get("cold_t") == to.get("t") else None)
 
     def _cold_start(self) -> None:
         """Started on a machine that is cold again (another day): rises and the drift clock from
@@ -246,7 +253,8 @@ class ThermalAnalyzer(Analyzer):
         base = prev["base_um"] + self.sign * (p_cold - (self.pred0 if self.pred0 is not None else p_cold))
         to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm, "base_um": base,
               "reason": "cold start: the machine's sensors agree with each other again, a new run",
-              "by": None, "cold_c": dict(self.temps), "cold_t": now, "model": self.model_name, "pred0_um": p_cold}
+              "by": None, "cold_c": dict(self.temps), "cold_t": now, "cold_rpm": self.rpm, "model": self.model_name,
+              "pred0_um": p_cold}
         self.touchoff = to
         self.ctx.record("thermal_touchoff", to)
         self._rebuild()

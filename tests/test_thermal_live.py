@@ -393,6 +393,41 @@ def test_an_offset_waits_for_the_threads_end_without_asking_in_vain(monkeypatch)
     assert th.refused is None and th.applied == asked[-1]
 
 
+def test_a_restart_on_a_machine_warmed_all_over_keeps_a_cold_start_taken_at_speed(tmp_path):
+    """The first start touched off a spindle already turning at 2500 r/min (the daemon assumes
+    cold then); restarted four hours on at the same speed, every sensor has risen alike. The
+    sensors agree with each other as at that touch-off, but the machine is not cold again: the
+    stored cold start stays (taken for a new one, the offset went back to zero)."""
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+
+    class Ctx:
+        def record(self, kind, payload):
+            recorded.append((kind, payload))
+    # the readings of the live test where this was seen
+    first = {"front_bearing": 25.75, "rear_bearing": 23.5, "motor": 23.75, "room": 19.125}
+    later = {"front_bearing": 26.9375, "rear_bearing": 24.5625, "motor": 24.875, "room": 19.875}
+    try:
+        store.record_future("thermal_touchoff", "thermal", {
+            "machine": "lathe", "t": 1000.0, "temps_c": first, "rpm": 2500.0, "base_um": 0.0,
+            "reason": "first start", "by": None, "cold_c": first, "cold_t": 1000.0, "model": "eq14",
+            "pred0_um": None}).result(10)
+        for rpm in (2500.0, 0.0, None):       # turning now, stopped, not reported yet
+            an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe"}))
+            an.ctx = Ctx()
+            an.ctx.store = store
+            an._restore_touchoff()
+            an.temps, an.rpm = dict(later), rpm
+            an._take_up()
+            assert recorded == [] and an.touchoff["cold_t"] == 1000.0, rpm
+    finally:
+        store.close()
+
+
 def test_a_restart_on_a_machine_cold_again_starts_a_new_run(tmp_path):
     """Restarted the next morning: the machine's sensors agree with each other again, 2 °C warmer
     than yesterday's cold start, the shop's air 1.5 °C off them. A new cold start is taken (rises
@@ -428,6 +463,9 @@ def test_a_restart_on_a_machine_cold_again_starts_a_new_run(tmp_path):
         warm = started({"front_bearing": 27.0, "rear_bearing": 24.0, "motor": 30.0, "room": 19.5})
         assert recorded == [] and warm.touchoff["cold_t"] == 1000.0          # warm: the stored cold start stays
         morning = {p: v + 2.0 for p, v in cold.items()} | {"room": cold["room"] + 0.5}
+        # the same readings with the spindle turning: it has been heating, not judged cold
+        started(morning, rpm=2500.0)
+        assert recorded == []
         an = started(morning, rpm=0.0)
         assert [k for k, _ in recorded] == ["thermal_touchoff"] and an.touchoff["cold_c"] == morning
         assert an.touchoff["cold_t"] > 1000.0 and "cold start" in an.touchoff["reason"]

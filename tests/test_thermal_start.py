@@ -82,3 +82,13 @@ def test_with_one_machine_sensor_the_room_stands_in():
     warm = ThermalData(t, {"t_motor_c": 24 + hot, "t_room_c": 20 + 0 * t}, hot)
     with pytest.raises(ValueError, match="t_motor_c starts at 24.00 °C, 4.00 °C further above the room"):
         reference_test(tr, warm)
+
+
+def test_live_cold_again_judges_only_a_standing_spindle():
+    from lathed.analysis.thermal.start import cold_again
+    cold = {"front_bearing": 19.25, "rear_bearing": 19.25, "motor": 19.31, "room": 19.19}
+    morning = {p: v + 2.0 for p, v in cold.items()} | {"room": cold["room"] + 0.5}
+    assert cold_again(cold, morning) and cold_again(cold, morning, 0.0, 0.0)
+    assert not cold_again(cold, morning, rpm_now=1500.0)      # turning: heating its bearings now
+    assert not cold_again(cold, morning, rpm_then=1500.0)     # the stored "cold" start was taken at speed
+    assert not cold_again(cold, cold)                          # not moved: the same cold start goes on

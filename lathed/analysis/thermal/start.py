@@ -62,12 +62,20 @@ def warm_sensors(cold: ThermalData, run: ThermalData) -> list[str]:
     return out
 
 
-def cold_again(cold_c: Mapping[str, float], now_c: Mapping[str, float]) -> bool:
+def cold_again(cold_c: Mapping[str, float], now_c: Mapping[str, float], rpm_then: float | None = None,
+               rpm_now: float | None = None) -> bool:
     """Live, from one reading of each sensor (keys as the daemon keeps them, ``motor`` or
     ``t_motor_c``): is the machine cold again since the cold start that read ``cold_c``, and
     has it moved from it (another day)? Its own sensors agree with each other within
     ``WARM_START_MIN_C`` of their common shift (no run's rise is at hand to scale it by), and it
-    is within ``ROOM_SLACK_C`` of the room's shift."""
+    is within ``ROOM_SLACK_C`` of the room's shift.
+
+    Only a standing spindle is judged (``rpm_now``, and ``rpm_then`` at the cold start; None:
+    not known): a turning one heats its bearings, and a machine that has run for hours at one
+    speed warms all over, its sensors then as far apart as at a cold start taken on a turning
+    spindle, all of them shifted alike."""
+    if (rpm_now or 0.0) > 0 or (rpm_then or 0.0) > 0:
+        return False
     keys = [k for k in now_c if k in cold_c]
     machine = [k for k in keys if not _is_room(k)]
     if len(machine) < 2:
