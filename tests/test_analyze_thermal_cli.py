@@ -188,7 +188,7 @@ def test_too_few_rows_is_65(tmp_path, capsys):
     assert code == 65 and "too few" in err and "Traceback" not in err
 
 
-@pytest.mark.skipif(not (ROOT / "lathed" / "lathectl.py").exists(), reason="lathectl not present")
+@pytest.mark.skipif(not (ROOT / "lathed" / "cli" / "main.py").exists(), reason="lathectl not present")
 def test_through_lathectl(runs):
     env = dict(os.environ, MPLBACKEND="Agg")
     r = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "thermal",
