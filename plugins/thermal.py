@@ -113,6 +113,7 @@ class ThermalAnalyzer(Analyzer):
         self._phasing = False
         self._predictor = None
         self._restored = False      # a stored touch-off taken up at start: is the machine cold again?
+        self._read: dict = {"temps_c": None, "rpm": None}     # the readings the prediction is from
 
     def inputs(self) -> list[str]:
         return [self.input, self.machine]
@@ -297,7 +298,7 @@ class ThermalAnalyzer(Analyzer):
             except ValueError as e:
                 self.ctx.log.warning("thermal_prediction_failed", error=str(e))
                 continue
-            self.prediction = pred
+            self.prediction, self._read = pred, {"temps_c": dict(self.temps), "rpm": self.rpm}
             self.ctx.bus.publish(Sample(self.name, "predicted_growth_um", pred - self.pred0, "µm", time.time()))
             self._hold(self.hold.judge(pred - self.pred0, time.time()), "growth")
             if self.held is not None:
@@ -465,7 +466,7 @@ class ThermalAnalyzer(Analyzer):
         return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
                 "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused, "held": self.held,
                 "touchoff": None if to is None else {k: to[k] for k in ("t", "base_um", "reason")},
-                "last_refit": self.last_refit, "refitting": self._refitting,
+                "last_refit": self.last_refit, "refitting": self._refitting, **self._read,
                 "summary": f"model {self.model_name}, growth {growth} µm {since}, {offset}"}
 
 

@@ -26,8 +26,9 @@ def register_analyze(sub) -> None:
                                    "residual), every choice judged forward in time. Plain baselines (least "
                                    "squares on all sensors, with the speed, a ridge regression on the "
                                    "temperatures and their lags) are fitted on the same rows; the model "
-                                   "handed on is whichever predicts the newest training rows best. The "
-                                   "report compares them side by side. See docs/thermal.md.")
+                                   "handed on is the one of them that predicts the newest training rows "
+                                   "best, unless the selected model beats it there by 5 % consistently. "
+                                   "The report compares them side by side. See docs/thermal.md.")
     p.add_argument("train", metavar="TRAIN.csv", nargs="+",
                    help="run(s) to fit on, in time order, each from a cold start or continuing the one "
                         "before it: time_s, [spindle_rpm], t_<place>_c..., displacement_um")
