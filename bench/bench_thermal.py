@@ -1,6 +1,7 @@
 """Thermal residual loop: time to analyse 3000 rows, and effect recovery.
 
     .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R] [--seed-base B] [--real-splits 0.7,...]
+                                            [--only-real | --only-time | --only-second-pass]
 
 (0) The real spindle's two channels (../shared/data/real/spindle-thermal), fitted on the first
 part by time and judged on the rest: the model handed on beside each plain baseline fitted on the
@@ -300,6 +301,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--hours", type=float, default=8.0, help="length of each run (one shift)")
     ap.add_argument("--skip-time", action="store_true")
+    ap.add_argument("--only-time", action="store_true")
     ap.add_argument("--second-pass-seeds", type=int, default=10, help="pairs per second-pass case")
     ap.add_argument("--only-second-pass", action="store_true")
     ap.add_argument("--case", action="append", metavar="CASE",
@@ -310,6 +312,9 @@ def main() -> None:
     ap.add_argument("--seed-base", type=int, default=0,
                     help="train seeds are base+1..base+N: another range checks that nothing was tuned to the first")
     a = ap.parse_args()
+    if a.only_time:
+        bench_time(a.repeats)
+        return
     if a.real_splits:
         bench_real([float(v) for v in a.real_splits.split(",")])
     if a.only_real:
