@@ -27,8 +27,13 @@ async def in_process(fn: Callable[[], Any], name: str = "lathed-worker") -> Any:
     ctx = multiprocessing.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
     p = ctx.Process(target=_call, args=(send, fn), daemon=True, name=name)
-    p.start()
-    send.close()
+    try:
+        p.start()           # pickles fn: what cannot be sent is raised here
+    except BaseException:
+        recv.close()
+        raise
+    finally:
+        send.close()
     try:
         ok, value = await asyncio.to_thread(recv.recv)
     except EOFError:

@@ -310,6 +310,38 @@ def test_a_refit_runs_in_a_process_of_its_own(tmp_path):
     assert int(where.read_text()) != os.getpid()
 
 
+def test_a_candidate_the_refit_process_cannot_take_is_one_line(tmp_path):
+    import asyncio
+
+    from lathed.config import Section
+    from lathed.control import RequestError
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    class Local(Candidate):        # defined in a function: no process can import it
+        name = "local"
+
+        def propose(self, data):
+            return []
+
+    seed_measurements(tmp_path, NEED)
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                            {"input": "temps", "machine": "lathe"}))
+
+    class Ctx:
+        pass
+    an.ctx = Ctx()
+    an.ctx.store = store
+    an._candidates = lambda: [Local()]
+    try:
+        with pytest.raises(RequestError, match=r"^refit: a thermal candidate plugin cannot be sent to the refit "
+                                               r"process \(.*Local.*\): define its Candidate and Term classes"):
+            asyncio.run(an._control({"action": "refit"}))
+    finally:
+        store.close()
+    assert not an._refitting
+
+
 def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path):
     """Probe rows stored since a cold start carry its temperatures and time: the
     refit takes rises and drift hours from them, as the live prediction does,
