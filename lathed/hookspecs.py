@@ -47,8 +47,8 @@ def lathed_chatter_detectors() -> dict[str, Any]:
 
 @hookspec
 def lathed_thermal_candidates() -> list[Any]:
-    """Extra candidate effects for the thermal residual loop, each with the
-    interface of :class:`lathed.analysis.thermal.Candidate`."""
+    """Extra candidate effects for the thermal residual loop, each a subclass of
+    :class:`lathed.analysis.thermal.Candidate`."""
 
 
 @hookspec

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import multiprocessing
 import time
 
 from lathed.analysis.cut_log import cut_rows
@@ -26,6 +25,7 @@ from lathed.analysis.speed_selection import lobe_grid
 from lathed.analysis.stability import files as stability_files
 from lathed.analysis.stability.learn import Learned, Learner, learn
 from lathed.control import RequestError
+from lathed.worker import in_process
 
 
 class LearnedStability:
@@ -84,7 +84,7 @@ class LearnedStability:
         o.ctx.log.info("stability_learn_started", cuts=len(cuts), records=n_records)
         # a process, not a thread: seconds of numpy in small steps would hold the GIL from the
         # loop that answers chatter
-        learned: Learned = await in_process(functools.partial(learn, cuts, kf=self.kf))
+        learned: Learned = await in_process(functools.partial(learn, cuts, kf=self.kf), "lathed-stability-learn")
         what = self.learner.consider(learned, cuts, seen=self.speeds)
         out = {"machine": o.machine, "setup": o._setup_json(include_base=False), "cut_records": n_records,
                "left_out": skipped, "verdict": what, "summary": learned.summary(), **learned.to_json(),
@@ -133,33 +133,3 @@ class LearnedStability:
         return {"cut_speeds": self.speeds, "next_learn_at": self.learner.next_at,
                 "running": self.task is not None and not self.task.done(), "last": self.last}
 
-
-def _call(conn, fn) -> None:
-    try:
-        conn.send((True, fn()))
-    except BaseException as e:      # noqa: BLE001 - sent back, raised in the daemon
-        conn.send((False, e))
-    finally:
-        conn.close()
-
-
-async def in_process(fn):
-    """``fn()`` in a fresh process (spawned: no copy of the daemon's threads and sockets);
-    cancelled, the process is ended."""
-    ctx = multiprocessing.get_context("spawn")
-    recv, send = ctx.Pipe(duplex=False)
-    p = ctx.Process(target=_call, args=(send, fn), daemon=True, name="lathed-stability-learn")
-    p.start()
-    send.close()
-    try:
-        ok, value = await asyncio.to_thread(recv.recv)
-    except EOFError:
-        raise RuntimeError(f"the learning process ended without a result (exit code {p.exitcode})") from None
-    finally:
-        if p.is_alive():
-            p.terminate()
-        await asyncio.to_thread(p.join)
-        recv.close()
-    if not ok:
-        raise value
-    return value

@@ -35,8 +35,10 @@ version (TOML) and records before/after.
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import math
+import pickle
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -46,19 +48,21 @@ import numpy as np
 from lathed import hookimpl
 from lathed.analysis.compensation_hold import CompensationHold
 from lathed.analysis.thermal import ThermalData, ThermalRuns, eq14_model, load_model, refit, save_model
+from lathed.analysis.thermal.loop import min_rows
+from lathed.analysis.thermal.start import cold_again
 from lathed.analyzer import Analyzer
 from lathed.args import Args
 from lathed.caller import require_operator
 from lathed.bus import Sample
 from lathed.command import Command
 from lathed.config import Section
-from lathed.control import RequestError
+from lathed.control import RequestError, offload
+from lathed.worker import in_process
 
 
-# refit() fits on all but the newest 20 % and the residual loop needs 10 rows for
-# each of its 5 held-out time blocks: ceil(50 / 0.8) measurements at least.
+# refit() analyses all but the newest 20 %, and analyze() needs min_rows() of those.
 REFIT_HOLDOUT = 0.2
-MIN_REFIT_ROWS = math.ceil(10 * 5 / (1 - REFIT_HOLDOUT))
+MIN_REFIT_ROWS = math.ceil(min_rows() / (1 - REFIT_HOLDOUT))
 
 
 class ThermalAnalyzer(Analyzer):
@@ -108,6 +112,8 @@ class ThermalAnalyzer(Analyzer):
         self._probe_value: float | None = None
         self._phasing = False
         self._predictor = None
+        self._restored = False      # a stored touch-off taken up at start: is the machine cold again?
+        self._read: dict = {"temps_c": None, "rpm": None}     # the readings the prediction is from
 
     def inputs(self) -> list[str]:
         return [self.input, self.machine]
@@ -198,6 +204,7 @@ class ThermalAnalyzer(Analyzer):
             t = json.loads(rows[0]["payload"])
             if t.get("machine") == self.machine:
                 self.touchoff = t
+                self._restored = True
                 self._rebuild()
 
     def _touch_off(self, reason: str, base_um: float, by: str | None = None) -> None:
@@ -208,6 +215,7 @@ class ThermalAnalyzer(Analyzer):
               # the model's cold reference: kept from the first start
               "cold_c": dict(prev["cold_c"]) if prev else dict(self.temps),
               "cold_t": prev["cold_t"] if prev else now,
+              "cold_rpm": self._cold_rpm() if prev else self.rpm,
               "model": self.model_name, "pred0_um": None}
         if prev is not None and self._predictor is not None:
             # the live prediction, with the state of lagging and hysteretic terms
@@ -221,6 +229,38 @@ class ThermalAnalyzer(Analyzer):
             self.prediction, self.target = self.pred0, base_um
         else:
             self._rebuild()
+
+    def _take_up(self) -> None:
+        """At the first full set of readings: touch off on a first start; after a restart, a
+        machine that is cold again starts a new run."""
+        if self.touchoff is None:
+            self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
+        elif self._restored:
+            self._restored = False
+            # the rpm of the stored cold start: the first touch-off's (a cold start takes its own)
+            if cold_again(self.touchoff["cold_c"], self.temps, self._cold_rpm(), self.rpm):
+                self._cold_start()
+
+    def _cold_rpm(self) -> float | None:
+        """The spindle speed when the stored cold start was taken (None: not known)."""
+        to = self.touchoff
+        return to.get("cold_rpm", to.get("rpm") if to.get("cold_t") == to.get("t") else None)
+
+    def _cold_start(self) -> None:
+        """Started on a machine that is cold again (another day): rises and the drift clock from
+        now, a run of its own for the refit. The offset goes on from what it would be on the
+        cold machine under the stored touch-off: the growth since then is the model's cold
+        prediction less the prediction at the touch-off."""
+        now, prev = time.time(), self.touchoff
+        p_cold = self.model.predictor(self.temps, now).update(self.temps, self.rpm, now)
+        base = prev["base_um"] + self.sign * (p_cold - (self.pred0 if self.pred0 is not None else p_cold))
+        to = {"machine": self.machine, "t": now, "temps_c": dict(self.temps), "rpm": self.rpm, "base_um": base,
+              "reason": "cold start: the machine's sensors agree with each other again, a new run",
+              "by": None, "cold_c": dict(self.temps), "cold_t": now, "cold_rpm": self.rpm, "model": self.model_name,
+              "pred0_um": p_cold}
+        self.touchoff = to
+        self.ctx.record("thermal_touchoff", to)
+        self._rebuild()
 
     def _rebuild(self) -> None:
         """Predictor and zero for the current model from the stored touch-off:
@@ -252,8 +292,7 @@ class ThermalAnalyzer(Analyzer):
             if stale is not None:       # nothing predicted from them, nothing asked
                 self._hold(stale, "stale")
                 continue
-            if self.touchoff is None:
-                self._touch_off("first start: spindle assumed cold, tool touched off", 0.0)
+            self._take_up()
             if self._predictor is None or self.applied is None:
                 continue
             try:
@@ -261,7 +300,7 @@ class ThermalAnalyzer(Analyzer):
             except ValueError as e:
                 self.ctx.log.warning("thermal_prediction_failed", error=str(e))
                 continue
-            self.prediction = pred
+            self.prediction, self._read = pred, {"temps_c": dict(self.temps), "rpm": self.rpm}
             self.ctx.bus.publish(Sample(self.name, "predicted_growth_um", pred - self.pred0, "µm", time.time()))
             self._hold(self.hold.judge(pred - self.pred0, time.time()), "growth")
             if self.held is not None:
@@ -343,36 +382,45 @@ class ThermalAnalyzer(Analyzer):
         return float(t[0]), ThermalData(t - cold_t, temps, disp, rpm,
                                         reference_c={f"t_{k}_c": float(cold[k]) for k in places}, t0_s=0.0)
 
-    def _refit(self) -> tuple[dict, object]:
-        data = self._measurements()
+    async def _refit(self) -> tuple[dict, object]:
+        data = await offload(self._measurements)
+        # The daemon applies each model as growth since touch-off; judge the printed eq. 14 the
+        # same way, without the intercept it carries from the paper's machine (-222 µm), or any
+        # refit would look "better".
+        current = replace(self.model, intercept_um=0.0) if self.model.source == "eq14" else self.model
+        job = functools.partial(refit, data, current=current, holdout_fraction=REFIT_HOLDOUT,
+                                extra_candidates=self._candidates())
         try:
-            # The daemon applies each model as growth since touch-off; judge the
-            # printed eq. 14 the same way, without the intercept it carries from
-            # the paper's machine (-222 µm), or any refit would look "better".
-            current = replace(self.model, intercept_um=0.0) if self.model.source == "eq14" else self.model
-            res = refit(data, current=current, holdout_fraction=REFIT_HOLDOUT,
-                        extra_candidates=self._candidates())
+            # a process: a minute of numpy in small steps on a thread holds the GIL from the loop
+            res = await in_process(job, "lathed-thermal-refit")
         except ValueError as e:     # data the residual loop cannot use: say so, keep the model
             raise RequestError(f"refit failed on {len(data)} probe measurements: {e}") from None
+        except (pickle.PicklingError, AttributeError, TypeError) as e:
+            if "pickle" not in str(e):
+                raise
+            raise RequestError(f"refit: a thermal candidate plugin cannot be sent to the refit process ({e}): "
+                               f"define its Candidate and Term classes at module level") from None
         ls = res.least_squares_rmse_um
         out = {"before_rmse_um": round(res.before_rmse_um, 3), "after_rmse_um": round(res.after_rmse_um, 3),
                "least_squares_rmse_um": None if ls is None else round(ls, 3),
+               "baselines_rmse_um": {k: round(v, 3) for k, v in res.baselines_rmse_um.items()},
+               "handed_on": res.label, "why": res.why,
                "better": res.better, "rows": len(data), "model_before": self.model_name,
                "effects": [{"effect": e.term.effect, "sensor": e.term.sensor} for e in res.analysis.effects],
                # what each kept sensor carries: a user with many sensors sees which matter
                "sensors": [k.to_json() for k in res.analysis.sensors],
                "residual": res.analysis.residual.note}
-        if res.better:
-            self.models_dir.mkdir(parents=True, exist_ok=True)
-            n = 1 + max((int(p.stem.split("-v")[1]) for p in self.models_dir.glob("thermal-v*.toml")), default=0)
-            path = self.models_dir / f"thermal-v{n}.toml"
-            save_model(res.model, path, meta={"created": time.time(), "rows": len(data),
-                                              "before_rmse_um": res.before_rmse_um,
-                                              "after_rmse_um": res.after_rmse_um})
-            out["model_after"] = path.name
-        else:
-            out["model_after"] = self.model_name
+        out["model_after"] = (await offload(self._save, res, len(data))) if res.better else self.model_name
         return out, res
+
+    def _save(self, res, rows: int) -> str:
+        """A new version of the model in the state directory; its file name."""
+        self.models_dir.mkdir(parents=True, exist_ok=True)
+        n = 1 + max((int(p.stem.split("-v")[1]) for p in self.models_dir.glob("thermal-v*.toml")), default=0)
+        path = self.models_dir / f"thermal-v{n}.toml"
+        save_model(res.model, path, meta={"created": time.time(), "rows": rows, "before_rmse_um": res.before_rmse_um,
+                                          "after_rmse_um": res.after_rmse_um})
+        return path.name
 
     async def _control(self, args: dict) -> dict:
         a = Args("thermal", args)
@@ -397,7 +445,7 @@ class ThermalAnalyzer(Analyzer):
             raise RequestError("thermal: a refit is already running; wait for its result")
         self._refitting = True
         try:
-            out, res = await asyncio.to_thread(self._refit)
+            out, res = await self._refit()
         finally:
             self._refitting = False
         if res.better:
@@ -420,7 +468,7 @@ class ThermalAnalyzer(Analyzer):
         return {"model": self.model_name, "predicted_growth_um": growth, "target_offset_um": round(self.target, 2),
                 "applied_offset_um": self.applied, "writes": self.writes, "refused": self.refused, "held": self.held,
                 "touchoff": None if to is None else {k: to[k] for k in ("t", "base_um", "reason")},
-                "last_refit": self.last_refit,
+                "last_refit": self.last_refit, "refitting": self._refitting, **self._read,
                 "summary": f"model {self.model_name}, growth {growth} µm {since}, {offset}"}
 
 

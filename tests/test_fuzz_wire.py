@@ -11,7 +11,7 @@ import structlog
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from lathed.analysis.recording import RecordingError, read_signal
-from lathed.analysis.thermal_csv import ThermalCsvError, load_thermal_csv
+from lathed.analysis.thermal.csvfile import ThermalCsvError, load_thermal_csv
 from lathed.bus import Bus, Sample
 from lathed.config import Section
 from lathed.driver import DriverContext

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from lathed.analysis.thermal_csv import ThermalCsvError, load_thermal_csv
+from lathed.analysis.thermal.csvfile import ThermalCsvError, load_thermal_csv
 
 HEADER = "time_s,spindle_rpm,t_front_bearing_c,t_rear_bearing_c,t_motor_c,t_room_c,displacement_um\n"
 

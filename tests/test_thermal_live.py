@@ -5,12 +5,15 @@ Done-when item)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
+from lathed.analysis.thermal import Candidate
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
 from lathed_plugins.thermal import MIN_REFIT_ROWS
@@ -103,7 +106,7 @@ def test_compensation_is_phased_in_as_the_spindle_warms(sim_daemon):
     assert '"offsets_left"' in d.cfg.with_suffix(".log").read_text()
 
 
-NEED = MIN_REFIT_ROWS          # 63: 50 rows for the residual loop's 5 held-out blocks + the newest 20 %
+NEED = MIN_REFIT_ROWS          # 79: 50 rows for 5 forward folds, + the newest 20 % twice (analyze's, refit's)
 SEEDED = NEED - 2   # measurements from an earlier shift; the live probe cycles add the rest
 
 
@@ -153,7 +156,11 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
                         "effects", "residual"}
     assert out["rows"] >= NEED and out["model_before"] == "eq14"
     assert out["before_rmse_um"] > 0 and out["after_rmse_um"] >= 0
-    assert out["better"] == (out["after_rmse_um"] < out["before_rmse_um"] * 0.95)
+    # adopted only if it beats the model in use by 5 % and every baseline on the newest probes
+    base = out["baselines_rmse_um"]
+    assert len(base) == 3 and all(v > 0 for v in base.values())
+    assert out["better"] == (out["after_rmse_um"] < out["before_rmse_um"] * 0.95
+                             and out["after_rmse_um"] <= min(base.values()))
     # eq. 14 is another machine's regression: the fit on this lathe's own probe data beats it.
     # The held-out tail holds the live lathe's first probes, a run from its own cold start:
     # fitted on the earlier shift's rises from its cold start, they are predicted within a few µm
@@ -167,19 +174,23 @@ def test_refit_on_stored_probe_measurements(sim_daemon, tmp_path):
     assert len(rec) == 1 and rec[0]["payload"]["after_rmse_um"] == out["after_rmse_um"]
     # the least-squares baseline on the same tail is always carried, and what each sensor carries
     assert out["least_squares_rmse_um"] > 0
-    assert out["sensors"] and all({"sensor", "smooth_s", "heldout_gain_um", "span_um"} <= set(k)
+    assert out["sensors"] and all({"sensor", "smooth_s", "forward_gain_um", "span_um"} <= set(k)
                                   for k in out["sensors"])
-    # the human output says it in three lines: before, least squares, after
+    # the human output: before, each baseline, after, why
     text = d.ctl("thermal", "refit").stdout.splitlines()
-    assert len(text) == 3
-    assert text[0].startswith("before: thermal-v1.toml, held-out error ") and text[0].endswith(" µm")
-    assert text[1].startswith("least squares on the same sensors: held-out error ")
-    assert text[2].startswith("after:  thermal-v") and "probe measurements" in text[2]
+    assert len(text) == 6
+    assert text[0].startswith("before: thermal-v1.toml, error on the newest probes ") and text[0].endswith(" µm")
+    assert [ln.split(",")[0] for ln in text[1:4]] == [
+        "baseline: least squares on 4 sensor(s)", "baseline: least squares on 4 sensor(s) and the speed",
+        "baseline: ridge on 4 sensor(s) and their lags (15 min and 60 min)"]
+    assert text[4].startswith("after:  thermal-v") and "probe measurements" in text[4]
+    assert text[5].startswith("why: ")
     # the compensation now uses the kept model
     wait_until(lambda: any(e["payload"]["model"] == "thermal-v1.toml" for e in events(d, "compensation")),
                timeout=20, what="a compensation with the refitted model")
 
 
+@pytest.mark.slow
 def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
     """The simulator runs on by itself while the daemon restarts, as a warm lathe
     would: the compensation must go on from the touch-off stored at the first
@@ -221,19 +232,19 @@ def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
         d.wait_ready()
         st = wait_until(lambda: (s := thermal(d, "status"))["predicted_growth_um"] is not None and s,
                         timeout=20, what="a prediction after the restart")
-        # the same touch-off: growth still counted from the cold start, not from now
+        # the same touch-off: growth still counted from the cold start, not from now. The lathe
+        # ran on through the restart (hours of its 600x clock on a loaded machine), so the growth
+        # is checked against the readings it was predicted from, not against the one before
+        cold = first[0]["payload"]["temps_c"]
         assert st["touchoff"]["t"] == first[0]["payload"]["t"]
         assert len(events(d, "thermal_touchoff")) == 1
+        assert st["predicted_growth_um"] == pytest.approx(eq14_growth(st["temps_c"], cold), abs=0.006), st
+        assert st["target_offset_um"] == pytest.approx(-st["predicted_growth_um"], abs=0.011), st
+        # and with a spindle that only warmed meanwhile, it did not fall back toward a cold start
         assert st["predicted_growth_um"] > before["predicted_growth_um"] - 2.0, (before, st)
-        # a few evaluation steps later: no write has moved the offset back toward zero
-        wait_until(lambda: thermal(d, "status")["applied_offset_um"] is not None, what="the offset read back")
-        ticks = lambda: len(events(d, "compensation"))     # noqa: E731
-        wait_until(lambda: ticks() >= n_comp + 3 or abs(thermal(d, "status")["target_offset_um"]
-                                                        - thermal(d, "status")["applied_offset_um"]) < 2.0,
-                   timeout=20, what="the compensation settled after the restart")
-        after = [e["payload"]["offset_um"] for e in events(d, "compensation")[n_comp:]]
-        assert all(v <= before["applied_offset_um"] + 2.0 for v in after), (before["applied_offset_um"], after)
-        assert thermal(d, "status")["applied_offset_um"] < -4.0
+        # the compensation acts on it: the offset follows the growth from the cold start
+        wait_until(lambda: (s := thermal(d, "status"))["applied_offset_um"] is not None
+                   and len(events(d, "compensation")) > n_comp, timeout=20, what="a write after the restart")
         # the operator touches the tool off again, warm: the offset in force is the new base
         st = thermal(d, "touchoff")
         assert st["touchoff"]["base_um"] == st["applied_offset_um"] and "operator" in st["touchoff"]["reason"]
@@ -241,14 +252,17 @@ def test_a_restarted_daemon_goes_on_from_the_stored_touch_off(tmp_path):
         assert len(touch) == 2
         # rises still count from the cold start's temperatures (the model's reference), the
         # prediction of the touch-off moment is the new zero
-        assert touch[1]["payload"]["cold_c"] == first[0]["payload"]["temps_c"]
+        assert touch[1]["payload"]["cold_c"] == cold
         assert touch[1]["payload"]["cold_t"] == first[0]["payload"]["t"]
-        assert touch[1]["payload"]["temps_c"] != first[0]["payload"]["temps_c"]
+        assert touch[1]["payload"]["temps_c"] != cold
         assert touch[1]["payload"]["pred0_um"] is not None
-        # growth now counts from this touch-off: the target stays at the base
-        st = wait_until(lambda: (s := thermal(d, "status"))["predicted_growth_um"] is not None
-                        and abs(s["predicted_growth_um"]) < 2.0 and s, what="growth counted from the new touch-off")
-        assert abs(st["target_offset_um"] - st["touchoff"]["base_um"]) < 2.0, st
+        # growth now counts from this touch-off, the target (from the next step on) from its base
+        def since(s):
+            return eq14_growth(s["temps_c"], touch[1]["payload"]["temps_c"])
+        st = wait_until(lambda: (s := thermal(d, "status"))["touchoff"]["t"] == touch[1]["payload"]["t"]
+                        and abs(s["target_offset_um"] - (s["touchoff"]["base_um"] - since(s))) < 0.011 and s,
+                        what="the target from the new touch-off's base")
+        assert st["predicted_growth_um"] == pytest.approx(since(st), abs=0.006), st
     finally:
         for d in daemons:
             d.stop()
@@ -298,12 +312,92 @@ def test_the_restart_tests_spindle_does_not_cool_wherever_the_daemon_starts():
         assert restart_drops_um(cycle(program), start) > 4.0, start
 
 
+def eq14_growth(temps: dict, since: dict) -> float:
+    """The growth eq. 14 predicts between two sets of readings (places as the daemon keys them)."""
+    from lathed.analysis.thermal import eq14_model
+    m = eq14_model()
+    return float(sum(c * (temps[t.sensor[2:-2]] - since[t.sensor[2:-2]]) for t, c in zip(m.terms, m.coef)))
+
+
 def events_in(state_dir, kind: str) -> list:
     store = Store(state_dir / "lathed.db", machine_id="test-cell")
     try:
         return store.query("SELECT id FROM events WHERE kind = ?", (kind,))
     finally:
         store.close()
+
+
+class PidCandidate(Candidate):
+    """A plugin's candidate that proposes nothing and writes down the process it was asked in."""
+    name = "pid_probe"
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def propose(self, data):
+        Path(self.path).write_text(str(os.getpid()))
+        return []
+
+
+def test_a_refit_runs_in_a_process_of_its_own(tmp_path):
+    """A refit is a minute of numpy in small steps on real data: on a thread of the daemon it
+    held the GIL from the event loop and the control socket went unanswered for 10 s."""
+    import asyncio
+
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Bus
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    seed_measurements(tmp_path, NEED)
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+    an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                            {"input": "temps", "machine": "lathe"}))
+    an.ctx = AnalyzerContext(Bus(), structlog.get_logger("t"), lambda k, p=None: recorded.append(k), None,
+                             lambda *a: None, store, lambda n: None, ".")
+    where = tmp_path / "pid"
+    an._candidates = lambda: [PidCandidate(where)]
+    try:
+        out = asyncio.run(an._control({"action": "refit"}))
+    finally:
+        store.close()
+    assert out["rows"] == NEED and recorded == ["thermal_refit"]
+    assert int(where.read_text()) != os.getpid()
+
+
+def test_a_candidate_the_refit_process_cannot_take_is_one_line(tmp_path):
+    import asyncio
+
+    from lathed.config import Section
+    from lathed.control import RequestError
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    class Local(Candidate):        # defined in a function: no process can import it
+        name = "local"
+
+        def propose(self, data):
+            return []
+
+    seed_measurements(tmp_path, NEED)
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                            {"input": "temps", "machine": "lathe"}))
+
+    class Ctx:
+        pass
+    an.ctx = Ctx()
+    an.ctx.store = store
+    an._candidates = lambda: [Local()]
+    try:
+        with pytest.raises(RequestError, match=r"^refit: a thermal candidate plugin cannot be sent to the refit "
+                                               r"process \(.*Local.*\): define its Candidate and Term classes"):
+            asyncio.run(an._control({"action": "refit"}))
+    finally:
+        store.close()
+    assert not an._refitting
 
 
 def test_refit_takes_rises_from_the_cold_reference_the_prediction_uses(tmp_path):
@@ -443,3 +537,94 @@ def test_a_touch_off_while_the_offset_phases_in_says_the_new_target_at_once(monk
     st = th.status()
     assert st["predicted_growth_um"] == 0.0
     assert st["target_offset_um"] == st["touchoff"]["base_um"] == th.applied, st
+
+
+def test_a_restart_on_a_machine_warmed_all_over_keeps_a_cold_start_taken_at_speed(tmp_path):
+    """The first start touched off a spindle already turning at 2500 r/min (the daemon assumes
+    cold then); restarted four hours on at the same speed, every sensor has risen alike. The
+    sensors agree with each other as at that touch-off, but the machine is not cold again: the
+    stored cold start stays (taken for a new one, the offset went back to zero)."""
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+
+    class Ctx:
+        def record(self, kind, payload):
+            recorded.append((kind, payload))
+    # the readings of the live test where this was seen
+    first = {"front_bearing": 25.75, "rear_bearing": 23.5, "motor": 23.75, "room": 19.125}
+    later = {"front_bearing": 26.9375, "rear_bearing": 24.5625, "motor": 24.875, "room": 19.875}
+    try:
+        store.record_future("thermal_touchoff", "thermal", {
+            "machine": "lathe", "t": 1000.0, "temps_c": first, "rpm": 2500.0, "base_um": 0.0,
+            "reason": "first start", "by": None, "cold_c": first, "cold_t": 1000.0, "model": "eq14",
+            "pred0_um": None}).result(10)
+        for rpm in (2500.0, 0.0, None):       # turning now, stopped, not reported yet
+            an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe"}))
+            an.ctx = Ctx()
+            an.ctx.store = store
+            an._restore_touchoff()
+            an.temps, an.rpm = dict(later), rpm
+            an._take_up()
+            assert recorded == [] and an.touchoff["cold_t"] == 1000.0, rpm
+    finally:
+        store.close()
+
+
+def test_a_restart_on_a_machine_cold_again_starts_a_new_run(tmp_path):
+    """Restarted the next morning: the machine's sensors agree with each other again, 2 °C warmer
+    than yesterday's cold start, the shop's air 1.5 °C off them. A new cold start is taken (rises
+    and drift clock from now, its probes a run of their own for the refit); the offset goes on
+    from the stored touch-off. A restart on a warm machine keeps the stored cold start."""
+    from lathed.analysis.thermal import ThermalRuns
+    from lathed.config import Section
+    from lathed_plugins.thermal import ThermalAnalyzer
+
+    store = Store(tmp_path / "lathed.db", machine_id="test-cell")
+    recorded = []
+
+    class Ctx:
+        def record(self, kind, payload):
+            recorded.append((kind, payload))
+            store.record_future(kind, "thermal", payload).result(10)
+    cold = {"front_bearing": 19.25, "rear_bearing": 19.25, "motor": 19.31, "room": 19.19}
+    try:
+        Ctx().record("thermal_touchoff", {"machine": "lathe", "t": 1000.0, "temps_c": cold, "rpm": 0.0,
+                                          "base_um": -3.0, "reason": "first start", "by": None, "cold_c": cold,
+                                          "cold_t": 1000.0, "model": "eq14", "pred0_um": None})
+
+        def started(temps, rpm=None):
+            an = ThermalAnalyzer("thermal", Section(tmp_path / "t.toml", "analyzer.thermal",
+                                                    {"input": "temps", "machine": "lathe"}))
+            an.ctx = Ctx()
+            an.ctx.store = store
+            an._restore_touchoff()
+            an.temps, an.rpm = dict(temps), rpm
+            an._take_up()
+            return an
+        recorded.clear()
+        warm = started({"front_bearing": 27.0, "rear_bearing": 24.0, "motor": 30.0, "room": 19.5})
+        assert recorded == [] and warm.touchoff["cold_t"] == 1000.0          # warm: the stored cold start stays
+        morning = {p: v + 2.0 for p, v in cold.items()} | {"room": cold["room"] + 0.5}
+        # the same readings with the spindle turning: it has been heating, not judged cold
+        started(morning, rpm=2500.0)
+        assert recorded == []
+        an = started(morning, rpm=0.0)
+        assert [k for k, _ in recorded] == ["thermal_touchoff"] and an.touchoff["cold_c"] == morning
+        assert an.touchoff["cold_t"] > 1000.0 and "cold start" in an.touchoff["reason"]
+        # the machine cold as at the stored (cold) touch-off: the offset in force is its base
+        assert an.touchoff["base_um"] == pytest.approx(-3.0)
+        for k in range(NEED):       # probes since each cold start form a run of their own
+            store.record_future("thermal_measurement", "thermal", {
+                "machine": "lathe", "t": 1060.0 + 60 * k if k < 40 else an.touchoff["cold_t"] + 60 * k,
+                "displacement_um": 1.0, "rpm": 2000.0,
+                "temps_c": {p: v + 0.05 * k for p, v in (cold if k < 40 else morning).items()},
+                **({"cold_c": cold, "cold_t": 1000.0} if k < 40 else
+                   {"cold_c": an.touchoff["cold_c"], "cold_t": an.touchoff["cold_t"]})}).result(10)
+        d = an._measurements()
+        assert isinstance(d, ThermalRuns) and [len(r) for r in d.runs] == [40, NEED - 40]
+    finally:
+        store.close()

@@ -112,7 +112,7 @@ def test_a_malformed_model_file_is_one_line_naming_the_key(tmp_path, capsys, edi
     csv = tmp_path / "run.csv"
     csv.write_text("time_s,t_front_bearing_c,t_motor_c,displacement_um\n" +
                    "".join(f"{i * 60},{20 + i * 0.1},{20 + i * 0.2},{-i * 0.5}\n" for i in range(100)))
-    args = SimpleNamespace(train=str(csv), test=None, model=str(path), max_sensors=2, split=None)
+    args = SimpleNamespace(train=[str(csv)], test=None, model=str(path), max_sensors=2, split=None)
     assert run(args) == 65
     assert capsys.readouterr().err == f"lathectl: cannot load thermal model {path}: {problem}\n"
 

@@ -13,12 +13,14 @@ def run(args: argparse.Namespace) -> int:
     elif args.action == "refit":
         effects = ", ".join(f"{e['effect']}({e['sensor']})" if e["sensor"] else e["effect"]
                             for e in r["effects"]) or "none"
-        print(f"before: {r['model_before']}, held-out error {r['before_rmse_um']:.2f} µm")
-        if r.get("least_squares_rmse_um") is not None:
-            print(f"least squares on the same sensors: held-out error {r['least_squares_rmse_um']:.2f} µm")
-        print(f"after:  {r['model_after']}, held-out error {r['after_rmse_um']:.2f} µm "
-              f"({'kept' if r['better'] else 'not better: old model kept'}); effects found: {effects}; "
+        print(f"before: {r['model_before']}, error on the newest probes {r['before_rmse_um']:.2f} µm")
+        for label, v in r.get("baselines_rmse_um", {}).items():
+            print(f"baseline: {label}, fitted on the same rows: {v:.2f} µm")
+        print(f"after:  {r['model_after']} ({r.get('handed_on', 'new model')}), error {r['after_rmse_um']:.2f} µm "
+              f"({'adopted' if r['better'] else 'not adopted: old model kept'}); effects found: {effects}; "
               f"{r['rows']} probe measurements")
+        if r.get("why"):
+            print(f"why: {r['why']}")
     else:
         print(r["summary"] + (f"; last refused: {r['refused']}" if r.get("refused") else ""))
     return 0

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lathed.analysis.thermal import ThermalData
+from lathed.analysis.thermal.data import ThermalData
 from lathed.plausible import UNIT_DEFAULTS
 
 EX_DATAERR = 65
