@@ -44,7 +44,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lathed.analysis.detectors import DETECTORS, DEFAULT_DETECTOR, make_detector  # noqa: E402
+from lathed.analysis.chatter.registry import DETECTORS, DEFAULT_DETECTOR, make_detector  # noqa: E402
 from lathed.analysis.regen import Segment as S, simulate_cut  # noqa: E402
 
 BLOCK = 4096

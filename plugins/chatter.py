@@ -75,8 +75,9 @@ import math
 import time
 
 from lathed import hookimpl
-from lathed.analysis.cut_state import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
-from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, JudgedIndex, make_detector
+from lathed.analysis.cut.sources import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS, make_detector
+from lathed.analysis.chatter.windows import JudgedIndex
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section

@@ -262,7 +262,7 @@ def test_param_not_key_value_is_refused_by_the_parser(capsys):
 def test_alarm_spans_say_when_each_alarm_was_raised_and_cleared(files, capsys):
     """An alarm that clears and comes back is two spans, not one from the first alarm on
     (the plot shaded everything after the first alarm)."""
-    from lathed.analysis.detectors import Window
+    from lathed.analysis.chatter.windows import Window
     wins = [Window(t, 1.0, 2.0, a) for t, a in [(1, False), (2, True), (3, True), (4, False), (5, True)]]
     assert analyze_chatter._alarm_spans(wins) == [(2, 4), (5, None)]
     assert analyze_chatter._alarm_spans(wins[:1]) == []

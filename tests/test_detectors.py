@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from lathed.analysis.detectors import (
-    DEFAULT_DETECTOR, DETECTORS, SyncResidualDetector, describe_params, make_detector)
+from lathed.analysis.chatter.detectors import SyncResidualDetector
+from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS, describe_params, make_detector
 from lathed.analysis.regen import Segment, simulate_cut
 
 RATE = 51200.0
@@ -263,9 +263,9 @@ def test_the_tool_leaving_is_not_growth_for_the_ring_decays_within_the_window(mo
     # bench_chatter's re-entry trap (seed base 2000): the release's ring lifts the revolution
     # difference 2-3 x within half a revolution; only the ring's decay within the window (the
     # tail test, off with 0) tells it from chatter growing
-    from lathed.analysis import detectors
+    from lathed.analysis.chatter import rules
     if tail is not None:
-        monkeypatch.setattr(detectors, "GROWTH_TAIL", tail)
+        monkeypatch.setattr(rules, "GROWTH_TAIL", tail)
     rec = simulate_cut([Segment(1.5, 2500, 1.2), Segment(0.3, 2500, 0.0), Segment(1.5, 2500, 1.2)], seed=2010)
     assert rec.label == "stable"
     wins = _run(make_detector("sync_cusum", RATE), rec.signal, 2500.0)
@@ -278,7 +278,7 @@ def test_chatter_rising_through_a_deeper_pass_counts_once_clear_of_the_step(monk
     # revolution difference spans the step do not count, but the index and the level keep
     # rising through them; counting that alarms half a revolution sooner (the tool's release
     # rings down instead: test_no_alarm_when_the_tool_leaves_the_work)
-    from lathed.analysis.detectors import RevolutionDetector
+    from lathed.analysis.chatter.base import RevolutionDetector
     if not rule:
         monkeypatch.setattr(RevolutionDetector, "_rising_from_step", lambda self, *a: False)
     rec = simulate_cut([Segment(1.5, 1500, 1.0), Segment(1.5, 1500, 3.0)], seed=1016)
@@ -329,7 +329,7 @@ def test_the_release_ring_is_not_a_judged_index(rpm):
     # the index of the release's windows rises 3-5 x over the threshold; the detector does not
     # judge them (a level step) but for the first, which JudgedIndex drops when the next one
     # shows the step: a part's record keeps the highest of what stands
-    from lathed.analysis.detectors import JudgedIndex
+    from lathed.analysis.chatter.windows import JudgedIndex
     wins = [w for w in _stable_cut_to_its_end("sync_cusum", rpm) if not w.learning]
     assert max(w.index for w in wins) > 2 * wins[0].threshold and not any(w.alarm for w in wins)
     j = JudgedIndex()
@@ -406,7 +406,7 @@ def test_every_detector_draws_the_chaos_eye(name):
     """The operator's chaos eye (the paper's graph) whatever the detector: the
     recent points against the cut's first window stay about its size in a stable
     cut and grow far past it in chatter."""
-    from lathed.analysis.chaos_sync import eye_radius
+    from lathed.analysis.chatter.eye import eye_radius
     rec = simulate_cut([Segment(0.6, 1500, 1.0), Segment(0.8, 1500, 3.0)], seed=21)
     det, sizes = make_detector(name, RATE), {}
     assert det.eye_views()[1] is None            # nothing cut yet: no baseline to draw
@@ -473,7 +473,7 @@ def test_the_release_from_a_light_cut_is_an_impulse_not_chatter(seed):
     still says cutting, and the revolution difference read it as chatter.  The vibration's
     entry frame jumps 5 x over the frames before (chatter grows a few % a frame): the cut
     state tells the detector, whose windows across it do not count."""
-    from lathed.analysis.cut_state import VibrationCutDetector
+    from lathed.analysis.cut.sources import VibrationCutDetector
     signal, start, end = _light_pass(seed)
     alarms = {}
     for told in (False, True):
@@ -490,7 +490,7 @@ def test_the_release_from_a_light_cut_is_an_impulse_not_chatter(seed):
 
 
 def test_median_abs_is_numpys_bit_for_bit():
-    from lathed.analysis.detectors import median_abs
+    from lathed.analysis.chatter.spectrum import median_abs
     rng = np.random.default_rng(3)
     for n in (1, 2, 3, 16, 1535, 1536, 4097):
         for _ in range(20):
@@ -502,7 +502,7 @@ def test_median_abs_is_numpys_bit_for_bit():
 def test_history_sized_to_the_speed_gives_the_same_windows(name, monkeypatch):
     """A detector keeps the history its speed needs (growing for a slower one), not 10 s of
     every per-sample buffer (12-16 MB a channel): its windows are those of one that keeps all."""
-    import lathed.analysis.detectors as dets
+    import lathed.analysis.chatter.base as dets
     rng = np.random.default_rng(3)
     x = rng.normal(size=51200 * 12)
     speeds = [1500.0 if i < 51200 * 6 else 200.0 for i in range(0, len(x), 1024)]

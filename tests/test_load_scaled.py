@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import structlog
 
-from lathed.analysis.detectors import make_detector
+from lathed.analysis.chatter.registry import make_detector
 from lathed.analysis.regen import Segment, simulate_cut
 from lathed.analyzer import AnalyzerContext
 from lathed.bus import Block, Bus, Sample

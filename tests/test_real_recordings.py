@@ -42,7 +42,7 @@ def test_real_recording_never_gets_the_wrong_verdict(name, label, rpm, capsys):
 def test_real_chatter_onset_is_found():
     """c_425_020's chatter grows within the recording: its onset is found."""
     from lathed.analysis.recording import read_signal
-    from lathed.analysis.detectors import make_detector
+    from lathed.analysis.chatter.registry import make_detector
     sig = read_signal(REAL / "c_425_020.mat", var="tsDS")
     det = make_detector("chaos_sync", sig.rate_hz)
     wins = [w for i in range(0, len(sig.data), 4096) for w in det.process(sig.data[i:i + 4096], 425.0)]

@@ -65,7 +65,7 @@ class _ListParams(argparse.Action):
     as --help does: FILE and --rpm are not needed."""
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from lathed.analysis.detectors import describe_params
+        from lathed.analysis.chatter.registry import describe_params
         try:
             spec = describe_params(values)
         except ValueError as e:
@@ -118,7 +118,7 @@ def _run_detector(det, x, rpm: float):
 def run(args, extra_detectors: dict | None = None) -> int:
     import numpy as np
 
-    from lathed.analysis.detectors import DETECTORS, make_detector
+    from lathed.analysis.chatter.registry import DETECTORS, make_detector
     from lathed.analysis.recording import RecordingError, read_sidecar, read_signal, takes_var
     from lathed.analysis.replay import live_spans, replay
     from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
@@ -275,7 +275,7 @@ def _alarm_spans(wins) -> list[tuple[float, float | None]]:
 def _plot(args, sig, det, wins, side=None) -> int:
     import numpy as np
 
-    from lathed.analysis.detectors import make_detector
+    from lathed.analysis.chatter.registry import make_detector
     from lathed.analysis.replay import live_spans, replay
 
     import matplotlib
