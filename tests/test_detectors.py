@@ -351,10 +351,9 @@ def _shoulder(name: str, seed: int, **params) -> list:
     return _run(make_detector(name, RATE, **params), rec.signal, rec.rpm)
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (session note 24): the baseline of the shallow "
-                   "part reads a deeper stable pass as chatter; no rule tried separates a shoulder from a "
-                   "step into chatter without slowing the corpus's step-into-chatter cases")
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.xfail(
+    strict=True, reason="known defect (issue 38): a shoulder to 0.87 x the limit sharpens the "
+    "regenerative peak, the spectrum's shape changes with the level and the threshold counts it"))])
 def test_no_alarm_on_a_shoulder(seed):
     # the residual of a stable cut scales with the cutting force; a fix makes this pass
     assert not any(w.alarm for w in _shoulder(DEFAULT_DETECTOR, seed))
@@ -373,15 +372,16 @@ def _mid_cut(rpm: float, seed: int, **params) -> list:
 def test_the_baseline_follows_a_stable_cuts_wander(rpm, seed):
     # learned in a few revolutions, the baseline knows nothing of the cut's wander, and the
     # CUSUM sums it into an alarm; raised to the calm windows' upper range, it does not
-    assert any(w.alarm for w in _mid_cut(rpm, seed, follow_quantile=0))
+    assert any(w.alarm for w in _mid_cut(rpm, seed, follow_quantile=0, shape_min=0))
+    assert not any(w.alarm for w in _mid_cut(rpm, seed, shape_min=0))
     assert not any(w.alarm for w in _mid_cut(rpm, seed))
 
 
-@pytest.mark.xfail(strict=True, reason="known defect (session note 24): a wander in the first "
-                   "revolutions, before the baseline has seen 8 calm windows, or above their 0.9 "
-                   "quantile, still alarms (5 of 24 in bench_chatter.py's mid-cut table)")
 @pytest.mark.parametrize("seed", [9040, 9041])
 def test_no_alarm_on_a_long_stable_cut_learned_mid_cut(seed):
+    # a wander in the first revolutions, before the baseline has seen 8 calm windows, changes the
+    # level, not the spectrum's shape (chatter.shape): the gate holds the sum back
+    assert any(w.alarm for w in _mid_cut(2000.0, seed, shape_min=0))
     assert not any(w.alarm for w in _mid_cut(2000.0, seed))
 
 

@@ -59,6 +59,7 @@ import numpy as np
 
 from lathed.analysis.chatter.eye import eye_of_difference
 from lathed.analysis.chatter.rules import AlarmRules
+from lathed.analysis.chatter.shape import SpectralShape
 from lathed.analysis.chatter.spectrum import spectral_peak_hz
 from lathed.analysis.chatter.windows import BASE_PARAMS, Window
 from lathed.analysis.quantile import SlidingQuantile
@@ -158,6 +159,9 @@ class RevolutionDetector(AlarmRules):
         self._rising: list[tuple[float, float]] = []   # (index, level) of windows rising from a level step
         self._low = 0.0             # the lowest raw measure the growth test looked back at
         self._hold_raw = 0.0        # an alarm raised by growth holds while raw is above this
+        if self._fixed_baseline is None or not hasattr(self, "_shape"):   # a reference's shape is kept
+            self._shape = SpectralShape(self.rate, self.params["fmin_hz"], self.params["fmax_hz"])
+        self.shape = math.nan               # the last window's shape index (SpectralShape)
         self._eye_base_d: np.ndarray | None = None   # the cut's first counted window's d, for the eye
         self._eye_base: tuple[np.ndarray, np.ndarray, float] | None = None   # its eye, made once
         self._reset_extra()
@@ -326,6 +330,7 @@ class RevolutionDetector(AlarmRules):
         settling = self._next_end < self._settle_until
         if self._collect is not None:
             self._collect.append(raw)
+            self._shape.learn(self._shape.bands(self._d[start:end]))
             return Window(t_s, float("nan"), self.threshold, False, None, True, judged=False)
         self._windows += 1
         if self.params["load_scaled"] and self._load is not None:
@@ -336,9 +341,12 @@ class RevolutionDetector(AlarmRules):
             raw /= (self._load / self._load_ref) ** self.RAW_POWER
         if self._eye_base_d is None and not settling and not self.OWN_EYE:
             self._eye_base_d = self._d[max(start - EYE_MEMORY, 0):end].copy()
+        bands = self._shape.bands(self._d[start:end])
+        self.shape = self._shape.index(bands)
         if self.baseline is None:
             if not settling:
                 self._learn.append(raw)
+                self._shape.learn(bands)
             if len(self._learn) >= self.params["learn_windows"]:
                 self.baseline = max(float(np.quantile(self._learn, self.params["learn_quantile"])), 1e-300)
                 self._on_learned()
@@ -360,7 +368,9 @@ class RevolutionDetector(AlarmRules):
                        or self._impulse[0] < self._next_end <= self._impulse[1])
             other = settling or self._waiting_for_load(start, end, rpm)
             settling = other or stepped
-            self._on = self._on + 1 if (index > self.threshold and not settling) else 0
+            # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape changed
+            shaped = not p["shape_min"] or self.shape >= p["shape_min"]
+            self._on = self._on + 1 if (index > self.threshold and not settling and shaped) else 0
             if self._rising_from_step(start, end, index, stepped, other) and not stepped:
                 self._on = max(self._on, p["on_windows"])
             grew = self._growth(start, end, rpm, raw, settling)
@@ -368,7 +378,7 @@ class RevolutionDetector(AlarmRules):
                 raised_by = "threshold"
             elif grew:
                 raised_by = "growth"
-            elif self._cusum_says(index, settling):
+            elif self._cusum_says(index, settling) and shaped:
                 raised_by = "sustained rise"
             if raised_by:
                 self.alarm, self._off = True, 0
@@ -393,9 +403,10 @@ class RevolutionDetector(AlarmRules):
         elif (self._calm is not None and not self._chattered and not settling
               and 0 < index < p["cusum_ratio"]):
             self._follow(raw)
+            self._shape.learn(bands)
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by,
-                      judged=self.alarm or not settling)
+                      judged=self.alarm or not settling, shape=self.shape)
 
     def _on_learned(self) -> None:
         pass

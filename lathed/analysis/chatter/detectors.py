@@ -61,6 +61,10 @@ class SyncCusumDetector(SyncResidualDetector):
         "growth_ratio": (2.5, 0.0, 100.0, "0: off; else on_windows windows in a row whose raw measure is this "
                          "many times the lowest of the growth_revs revolutions before raise the alarm: "
                          "chatter growing, whatever the baseline"),
+        "shape_min": (2.0, 0.0, 1000.0, "0: off; else the threshold and the sustained rise raise the alarm only on "
+                      "windows whose spectral shape index is at least this (power new in shape as large as "
+                      "the baseline's own, scaled): a change of level alone, the cut's wander, a deeper "
+                      "pass or the sensor's gain, is not chatter"),
         "min_hop_s": (0.005, 0.001, 1.0, "hop never shorter than this (above 3000 r/min the hop stays half a "
                       "revolution down to 6000: growth is seen as soon as at lower speeds)"),
     }

@@ -17,6 +17,7 @@ class Window:
                                         # "sustained rise" (the CUSUM: index held above cusum_ratio)
     judged: bool = True                 # False: the index was not judged (learning, a speed change,
                                         # the tool entering or leaving the work, waiting for the load)
+    shape: float = math.nan             # the spectral shape index (chatter.shape): 1 for a change of level
 
 
 # name -> (default, min, max, meaning)
@@ -53,6 +54,10 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
                      "quieter than its first (the ring of the tool's release) does not count"),
     "growth_revs": (4.0, 1.0, 64.0, "revolutions the growth test looks back over (counted once a cut, a "
                     "speed change or a level step has that many behind it)"),
+    "shape_min": (0.0, 0.0, 1000.0, "0: off; else the threshold and the sustained rise raise the alarm only "
+                  "on a window whose spectral shape index (power new in shape over the baseline's, scaled) "
+                  "is at least this: a change of level alone (a deeper pass, the cut's wander, a gain) "
+                  "is not chatter"),
     "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
                    "1/jump_ratio x, the level one revolution earlier does not count towards "
                    "the alarm (the tool entering or leaving the work, not chatter)"),
