@@ -37,18 +37,10 @@ chip-load modulation every revolution.  A flat (``flat_fraction``) takes the
 tool out of the cut over that fraction of every revolution; re-entry is a
 force step, so the structure rings once per revolution.
 
-Speed: while the tool stays in (or out of) the cut the system is linear, so
-the simulator diagonalises the zero-order-hold discretisation of each regime
-and evaluates every mode's complex first-order recursion in closed form
-(powers and a cumulative sum, ``_Regime.response``) over a chunk shorter
-than one revolution (its delayed input is then already
-known).  It only falls back to shorter chunks where the tool leaves or
-re-enters the cut.  The flank's nonlinear force enters through its
-describing function (equivalent damping and mean force) at the vibration
-amplitude of the samples just simulated, held constant over each chunk, so
-every chunk stays linear; the amplitude grows or settles over many
-revolutions, far slower than a chunk.  No asyncio here: the simulated
-lathe, the benchmark and the tests share it.
+Speed: each regime (in or out of the cut) is linear, so its zero-order-hold
+discretisation is diagonalised and evaluated in closed form over chunks shorter
+than a revolution (``_Regime.response``); the flank's force enters through its
+describing function at the recent amplitude.  No asyncio here.  docs/simulator.md.
 """
 from __future__ import annotations
 
