@@ -63,11 +63,12 @@ from lathed.analysis.chatter.shape import SpectralShape
 from lathed.analysis.chatter.spectrum import spectral_peak_hz
 from lathed.analysis.chatter.windows import BASE_PARAMS, Window
 from lathed.analysis.quantile import SlidingQuantile
+
+FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
 MIN_WINDOW_SAMPLES = 16
 _HIST = 1 << 19   # most samples of history kept (10 s at 51.2 kS/s): sets the lowest speed followed
 _HIST_START = 1 << 15   # history a detector starts with (0.6 s at 51.2 kS/s: 2 revolutions at 200 r/min);
                         # it grows to what a slower speed needs, up to _HIST (most cuts never need it)
-FOLLOW_WINDOWS = 256   # windows a follow_quantile baseline looks back over (128 revolutions at the default hop)
 EYE_REVS = 4      # revolutions of a display eye (eye_views)
 EYE_MEMORY = 64   # its GL filter's memory, samples
 EYE_MAX_SAMPLES = 16384   # at most this many samples filtered per view (a slow spindle's 4 revolutions)
@@ -139,6 +140,12 @@ class RevolutionDetector(AlarmRules):
         self._impulse = (0, 0)      # windows ending in this span do not count (impulse())
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
         self._learn: list[float] = []
+        self._sh_until = 0          # a shoulder's span ends at this sample (0: none; _shoulder)
+        self._sh_raws: list = []    # (raw, bands) of its windows
+        self._sh_armed = False      # a window not rising has been seen: the next rise may be a step
+        self._sh_grown = 0
+        self._prev_raw = 0.0
+        self._recent_from = -1      # the growth look-back counts from this window (a shoulder's)
         self.baseline = self._fixed_baseline
         self._learned_baseline = self.baseline
         q = self.params["follow_quantile"]
@@ -367,13 +374,18 @@ class RevolutionDetector(AlarmRules):
             stepped = (self._level_step(start, end, rpm)
                        or self._impulse[0] < self._next_end <= self._impulse[1])
             other = settling or self._waiting_for_load(start, end, rpm)
-            settling = other or stepped
-            # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape changed
-            shaped = not p["shape_min"] or self.shape >= p["shape_min"]
+            # a deeper pass: its span is not judged but for growth beyond a stable echo's
+            shoulder, grew_out = self._shoulder(start, end, rpm, raw, bands, other or stepped)
+            index = raw / self.baseline         # the deeper pass may have its own baseline now
+            settling = other or stepped or shoulder
+            # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape
+            # changed (but against a reference, which vouches for the level)
+            shaped = not p["shape_min"] or self._fixed_baseline is not None or self.shape >= p["shape_min"]
             self._on = self._on + 1 if (index > self.threshold and not settling and shaped) else 0
-            if self._rising_from_step(start, end, index, stepped, other) and not stepped:
+            if self._rising_from_step(start, end, index, stepped, other or shoulder) and not (stepped or shoulder):
                 self._on = max(self._on, p["on_windows"])
-            grew = self._growth(start, end, rpm, raw, settling)
+            grew = self._growth(start, end, rpm, raw, settling and not shoulder)
+            grew = (grew and not shoulder) or grew_out
             if self._on >= p["on_windows"]:
                 raised_by = "threshold"
             elif grew:

@@ -65,6 +65,9 @@ class SyncCusumDetector(SyncResidualDetector):
                       "windows whose spectral shape index is at least this (power new in shape as large as "
                       "the baseline's own, scaled): a change of level alone, the cut's wander, a deeper "
                       "pass or the sensor's gain, is not chatter"),
+        "rise_ratio": (1.5, 0.0, 100.0, "0: off; else a window whose level is this many times the level a "
+                       "revolution earlier, from a cut at its steady level, is a deeper pass (a shoulder): "
+                       "judged for growth out of it, then from its own baseline (docs/chatter.md)"),
         "min_hop_s": (0.005, 0.001, 1.0, "hop never shorter than this (above 3000 r/min the hop stays half a "
                       "revolution down to 6000: growth is seen as soon as at lower speeds)"),
     }

@@ -58,12 +58,73 @@ class AlarmRules:
             self._recent.popleft()
         # counted once the look-back spans growth_revs (to within a hop) of counted windows
         full = bool(self._recent) and self._recent[0][0] <= self._next_end - span + p["hop_revs"] * spr
+        # ... or reaches back to a shoulder's step (_shoulder): a look-back from a steady level
+        full = full or (bool(self._recent) and self._recent[0][0] == self._recent_from)
         low = min(v for _, v in self._recent) if full else None
         self._low = low or 0.0
         self._recent.append((self._next_end, raw))
         grows = low is not None and raw > r * low and self._tail(start, end) >= GROWTH_TAIL
         self._grown = self._grown + 1 if grows else 0
         return self._grown >= p["on_windows"]
+
+    def _shoulder(self, start: int, end: int, rpm: float, raw: float, bands, other: bool) -> tuple[bool, bool]:
+        """A deeper pass (a shoulder, a step in the stock): (this window is in its span, chatter
+        grew out of it).  rise_ratio: a window whose level is that many times the level a
+        revolution earlier, from a cut at its own steady level, is the chip thickening.  Its
+        first revolutions look the same whether the deeper pass is stable or not: the level
+        steps with the chip, and a stable cut near its limit then rises further, its regenerative
+        echo dying over several revolutions (2-5 x the level before on the simulated shoulders
+        to 0.87 x the limit).  So the span whose revolution difference still sees the step
+        (window_revs + 1 revolutions) is not judged, but for growth beyond rise_growth x its
+        lowest window: a stable echo is smaller every revolution than the one before, so two
+        revolutions on it stays under 3 x the first, while chatter's grows.  At the span's end a
+        level still rising is judged as it is, against the baseline before the step; a level that
+        has settled is the deeper pass's own: the baseline (and the spectrum's shape) is learned
+        again there, and chatter must rise from it.  Not within the cut's first revolutions
+        (chatter from the entry grows in steps too) nor from out of the cut (a gap's re-entry).
+        Off with a reference baseline, which vouches for the level (docs/chatter.md)."""
+        p = self.params
+        r = p["rise_ratio"]
+        if not r or self._fixed_baseline is not None:
+            return False, False
+        _, now, before = self._level_pair(start, end, rpm)
+        up = now > r * before
+        prev, self._prev_raw = self._prev_raw, raw
+        if self._sh_until:
+            if self._next_end < self._sh_until:
+                self._sh_raws.append((raw, bands))
+                low = min(v for v, _ in self._sh_raws)
+                # growing, not a knock's or the release's ring decaying (its level falls, and
+                # within the window: the growth test's tail)
+                grows = raw > p["rise_growth"] * low and now >= before and self._tail(start, end) >= GROWTH_TAIL
+                self._sh_grown = self._sh_grown + 1 if grows else 0
+                return True, self._sh_grown >= p["on_windows"]
+            self._sh_until = 0
+            self._sh_armed = False
+            if not up:
+                last = self._sh_raws[-2:]
+                level = float(np.median([v for v, _ in last]))
+                self.baseline = max(self.baseline, level)
+                self._learned_baseline = max(self._learned_baseline or 0.0, level)
+                self._cusum = 0.0
+                self._shape.reset()
+                for _, b in last:
+                    self._shape.learn(b)
+            return False, False
+        if not up:
+            self._sh_armed = True
+            return False, False
+        if (other or not self._sh_armed or self._windows <= 2 * p["learn_windows"]
+                or self._next_end < self._step_until
+                or prev < self._learned_baseline / p["jump_ratio"] ** 2):
+            return False, False
+        self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
+        self._sh_raws = [(raw, bands)]
+        self._sh_grown = 0
+        self._recent.clear()            # growth is looked for from the step on, not across it
+        self._grown = 0
+        self._recent_from = self._next_end
+        return True, False
 
     def _tail(self, start: int, end: int) -> float:
         """The window's second half's level over its first half's (median |x|, a few hundred

@@ -58,6 +58,14 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
                   "on a window whose spectral shape index (power new in shape over the baseline's, scaled) "
                   "is at least this: a change of level alone (a deeper pass, the cut's wander, a gain) "
                   "is not chatter"),
+    "rise_ratio": (0.0, 0.0, 100.0, "0: off; else a window whose level is this many times the level a revolution "
+                   "earlier, from a cut at its steady level, is a deeper pass (a shoulder): the span whose "
+                   "revolution difference sees the step is judged only for growth beyond rise_growth x its "
+                   "lowest window, and a level that settles there is the deeper pass's own baseline (off "
+                   "with a reference baseline)"),
+    "rise_growth": (3.0, 1.5, 100.0, "within a deeper pass's span (rise_ratio), growth over this many times its "
+                    "lowest window raises the alarm: a stable cut's regenerative echo is smaller every "
+                    "revolution, so two revolutions on it stays under 3 x the first"),
     "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
                    "1/jump_ratio x, the level one revolution earlier does not count towards "
                    "the alarm (the tool entering or leaving the work, not chatter)"),
