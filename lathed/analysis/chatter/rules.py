@@ -91,17 +91,26 @@ class AlarmRules:
         up = now > r * before
         prev, self._prev_raw = self._prev_raw, raw
         if self._sh_until:
+            # growing beyond the echo's bound, not a knock's or the release's ring decaying (its
+            # level falls, and within the window: the growth test's tail); the span's last window
+            # too, before its level is taken as the deeper pass's
+            low = min(v for v, _ in self._sh_raws)
+            grows = raw > p["rise_growth"] * low and now >= before and self._tail(start, end) >= GROWTH_TAIL
+            self._sh_grown = self._sh_grown + 1 if grows else 0
+            if self._sh_grown >= p["on_windows"]:
+                self._sh_until = 0
+                return True, True
             if self._next_end < self._sh_until:
                 self._sh_raws.append((raw, bands))
-                low = min(v for v, _ in self._sh_raws)
-                # growing, not a knock's or the release's ring decaying (its level falls, and
-                # within the window: the growth test's tail)
-                grows = raw > p["rise_growth"] * low and now >= before and self._tail(start, end) >= GROWTH_TAIL
-                self._sh_grown = self._sh_grown + 1 if grows else 0
-                return True, self._sh_grown >= p["on_windows"]
+                return True, False
             self._sh_until = 0
-            self._sh_armed = False
-            if not up:
+            self._grown = 0                 # growth within the span was judged against its bound
+            if not up and now >= math.sqrt(r) * self._sh_from:
+                # the level held up where the step took it: a deeper pass (one fallen back is a
+                # swell, as a flat's impacts beat with chatter; one still rising is growth: both
+                # judged as they are); growth from the deeper pass's own level on
+                self._recent.clear()
+                self._recent_from = self._next_end
                 last = self._sh_raws[-2:]
                 level = float(np.median([v for v, _ in last]))
                 self.baseline = max(self.baseline, level)
@@ -112,14 +121,18 @@ class AlarmRules:
                     self._shape.learn(b)
             return False, False
         if not up:
-            self._sh_armed = True
+            # a step from a cut at its own level: growth_revs revolutions without a rise (chatter
+            # growing, or beating with a flat's impacts, rises again within a few)
+            self._sh_steady += 1
             return False, False
-        if (other or not self._sh_armed or self._windows <= 2 * p["learn_windows"]
+        steady, self._sh_steady = self._sh_steady, 0
+        if (other or steady < 2 * p["growth_revs"] / p["hop_revs"] or self._windows <= 2 * p["learn_windows"]
                 or self._next_end < self._step_until
                 or prev < self._learned_baseline / p["jump_ratio"] ** 2):
             return False, False
         self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
         self._sh_raws = [(raw, bands)]
+        self._sh_from = before              # the level before the step
         self._sh_grown = 0
         self._recent.clear()            # growth is looked for from the step on, not across it
         self._grown = 0
@@ -164,6 +177,16 @@ class AlarmRules:
         di, now, before = self._level_pair(start, end, rpm)
         r = self.params["jump_ratio"]
         stepped = not before / r <= now <= before * r
+        # the vibration falling as the revolution difference rises is the tool leaving an
+        # interrupted cut (its impacts repeat every revolution and cancel, until the air a
+        # revolution later meets them), not chatter, which adds to the vibration
+        # the revolution difference outgrowing the vibration itself by jump_ratio within a
+        # revolution: the revolution before holds what the cut no longer makes (the tool leaving
+        # an interrupted cut, whose impacts cancelled while they repeated; its ring keeps the
+        # level up), not chatter, which grows into the vibration as into its revolution difference
+        raw_before = next((v for t, v in self._raw_hist if abs(t - (self._next_end - di)) <= 2), None)
+        if raw_before and before > 0 and self.params.get("rise_ratio"):
+            stepped = stepped or (self._raw_now / raw_before) / (now / before) >= r
         ringing = self._next_end < self._step_until and now < before
         if stepped or ringing:
             self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
