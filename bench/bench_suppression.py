@@ -5,7 +5,7 @@ the stability limit at all three speeds, with suppression off and with each
 strategy on.  Every suppressed part runs the real closed loop in simulation:
 
     regenerative simulator (lathed.analysis.regen) -> accelerometer blocks
-    -> chatter detector (lathed.analysis.detectors, DEFAULT_DETECTOR)
+    -> chatter detector (lathed.analysis.chatter, DEFAULT_DETECTOR)
     -> SuppressionPolicy + strategy (lathed.analysis.speed_selection)
     -> commanded speed -> spindle ramping at its acceleration limit
     -> simulator at the new speed
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lathed.analysis.detectors import DEFAULT_DETECTOR, make_detector
+from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, make_detector
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.regen import VISIBLE_WAVINESS_M, RegenerativeTurning, surface_waviness
 from lathed.analysis.speed_selection import (Cut, FrequencySelection, LobeSelection, RatedSpeed,

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench_chatter import corpus, run_detector  # noqa: E402
 
-from lathed.analysis.detectors import DEFAULT_DETECTOR, make_detector  # noqa: E402
+from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, make_detector  # noqa: E402
 from lathed.analysis.regen import simulate_cut  # noqa: E402
 
 MARGINS = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from lathed.analysis.detectors import make_detector  # noqa: E402
+from lathed.analysis.chatter.registry import make_detector  # noqa: E402
 from lathed.analysis.lobes import StabilityLobes  # noqa: E402
 from lathed.analysis.regen import Segment, simulate_cut  # noqa: E402
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES  # noqa: E402

@@ -42,7 +42,7 @@ def lathed_analyzer_types() -> dict[str, type[Analyzer]]:
 def lathed_chatter_detectors() -> dict[str, Any]:
     """Extra chatter detectors by name: each value is a factory
     ``f(rate_hz: float, **params) -> Detector`` with the interface of
-    :mod:`lathed.analysis.detectors`. Built-in detectors need no hook."""
+    :mod:`lathed.analysis.chatter`. Built-in detectors need no hook."""
 
 
 @hookspec

@@ -1,4 +1,4 @@
-"""Chatter detection on a live accelerometer stream (numeric core: lathed.analysis.detectors).
+"""Chatter detection on a live accelerometer stream (numeric core: lathed.analysis.chatter).
 
     [analyzer.chatter]
     plugin = "chatter"
@@ -10,7 +10,7 @@
     detector = "sync_cusum"    # any built-in or plugin detector
     tool = "T0101"             # recorded with every chatter event
     material = "C45"
-    [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.detectors)
+    [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.chatter, docs/chatter.md)
     threshold = 2.0
     jump_ratio = 3.0           # a level step this large within a revolution (the tool
                                # entering or leaving the work) does not count as chatter
@@ -18,7 +18,7 @@
 The detector runs only while the tool is in the cut (air cutting would
 otherwise make the entry look like chatter); it learns its baseline at the
 start of each cut.  ``cut_from`` names the sources of the cut state
-(lathed.analysis.cut_state), any of:
+(lathed.analysis.cut.sources), any of:
 
   "load"       the machine's spindle_load_pct register above its no-chip load
                by load_margin_pct (a standard CNC register; seen one poll late)
@@ -49,7 +49,7 @@ The cut state is published as ``cutting`` (1/0) and shown in the status.  For
 each analysis window it publishes, under its own name, ``chatter_index``,
 ``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
 (1/0), and a window late ``chatter_index_judged``, the index of the windows
-the detector judged (lathed.analysis.detectors.JudgedIndex: a part's record
+the detector judged (lathed.analysis.chatter.windows.JudgedIndex: a part's record
 keeps their highest); it records ``chatter_alarm`` and ``chatter_cleared``
 events with the critical values.
 
@@ -75,8 +75,9 @@ import math
 import time
 
 from lathed import hookimpl
-from lathed.analysis.cut_state import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
-from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS, JudgedIndex, make_detector
+from lathed.analysis.cut.sources import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS, make_detector
+from lathed.analysis.chatter.windows import JudgedIndex
 from lathed.analyzer import Analyzer
 from lathed.bus import Block, Sample
 from lathed.config import ConfigError, Section

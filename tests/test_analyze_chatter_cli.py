@@ -82,10 +82,11 @@ def test_stable_24bit_and_csv(files, capsys):
         code, out, _ = _cli([str(d / f), "--rpm", "2000", "--json", "--detector", "chaos_sync"], capsys)
         obj = json.loads(out)
         assert code == 0 and obj["first_alarm_s"] is None and obj["chatter_frequency_hz"] is None
-        # without a reference no onset is not "stable": a recording that chatters from its
-        # first sample shows none either (issue 12)
-        assert obj["verdict"] == "unknown" and obj["baseline"] == "recording start"
-        assert any("chatters from its first sample looks the same" in n for n in obj["notes"])
+        # without a reference, no onset alone is not "stable" (a recording that chatters from its
+        # first sample shows none either, issue 12): the whole recording's evidence says so
+        # (broadband, Gaussian, its level held: lathed.analysis.chatter.verdict)
+        assert obj["verdict"] == "stable" and obj["baseline"] == "recording start"
+        assert obj["evidence"]["verdict"] == "stable" and "level held" in obj["reason"]
     ref = d / "stable.csv"
     code, out, _ = _cli([str(d / "stable_24.wav"), "--rpm", "2000", "--json", "--reference", str(ref)], capsys)
     obj = json.loads(out)
@@ -238,7 +239,10 @@ def test_param_reaches_the_detector(files, capsys):
     # a threshold no window reaches, no CUSUM and no growth test: the same recording shows no onset
     code, out, _ = _cli(argv + ["--param", "threshold=1000", "--param", "cusum_ratio=0",
                                 "--param", "growth_ratio=0"], capsys)
-    assert code == 0 and json.loads(out)["verdict"] == "unknown"
+    obj = json.loads(out)
+    assert code == 0 and obj["first_alarm_s"] is None and obj["alarm_spans_s"] == []
+    # the recording chatters throughout: its evidence says so without an onset
+    assert obj["verdict"] == "chatter" and obj["evidence"]["verdict"] == "chatter"
 
 
 @pytest.mark.parametrize("param, msg", [
@@ -262,7 +266,7 @@ def test_param_not_key_value_is_refused_by_the_parser(capsys):
 def test_alarm_spans_say_when_each_alarm_was_raised_and_cleared(files, capsys):
     """An alarm that clears and comes back is two spans, not one from the first alarm on
     (the plot shaded everything after the first alarm)."""
-    from lathed.analysis.detectors import Window
+    from lathed.analysis.chatter.windows import Window
     wins = [Window(t, 1.0, 2.0, a) for t, a in [(1, False), (2, True), (3, True), (4, False), (5, True)]]
     assert analyze_chatter._alarm_spans(wins) == [(2, 4), (5, None)]
     assert analyze_chatter._alarm_spans(wins[:1]) == []

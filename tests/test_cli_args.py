@@ -53,7 +53,7 @@ def test_lathectl_starts_without_numpy_or_scipy():
 
 
 def test_names_kept_beside_the_parser_match_the_registries():
-    from lathed.analysis.detectors import DEFAULT_DETECTOR, DETECTORS
+    from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS
     from lathed.cli import analyze_chatter, sim
     from lathed.sim.thermal import EFFECTS
     assert analyze_chatter.BUILTIN_DETECTORS == tuple(sorted(DETECTORS))

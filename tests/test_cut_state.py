@@ -6,7 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from lathed.analysis.cut_state import FeedStop, LoadCutDetector, SlidingQuantile, VibrationCutDetector
+from lathed.analysis.cut.sources import FeedStop, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.quantile import SlidingQuantile
 from lathed.analysis.regen import Segment as S, simulate_cut
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES, SimLathe
 from lathed.sim.program import Cut

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import structlog
 
-from lathed.analysis.detectors import make_detector
+from lathed.analysis.chatter.registry import make_detector
 from lathed.analysis.regen import Segment, simulate_cut
 from lathed.analyzer import AnalyzerContext
 from lathed.bus import Block, Bus, Sample
@@ -51,7 +51,8 @@ def _alarms(rec, **params):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_shoulder_is_read_at_its_own_load(seed):
     rec = _shoulder(seed)
-    assert _alarms(rec)                              # the known defect, without the load
+    # the defect, without the load, the shape gate or the shoulder rule (test_detectors.py)
+    assert _alarms(rec, shape_min=0, rise_ratio=0)
     assert not _alarms(rec, load_scaled=1)
 
 
@@ -73,9 +74,11 @@ def test_without_load_readings_load_scaled_changes_nothing():
 
 
 def _analyzer(load_scaled):
+    # the shoulder rule off: the load alone must carry the deeper pass (rise_ratio is the
+    # detector's own answer to it, tested in test_detectors.py)
     an = ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", {
         "input": "accel", "machine": "lathe", "cut_from": ["load"],
-        "params": {"load_scaled": load_scaled}}))
+        "params": {"load_scaled": load_scaled, "rise_ratio": 0}}))
     records = []
     an.ctx = AnalyzerContext(Bus(), structlog.get_logger("test"), lambda kind, payload=None: records.append(kind),
                              None, None, None, lambda name: None, ".")

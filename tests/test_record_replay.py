@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lathed.analysis.detectors import make_detector
+from lathed.analysis.chatter.registry import make_detector
 from lathed.analysis.recording import read_signal
 from lathed.bus import Block, Bus, Sample
 from lathed.cli.record import Capture, sidecar

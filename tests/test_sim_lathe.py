@@ -96,7 +96,7 @@ def test_a_threading_pass_sets_the_controls_threading_signal_for_its_cycle():
                       ("2000,0.3,thread=1,thread=1.5", "thread= given twice"),
                       ("2000,0.3,thread=fine", "thread= takes the pitch in mm"),
                       ("2000,0.3,thread=3", "thread= takes a pitch of 0..2 mm"),
-                      ("2000,0.3,dwell=1,thread=1", "a threading pass takes no css= \\(G96\\) or dwell=")):
+                      ("2000,0.3,dwell=1,thread=1", "a threading pass takes no css= \\(G96\\), dwell=")):
         with pytest.raises(ValueError, match=why):
             parse_cut(text)
     lathe = SimLathe(program=tuple(parse_cut(c) for c in ("2000,1.0,0.3,10", "2000,0.3,1.5,10,thread=1.5")),
@@ -173,3 +173,33 @@ def test_a_dwell_stops_the_feed_with_the_tool_in_the_work():
     first = [s for s in steps if rec.dwell_start_s + 0.01 < s[0] <= rec.dwell_start_s + rev + 0.01]
     assert first and all(IDLE_LOAD_PCT + 1 < s[2] < cutting[-1][2] - 1 for s in first), first
     assert max(s[3] for s in steps if rec.dwell_start_s < s[0] <= rec.dwell_end_s) < max(s[3] for s in cutting)
+
+
+def test_part_program_features_along_a_pass():
+    """step= (a shoulder), flat= (a flat or a keyway from a place along the pass) and groove= (no
+    material over a stretch): the chip's depth and the interrupted share of a revolution follow
+    the tool along the pass, the depth register shows the chip's, and a bad one is one line."""
+    import pytest
+
+    from lathed.sim.program import parse_cut
+    cut = parse_cut("2000,1.0,0.3,30,step=2.0@10,flat=15@20,groove=5+2")
+    assert (cut.step_depth_mm, cut.step_at_mm, cut.flat_deg, cut.flat_at_mm) == (2.0, 10.0, 15.0, 20.0)
+    assert [cut.depth_at(y) for y in (1, 5.5, 8, 12)] == [1.0, 0.0, 1.0, 2.0]
+    assert [cut.flat_at(y) for y in (1, 19, 21)] == [0.0, 0.0, 15.0]
+    assert parse_cut("2000,1,flat=25").flat_at(0.0) == 25.0
+    for text, why in (("2000,1,step=2", "step= takes DEPTH_MM@MM"),
+                      ("2000,1,step=two@3", "step= takes DEPTH_MM@MM as numbers"),
+                      ("2000,1,0.3,40,step=2@50", "step= at 50 mm is outside the pass's 0..40 mm"),
+                      ("2000,1,step=20@5", "step= takes a depth of 0..10 mm"),
+                      ("2000,1,flat=200", "flat= takes 0..180 degrees"),
+                      ("2000,1,groove=10", "groove= takes MM\\+WIDTH_MM"),
+                      ("3500,1.5,0.1,4.5,css=190,flat=10", "a facing pass \\(css=\\) takes no step=")):
+        with pytest.raises(ValueError, match=why):
+            parse_cut(text)
+    lathe = SimLathe(program=(cut,), load_s=0.2, retract_s=0.2)
+    seen = {}
+    while lathe.part_index == 0:
+        lathe.step(1024)
+        if lathe.phase == "cut":
+            seen[round(lathe.y_mm)] = (lathe.registers()["depth_of_cut_mm"], lathe.cutter.flat_fraction * 360)
+    assert seen[3] == (1.0, 0.0) and seen[6] == (0.0, 0.0) and seen[15] == (2.0, 0.0) and seen[25] == (2.0, 15.0)

@@ -37,18 +37,10 @@ chip-load modulation every revolution.  A flat (``flat_fraction``) takes the
 tool out of the cut over that fraction of every revolution; re-entry is a
 force step, so the structure rings once per revolution.
 
-Speed: while the tool stays in (or out of) the cut the system is linear, so
-the simulator diagonalises the zero-order-hold discretisation of each regime
-and evaluates every mode's complex first-order recursion in closed form
-(powers and a cumulative sum, ``_Regime.response``) over a chunk shorter
-than one revolution (its delayed input is then already
-known).  It only falls back to shorter chunks where the tool leaves or
-re-enters the cut.  The flank's nonlinear force enters through its
-describing function (equivalent damping and mean force) at the vibration
-amplitude of the samples just simulated, held constant over each chunk, so
-every chunk stays linear; the amplitude grows or settles over many
-revolutions, far slower than a chunk.  No asyncio here: the simulated
-lathe, the benchmark and the tests share it.
+Speed: each regime (in or out of the cut) is linear, so its zero-order-hold
+discretisation is diagonalised and evaluated in closed form over chunks shorter
+than a revolution (``_Regime.response``); the flank's force enters through its
+describing function at the recent amplitude.  No asyncio here.  docs/simulator.md.
 """
 from __future__ import annotations
 
@@ -450,11 +442,18 @@ class Segment:
     """A stretch of a simulated cut: speed (r/min), depth (mm), duration (s).
     The speed and the depth ramp linearly from the previous segment's over
     ``ramp_s`` (a speed change; a taper or growing stock: a depth that rises
-    through the stability limit without the kick of a step)."""
+    through the stability limit without the kick of a step).  ``flat_deg``: the
+    part has no material over that angle of every revolution along this stretch
+    (a flat or a keyway: an interrupted cut, no chip there).  ``modes``: the
+    structure cutting (another tool after a tool change; None: the cut's own);
+    a change of tool is a fresh surface for the new tool, the spindle's angle
+    goes on."""
     duration_s: float
     rpm: float
     depth_mm: float
     ramp_s: float = 0.0
+    flat_deg: float = 0.0
+    modes: tuple | None = None
 
 
 @dataclass
@@ -526,12 +525,23 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     the limit itself, so ``unstable_at_s`` is then early).
     """
     segs = [s if isinstance(s, Segment) else Segment(*s) for s in segments]
-    sim = RegenerativeTurning(modes, kf_n_per_m2, rate_hz, noise_rms, runout_um,
-                              flat_fraction, seed, process_noise, flank, diameter_mm, wander)
-    lobes = StabilityLobes(modes, kf_n_per_m2)
-    acc, ys, inc, th, rpms, deps, effs = [], [], [], [], [], [], []
+    sims: dict[tuple, RegenerativeTurning] = {}
+    sim = None
+    acc, ys, inc, th, rpms, deps, effs, lims = [], [], [], [], [], [], [], []
     prev_rpm, prev_depth = segs[0].rpm, segs[0].depth_mm
     for seg in segs:
+        tool = tuple(modes if seg.modes is None else seg.modes)
+        if tool not in sims:
+            # each tool its own structure and noise stream; the first keeps the cut's seed
+            sims[tool] = RegenerativeTurning(tool, kf_n_per_m2, rate_hz, noise_rms, runout_um, flat_fraction,
+                                             seed + 7919 * len(sims), process_noise, flank, diameter_mm,
+                                             wander)
+        if sims[tool] is not sim:
+            if sim is not None:
+                sims[tool].reset()          # the tool change: at rest, fresh material
+                sims[tool].theta = sim.theta
+            sim = sims[tool]
+        sim.flat_fraction = seg.flat_deg / 360.0 if seg.flat_deg else flat_fraction
         n_seg = int(round(seg.duration_s * rate_hz))
         done = 0
         while done < n_seg:
@@ -547,7 +557,8 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
             acc.append(out.accel); ys.append(out.y_m); inc.append(out.in_cut)
             th.append(out.theta_rad)
             rpms.append(np.full(k, rpm)); deps.append(np.full(k, depth))
-            effs.append(np.full(k, depth * sim.g_scale))
+            effs.append(depth * sim.g_scale)
+            lims.append((tool, rpm))
             done += k
         prev_rpm, prev_depth = seg.rpm, seg.depth_mm
     signal = np.concatenate(acc)
@@ -557,12 +568,14 @@ def simulate_cut(segments, name: str = "cut", modes=DEFAULT_MODES, kf_n_per_m2: 
     rpm_arr = np.concatenate(rpms)
     dep = np.concatenate(deps)
 
-    # unstable where depth exceeds the limit at the (block) speed
-    uniq = np.unique(rpm_arr)
-    blim = dict(zip(uniq, lobes.b_lim_at(uniq)[0]))
-    lim = np.array([blim[r] for r in rpm_arr[::block]])
-    unstable = np.concatenate(effs)[::block] * 1e-3 > lim
-    unstable_at = float(np.flatnonzero(unstable)[0] * block / rate_hz) if unstable.any() else None
+    # unstable where the effective depth exceeds the limit at the block's speed (and tool)
+    b_lim = {}
+    for tool in sims:
+        speeds = np.unique([r for t, r in lims if t == tool])
+        b_lim.update({(tool, r): b for r, b in zip(speeds, StabilityLobes(tool, kf_n_per_m2).b_lim_at(speeds)[0])})
+    unstable = np.array(effs) * 1e-3 > np.array([b_lim[k] for k in lims])
+    starts = np.cumsum([0] + [len(a) for a in acc[:-1]])
+    unstable_at = float(starts[np.flatnonzero(unstable)[0]] / rate_hz) if unstable.any() else None
     visible_at = None
     if unstable_at is not None:
         i0 = int(unstable_at * rate_hz)

@@ -14,12 +14,15 @@ recordings extra). A WAV from ``lathectl record`` is replayed as the live analyz
 detector and parameters it used (--rpm, --detector, --param override them); the JSON adds
 cuts_s and live_alarm_spans_s (what the daemon raised while recording).
 
-``--json`` prints one object: verdict, first_alarm_s,
-chatter_frequency_hz, detector, windows [{t_s, index, alarm}], plus
+``--json`` prints one object: verdict, reason, first_alarm_s,
+chatter_frequency_hz, detector, evidence (the verdict without a reference:
+lathed.analysis.chatter.verdict), windows [{t_s, index, alarm}], plus
 clipped_samples, rate_hz, duration_s and notes. The verdict is "chatter" (an
-onset found), "stable" (none, against --reference) or "unknown" (none, and no
-reference: the baseline is the recording's start, and a recording that
-chatters from its first sample shows no onset either).
+onset found, or the whole recording's vibration is chatter's: one band near a
+mode dominating the floor, or self-excited), "stable" (no onset against
+--reference; without one, a broadband Gaussian vibration whose level held) or
+"unknown" (the evidence is ambiguous: the reason says why).  --mains-hz names
+the mains frequency whose multiples are not chatter (default both 50 and 60).
 Exit: 0 ok, 2 usage, 66 file missing/unreadable, 65 data invalid, 69 a reader
 not installed (the extra named), 73 plot cannot be written.
 """
@@ -60,12 +63,22 @@ def _param(text: str) -> tuple[str, float]:
         raise argparse.ArgumentTypeError(f"{text!r} is not KEY=NUMBER (e.g. threshold=2)") from None
 
 
+def _mains(text: str) -> tuple[float, ...]:
+    try:
+        hz = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        hz = ()
+    if not hz or not all(40.0 <= v <= 70.0 for v in hz):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a mains frequency (50, 60 or 50,60)")
+    return hz
+
+
 class _ListParams(argparse.Action):
     """--params [NAME]: print a built-in detector's options (default, range, meaning) and exit,
     as --help does: FILE and --rpm are not needed."""
 
     def __call__(self, parser, namespace, values, option_string=None):
-        from lathed.analysis.detectors import describe_params
+        from lathed.analysis.chatter.registry import describe_params
         try:
             spec = describe_params(values)
         except ValueError as e:
@@ -99,6 +112,9 @@ def register_analyze(sub) -> None:
                    help="a detector option, as in [analyzer.chatter.params] (repeat for more)")
     p.add_argument("--params", action=_ListParams, nargs="?", const=DEFAULT_DETECTOR, metavar="NAME",
                    help=f"list a built-in detector's options and exit (default {DEFAULT_DETECTOR})")
+    p.add_argument("--mains-hz", type=_mains, default=(50.0, 60.0), metavar="HZ",
+                   help="the mains frequency, whose multiples are hum, not chatter: 50, 60 or 50,60 "
+                        "(default 50,60)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", metavar="OUT.png", help="write chaos eye and index over time")
     p.set_defaults(func=run)
@@ -118,7 +134,8 @@ def _run_detector(det, x, rpm: float):
 def run(args, extra_detectors: dict | None = None) -> int:
     import numpy as np
 
-    from lathed.analysis.detectors import DETECTORS, make_detector
+    from lathed.analysis.chatter.registry import DETECTORS, make_detector
+    from lathed.analysis.chatter.verdict import judge
     from lathed.analysis.recording import RecordingError, read_sidecar, read_signal, takes_var
     from lathed.analysis.replay import live_spans, replay
     from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
@@ -197,12 +214,28 @@ def run(args, extra_detectors: dict | None = None) -> int:
 
     alarms = [w for w in wins if w.alarm]
     freqs = [w.chatter_frequency_hz for w in alarms if w.chatter_frequency_hz]
+    mains = getattr(args, "mains_hz", (50.0, 60.0))
+    if side is None:
+        evidence = judge(sig.data, sig.rate_hz, args.rpm, mains)
+    else:
+        # a recording of the daemon's: its longest cut judged, at the speed recorded mid-way
+        from lathed.analysis.replay import speed_at
+        c0, c1 = max(cut_spans, key=lambda c: c[1] - c[0])
+        rpm = args.rpm or speed_at(side.get("speed_keyphasor") or side.get("speed") or [], (c0 + c1) / 2)
+        evidence = judge(sig.data[int(c0 * sig.rate_hz):int(c1 * sig.rate_hz)], sig.rate_hz, rpm, mains)
+    # a stable cut's level moves by less than the detector's allowance for it (cusum_ratio, else
+    # its threshold)
+    verdict, reason = _verdict(alarms, ref is not None, evidence, wins,
+                               det.params.get("cusum_ratio") or det.threshold)
     out = {
-        "verdict": "chatter" if alarms else ("stable" if ref is not None else "unknown"),
+        "verdict": verdict,
+        "reason": reason,
         "first_alarm_s": round(alarms[0].t_s, 6) if alarms else None,
         # each alarm: raised, cleared (window ends; null: still on at the recording's end)
         "alarm_spans_s": [[round(a, 6), None if b is None else round(b, 6)] for a, b in _alarm_spans(wins)],
-        "chatter_frequency_hz": round(float(np.median(freqs)), 2) if freqs else None,
+        "chatter_frequency_hz": round(float(np.median(freqs)), 2) if freqs else (
+            evidence.as_dict()["frequency_hz"] if verdict == "chatter" else None),
+        "evidence": evidence.as_dict(),
         "detector": det.name,
         "windows": [{"t_s": round(w.t_s, 6), "index": None if not math.isfinite(w.index) else
                      round(float(w.index), 4), "alarm": w.alarm} for w in wins],
@@ -220,13 +253,6 @@ def run(args, extra_detectors: dict | None = None) -> int:
                    ("keyphasor" if side.get("speed_keyphasor") else f"{side.get('machine')} spindle_rpm"),
                    tool=side.get("tool"), material=side.get("material"), sensitivity=side.get("sensitivity"))
     caveat = []
-    if not alarms and ref is None:
-        # no growth from the start is also what a recording that chatters from its first
-        # sample at a steady level shows: never called stable without a stable reference
-        caveat = ["unknown: no chatter onset, but the baseline is the recording's start, and one that "
-                  "chatters from its first sample looks the same; give --reference (a stable cut at "
-                  "this speed and depth) to tell"]
-        out["notes"] = out["notes"] + caveat
     if sig.clipped:
         msg = (f"{sig.clipped} clipped samples (first at {sig.first_clip_s:.6g} s): the sensor or "
                f"converter saturated, amplitudes there are wrong ({args.file})")
@@ -242,6 +268,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
         speed = f"{args.rpm:g} r/min" if args.rpm is not None else f"speed from {out['speed_from']}"
         print(f"{args.file}: {out['verdict']}  ({det.name}, {len(wins)} windows, "
               f"{sig.duration_s:.3g} s at {sig.rate_hz:g} Hz, {speed})")
+        print(f"why: {reason}")
         if side is not None:
             live = out["live_alarm_spans_s"]
             print(f"{len(out['cuts_s'])} cut(s) replayed as the daemon ran them; live, while recording: "
@@ -256,6 +283,24 @@ def run(args, extra_detectors: dict | None = None) -> int:
         for n in sig.notes + caveat:
             print(f"note: {n}")
     return 0
+
+
+def _verdict(alarms, referenced: bool, evidence, wins, allowance: float) -> tuple[str, str]:
+    """The recording's verdict and why: an onset the detector found; else, against a reference,
+    stable; else the evidence of the whole recording (verdict.judge), a "stable" from it standing
+    only where the level held (a stable cut's does; a recording that chatters from its first
+    sample may be broad, yet its level wanders)."""
+    if alarms:
+        return "chatter", f"chatter grew within the recording: alarm at {alarms[0].t_s:.3f} s ({alarms[0].raised_by})"
+    if referenced:
+        return "stable", "no chatter onset against the stable reference"
+    if evidence.verdict != "stable":
+        return evidence.verdict, evidence.reason
+    top = max((w.index for w in wins if w.judged and math.isfinite(w.index)), default=math.nan)
+    if not top < allowance:
+        return "unknown", (f"{evidence.reason}; but its level rose to {top:.2f} x its start (a stable "
+                           f"cut's holds within {allowance:g} x): give --reference to tell")
+    return "stable", f"{evidence.reason}; no chatter onset, its level held within {top:.2f} x its start"
 
 
 def _alarm_spans(wins) -> list[tuple[float, float | None]]:
@@ -275,7 +320,7 @@ def _alarm_spans(wins) -> list[tuple[float, float | None]]:
 def _plot(args, sig, det, wins, side=None) -> int:
     import numpy as np
 
-    from lathed.analysis.detectors import make_detector
+    from lathed.analysis.chatter.registry import make_detector
     from lathed.analysis.replay import live_spans, replay
 
     import matplotlib

@@ -269,6 +269,15 @@ class SimLathe:
         return self.part.depth_mm if self.depth_override_mm is None else self.depth_override_mm
 
     @property
+    def cut_depth_mm(self) -> float:
+        """The chip's depth at the tool now: the pass's, a shoulder's beyond it, none over a groove
+        (an override replaces the pass's depth, not the groove)."""
+        depth = self.part.depth_at(self.y_mm)
+        if self.depth_override_mm is not None and depth > 0.0:
+            return self.depth_override_mm
+        return depth
+
+    @property
     def cutter(self) -> RegenerativeTurning:
         """The regenerative model of the tool cutting this part (one per turret position)."""
         tool = self.part.tool
@@ -383,13 +392,15 @@ class SimLathe:
         cutter = self.cutter
         self._block_theta = (cutter.theta, cutter.theta + 2 * math.pi * max(self.rpm, 60.0) / 60.0 * dt)
         self._advance_program(dt)
-        depth = self.depth_mm if self.phase == "cut" else 0.0
+        depth = self.cut_depth_mm if self.phase == "cut" else 0.0
+        # a flat or a keyway from its place along the pass: no material over part of every revolution
+        cutter.flat_fraction = self.part.flat_at(self.y_mm) / 360.0 if self.phase == "cut" else 0.0
         # the speed these samples are cut at: a vibration frame carries this one, not the
         # speed before the step (one ramp step stale) nor the commanded one
         self.block_rpm = self.rpm
         block = self._cut(n, max(self.rpm, 60.0), depth)
         self._load(depth, block)
-        self._watch(was, n, block)
+        self._watch(was, n, block, depth)
         self.thermal.step(dt * self.time_scale, self.rpm)
         return np.asarray(block.accel, dtype=np.float32)
 
@@ -426,17 +437,19 @@ class SimLathe:
         idle = IDLE_LOAD_PCT if self.rpm > 0 else 0.0
         self.load_pct = idle + 100.0 * torque / LATHE_PEAK_TORQUE_NM
 
-    def _watch(self, was: str, n: int, block: SimBlock) -> None:
+    def _watch(self, was: str, n: int, block: SimBlock, depth: float) -> None:
         i = self.n_samples                  # this block's first sample
         rec = self.record
         if self.phase == "cut" and was != "cut":
             rec.cut_start_s, rec.depth_mm = i / self.rate_hz, self.depth_mm
             rec.b_lim_mm = float(self.lobes.b_lim_at(max(self.rpm, 60.0))[0][0] * 1e3)
-            # regen's rule counts from the instant the cut is above the limit; its revolutions
-            # are the entry speed's, so a G96 pass (the speed drifting) is not timed
-            if self.depth_mm > rec.b_lim_mm and not self.part.css_m_min:
-                self.watch.start(i, max(self.rpm, 60.0))
-                self._tracked = rec
+        if (self.phase == "cut" and self._tracked is not rec and depth > (rec.b_lim_mm or math.inf)
+                and not self.part.css_m_min):
+            # regen's rule counts from the instant the cut is above the limit (its entry, or a
+            # shoulder's step into a deeper pass); its revolutions are that speed's, so a G96
+            # pass (the speed drifting) is not timed
+            self.watch.start(i, max(self.rpm, 60.0))
+            self._tracked = rec
         elif was == "cut" and self.phase != "cut":
             # the part record moved on only after retract, so this is still its part
             rec.cut_end_s = i / self.rate_hz
@@ -473,7 +486,7 @@ class SimLathe:
             "program_state": 1,
             "program_number": self.program_number,
             "offset_x_um": self.offset_x_um,
-            "depth_of_cut_mm": self.depth_mm if cutting else 0.0,
+            "depth_of_cut_mm": self.cut_depth_mm if cutting else 0.0,
             "feed_mm_rev": self.part.feed_mm_rev,
             # the control's cutting-feed signal (Fanuc CUT): off in a dwell (G04), the axes standing
             "cutting_feed": 1 if feeding and self.dwell_left_s <= 0.0 else 0,

@@ -1,0 +1,78 @@
+"""Has the spectrum of the revolution difference changed shape, or only its level?
+
+A stable cut's vibration is the structure's answer to the cutting force's random part: a
+deeper pass (a shoulder), a harder spot of the bar, the chip's own slow wander or a sensor's
+gain all scale that force, and so the whole spectrum, by one factor.  Regenerative chatter adds
+power in one narrow band near a structural mode.  So, band by band (bands ``REL_WIDTH`` of
+their frequency wide, at least two FFT bins), the window's power over the baseline's: the
+median of those ratios is the level change, and
+
+    shape = sum(P) / (median(P / B) * sum(B))
+
+is 1 for any change of level alone and grows with the power that is new in shape (docs/chatter.md).
+Gain- and level-invariant; costs one FFT of a window.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lathed.analysis.chatter.spectrum import fast_len
+
+REL_WIDTH = 0.06      # a band's width over its centre frequency (a damped mode's peak spans 1-2)
+MIN_BINS = 2          # ... and never under two FFT bins
+
+
+class SpectralShape:
+    """Band powers of windows, a baseline of them, and the shape index of a window against it."""
+
+    def __init__(self, rate_hz: float, fmin_hz: float, fmax_hz: float) -> None:
+        self.rate, self.fmin, self.fmax = float(rate_hz), max(float(fmin_hz), 1.0), float(fmax_hz)
+        self._edges: dict[int, tuple[int, np.ndarray]] = {}    # window length -> (fft length, bin edges)
+        self.reset()
+
+    def reset(self) -> None:
+        self._base: np.ndarray | None = None
+        self._base_n = 0
+        self._base_len: int | None = None
+
+    def bands(self, d: np.ndarray) -> np.ndarray:
+        n = len(d)
+        if n not in self._edges:
+            nf = fast_len(n)
+            df = self.rate / nf
+            hi = min(self.fmax, self.rate / 2)
+            edges, f = [int(math.ceil(self.fmin / df))], self.fmin
+            while f < hi:
+                f = max(f * (1 + REL_WIDTH), f + MIN_BINS * df)
+                edges.append(min(int(round(f / df)), int(hi / df)))
+            self._edges[n] = (nf, np.unique(np.asarray(edges)))
+        nf, edges = self._edges[n]
+        ps = np.abs(np.fft.rfft((d - d.mean()) * np.hanning(n), nf)) ** 2
+        return np.add.reduceat(ps, edges[:-1])[:len(edges) - 1]
+
+    def learn(self, bands: np.ndarray) -> None:
+        """A stable window's bands: the baseline is their running mean (restarted when the window
+        length changes with the speed: the bands are then others)."""
+        if self._base is None or len(bands) != len(self._base):
+            self._base, self._base_n = np.zeros(len(bands)), 0
+        self._base_n += 1
+        self._base += (bands - self._base) / self._base_n
+
+    @property
+    def learned(self) -> int:
+        return self._base_n
+
+    def index(self, bands: np.ndarray) -> float:
+        """The shape index of these bands against the baseline (nan: none at this window length)."""
+        b = self._base
+        if b is None or len(bands) != len(b) or not self._base_n:
+            return math.nan
+        ok = b > 0
+        if not ok.any():
+            return math.nan
+        level = float(np.median(bands[ok] / b[ok]))
+        if not level > 0:
+            return math.nan
+        return float(bands[ok].sum()) / (level * float(b[ok].sum()))

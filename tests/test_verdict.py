@@ -1,0 +1,64 @@
+"""The verdict without a reference (lathed.analysis.chatter.verdict) on simulated steady cuts, and
+the spectral shape gate (lathed.analysis.chatter.shape)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lathed.analysis.chatter.cases import b_lim_mm
+from lathed.analysis.chatter.shape import SpectralShape
+from lathed.analysis.chatter.verdict import judge
+from lathed.analysis.regen import Segment, simulate_cut
+
+
+def _steady(rpm: float, share: float, seed: int, skip_s: float = 1.0, **kw) -> tuple[np.ndarray, float]:
+    rec = simulate_cut([Segment(skip_s + 1.5, rpm, round(share * b_lim_mm(rpm), 2))], seed=seed, **kw)
+    return rec.signal[int(skip_s * rec.rate_hz):], rec.rate_hz
+
+
+@pytest.mark.parametrize("rpm", [1000.0, 3000.0])
+def test_a_steady_stable_cut_is_stable(rpm):
+    x, rate = _steady(rpm, 0.6, 41)
+    v = judge(x, rate, rpm)
+    assert v.verdict == "stable", v.reason
+
+
+@pytest.mark.parametrize("rpm", [2000.0, 3000.0])
+def test_steady_chatter_is_chatter_from_its_first_sample(rpm):
+    x, rate = _steady(rpm, 1.6, 42)
+    v = judge(x, rate, rpm)
+    assert v.verdict == "chatter" and 600 < v.frequency_hz < 700, v.reason
+
+
+def test_a_mains_line_is_not_chatter():
+    # a stable cut with 60 Hz mains hum at 3 x its level, at 120 Hz and its harmonics: the hum
+    # would dominate any band were it not the mains'
+    x, rate = _steady(1000.0, 0.6, 43)
+    t = np.arange(len(x)) / rate
+    hum = 3 * np.median(np.abs(x)) / 0.67 * (np.sin(2 * np.pi * 120 * t) + 0.5 * np.sin(2 * np.pi * 240 * t))
+    assert judge(x + hum, rate, 1000.0, mains_hz=(60.0,)).verdict == "stable"
+    assert judge(x + hum, rate, 1000.0, mains_hz=(50.0,)).verdict != "stable"     # the wrong mains
+
+
+def test_the_verdict_does_not_depend_on_the_gain():
+    x, rate = _steady(2000.0, 1.6, 42)
+    a, b = judge(x, rate, 2000.0), judge(1e-3 * x, rate, 2000.0)
+    assert (a.verdict, round(a.share, 6), round(a.cv, 6)) == (b.verdict, round(b.share, 6), round(b.cv, 6))
+
+
+def test_too_short_is_unknown():
+    x, rate = _steady(1000.0, 0.6, 41)
+    v = judge(x[:int(0.1 * rate)], rate, 1000.0)
+    assert v.verdict == "unknown" and "too short" in v.reason
+
+
+def test_the_shape_index_is_one_for_a_change_of_level_and_grows_for_a_new_line():
+    rng = np.random.default_rng(5)
+    shape = SpectralShape(51200.0, 50.0, 5000.0)
+    n = 8192
+    for _ in range(8):
+        shape.learn(shape.bands(rng.standard_normal(n)))
+    louder = shape.index(shape.bands(3.0 * rng.standard_normal(n)))
+    t = np.arange(n) / 51200.0
+    line = shape.index(shape.bands(rng.standard_normal(n) + 2.0 * np.sin(2 * np.pi * 650.0 * t)))
+    assert 0.7 < louder < 1.4 and line > 3.0, (louder, line)
