@@ -95,7 +95,8 @@ class AlarmRules:
             # level falls, and within the window: the growth test's tail); the span's last window
             # too, before its level is taken as the deeper pass's
             low = min(v for v, _ in self._sh_raws)
-            grows = raw > p["rise_growth"] * low and now >= before and self._tail(start, end) >= GROWTH_TAIL
+            grows = (p["growth_ratio"] > 0 and raw > p["rise_growth"] * low and now >= before
+                     and self._tail(start, end) >= GROWTH_TAIL)
             self._sh_grown = self._sh_grown + 1 if grows else 0
             if self._sh_grown >= p["on_windows"]:
                 self._sh_until = 0
