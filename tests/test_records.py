@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import pytest
 
@@ -455,13 +456,16 @@ def hold_first_part_commit(store):
     return taken, release
 
 
-async def turns(pred, n: int = 20_000):
-    """Loop turns (no clock) until ``pred()``: the work it waits for needs only the loop."""
-    for _ in range(n):
-        if pred():
-            return
+async def turns(pred, timeout_s: float = 30.0):
+    """Loop turns until ``pred()``, up to a deadline.  Counted in turns alone, the wait lost a
+    race on a busy machine: what it waits for is often the store's write, done in the store's
+    thread (a commit with its fsync), and 20 000 turns of the loop pass in a fraction of a
+    second (1 run in 6 failed so under load: "not reached in loop turns")."""
+    end = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > end:
+            raise AssertionError(f"not reached in {timeout_s:g} s")
         await asyncio.sleep(0)
-    raise AssertionError("not reached in loop turns")
 
 
 def abnormal_part(f: BusFeed, count: int):
