@@ -23,8 +23,11 @@ Real recordings: when ../shared/data/real/turning-chatter exists beside the
 checkout (four recordings of Khasawneh, Otto, Yesilli, "Turning dataset for
 chatter diagnosis using machine learning", Mendeley Data v1,
 doi:10.17632/hvm4wh3jzx.1, CC BY 4.0), another table gives each detector's
-verdict on each file against the data set's label (no reference: the baseline
-is learned from the recording's start, so no onset is "unknown", never "stable").
+verdict on each file against the data set's label, as lathectl analyze chatter
+gives it without a reference: an onset, else the whole recording's evidence
+(lathed.analysis.chatter.verdict).  And the part-program features
+(lathed.analysis.chatter.cases): stable shoulders, grooves, flats, keyways, tool
+changes and a G96 face, and each as a chatter control.
 
 Per detector: false alarms (stable/trap cases with any alarm, and chatter
 cases alarmed before the cut became unstable), misses (chatter cases never

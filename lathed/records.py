@@ -99,9 +99,9 @@ class PartTracker:
     more, or one after :meth:`resume`, or a counter reset) are no part's end:
     the part being cut takes the first of them, the rest come as a
     :class:`Gap` of unobserved parts, in the list of parts returned.
-    The cut is seen by the depth register where the machine has one, else by
-    the chatter analyzer's cut state (``cutting``: spindle load or vibration):
-    the part's speed and feed are those when its first cut began.  Its depth is
+    The cut is the chatter analyzer's cut state (``cutting``: its sources combined,
+    lathed.analysis.cut.state): the part's speed and feed are those when its first
+    cut began.  Its depth is
     the deepest the register showed, else the deepest the suppression
     analyzer's spindle-load estimate showed (``depth_est_mm``).
     """
@@ -226,9 +226,10 @@ class PartTracker:
         elif q == "tool_number":
             self.tool_number = int(v)      # the part's tools: those in the turret when a cut begins
         elif q == "depth_of_cut_mm":
+            # the depth only: whether the tool is in the cut is the chatter analyzer's cut state's
+            # (lathed.analysis.cut.state), the register among its sources where cut_from names it
             self._depth_register = True
             if self.part is not None and v > 0:
-                self._cutting(self.part)
                 self.part.depth_mm = max(self.part.depth_mm or 0.0, v)
 
     def flush(self) -> list[Part]:

@@ -75,7 +75,8 @@ import math
 import time
 
 from lathed import hookimpl
-from lathed.analysis.cut.sources import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.cut.sources import SOURCES
+from lathed.analysis.cut.state import CutEvent, CutState
 from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS, make_detector
 from lathed.analysis.chatter.windows import JudgedIndex
 from lathed.analyzer import Analyzer
@@ -90,9 +91,6 @@ EYE_MIN_S = 0.5    # a display eye (detectors other than chaos_sync) is drawn at
 
 # A speed change this early in a cut, before any alarm, restarts the baseline.
 ENTRY_REVS = 20.0
-# A vibration entry in a running cut whose frame jumps this much over the two before is an
-# impulse (the tool's release, a knock), not chatter: the detector does not count it.
-IMPULSE_JUMP = 2.0
 
 
 # detector parameters a running cut takes at once on reload; the others (window
@@ -119,23 +117,14 @@ class ChatterAnalyzer(Analyzer):
         if self.dwell_axes and "feed" not in self.cut_from:
             raise section.error("dwell_axes", 'a dwell is told from the cutting-feed signal: needs "feed" in '
                                               f"cut_from (got {self.cut_from!r})")
-        self.dwell_max = section.getduration("dwell_max", 2.0, minval=0.1, maxval=60.0)
+        dwell_max = section.getduration("dwell_max", 2.0, minval=0.1, maxval=60.0)
         if "dwell_max" in section and not self.dwell_axes:
             raise section.error("dwell_max", "a dwell is told by the axes standing: needs dwell_axes (the "
                                              "machine's position registers, e.g. [\"x_mm\", \"z_mm\"])")
-        self.feed_stop = FeedStop(self.dwell_axes) if self.dwell_axes else None
-        self._held: float | None = None        # a dwell: the time the chip was last seen, the cut held
-        self._held_clock = "machine"           # whose time stamps _held is on: "machine" or "block"
-        self._rejoin = False                   # the dwell over: the detector's next block joins it
-        # a dwell rejoined before every axis was read in the feed's poll: (held, source, t) until then
-        self._rejoined: tuple[float, str, float] | None = None
-        self.dwells = 0
-        self.load_cut = LoadCutDetector(section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0))
-        self.contact_ratio = section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0)
-        self.vib_cut: VibrationCutDetector | None = None
-        self.seen = {c: False for c in self.cut_from}
-        self.cut_by: str | None = None
-        self.chip_by: str | None = None        # what saw the chip in a cut the feed started
+        # whether the tool is in the cut: the one owner (lathed.analysis.cut.state)
+        self.cut = CutState(self.cut_from, self.dwell_axes, dwell_max,
+                            section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0),
+                            section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0))
         self._cut_rpm: float | None = None     # speed the cut started at (None: no cut)
         self._cut_revs = 0.0
         self._cut_alarmed = False
@@ -149,7 +138,6 @@ class ChatterAnalyzer(Analyzer):
         self.detector = None
         self._rebuild = False
         self.rate_hz: float | None = None
-        self.cutting = False
         self.tool_number: int | None = None    # the machine's tool_number register, where mapped
         self.rpm: float | None = None
         self.depth_mm: float | None = None
@@ -219,104 +207,65 @@ class ChatterAnalyzer(Analyzer):
             self.rpm = s.value
         elif s.quantity == "tool_number":
             self.tool_number = int(s.value)     # the turret position cutting: recorded with the alarm
-        elif s.quantity == "cutting_feed":
-            if self.feed_stop is not None:
-                self.feed_stop.feed(s.value != 0, s.t)
-            if "feed" in self.seen:
-                self._source("feed", s.value != 0, s.t)
-        elif self.feed_stop is not None and s.quantity in self.feed_stop.axes:
-            self.feed_stop.position(s.quantity, s.value, s.t)
-            if self._rejoined is not None and (self.feed_stop.away or not self.feed_stop.resuming):
-                held, name, t = self._rejoined
-                self._rejoined = None
-                if self.feed_stop.away:         # read after the feed's sample: the next pass after all
-                    self._end(held, "axes")
-                    self._source(name, True, t)
-        elif s.quantity == "depth_of_cut_mm":
-            if s.value > 0:
-                self.depth_mm = s.value
-            if "depth" in self.seen:
-                self._source("depth", s.value > 0, s.t)
+        elif s.quantity == "depth_of_cut_mm" and s.value > 0:
+            self.depth_mm = s.value
         elif s.quantity == "spindle_load_pct":
             self.load_pct = s.value
-            if "load" in self.seen:
-                self._source("load", self.load_cut.update(s.value, self.rpm), s.t)
-            set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
-            if self.cutting and set_load is not None:
-                # the static cutting force, for load_scaled (the detector ignores it otherwise)
-                set_load(self.load_cut.cutting_load(s.value, self.rpm))
-        self._dwell_over(s.t, "machine")
+        self._on_cut(self.cut.machine(s.quantity, s.value, s.t, self.rpm))
+        set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
+        if s.quantity == "spindle_load_pct" and self.cutting and set_load is not None:
+            # the static cutting force, for load_scaled (the detector ignores it otherwise)
+            set_load(self.cut.cutting_load(s.value, self.rpm))
 
     def _source(self, name: str, on: bool, t: float) -> None:
-        """One source's verdict; the cut is on while any source sees the chip."""
-        self.seen[name] = on
-        cutting = any(self.seen.values())
-        if self._held is not None:
-            if not cutting:
-                return
-            if self.feed_stop.away:
-                # the feed back with the tool elsewhere (retract, shift and approach within a
-                # poll): the pass ended at the dwell, this is the next one
-                self._end(self._held, "axes")
-            else:
-                # the feed or the chip back with the tool where the feed left it: the same pass
-                if self.feed_stop.resuming:     # an axis of this poll still to be read
-                    self._rejoined = (self._held, name, t)
-                self._held, self._rejoin = None, True
+        """One source's verdict, as the cut state takes it."""
+        ev: list[CutEvent] = []
+        self.cut._source(name, on, t, ev)
+        self._on_cut(ev)
+
+    @property
+    def cutting(self) -> bool:
+        return self.cut.cutting
+
+    @property
+    def dwells(self) -> int:
+        return self.cut.dwells
+
+    def _on_cut(self, events: list[CutEvent]) -> None:
+        """What the cut state said: published for suppression and records, and the detector
+        learning afresh where the cut (or its chip) begins."""
+        pub = self.ctx.bus.publish
+        for e in events:
+            if e.kind == "start":
+                if self._rebuild:             # reloaded parameters shape this cut's windows
+                    self.detector, self._rebuild = None, False
+                self._learn_afresh()
+                pub(Sample(self.name, "cutting", 1.0, "", e.t))
+                self.ctx.log.info("cut_state", cutting=True, source=e.source)
+            elif e.kind == "contact":
+                # the chip, in a cut the feed started: what came before was the approach in air
+                if self.detector is not None and self.detector.alarm:
+                    self._cleared("the tool reached the stock")
+                self._learn_afresh()
+                pub(Sample(self.name, "cut_contact", 1.0, "", e.t))   # cut records count from it
+                self.ctx.log.info("cut_contact", by=e.source)
+            elif e.kind == "dwell":
+                self.state = "dwell"
+                # no chip: suppression's cut record judges no speed stable over it
+                pub(Sample(self.name, "dwell", 1.0, "", e.t))
+                self.ctx.log.info("dwell", source=e.source)
+            elif e.kind == "dwell_over":
                 self.state = "watching" if self.detector is not None and self.detector.learned else "learning"
-                self.ctx.bus.publish(Sample(self.name, "dwell", 0.0, "", t))
-                self.ctx.log.info("dwell_over", source=name)
-                return
-        if self.cutting and not cutting and self.feed_stop is not None and self.feed_stop.standing:
-            # the feed stopped with the axes standing: a dwell, unless they move or it lasts
-            self._held, self.state = t, "dwell"
-            self._held_clock = "block" if name == "vibration" else "machine"
-            self.dwells += 1
-            # no chip: suppression's cut record judges no speed stable over it
-            self.ctx.bus.publish(Sample(self.name, "dwell", 1.0, "", t))
-            self.ctx.log.info("dwell", source=name)
-            return
-        if cutting and not self.cutting:
-            if self._rebuild:             # reloaded parameters shape this cut's windows
-                self.detector, self._rebuild = None, False
-            self._learn_afresh()
-            self.cut_by = name
-            self.chip_by = None if name == "feed" else name
-        elif self.cutting and not cutting:
-            self._end(t, name)
-            return
-        elif self.cutting and on and name != "feed" and self.chip_by is None:
-            self._contact(name, t)
-        if cutting != self.cutting:
-            self.cutting = cutting
-            self.ctx.bus.publish(Sample(self.name, "cutting", 1.0 if cutting else 0.0, "", t))
-            self.ctx.log.info("cut_state", cutting=cutting, source=name)
-
-    def _end(self, t: float, source: str) -> None:
-        """The cut is over: the chip was last seen at ``t``."""
-        if self._held is not None:
-            self.ctx.bus.publish(Sample(self.name, "dwell", 0.0, "", t))
-        self._rejoined = None
-        if self.detector is not None and self.detector.alarm:
-            self._cleared("cut ended")
-        self.state = "idle"
-        self.cut_by = self.chip_by = None
-        self._held, self._rejoin = None, False
-        self.cutting = False
-        self.ctx.bus.publish(Sample(self.name, "cutting", 0.0, "", t))
-        self.ctx.log.info("cut_state", cutting=False, source=source)
-
-    def _dwell_over(self, now: float, clock: str) -> None:
-        """A held cut ends when an axis leaves the feed's path (the tool retracting) or after
-        dwell_max (a feed hold left on), dated when the chip was last seen.  ``now`` is on the
-        ``clock`` of the stream it came with: dwell_max is timed on the hold's own (the
-        accelerometer's clock may be off the host's)."""
-        if self._held is None:
-            return
-        if self.feed_stop.left:
-            self._end(self._held, "axes")
-        elif clock == self._held_clock and now - self._held >= self.dwell_max:
-            self._end(self._held, "dwell_max")
+                pub(Sample(self.name, "dwell", 0.0, "", e.t))
+                self.ctx.log.info("dwell_over", source=e.source)
+            elif e.kind == "end":
+                if e.held:
+                    pub(Sample(self.name, "dwell", 0.0, "", e.t))
+                if self.detector is not None and self.detector.alarm:
+                    self._cleared("cut ended")
+                self.state = "idle"
+                pub(Sample(self.name, "cutting", 0.0, "", e.t))
+                self.ctx.log.info("cut_state", cutting=False, source=e.source)
 
     def _learn_afresh(self) -> None:
         """A new cut, or the chip in a cut the feed started in air: learn the baseline anew."""
@@ -325,15 +274,6 @@ class ChatterAnalyzer(Analyzer):
         self._judged.reset()
         self.state = "learning"
         self._cut_rpm = None
-
-    def _contact(self, by: str, t: float) -> None:
-        """The chip, in a cut the feed started: what came before was the approach in air."""
-        self.chip_by = by
-        if self.detector is not None and self.detector.alarm:
-            self._cleared("the tool reached the stock")
-        self._learn_afresh()
-        self.ctx.bus.publish(Sample(self.name, "cut_contact", 1.0, "", t))   # cut records count from it
-        self.ctx.log.info("cut_contact", by=by)
 
     async def _watch_sight(self) -> None:
         while True:
@@ -361,33 +301,11 @@ class ChatterAnalyzer(Analyzer):
     def _on_block(self, b: Block) -> None:
         if self.sight.block(time.monotonic()):
             self._sight_back()
-        data = b.data
-        self._dwell_over(b.t0, "block")
-        if "vibration" in self.seen or "feed" in self.seen:
-            if self.vib_cut is None or self.vib_cut.rate != b.rate_hz:
-                self.vib_cut = VibrationCutDetector(b.rate_hz, contact_ratio=self.contact_ratio)
-            at = self.vib_cut.process(data)
-            if (at is not None and self.vib_cut.cutting and self.cutting and self.chip_by is not None
-                    and self._held is None
-                    and self.vib_cut.entry_jump >= IMPULSE_JUMP
-                    and hasattr(self.detector, "impulse")):     # a plugin's detector may lack it
-                # in the cut already: the tool's release from a light chip (the feed or the load
-                # still says cutting), or a knock; chatter grows into the vibration's entry level
-                self.detector.impulse(at, b.rpm if b.rpm else (self.rpm or 60.0))
-            if at is not None and "vibration" in self.seen:
-                on = bool(self.vib_cut.cutting)
-                was, air = self.cutting, self.cutting and (self.chip_by is None or self._held is not None)
-                self._source("vibration", on, b.t0 + at / b.rate_hz)
-                if on and (not was or air):
-                    data = data[at:]          # the revolution before the chip is air, not the cut
-            elif self.cutting and self.chip_by is None and self._held is None:
-                # the chip in a cut the feed started: a light one's step, or an entry's
-                chip = self.vib_cut.contact if at is None or not self.vib_cut.cutting else at
-                if chip is not None:
-                    self._contact("vibration", b.t0 + chip / b.rate_hz)
-                    data = data[chip:]
-        if not self.cutting or self._held is not None or len(data) == 0:
-            return           # a dwell's blocks are not the cut's
+        bc = self.cut.block(b.data, b.rate_hz, b.t0)
+        self._on_cut(bc.events)
+        data = bc.data
+        if data is None:
+            return           # not the cut's samples: air, a dwell
         rpm = b.rpm if b.rpm else self.rpm
         if not rpm or rpm <= 0:
             return
@@ -415,11 +333,10 @@ class ChatterAnalyzer(Analyzer):
             self.state = "learning"
             self._cut_rpm = rpm
         self._cut_revs += len(data) / b.rate_hz * rpm / 60.0
-        if self._rejoin and hasattr(self.detector, "impulse"):    # a plugin's detector may lack it
-            # the pass goes on after a dwell the detector did not see: its revolution difference
-            # spans the join, and the chip's re-entry rings the structure
-            self.detector.impulse(0, rpm)
-        self._rejoin = False
+        if bc.impulse_at is not None and hasattr(self.detector, "impulse"):   # a plugin's may lack it
+            # a release, a knock, or a dwell's join (its revolution difference spans the gap, and
+            # the chip's re-entry rings the structure): its windows do not count
+            self.detector.impulse(bc.impulse_at, rpm)
         was = self.detector.alarm
         windows = self.detector.process(data, rpm)
         now = time.time()
@@ -449,7 +366,7 @@ class ChatterAnalyzer(Analyzer):
                     "machine": self.machine, "index": w.index, "threshold": w.threshold,
                     "raised_by": w.raised_by,
                     "chatter_frequency_hz": w.chatter_frequency_hz, "rpm": rpm, "depth_mm": self.depth_mm,
-                    "load_pct": self.load_pct, "cut_seen_by": self.cut_by,
+                    "load_pct": self.load_pct, "cut_seen_by": self.cut.cut_by,
                     "tool": self.tool, "tool_number": self.tool_number, "material": self.material,
                     "detector": self.detector_name,
                     "sample_t": t})
@@ -492,17 +409,18 @@ class ChatterAnalyzer(Analyzer):
         w = self.last
         idx = None if w is None or math.isnan(w.index) else round(w.index, 3)
         blind = self.sight.blind
+        cut_by, chip_by = self.cut.cut_by, self.cut.chip_by
         return {"detector": self.detector_name, "cut_state": "blind" if blind else self.state,
                 "blind": blind, "cutting": self.cutting,
-                "cut_from": self.cut_from, "cut_seen_by": self.cut_by, "index": idx,
+                "cut_from": self.cut_from, "cut_seen_by": self.cut.cut_by, "index": idx,
                 "threshold": None if w is None else w.threshold,
                 "chatter_frequency_hz": None if w is None else w.chatter_frequency_hz,
                 "alarms": self.alarms, "windows": self.windows, "unusable_blocks": self.unusable_blocks,
                 "lag_ms": None if self.lag_ms is None else round(self.lag_ms, 1),
-                "chip_seen_by": self.chip_by, "dwells": self.dwells,
-                "summary": (f"blind ({blind})" if blind else f"{self.state}") + (f" (cut seen by {self.cut_by}" + (
-                    "" if self.chip_by in (None, self.cut_by) else f", chip by {self.chip_by}") + ")"
-                    if self.cut_by else "")
+                "chip_seen_by": self.cut.chip_by, "dwells": self.dwells,
+                "summary": (f"blind ({blind})" if blind else f"{self.state}") + (f" (cut seen by {cut_by}" + (
+                    "" if chip_by in (None, cut_by) else f", chip by {chip_by}") + ")"
+                    if cut_by else "")
                            + (f", index {idx} / threshold {w.threshold:g}" if idx else "")
                            + f", {self.alarms} alarm(s)"}
 

@@ -88,7 +88,7 @@ class SuppressionAnalyzer(Analyzer):
         self.policy: SuppressionPolicy | None = None
         self.depth_mm = 0.0
         self.depth_from: str | None = None      # "register" | "spindle load"
-        self.in_cut: dict[str, bool] = {}
+        self.in_cut = False                     # the chatter analyzer's cut state (its one owner)
         self._avoided: set[str] = set()
         self.rpm: float | None = None
         self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
@@ -186,7 +186,13 @@ class SuppressionAnalyzer(Analyzer):
                 self.cut.depth_mm, self.cut.depth_from = s.value, "register"
             if changed:
                 self._depth_changed()      # the vibration may have seen the chip first
-            await self._cut_seen("depth", s.value > 0, s.t)
+            if self.in_cut and s.value > 0:
+                # the cut's depth known: a new speed at entry, a cure remembered for it
+                if self.strategy.avoid and not self._avoided:
+                    self._avoided.add("depth")
+                    await self._avoid()
+                if self.remember:
+                    await self._recall()
             self._shallower(s.t if s.value > 0 else None)
         elif s.quantity == "spindle_load_pct" and self.depth_from != "register":
             est = self._depth_from_load(s.value)
@@ -244,19 +250,16 @@ class SuppressionAnalyzer(Analyzer):
         self.ctx.log.info("suppression_advice_lifted", **payload)
         self.ctx.record("suppression_advice_lifted", payload)
 
-    async def _cut_seen(self, by: str, on: bool, t: float | None = None) -> None:
-        """The machine's depth register or the chatter analyzer's cut state
-        (whichever this machine has; the first to see the chip starts the cut)."""
-        was = bool(self.in_cut)
-        self.in_cut[by] = on
-        if not on:
-            del self.in_cut[by]
+    async def _cut_seen(self, on: bool, t: float | None = None) -> None:
+        """The chatter analyzer's cut state (lathed.analysis.cut.state: it alone combines the
+        sources, the depth register among them where cut_from names it)."""
+        was, self.in_cut = self.in_cut, on
         if self.in_cut and not was:
             self.policy = self._policy()    # a new cut: bans and budget start afresh
             self.pending = None
             self.held_back = None
             self._cut_started(time.time() if t is None else t)
-        if self.strategy.avoid and by == "depth" and on and self.depth_mm > 0 and not self._avoided:
+        if self.strategy.avoid and on and self.depth_from == "register" and self.depth_mm > 0 and not self._avoided:
             self._avoided.add("depth")
             await self._avoid()
         if self.remember and self.in_cut:
@@ -414,7 +417,7 @@ class SuppressionAnalyzer(Analyzer):
             self.chat[key] = s.value
             return
         if s.quantity == "cutting":
-            await self._cut_seen("chatter", s.value > 0.5, s.t)
+            await self._cut_seen(s.value > 0.5, s.t)
             return
         if s.quantity == "cut_contact":      # the chip, after an approach at feed in air
             self.cut.contact(s.t)

@@ -266,7 +266,8 @@ def test_part_program_features_raise_no_alarm_and_the_deep_passes_are_cured_live
         assert len(deep) >= 1 and len(features) >= 6, parts
         assert [alarmed(p) for p in features] == [[]] * len(features), (
             [(p["part"], p["depth_mm"], alarmed(p)) for p in parts],
-            [(e["payload"]["raised_by"], e["payload"]["index"], e["payload"]["sample_t"]) for e in events(d, "chatter_alarm")])
+            [(e["payload"]["raised_by"], e["payload"]["index"], e["payload"]["sample_t"])
+             for e in events(d, "chatter_alarm")])
         for p in deep:
             assert alarmed(p) and p["speed_writes"], p
         assert chatter(d)["windows"] > 200

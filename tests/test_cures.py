@@ -51,6 +51,7 @@ def cut(h, an, depth, rpm=2500.0, alarm=False):
         await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
         await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", depth, "mm", t + 0.01))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t + 0.01))   # the cut state's owner
         speed = h.sent[-1].value if len(h.sent) > sent0 else rpm
         t += 0.01
         for _ in range(10):
@@ -66,6 +67,7 @@ def cut(h, an, depth, rpm=2500.0, alarm=False):
             await an._on_machine(Sample("lathe", "spindle_rpm", speed, "r/min", t))
             await an._on_chatter(Sample("chatter", "chatter_alarm", 0.0, "", t))
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.01))
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.01))
     asyncio.run(go())
     return h.sent[sent0:]
 

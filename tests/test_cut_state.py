@@ -423,3 +423,49 @@ def test_the_dwell_keys_are_checked(conf, error):
     with pytest.raises(ConfigError, match=re.escape(f"t.toml: [analyzer.chatter] {error}")):
         ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter",
                                            {"input": "accel", "machine": "lathe", **conf}))
+
+
+def test_the_cut_state_is_one_pure_core_of_every_source():
+    """lathed.analysis.cut.state.CutState, without the analyzer: the feed starts a cut in air,
+    the vibration's step is the chip's contact (the detector then takes the samples from it),
+    a feed stop with the axes standing holds the cut (its blocks are not the cut's), the feed
+    back where it stopped is the same cut, joined as an impulse, and the retract ends it dated
+    when the chip was last seen."""
+    from lathed.analysis.cut.state import CutState
+    cut = CutState(["feed", "vibration"], ["x_mm"], dwell_max=2.0)
+    rng = np.random.default_rng(4)
+
+    def block(level, t0):
+        return cut.block(rng.normal(0, level, FRAME), RATE, t0)
+    for k in range(40):                                   # the spindle in air: the floor learned
+        assert block(1.0, k * FRAME / RATE).data is None
+    assert cut.machine("x_mm", 15.5, 1.0, 2000.0) == []
+    assert [e.kind for e in cut.machine("cutting_feed", 1.0, 1.0, 2000.0)] == ["start"]
+    assert cut.cutting and cut.cut_by == "feed" and cut.chip_by is None
+    air = block(1.0, 1.0)
+    assert air.events == [] and air.data is not None      # the approach: the cut's, in air
+    chip = cut.block(np.r_[rng.normal(0, 1.0, FRAME // 2), rng.normal(0, 8.0, FRAME // 2)], RATE, 1.02)
+    assert [e.kind for e in chip.events] == ["contact"] and cut.chip_by == "vibration"
+    assert chip.data is not None and len(chip.data) < FRAME      # from the chip on, not the air before
+    cut.machine("x_mm", 15.0, 1.1, 2000.0)
+    cut.machine("x_mm", 14.9, 1.2, 2000.0)
+    assert cut.machine("cutting_feed", 0.0, 1.3, 2000.0) == []   # G04: the feed stops, the axis stands
+    cut.machine("x_mm", 14.88, 1.35, 2000.0)
+    held = []
+    for k in range(12):                                   # ... and the chip thins to nothing
+        b = block(1.0, 1.3 + k * FRAME / RATE)
+        held += b.events
+    assert [e.kind for e in held] == ["dwell"] and cut.held is not None and cut.dwells == 1
+    assert b.data is None                                  # the dwell's blocks are not the cut's
+    assert [e.kind for e in cut.machine("cutting_feed", 1.0, 1.6, 2000.0)] == ["dwell_over"]
+    joined = block(8.0, 1.6)
+    assert joined.data is not None and joined.impulse_at == 0 and cut.cutting
+    cut.machine("x_mm", 14.7, 1.7, 2000.0)
+    for k in range(12):                                   # the pass's end: the chip gone ...
+        block(1.0, 1.7 + k * FRAME / RATE)
+    assert [e.kind for e in cut.machine("cutting_feed", 0.0, 2.0, 2000.0)] == ["dwell"]
+    assert cut.machine("x_mm", 20.0, 2.1, 2000.0) == []     # ... and the retract, the feed still
+    (end,) = cut.machine("cutting_feed", 0.0, 2.2, 2000.0)   # off in the next poll: dated at the chip
+    assert (end.kind, end.t, end.source, end.held) == ("end", 2.0, "axes", True) and not cut.cutting
+    with pytest.raises(ValueError, match="needs \"feed\" in cut_from"):
+        CutState(["load"], ["x_mm"])

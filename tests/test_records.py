@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import pytest
 
@@ -28,13 +29,20 @@ class Feed:
                      ("chatter_frequency_hz", hz), ("chatter_alarm", alarm)):
             self.done += self.tr.feed_sample("chatter", q, v, self.t)
 
+    def cutting(self, on):
+        """The chatter analyzer's cut state (the one owner of it)."""
+        self.done += self.tr.feed_sample("chatter", "cutting", 1.0 if on else 0.0, self.t)
+
     def cut(self, depth, rpm, index, alarm=0.0):
         self.lathe(spindle_rpm=rpm, feed_mm_rev=0.3, depth_of_cut_mm=0.0)
-        for _ in range(3):
+        for k in range(3):
             self.lathe(spindle_rpm=rpm, feed_mm_rev=0.3, depth_of_cut_mm=depth)
+            if k == 0:
+                self.cutting(True)
             self.chatter(index, alarm)
         self.chatter(0.1, 0.0)
         self.lathe(depth_of_cut_mm=0.0)
+        self.cutting(False)
 
 
 def tracker():
@@ -396,6 +404,10 @@ class BusFeed(Feed):
                      ("chatter_frequency_hz", hz), ("chatter_alarm", alarm)):
             self.bus.publish(Sample("chatter", q, float(v), "", self.t))
 
+    def cutting(self, on):
+        from lathed.bus import Sample
+        self.bus.publish(Sample("chatter", "cutting", 1.0 if on else 0.0, "", self.t))
+
 
 class Log:
     """The analyzer's logger: what it said, and a threading.Event per message name."""
@@ -444,20 +456,25 @@ def hold_first_part_commit(store):
     return taken, release
 
 
-async def turns(pred, n: int = 20_000):
-    """Loop turns (no clock) until ``pred()``: the work it waits for needs only the loop."""
-    for _ in range(n):
-        if pred():
-            return
+async def turns(pred, timeout_s: float = 30.0):
+    """Loop turns until ``pred()``, up to a deadline.  Counted in turns alone, the wait lost a
+    race on a busy machine: what it waits for is often the store's write, done in the store's
+    thread (a commit with its fsync), and 20 000 turns of the loop pass in a fraction of a
+    second (1 run in 6 failed so under load: "not reached in loop turns")."""
+    end = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > end:
+            raise AssertionError(f"not reached in {timeout_s:g} s")
         await asyncio.sleep(0)
-    raise AssertionError("not reached in loop turns")
 
 
 def abnormal_part(f: BusFeed, count: int):
     f.lathe(spindle_rpm=2000, feed_mm_rev=0.3, depth_of_cut_mm=2.0)
+    f.cutting(True)
     f.chatter(3.0, 1.0)
     f.chatter(0.1, 0.0)
     f.lathe(depth_of_cut_mm=0.0)
+    f.cutting(False)
     f.lathe(part_count=count)
 
 
@@ -711,7 +728,9 @@ def test_a_part_the_program_stop_closed_is_written_when_lathed_stops_before_the_
         f = BusFeed(bus)
         f.lathe(part_count=1, program_state=1)
         f.lathe(spindle_rpm=2000, feed_mm_rev=0.3, depth_of_cut_mm=2.0)
+        f.cutting(True)
         f.lathe(depth_of_cut_mm=0.0)
+        f.cutting(False)
         f.lathe(program_state=0)
         await turns(lambda: r.tracker._stopped is not None)
         task.cancel()
@@ -889,3 +908,20 @@ def test_a_count_read_while_the_last_part_is_being_written_is_saved_at_the_stop(
     store.close()
     assert [(c["count"], c["held"]) for c in Store(tmp_path / "r.db").query(
         "SELECT count, held FROM last_part_count")] == [(3, 0)]
+
+
+def test_the_cut_is_the_chatter_analyzers_cut_state_not_the_depth_register():
+    """One owner of the cut (lathed.analysis.cut.state, published by the chatter analyzer): the
+    depth register gives the part's depth, not whether it was cut; the part's speed and feed are
+    those when the cut state said the first cut began."""
+    f = Feed(tracker())
+    f.lathe(part_count=1, program_state=1)
+    f.lathe(part_count=2)
+    f.lathe(spindle_rpm=1500, feed_mm_rev=0.3, depth_of_cut_mm=1.0)     # the register alone
+    f.lathe(spindle_rpm=1800, depth_of_cut_mm=0.0)
+    f.cutting(True)
+    f.lathe(depth_of_cut_mm=2.0)
+    f.cutting(False)
+    f.lathe(part_count=3)
+    partial, p = f.done
+    assert p.rpm == 1800 and p.depth_mm == 2.0

@@ -63,7 +63,7 @@ def test_reconfigure_keeps_the_cut_and_its_baseline():
     assert det.params["window_revs"] == 1.0 and a._rebuild       # windows change from the next cut
     a.ctx = SimpleNamespace(plugins=None, bus=SimpleNamespace(publish=lambda s: None),
                             log=SimpleNamespace(info=lambda *x, **k: None))
-    a.cutting = False
+    assert not a.cutting
     a._source("vibration", True, 1.0)
     assert a.detector is None and not a._rebuild                 # rebuilt with window_revs 2 at the next block
 

@@ -87,6 +87,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
         await an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t0))
         # 1.3 mm: the lobes have speeds they call stable (at 2.2 they have none, and hold)
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.3, "mm", t0 + 0.01))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t0 + 0.01))   # the cut state's owner
         t = t0 + 0.01
         for _ in range(10):                      # 2500 r/min for 1 s: 41.7 revolutions
             t += 0.1
@@ -101,6 +102,7 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
             await an._on_machine(Sample("lathe", "spindle_rpm", target, "r/min", t))
             await an._on_chatter(Sample("chatter", "chatter_alarm", 0.0, "", t))
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.01))
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.01))   # the cut state's owner
         return target
     target = asyncio.run(cut())
     (rec,) = h.events("cut")
@@ -132,6 +134,7 @@ def test_a_cut_the_daemon_stops_in_is_recorded_up_to_the_stop(h):
         t = time.time()
         await an._on_machine(Sample("lathe", "spindle_rpm", 1500.0, "r/min", t))
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.2, "mm", t + 0.01))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t + 0.01))   # the cut state's owner
         for _ in range(10):                      # 25 revolutions at 1500 r/min, stable so far
             t += 0.1
             await an._on_machine(Sample("lathe", "spindle_rpm", 1500.0, "r/min", t))

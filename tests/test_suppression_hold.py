@@ -35,11 +35,13 @@ async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True, vi
     t = time.time()
     await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
     await an._on_machine(Sample("lathe", "spindle_rpm", rpm, "r/min", t))
+    # the cut is the chatter analyzer's cut state (the depth register among its sources where
+    # cut_from names it); the register gives the depth
     if vibration_first:        # the chatter analyzer sees the chip before the depth register is read
         await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
     if register:
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", depth_mm, "mm", t))
-    else:
+    if not vibration_first:
         await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
     await an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t))
     await an._on_chatter(Sample("chatter", "chatter_index", 3.5, "", t))
@@ -52,8 +54,7 @@ async def _cut(an, depth_mm, alarms=3, rpm=2500.0, register=True, leave=True, vi
         return
     if register:
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.1))
-    else:
-        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.1))
+    await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.1))
 
 
 def test_no_stable_speed_within_reach_holds_the_speed_and_advises(make):
@@ -145,8 +146,10 @@ def test_a_cut_held_with_advice_that_gets_shallower_is_decided_afresh(make):
         for k in range(polls):             # the register polled every 100 ms, chatter going on
             t += 0.1
             await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.3, "mm", t))
+            await h.an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))   # the cut state's owner
             await h.an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
         await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.1))
+        await h.an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.1))   # the cut state's owner
     asyncio.run(shallower(8))
     (adv,) = h.events("suppression_advice")
     (lifted,) = h.events("suppression_advice_lifted")
@@ -253,3 +256,20 @@ def test_the_running_daemon_holds_and_shows_the_advice(tmp_path):
         assert "speed held: no stable speed within reach" in d.ctl("cuts").stdout
     finally:
         d.stop()
+
+
+def test_the_cut_is_the_chatter_analyzers_cut_state_not_the_depth_register(make):
+    """One owner of the cut (the chatter analyzer's, lathed.analysis.cut.state): the depth
+    register alone, which suppression read as a cut of its own before, gives the depth, not a cut."""
+    h = make()
+
+    async def register_only():
+        t = time.time()
+        await h.an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t))
+        await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 2.2, "mm", t))
+        assert not h.an.in_cut and h.an.depth_mm == 2.2
+        await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.5))
+    asyncio.run(register_only())
+    assert h.events("cut") == [] and h.events("suppression_advice") == []
+    asyncio.run(_cut(h.an, 2.2))                 # with the cut state: a cut, held with advice
+    assert len(h.events("cut")) == 1 and len(h.events("suppression_advice")) == 1

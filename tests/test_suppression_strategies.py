@@ -67,7 +67,8 @@ def test_variation_modulates_the_speed_until_the_cut_ends(h):
         await _cut(an, 1.3, alarms=1, leave=False)
         await _until(lambda: len(h.sent) >= 5, "the modulation's commands")
         task = an.strategy._task
-        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", time.time()))   # the cut ends
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", time.time()))
+        await an._on_chatter(Sample("chatter", "cutting", 0.0, "", time.time()))   # the cut ends (its state's owner)
         await asyncio.gather(task, return_exceptions=True)
         return task
     task = asyncio.run(main())

@@ -135,7 +135,7 @@ def run(args, extra_detectors: dict | None = None) -> int:
     import numpy as np
 
     from lathed.analysis.chatter.registry import DETECTORS, make_detector
-    from lathed.analysis.chatter.verdict import judge
+    from lathed.analysis.chatter.verdict import Verdict, judge
     from lathed.analysis.recording import RecordingError, read_sidecar, read_signal, takes_var
     from lathed.analysis.replay import live_spans, replay
     from lathed.wire import VIB_RATE_MAX, VIB_RATE_MIN
@@ -222,7 +222,8 @@ def run(args, extra_detectors: dict | None = None) -> int:
         from lathed.analysis.replay import speed_at
         c0, c1 = max(cut_spans, key=lambda c: c[1] - c[0])
         rpm = args.rpm or speed_at(side.get("speed_keyphasor") or side.get("speed") or [], (c0 + c1) / 2)
-        evidence = judge(sig.data[int(c0 * sig.rate_hz):int(c1 * sig.rate_hz)], sig.rate_hz, rpm, mains)
+        evidence = (judge(sig.data[int(c0 * sig.rate_hz):int(c1 * sig.rate_hz)], sig.rate_hz, rpm, mains)
+                    if rpm else Verdict("unknown", "no spindle speed recorded for the cut", None, math.nan, math.nan))
     # a stable cut's level moves by less than the detector's allowance for it (cusum_ratio, else
     # its threshold)
     verdict, reason = _verdict(alarms, ref is not None, evidence, wins,

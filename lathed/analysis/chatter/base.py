@@ -147,6 +147,7 @@ class RevolutionDetector(AlarmRules):
         self._sh_steady = 0         # windows in a row without a rise: a rise after enough is a step
         self._sh_grown = 0
         self._sh_from = 0.0         # the level before its step
+        self._sh_over = self._sh_over_before = 0   # windows in a row over the sum's allowance
         self._prev_raw = 0.0
         self._recent_from = -1      # the growth look-back counts from this window (a shoulder's)
         self.baseline = self._fixed_baseline

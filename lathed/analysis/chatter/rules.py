@@ -90,12 +90,17 @@ class AlarmRules:
         _, now, before = self._level_pair(start, end, rpm)
         up = now > r * before
         prev, self._prev_raw = self._prev_raw, raw
+        # windows in a row before this one over the sum's allowance
+        over, self._sh_over = self._sh_over, (self._sh_over + 1 if p["cusum_ratio"] and raw > p["cusum_ratio"]
+                                              * self.baseline else 0)
+        self._sh_over_before = over
         if self._sh_until:
             # growing beyond the echo's bound, not a knock's or the release's ring decaying (its
             # level falls, and within the window: the growth test's tail); the span's last window
             # too, before its level is taken as the deeper pass's
             low = min(v for v, _ in self._sh_raws)
-            grows = raw > p["rise_growth"] * low and now >= before and self._tail(start, end) >= GROWTH_TAIL
+            grows = (p["growth_ratio"] > 0 and raw > p["rise_growth"] * low and now >= before
+                     and self._tail(start, end) >= GROWTH_TAIL)
             self._sh_grown = self._sh_grown + 1 if grows else 0
             if self._sh_grown >= p["on_windows"]:
                 self._sh_until = 0
@@ -128,7 +133,9 @@ class AlarmRules:
         steady, self._sh_steady = self._sh_steady, 0
         if (other or steady < 2 * p["growth_revs"] / p["hop_revs"] or self._windows <= 2 * p["learn_windows"]
                 or self._next_end < self._step_until
-                or prev < self._learned_baseline / p["jump_ratio"] ** 2):
+                or prev < self._learned_baseline / p["jump_ratio"] ** 2
+                or self._sh_over_before >= p["on_windows"]):
+            # (a level already held over the sum's allowance is rising, not a cut at its own level)
             return False, False
         self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
         self._sh_raws = [(raw, bands)]

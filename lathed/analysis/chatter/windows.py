@@ -64,8 +64,8 @@ BASE_PARAMS: dict[str, tuple[float, float, float, str]] = {
                    "lowest window, and a level that settles there is the deeper pass's own baseline (off "
                    "with a reference baseline)"),
     "rise_growth": (3.0, 1.5, 100.0, "within a deeper pass's span (rise_ratio), growth over this many times its "
-                    "lowest window raises the alarm: a stable cut's regenerative echo is smaller every "
-                    "revolution, so two revolutions on it stays under 3 x the first"),
+                    "lowest window raises the alarm (growth, off with growth_ratio 0): a stable cut's echo "
+                    "is smaller every revolution, so two revolutions on it stays under 3 x the first"),
     "jump_ratio": (3.0, 1.5, 1000.0, "a window whose level (median |x|) is above jump_ratio x, or below "
                    "1/jump_ratio x, the level one revolution earlier does not count towards "
                    "the alarm (the tool entering or leaving the work, not chatter)"),
