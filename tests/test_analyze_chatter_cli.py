@@ -168,8 +168,6 @@ def test_plot_written(files, capsys, tmp_path):
 
 def test_through_lathectl(files):
     d, _, _ = files
-    if not (Path(analyze_chatter.__file__).parents[1] / "lathectl.py").exists():
-        pytest.skip("lathectl not present")
     r = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "chatter",
                         str(d / "chatter_f32.wav"), "--rpm", "2000", "--json"],
                        capture_output=True, text=True, timeout=60)

@@ -85,7 +85,6 @@ def test_mode_at_right_angle_is_invalid_data(capsys):
     assert err.startswith("lathectl: ") and "90 deg" in err
 
 
-@pytest.mark.skipif(not (ROOT / "lathed" / "lathectl.py").exists(), reason="lathectl not built yet")
 def test_through_lathectl():
     proc = subprocess.run([sys.executable, "-m", "lathed.cli.main", "analyze", "lobes",
                            "--mode", "250,0.03,2e7", "--kf", "1e9", "--rpm", "1500", "--json"],
