@@ -71,11 +71,12 @@ def read_rows(con: sqlite3.Connection, sql: str, params: tuple = ()) -> list[dic
     return [dict(r) for r in con.execute(sql, params).fetchall()]
 
 
-def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] | None = None,
+def read_events(con: sqlite3.Connection, limit: int | None = 50, kind: str | list[str] | None = None,
                 source: str | list[str] | None = None, since_id: int = 0,
                 oldest: bool = False) -> list[dict[str, Any]]:
     """Store.events on any connection (lathectl reads a stopped daemon's database read-only).
-    ``oldest``: the first ``limit`` after ``since_id`` (to page through), not the newest."""
+    ``oldest``: the first ``limit`` after ``since_id`` (to page through), not the newest;
+    ``limit`` None: all of them."""
     where, params = ["id > ?"], [since_id]
     for col, want in (("kind", kind), ("source", source)):
         names = [want] if isinstance(want, str) else list(want or [])
@@ -84,7 +85,7 @@ def read_events(con: sqlite3.Connection, limit: int = 50, kind: str | list[str] 
             params.extend(names)
     rows = [dict(r) for r in con.execute(f"SELECT id, t, source, kind, payload FROM events "
                                          f"WHERE {' AND '.join(where)} ORDER BY id {'ASC' if oldest else 'DESC'} "
-                                         "LIMIT ?", (*params, limit)).fetchall()]
+                                         "LIMIT ?", (*params, -1 if limit is None else limit)).fetchall()]
     for r in rows:
         r["payload"] = json.loads(r["payload"])
     return rows if oldest else rows[::-1]
@@ -493,7 +494,7 @@ class Store:
         with self._rlock:
             return read_rows(self._rcon, sql, params)
 
-    def events(self, limit: int = 50, kind: str | list[str] | None = None,
+    def events(self, limit: int | None = 50, kind: str | list[str] | None = None,
                source: str | list[str] | None = None, since_id: int = 0,
                oldest: bool = False) -> list[dict[str, Any]]:
         """The newest ``limit`` events after ``since_id`` (``oldest``: the first ``limit``),

@@ -4,7 +4,6 @@ suppression_models.py. Behaviour: docs/chatter.md; keys: docs/configuration.md."
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 
 import numpy as np
@@ -304,11 +303,10 @@ class SuppressionAnalyzer(Analyzer):
         """The cures this machine's cut records teach, since the last ``suppress forget``."""
         # the newest records only: a cure older than them has been superseded or gone stale, and
         # the analyzer reads the bus once this is done
-        rows = self.ctx.store.query("SELECT kind, payload FROM events WHERE source = ? AND kind IN "
-                                    "('cut', 'suppression_cures_forgotten') ORDER BY id DESC LIMIT ?",
-                                    (self.name, MEMORY_RECORDS))
-        for r in reversed(rows):
-            p = json.loads(r["payload"])
+        rows = self.ctx.store.events(limit=MEMORY_RECORDS, kind=["cut", "suppression_cures_forgotten"],
+                                     source=self.name)
+        for r in rows:
+            p = r["payload"]
             if p.get("machine") != self.machine:
                 continue
             if r["kind"] == "cut":
@@ -365,9 +363,8 @@ class SuppressionAnalyzer(Analyzer):
                 and (self.tool_number is None or rec.get("tool_number") in (None, self.tool_number)))
 
     def _cut_records(self) -> list[dict]:
-        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'cut' AND source = ? ORDER BY id",
-                                    (self.name,))
-        return [p for r in rows if (p := json.loads(r["payload"])).get("machine") == self.machine]
+        rows = self.ctx.store.events(limit=None, kind="cut", source=self.name)
+        return [p for r in rows if (p := r["payload"]).get("machine") == self.machine]
 
     def _setup_cuts(self, what: str):
         """This set-up's recorded cuts (the newest MAX_REFIT_SPEEDS cut speeds), what was left

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import json
 import math
 import pickle
 import time
@@ -198,10 +197,9 @@ class ThermalAnalyzer(Analyzer):
 
     # -- touch-off ----------------------------------------------------------------
     def _restore_touchoff(self) -> None:
-        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_touchoff' AND source = ? "
-                                    "ORDER BY id DESC LIMIT 1", (self.name,))
+        rows = self.ctx.store.events(limit=1, kind="thermal_touchoff", source=self.name)
         if rows:
-            t = json.loads(rows[0]["payload"])
+            t = rows[0]["payload"]
             if t.get("machine") == self.machine:
                 self.touchoff = t
                 self._restored = True
@@ -351,9 +349,8 @@ class ThermalAnalyzer(Analyzer):
 
     # -- refit -----------------------------------------------------------------------
     def _measurements(self) -> ThermalData | ThermalRuns:
-        rows = self.ctx.store.query("SELECT payload FROM events WHERE kind = 'thermal_measurement' "
-                                    "AND source = ? ORDER BY id", (self.name,))
-        pts = [json.loads(r["payload"]) for r in rows]
+        pts = [r["payload"] for r in self.ctx.store.events(limit=None, kind="thermal_measurement",
+                                                           source=self.name)]
         if len(pts) < MIN_REFIT_ROWS:
             raise RequestError(f"only {len(pts)} probe measurements stored; a refit needs at least {MIN_REFIT_ROWS}")
         places = sorted(set.intersection(*(set(p["temps_c"]) for p in pts)))

@@ -161,6 +161,9 @@ def test_retention_deletes_only_old_records_every_sink_has_forwarded(tmp_path, m
     assert removed["events"] == 20 and removed["workpieces"] == 0
     ks = [r["payload"]["k"] for r in s.events(100, "tick", None, 0)]
     assert sorted(ks) == list(range(20, 40)) + list(range(100, 110))
+    # limit None: every one, oldest first (a refit reads all its measurements)
+    assert [r["payload"]["k"] for r in s.events(None, "tick")] == ks
+    assert [r["payload"]["k"] for r in s.events(2, "tick")] == ks[-2:]
     # what is left still forwards in order, with no hole in the outbox
     assert [t for _, t, _ in s.pending("backup", 100)][:1] == ["events"] and s.backlog("backup") == 31
     # once both have forwarded everything, the old rest goes, the recent stays
