@@ -40,9 +40,9 @@ def lathed_analyzer_types() -> dict[str, type[Analyzer]]:
 
 @hookspec
 def lathed_chatter_detectors() -> dict[str, Any]:
-    """Extra chatter detectors by name: each value is a factory
-    ``f(rate_hz: float, **params) -> Detector`` with the interface of
-    :mod:`lathed.analysis.chatter`. Built-in detectors need no hook."""
+    """Extra chatter detectors by name: each value is a subclass of
+    :class:`lathed.analysis.chatter.base.RevolutionDetector`, built as ``cls(rate_hz, **params)``;
+    it overrides what it changes. Built-in detectors need no hook."""
 
 
 @hookspec

@@ -21,11 +21,13 @@ from typing import Any
 import pluggy
 
 from lathed import hookspecs
+from lathed.analysis.chatter.base import RevolutionDetector
 from lathed.analyzer import Analyzer
 from lathed.driver import Driver
 
 GROUP = "lathed.plugins"
-BASES = {"lathed_driver_types": Driver, "lathed_analyzer_types": Analyzer}
+BASES = {"lathed_driver_types": Driver, "lathed_analyzer_types": Analyzer,
+         "lathed_chatter_detectors": RevolutionDetector}
 IMPORT_TIMEOUT_S = 30.0   # per plugin; numpy/scipy imports on a busy 2-core PC take seconds
 
 

@@ -183,7 +183,7 @@ class ChatterAnalyzer(Analyzer):
         self._rebuild = True
 
     def _new_detector(self, rate: float):
-        extra = self.ctx.plugins.chatter_detectors() if getattr(self.ctx, "plugins", None) else None
+        extra = self.ctx.plugins.chatter_detectors() if self.ctx.plugins is not None else None
         return make_detector(self.detector_name, rate, extra=extra, **self.params)
 
     async def run(self) -> None:
@@ -390,9 +390,9 @@ class ChatterAnalyzer(Analyzer):
         when asked, at most every EYE_MIN_S (it costs the daemon only while a screen
         watches)."""
         det = self.detector
-        if det is None or not hasattr(det, "eye_views"):
+        if det is None:
             return None
-        key, own = (id(det), self.windows), getattr(det, "OWN_EYE", False)
+        key, own = (id(det), self.windows), det.OWN_EYE
         now = time.monotonic()
         if self._eye_view is not None and (self._eye_view[0] == key or (
                 not own and now - self._eye_view[2] < EYE_MIN_S)):

@@ -6,6 +6,7 @@ import json
 
 from lathed import hookspecs
 from lathed.plugins import PluginLoader, load_all
+from lathed.analysis.chatter.registry import make_detector
 from tests.conftest import wait_until
 
 GOOD = '''
@@ -107,11 +108,23 @@ def test_every_hookspec_is_documented_and_exercised():
 def test_detector_and_candidate_hooks_reach_the_loader(tmp_path):
     (tmp_path / "extras.py").write_text(
         "from lathed import hookimpl\n"
-        "def make(rate_hz, **params):\n    return ('detector', rate_hz, params)\n"
-        "@hookimpl\ndef lathed_chatter_detectors():\n    return {'mine': make}\n"
+        "from lathed.analysis.chatter.detectors import SyncCusumDetector\n"
+        "class Mine(SyncCusumDetector):\n    name = 'mine'\n"
+        "@hookimpl\ndef lathed_chatter_detectors():\n    return {'mine': Mine}\n"
         "@hookimpl\ndef lathed_thermal_candidates():\n    return ['candidate-a', 'candidate-b']\n")
+    # a detector outside the base class is refused at load, as a driver is
+    (tmp_path / "loose_detector.py").write_text(
+        "from lathed import hookimpl\n"
+        "def make(rate_hz, **params):\n    return ('detector', rate_hz, params)\n"
+        "@hookimpl\ndef lathed_chatter_detectors():\n    return {'loose': make}\n")
     loader = load_all([tmp_path])
-    assert loader.chatter_detectors()["mine"](51200.0, k=1) == ("detector", 51200.0, {"k": 1})
+    by = {p.name: p for p in loader.plugins}
+    assert by["extras"].error is None and "mine" in by["extras"].provides
+    det = make_detector("mine", 51200.0, extra=loader.chatter_detectors(), threshold=2.0)
+    # the base class's defaults are what the chatter analyzer calls, with no probing
+    assert det.threshold == 2.0 and det.OWN_EYE is False and callable(det.eye_views)
+    assert "not a subclass of lathed.analysis.chatter.base.RevolutionDetector" in by["loose_detector"].error
+    assert "loose" not in loader.chatter_detectors()
     assert loader.thermal_candidates() == ["candidate-a", "candidate-b"]
 
 
