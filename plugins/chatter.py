@@ -1,72 +1,10 @@
 """Chatter detection on a live accelerometer stream (numeric core: lathed.analysis.chatter).
 
-    [analyzer.chatter]
-    plugin = "chatter"
-    input = "accel"            # the vibration sensor instance
-    machine = "lathe"          # whose speed (and cut state registers) frame the analysis
-    cut_from = ["load", "vibration"]   # what says the tool is in the cut (see below)
-    dwell_axes = ["x_mm", "z_mm"]      # the axes' position registers: a dwell is not the cut's end
-    dwell_max = "2s"                   # (with "feed") longest a dwell holds the cut open
-    detector = "sync_cusum"    # any built-in or plugin detector
-    tool = "T0101"             # recorded with every chatter event
-    material = "C45"
-    [analyzer.chatter.params]  # the detector's parameters (see lathed.analysis.chatter, docs/chatter.md)
-    threshold = 2.0
-    jump_ratio = 3.0           # a level step this large within a revolution (the tool
-                               # entering or leaving the work) does not count as chatter
-
-The detector runs only while the tool is in the cut (air cutting would
-otherwise make the entry look like chatter); it learns its baseline at the
-start of each cut.  ``cut_from`` names the sources of the cut state
-(lathed.analysis.cut.sources), any of:
-
-  "load"       the machine's spindle_load_pct register above its no-chip load
-               by load_margin_pct (a standard CNC register; seen one poll late)
-  "vibration"  the accelerometer: frame rms against the air-cut floor (sees
-               the entry within a few ms; needs an air cut to learn the floor)
-  "depth"      a depth_of_cut_mm register > 0 (machines that report one)
-  "feed"       a cutting_feed register != 0: the control's cutting-feed signal
-               (Fanuc CUT); sees light finishing cuts the others miss
-
-The cut starts when the first source sees the chip and ends when none does.
-A cut the feed started is cutting air until the tool reaches the stock: the
-chip's contact (another source seeing it, or the vibration stepping up
-``contact_ratio`` x over the air for 20 ms) restarts the baseline, once; a
-cut so light that neither shows keeps the baseline learned on the approach.
-A dwell (G04: the feed stops with the tool in the work, the spindle turning; a
-feed hold) drops the feed, the chip thins to nothing within a revolution, the
-load and the vibration fall: every source says "not cutting" mid-pass.  With
-``dwell_axes`` (the machine's position registers, polled with the feed) the cut
-is held open while every axis stands where the feed left it, up to
-``dwell_max``: the feed or the chip back within it is the same cut (the cure
-held, the baseline kept, one record); an axis moving off the feed's path (a
-retract) ends it at once, dated when the chip was last seen, as does
-``dwell_max`` (a feed hold left on).  The detector is not fed the dwell; the
-join at its end is told to it as an impulse, so the re-entry's ring does not
-count.  The dwell is published as ``dwell`` (1, then 0): suppression's cut
-record judges no speed on it.  Needs "feed" in ``cut_from``.
-The cut state is published as ``cutting`` (1/0) and shown in the status.  For
-each analysis window it publishes, under its own name, ``chatter_index``,
-``chatter_threshold``, ``chatter_frequency_hz`` and then ``chatter_alarm``
-(1/0), and a window late ``chatter_index_judged``, the index of the windows
-the detector judged (lathed.analysis.chatter.windows.JudgedIndex: a part's record
-keeps their highest); it records ``chatter_alarm`` and ``chatter_cleared``
-events with the critical values.
-
-The cut ends when no source sees the chip: the polled spindle load sees the
-tool leave up to a poll late, so the detector still watches the tool's
-release, which rings the structure at several times the cut's level.
-``jump_ratio`` keeps such a level step (and the ring after it) from counting
-towards the alarm; regenerative chatter grows over several revolutions.
-
-Every spindle-load reading taken while cutting is passed to the detector as
-the cutting load (above the spindle's no-chip load); with ``load_scaled = 1``
-the index is read at the load the baseline was learned at, so a deeper stable
-pass in the same cut (a shoulder) is not chatter.
-
-A configuration reload takes threshold, on_windows, off_windows, off_ratio,
-settle_revs and jump_ratio at once, in the running cut; the window shapes
-and the band apply from the next cut.
+The detector runs only while the tool is in the cut (the cut state's sources:
+lathed.analysis.cut) and learns its baseline at the start of each cut; per window it
+publishes chatter_index, chatter_threshold, chatter_frequency_hz and chatter_alarm, and
+records chatter_alarm / chatter_cleared events. Keys, the cut's sources, dwells and what a
+reload takes: docs/chatter.md and docs/configuration.md ([analyzer.chatter]).
 """
 from __future__ import annotations
 
