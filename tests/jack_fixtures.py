@@ -12,9 +12,11 @@ output ports as channels.
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import signal
+import struct
 import subprocess
 import threading
 import uuid
@@ -32,8 +34,8 @@ def have_jackd() -> bool:
     return shutil.which("jackd") is not None or os.path.exists("/usr/bin/jackd")
 
 
-def _leftover(name: str) -> list[int]:
-    """jackd processes serving ``name`` (a test run killed before it stopped its server)."""
+def _leftover(name: str | None) -> list[int]:
+    """jackd processes serving ``name`` (a test run killed before it stopped its server); None: any."""
     pids = []
     for d in os.listdir("/proc"):
         if d.isdigit():
@@ -41,22 +43,67 @@ def _leftover(name: str) -> list[int]:
                 args = open(f"/proc/{d}/cmdline", "rb").read().split(b"\0")
             except OSError:
                 continue
-            if args and args[0].endswith(b"jackd") and name.encode() in args:
+            if args and args[0].endswith(b"jackd") and (name is None or name.encode() in args):
                 pids.append(int(d))
     return pids
 
 
+NAMES = 6          # JACK's table of servers in shared memory has 8 entries
+REGISTRY = "/dev/shm/jack-shm-registry"
+
+
+def _claim() -> tuple[str, int]:
+    """A server name from a fixed few, held by a lock for this server's life (two suites on one
+    machine must not share a name). JACK reclaims a dead server's entry only for its own name,
+    so a server killed before it could clean up leaves an entry that only a fixed name frees."""
+    for k in range(NAMES):
+        fd = os.open(f"/tmp/lathed-jack-{k}.lock", os.O_RDWR | os.O_CREAT, 0o600)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue
+        return f"lathed-test-{k}", fd
+    raise RuntimeError(f"all {NAMES} JACK test server names are in use (/tmp/lathed-jack-*.lock)")
+
+
+def _reclaim_dead_entries() -> None:
+    """JACK's table of servers (8 entries) frees a dead server's entry only when a server of the
+    same name starts; servers killed under other names (older test runs) fill it for good ("Too
+    many servers already active"). Free every entry whose process is gone, as JACK does for one
+    name, in place (clients keep the table they mapped). The layout is jack2's shm.h; a table of
+    another layout is left alone."""
+    try:
+        f = open(REGISTRY, "r+b")
+    except OSError:
+        return                      # none yet: the first server makes it
+    with f:
+        head = f.read(24)
+        if len(head) < 24 or head[:4] != b"JACK"[::-1]:
+            return
+        hdr_len, entry = struct.unpack_from("<ii", head, 16)
+        slot = (hdr_len - 24) // 8
+        if slot < 8 or hdr_len != 24 + 8 * slot:
+            return
+        for i in range(8):
+            f.seek(24 + i * slot)
+            pid = struct.unpack("<i", f.read(4))[0]
+            if pid > 0 and not os.path.exists(f"/proc/{pid}"):
+                f.seek(24 + i * slot)
+                f.write(bytes(slot))
+
+
 class JackServer:
-    """A JACK server under a name of this test process's own: one name per pytest worker (a
-    fixed few, because JACK keeps a small table of server names in shared memory, and a
-    server killed before it could clean up leaves its entry behind for its name's next use)."""
+    """A JACK server under a name of its own (``_claim``), with the dummy backend."""
 
     def __init__(self, rate: int = 48000, period: int = 1024, capture: int = 2, name: str | None = None) -> None:
         if not have_jackd():
             raise RuntimeError("no jackd; run `bash tests/ensure_jack.sh`")
         self.rate, self.period, self.capture = rate, period, capture
-        # one server per test process: two suites on one machine must not share a server name
-        self.name = name or f"lathed-test-{os.environ.get('PYTEST_XDIST_WORKER', 'main')}-{os.getpid()}"
+        self._lock: int | None = None
+        if name is None:
+            name, self._lock = _claim()
+        self.name = name
         self.env = {"JACK_DEFAULT_SERVER": self.name, "JACK_NO_START_SERVER": "1",
                     "JACK_NO_AUDIO_RESERVATION": "1"}
         self.proc: subprocess.Popen | None = None
@@ -65,6 +112,16 @@ class JackServer:
     def start(self) -> None:
         for pid in _leftover(self.name):
             os.kill(pid, signal.SIGKILL)
+        # one process at a time from freeing dead entries to a server registered in the table
+        gate = os.open("/tmp/lathed-jack-start.lock", os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        try:
+            _reclaim_dead_entries()
+            self._launch()
+        finally:
+            os.close(gate)
+
+    def _launch(self) -> None:
         # synchronous (-S): each cycle waits for every client (up to -t ms), so a client the busy
         # test machine runs late stalls the dummy device a moment (a step of its clock, which
         # the driver follows) instead of playing zeros for the period it missed
@@ -80,7 +137,11 @@ class JackServer:
             c = jack.Client("probe", servername=self.name, no_start_server=True)
             c.close()
             return True
-        wait_until(up, 20, 0.1, what=f"jackd {self.name}")
+        try:
+            wait_until(up, 20, 0.1, what=f"jackd {self.name}")
+        except BaseException:
+            self.stop()            # not left running under a name another run will claim
+            raise
 
     def _drain(self, proc) -> None:
         for line in proc.stdout:
@@ -96,6 +157,13 @@ class JackServer:
                 self.proc.kill()
                 self.proc.wait()
         self.proc = None
+
+    def release(self) -> None:
+        """The server stopped and its name free for another."""
+        self.stop()
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
 
 
 class Player:
@@ -170,4 +238,4 @@ def jack_server():
     srv = JackServer()
     srv.start()
     yield srv
-    srv.stop()
+    srv.release()

@@ -118,7 +118,7 @@ class Cell:
     def close(self) -> None:
         self.player.close()
         self.d.stop()
-        self.server.stop()
+        self.server.release()
 
 
 @pytest.fixture(scope="module")
