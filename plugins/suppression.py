@@ -174,7 +174,11 @@ class SuppressionAnalyzer(Analyzer):
         elif s.quantity == "feed_mm_rev" and s.value > 0:
             self.geometry.feed_mm = self.cut.feed_mm_rev = s.value
         elif s.quantity == "tool_number":
-            self.cut.tool_number = int(s.value)    # a tool change between passes: its own cures
+            was, self.cut.tool_number = self.cut.tool_number, int(s.value)   # its own cures
+            if self.in_cut and was != self.cut.tool_number:
+                # a turret indexes out of the cut: a change seen in one is a late poll, and the
+                # whole cut is the new tool's (its model, or none)
+                self.policy = self._policy()
         elif s.quantity == "x_mm" and self.geometry.x_axis:
             self.geometry.x(s.value)
         elif s.quantity == "depth_of_cut_mm":

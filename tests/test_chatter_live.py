@@ -208,7 +208,8 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         bar = [c for c in cuts if c["tool_number"] == 2 and c["outcome"] == "chatter"]
         turning = [c for c in cuts if c["tool_number"] == 1]
         assert bar and turning, cuts
-        assert all(c["model"] is None for c in bar) and all(c["model"] == "configured" for c in turning)
+        assert all(c["model"] is None for c in bar) and all(c["model"] == "configured" for c in turning), \
+            [(c["tool_number"], c["model"], c["outcome"], c.get("start_s"), c.get("duration_s")) for c in cuts]
         acts = [e["payload"] for e in events(d, "suppression_action")]
         assert acts and all(a["strategy"] == "sss_frequency" and a["model"] is None for a in acts), acts
         assert "tool 1" in d.item("analyzers", "suppress")["summary"]

@@ -85,3 +85,27 @@ def test_a_model_refitted_for_one_turret_tool_is_not_loaded_for_another(make):
     assert again.model_name == "configured"
     (ev,) = h.events("stability_model_superseded")
     assert "another tool_number than the configuration gives now" in ev["why"]
+
+
+def test_a_tool_number_read_late_in_the_cut_gives_the_cut_its_tool(make):
+    """The register is polled: after an index the cut can start before the new number is read.
+    A turret indexes out of the cut, so the number seen in it is the whole cut's tool."""
+    h = make(tool_number=1)
+    _with_tool(h.an, 2, 0.5, alarms=0)           # the previous pass: tool 2
+
+    async def late():
+        t = time.time()
+        await h.an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+        await h.an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t))
+        await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 2.2, "mm", t))
+        await h.an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+        await h.an._on_machine(Sample("lathe", "tool_number", 1.0, "", t + 0.05))   # read a poll late
+        await h.an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t + 0.5))
+        await h.an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t + 0.5))
+        await h.an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.6))
+        await h.an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.6))
+    asyncio.run(late())
+    last = h.events("cut")[-1]
+    assert (last["tool_number"], last["model"]) == (1, "configured")
+    # tool 1's lobes: no speed within reach is stable at 2.2 mm, so advice, not a model-free move
+    assert h.sent == [] and len(h.events("suppression_advice")) == 1
