@@ -52,15 +52,17 @@ def test_real_chatter_onset_is_found():
 @need_real
 def test_real_files_without_a_reference(capsys):
     # without --reference: both stable files are broadband, Gaussian and level (stable);
-    # c_425_020's chatter grows within it (chatter); c_770_005 chatters from its first sample
-    # with a broad band near 900 Hz whose envelope is Gaussian-like: not the narrow,
-    # self-excited line the physics expects, its level wandering: unknown, never stable
-    want = {"s_320_010": "stable", "s_570_002": "stable", "c_425_020": "chatter", "c_770_005": "unknown"}
+    # c_425_020's chatter grows within it (chatter); c_770_005 chatters from its first sample,
+    # its 900 Hz band a comb of narrow lines a revolution apart, off the spindle's harmonics
+    # (verdict.py's comb, chatter.comb): chatter modulated once a revolution
+    want = {"s_320_010": "stable", "s_570_002": "stable", "c_425_020": "chatter", "c_770_005": "chatter"}
     for name, label, rpm in FILES:
         code, out, err = _cli([str(REAL / f"{name}.mat"), "--var", "tsDS", "--rpm", str(rpm), "--json"], capsys)
         res = json.loads(out)
         assert code == 0 and res["verdict"] == want[name], (name, res["verdict"], res["reason"])
         assert res["reason"] and res["evidence"]["verdict"] in ("stable", "chatter", "unknown")
+        if name == "c_770_005":
+            assert "narrow lines" in res["reason"] and "off the spindle's harmonics" in res["reason"], res["reason"]
 
 
 @need_real

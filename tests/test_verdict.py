@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from lathed.analysis.chatter.cases import b_lim_mm
+from lathed.analysis.chatter.comb import find_comb
 from lathed.analysis.chatter.shape import SpectralShape
 from lathed.analysis.chatter.verdict import judge
 from lathed.analysis.regen import Segment, simulate_cut
@@ -62,3 +63,37 @@ def test_the_shape_index_is_one_for_a_change_of_level_and_grows_for_a_new_line()
     t = np.arange(n) / 51200.0
     line = shape.index(shape.bands(rng.standard_normal(n) + 2.0 * np.sin(2 * np.pi * 650.0 * t)))
     assert 0.7 < louder < 1.4 and line > 3.0, (louder, line)
+
+
+def _comb(rpm: float, share: float, seed: int, rate: float, **kw):
+    # 5 s: lines a revolution apart at these speeds need the resolution of a long stretch
+    rec = simulate_cut([Segment(6.0, rpm, round(share * b_lim_mm(rpm), 2))], seed=seed, rate_hz=rate, **kw)
+    x = rec.signal[int(rate):]
+    v = judge(x, rate, rpm)
+    return v, find_comb(x, rate, rpm, 0.95 * v.frequency_hz, 1.05 * v.frequency_hz)
+
+
+@pytest.mark.parametrize("rpm, rate", [(425.0, 10000.0), (425.0, 51200.0), (570.0, 10000.0)])
+def test_chatter_below_1000_rpm_is_a_comb_off_the_harmonics(rpm, rate):
+    # chatter that leaves the cut every revolution is modulated once a revolution: narrow lines
+    # a revolution apart at a non-zero offset from the spindle's harmonics (comb.py)
+    v, comb = _comb(rpm, 1.6 if rpm < 500 else 2.5, 1, rate)
+    assert v.verdict == "chatter"
+    assert comb is not None and comb.off_harmonic, comb and comb.describe()
+    assert abs(comb.spacing_hz / (rpm / 60.0) - 1) <= 0.05
+
+
+@pytest.mark.parametrize("rpm", [320.0, 425.0, 570.0, 770.0])
+@pytest.mark.parametrize("kw", [{"flat_fraction": 0.2}, {"flat_fraction": 0.2, "runout_um": 30.0}],
+                         ids=["flat", "flat+runout"])
+def test_a_stable_cuts_forced_lines_sit_on_the_harmonics(rpm, kw):
+    # a flat's impulses make a comb too, but on k x the revolution rate: not chatter
+    v, comb = _comb(rpm, 0.6, 1, 10000.0, **kw)
+    assert comb is not None and not comb.off_harmonic and v.verdict == "stable", comb and comb.describe()
+
+
+@pytest.mark.parametrize("rpm", [320.0, 425.0])
+def test_a_stable_cut_near_its_limit_is_no_comb_off_the_harmonics(rpm):
+    # its sharpened mode's random peak is no comb whose offset the resolution can place
+    v, comb = _comb(rpm, 0.85, 1, 10000.0)
+    assert v.verdict == "stable" and (comb is None or not comb.off_harmonic)

@@ -15,7 +15,8 @@ low harmonics notched out of the chatter band:
          oscillation's is steady, cv near 0 (0.05-0.2 on the simulated chatter above 1000 r/min)
 
 "chatter": share >= CHATTER_SHARE, or a steady envelope (cv <= STEADY_CV) over a band holding at
-least half the power.  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
+least half the power, or the band is a comb of narrow lines off the spindle's harmonics (comb.py:
+chatter modulated once a revolution, as it is where it leaves the cut every revolution).  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
 Else "unknown", with the reason.  Both are ratios: the sensor's gain cancels.  The constants are
 from the physics above and the simulated cuts (tests/test_verdict.py), none from a recording.
 """
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lathed.analysis.chatter.comb import MIN_COMB_SHARE, find_comb
 from lathed.analysis.chatter.spectrum import fast_len
 
 BAND_REL = 0.05        # the band judged: +-5 % of its frequency (a mode's peak, chatter's wander)
@@ -92,6 +94,10 @@ def judge(x: np.ndarray, rate_hz: float, rpm: float, mains_hz: tuple[float, ...]
             f"its envelope varying by {cv:.2f} of its mean")
     if share >= CHATTER_SHARE or (share >= 0.5 and cv <= STEADY_CV and cycles >= MIN_CYCLES):
         return Verdict("chatter", f"{what}: a self-excited vibration that dominates the floor", fc, share, cv)
+    comb = find_comb(x, rate_hz, rpm, fc * (1 - BAND_REL), fc * (1 + BAND_REL), mains_hz)
+    if comb is not None and comb.off_harmonic and comb.share >= MIN_COMB_SHARE:
+        return Verdict("chatter", f"{what}; the band is {comb.describe()}: a self-excited vibration "
+                       "modulated once a revolution, not the spindle's forced lines", fc, share, cv)
     if cycles < MIN_CYCLES:
         return Verdict("unknown", f"{what}: too few cycles of that band to tell ({cycles:.0f})", fc, share, cv)
     if share <= STABLE_SHARE and cv >= GAUSSIAN_CV:

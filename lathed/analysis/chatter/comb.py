@@ -1,0 +1,128 @@
+"""Is the dominant band a comb of narrow lines off the spindle's harmonics? (docs/chatter.md)
+
+Below about 1000 r/min regenerative chatter leaves the cut for part of every revolution, so its
+vibration is modulated once a revolution: the chatter frequency fc = (k + eps) f_rev shows as a
+comb of narrow lines fc + m f_rev, all at the same non-zero offset eps from the spindle's
+harmonics.  A stable cut's forced lines (runout, a flat's or a keyway's impulses) sit on
+k f_rev (eps = 0), and a stable cut's excited mode is a broad random peak, not lines.  The true
+revolution rate is taken from the lines' spacing (a loaded spindle slips below its nominal speed).
+
+Every constant below is statistics or physics; none was set on a recording:
+  LINE_FALSE     a line must stand over the band's median power by as much as a Gaussian
+                 vibration's periodogram bin (chi-square, 2 degrees of freedom: P(x > a median)
+                 = 2**-a) reaches with this probability over the whole band
+  NARROW         a line holds most of the power within +-0.4 of a spacing around it within +-0.1
+                 of a spacing (a flat floor holds a quarter there, a broad mode's peak little more;
+                 a line's width is its frequency's wander with the spindle's speed, not a bin)
+  SLIP           the spindle's true speed within this fraction of its nominal one
+  SIGMAS         the offset must stand this many standard errors from a harmonic, the error
+                 propagated from the frequency resolution (a bin's width / sqrt(12) per line)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lathed.analysis.chatter.spectrum import fast_len
+
+LINE_FALSE = 0.01     # chance of one false line in the band from a Gaussian floor
+NARROW = 0.1          # a line: at least half its neighbourhood's power within +-0.1 spacing of its peak
+MIN_LINES = 3         # a comb: the carrier and two sidebands
+MIN_COMB_SHARE = 0.5  # ... whose lines hold most of the band's power (the band *is* the comb)
+SLIP = 0.05           # a loaded spindle's speed within 5 % of its nominal
+SIGMAS = 3.0
+MIN_SPACING_BINS = 8  # the spacing must span this many bins to tell lines from the floor between
+
+
+@dataclass
+class Comb:
+    lines_hz: list[float]       # the comb's lines, strongest first
+    spacing_hz: float           # their spacing: the true revolution rate
+    offset: float               # the carrier's offset from the spindle's harmonics, in spacings (0..1)
+    margin: float               # how far from 0 and 1 the offset must be (SIGMAS standard errors)
+    share: float                # the lines' power over the band's
+
+    @property
+    def off_harmonic(self) -> bool:
+        return self.margin < 0.5 and self.margin < self.offset < 1.0 - self.margin
+
+    def describe(self) -> str:
+        return (f"{len(self.lines_hz)} narrow lines ({self.share:.0%} of the band's power) spaced "
+                f"{self.spacing_hz:.3f} Hz ({60 * self.spacing_hz:.0f} r/min), at {self.offset:.2f} of a "
+                f"spacing off the spindle's harmonics (+-{self.margin:.2f} resolvable)")
+
+
+def find_comb(x: np.ndarray, rate_hz: float, rpm: float, f_lo: float, f_hi: float,
+              exclude_hz: tuple[float, ...] = ()) -> Comb | None:
+    """The comb of narrow lines spaced near ``rpm``/60 in f_lo..f_hi, or None (no comb there).
+    ``exclude_hz``: line frequencies that are not the process's (the mains' multiples' base)."""
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    nf = fast_len(n)
+    p = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), nf)) ** 2
+    df = rate_hz / nf
+    fr = rpm / 60.0
+    if fr * (1 - SLIP) < MIN_SPACING_BINS * df:
+        return None
+    i0, i1 = int(math.ceil(f_lo / df)), min(int(f_hi / df), len(p) - 2)
+    if i1 - i0 < 3 * fr / df:
+        return None
+    band = p[i0:i1 + 1]
+    floor = float(np.median(band))
+    total = float(band.sum())
+    if not floor > 0:
+        return None
+    snr = math.log2(len(band) / LINE_FALSE)
+    h = int(0.4 * fr * (1 - SLIP) / df)
+    nb = max(int(NARROW * fr * (1 - SLIP) / df), 2)
+    lines: list[tuple[float, float, float]] = []    # (power near the line, frequency, neighbourhood power)
+    for j in np.flatnonzero(band > snr * floor):
+        i = i0 + int(j)
+        a, b = max(i - h, 0), min(i + h + 1, len(p))
+        if p[i] < p[a:b].max():
+            continue                                 # not the highest within its neighbourhood
+        if any(m > 0 and abs(i * df - m * round(i * df / m)) <= nb * df for m in exclude_hz):
+            continue
+        near = float(p[i - nb:i + nb + 1].sum())
+        if near < 0.5 * float(p[a:b].sum()):
+            continue                                 # a broad peak, not a line
+        # the peak refined by a parabola through the log power (a Hann window's lobe)
+        y0, y1, y2 = np.log(p[i - 1:i + 2])
+        den = y0 - 2 * y1 + y2
+        d = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+        lines.append((near, (i + d) * df, float(p[a:b].sum())))
+    if len(lines) < MIN_LINES:
+        return None
+    lines.sort(reverse=True)
+    f0 = lines[0][1]
+    # spacing: least squares through the strongest line, each line a whole number of spacings off
+    m = np.array([round((f - f0) / fr) for _, f, _ in lines])
+    f = np.array([f for _, f, _ in lines])
+    keep = np.ones(len(m), bool)
+    seen: set[int] = set()
+    for i, mi in enumerate(m):                      # one line per comb position (the strongest)
+        keep[i] = mi not in seen
+        seen.add(int(mi))
+    m, f = m[keep], f[keep]
+    w = [ln for ln, k in zip(lines, keep) if k]
+    if len(m) < MIN_LINES or not (m != 0).any():
+        return None
+    s = float(np.sum(m * (f - f0)) / np.sum(m * m))
+    if abs(s / fr - 1.0) > SLIP:
+        return None
+    on = np.abs(f - f0 - m * s) <= 2 * df           # lines on the comb, to within the resolution
+    if on.sum() < MIN_LINES:
+        return None
+    m, f = m[on], f[on]
+    s = float(np.sum(m * (f - f0)) / np.sum(m * m))
+    share = sum(ln[0] for ln, o in zip(w, on) if o) / total
+    carrier = float(np.mean(f - m * s))             # the carrier's frequency from all the lines
+    q = carrier / s
+    offset = q - math.floor(q)
+    # standard errors from the resolution: a line's frequency to df / sqrt(12)
+    sf = df / math.sqrt(12.0)
+    s_err = sf / math.sqrt(float(np.sum(m * m)))
+    q_err = math.hypot(sf / math.sqrt(len(m)) / s, q * s_err / s)
+    return Comb([float(v) for v in f], s, offset, SIGMAS * q_err, share)
