@@ -92,8 +92,10 @@ def test_a_stable_cuts_forced_lines_sit_on_the_harmonics(rpm, kw):
     assert comb is not None and not comb.off_harmonic and v.verdict == "stable", comb and comb.describe()
 
 
-@pytest.mark.parametrize("rpm", [320.0, 425.0])
-def test_a_stable_cut_near_its_limit_is_no_comb_off_the_harmonics(rpm):
-    # its sharpened mode's random peak is no comb whose offset the resolution can place
-    v, comb = _comb(rpm, 0.85, 1, 10000.0)
-    assert v.verdict == "stable" and (comb is None or not comb.off_harmonic)
+def test_a_stable_cut_near_its_limit_can_show_regenerations_comb_and_stays_stable():
+    # regeneration makes a comb between the harmonics in a stable cut near its limit too (10 s at
+    # 320 r/min, 0.85 x: lines 17-94 x their floor, at 0.46 of a spacing off the harmonics): the
+    # comb is reported, not taken as chatter
+    rec = simulate_cut([Segment(11.0, 320.0, round(0.85 * b_lim_mm(320.0), 2))], seed=11, rate_hz=10000.0)
+    v = judge(rec.signal[10000:], 10000.0, 320.0)
+    assert rec.label == "stable" and v.verdict == "stable" and v.comb, (v.verdict, v.comb)

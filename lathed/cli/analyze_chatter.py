@@ -299,8 +299,9 @@ def _verdict(alarms, referenced: bool, evidence, wins, allowance: float) -> tupl
         return evidence.verdict, evidence.reason
     top = max((w.index for w in wins if w.judged and math.isfinite(w.index)), default=math.nan)
     if not top < allowance:
+        comb = f"; the band is {evidence.comb}" if evidence.comb else ""
         return "unknown", (f"{evidence.reason}; but its level rose to {top:.2f} x its start (a stable "
-                           f"cut's holds within {allowance:g} x): give --reference to tell")
+                           f"cut's holds within {allowance:g} x){comb}: give --reference to tell")
     return "stable", f"{evidence.reason}; no chatter onset, its level held within {top:.2f} x its start"
 
 

@@ -8,9 +8,10 @@ k f_rev (eps = 0), and a stable cut's excited mode is a broad random peak, not l
 revolution rate is taken from the lines' spacing (a loaded spindle slips below its nominal speed).
 
 Every constant below is statistics or physics; none was set on a recording:
-  LINE_FALSE     a line must stand over the band's median power by as much as a Gaussian
-                 vibration's periodogram bin (chi-square, 2 degrees of freedom: P(x > a median)
-                 = 2**-a) reaches with this probability over the whole band
+  LINE_FALSE     a line must stand over the band's median power, and over the median of its own
+                 neighbourhood (+-0.4 of a spacing: a smooth random peak is its own floor), by as
+                 much as a Gaussian vibration's periodogram bin (chi-square, 2 degrees of freedom:
+                 P(x > a median) = 2**-a) reaches with this probability over the whole band
   NARROW         a line holds most of the power within +-0.4 of a spacing around it within +-0.1
                  of a spacing (a flat floor holds a quarter there, a broad mode's peak little more;
                  a line's width is its frequency's wander with the spindle's speed, not a bin)
@@ -83,6 +84,8 @@ def find_comb(x: np.ndarray, rate_hz: float, rpm: float, f_lo: float, f_hi: floa
         a, b = max(i - h, 0), min(i + h + 1, len(p))
         if p[i] < p[a:b].max():
             continue                                 # not the highest within its neighbourhood
+        if p[i] <= snr * float(np.median(p[a:b])):
+            continue                                 # a random peak's top: no line over its own floor
         if any(m > 0 and abs(i * df - m * round(i * df / m)) <= nb * df for m in exclude_hz):
             continue
         near = float(p[i - nb:i + nb + 1].sum())

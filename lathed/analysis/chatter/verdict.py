@@ -15,8 +15,9 @@ low harmonics notched out of the chatter band:
          oscillation's is steady, cv near 0 (0.05-0.2 on the simulated chatter above 1000 r/min)
 
 "chatter": share >= CHATTER_SHARE, or a steady envelope (cv <= STEADY_CV) over a band holding at
-least half the power, or the band is a comb of narrow lines off the spindle's harmonics (comb.py:
-chatter modulated once a revolution, as it is where it leaves the cut every revolution).  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
+least half the power.  Whether the band is a comb of narrow lines off the spindle's harmonics
+(comb.py) is reported, not judged: regeneration makes one in chatter modulated once a revolution
+and in a stable cut near its limit alike (docs/chatter.md).  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
 Else "unknown", with the reason.  Both are ratios: the sensor's gain cancels.  The constants are
 from the physics above and the simulated cuts (tests/test_verdict.py), none from a recording.
 """
@@ -50,11 +51,12 @@ class Verdict:
     frequency_hz: float | None      # where the power concentrates most
     share: float                    # the power within +-BAND_REL of it, over the band's
     cv: float                       # that band's envelope's coefficient of variation
+    comb: str | None = None         # the band as a comb of narrow lines off the harmonics (comb.py), if it is
 
     def as_dict(self) -> dict:
         r = lambda v, n: None if v is None or not math.isfinite(v) else round(v, n)    # noqa: E731
         return {"verdict": self.verdict, "reason": self.reason, "frequency_hz": r(self.frequency_hz, 1),
-                "share": r(self.share, 3), "cv": r(self.cv, 3)}
+                "share": r(self.share, 3), "cv": r(self.cv, 3), "comb": self.comb}
 
 
 def judge(x: np.ndarray, rate_hz: float, rpm: float, mains_hz: tuple[float, ...] = (50.0, 60.0),
@@ -92,19 +94,18 @@ def judge(x: np.ndarray, rate_hz: float, rpm: float, mains_hz: tuple[float, ...]
     cv = _envelope_cv(spec, band, n, int(TREND_S * rate_hz))
     what = (f"{share:.0%} of the vibration's power lies within {BAND_REL:.0%} of {fc:.0f} Hz, "
             f"its envelope varying by {cv:.2f} of its mean")
+    found = find_comb(x, rate_hz, rpm, fc * (1 - BAND_REL), fc * (1 + BAND_REL), mains_hz)
+    comb = (f"{found.describe()}: regeneration's comb (chatter modulated once a revolution, or a stable "
+            "cut near its limit)") if found and found.off_harmonic and found.share >= MIN_COMB_SHARE else None
     if share >= CHATTER_SHARE or (share >= 0.5 and cv <= STEADY_CV and cycles >= MIN_CYCLES):
-        return Verdict("chatter", f"{what}: a self-excited vibration that dominates the floor", fc, share, cv)
-    comb = find_comb(x, rate_hz, rpm, fc * (1 - BAND_REL), fc * (1 + BAND_REL), mains_hz)
-    if comb is not None and comb.off_harmonic and comb.share >= MIN_COMB_SHARE:
-        return Verdict("chatter", f"{what}; the band is {comb.describe()}: a self-excited vibration "
-                       "modulated once a revolution, not the spindle's forced lines", fc, share, cv)
+        return Verdict("chatter", f"{what}: a self-excited vibration that dominates the floor", fc, share, cv, comb)
     if cycles < MIN_CYCLES:
-        return Verdict("unknown", f"{what}: too few cycles of that band to tell ({cycles:.0f})", fc, share, cv)
+        return Verdict("unknown", f"{what}: too few cycles of that band to tell ({cycles:.0f})", fc, share, cv, comb)
     if share <= STABLE_SHARE and cv >= GAUSSIAN_CV:
-        return Verdict("stable", f"{what}: broadband and Gaussian, as a stable cut's", fc, share, cv)
+        return Verdict("stable", f"{what}: broadband and Gaussian, as a stable cut's", fc, share, cv, comb)
     why = ("it dominates but its envelope varies as a random vibration's" if share > STABLE_SHARE
            else "its envelope is steadier than a random vibration's, yet it does not dominate")
-    return Verdict("unknown", f"{what}: {why}", fc, share, cv)
+    return Verdict("unknown", f"{what}: {why}", fc, share, cv, comb)
 
 
 def _envelope_cv(spec: np.ndarray, band: np.ndarray, n: int, trend: int) -> float:
