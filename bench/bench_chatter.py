@@ -317,8 +317,12 @@ def _cut_spans(rec, gap_s: float = 0.15):
 def part_program_table(names, seeds: int, seed_base: int) -> list[str]:
     """lathed.analysis.chatter.cases: each part-program feature at 1000/2000/3000 r/min, stable
     (0.8 x the limit) and as a control (1.6 x), ``seeds`` draws each; the detector reset at every
-    cut the simulated depth shows (a groove's far side, the tool change's next tool), fed no air."""
+    cut the simulated depth shows (a groove's far side, the tool change's next tool), fed no air.
+    names: detector names, or (label, name, params) (the --variant columns)."""
     from lathed.analysis.chatter.cases import FEATURES, feature_cases
+    cols = [n if isinstance(n, tuple) else (n, n, {}) for n in names]
+    names = [lb for lb, _, _ in cols]
+    make = {lb: (n, params) for lb, n, params in cols}
     rows = {f: {n: [0, 0, 0, 0, []] for n in names} for f in FEATURES}   # fa, stable, miss, controls, delays
     for name, feature, kind, segs, seed in feature_cases(seeds, seed_base=seed_base - 1000):
         rec = simulate_cut(segs, name, seed=seed)
@@ -326,7 +330,7 @@ def part_program_table(names, seeds: int, seed_base: int) -> list[str]:
             print(f"warning: {name!r} came out {rec.label}", file=sys.stderr)
             continue
         for n in names:
-            det = make_detector(n, rec.rate_hz)
+            det = make_detector(make[n][0], rec.rate_hz, **make[n][1])
             first = None
             for a, b in _cut_spans(rec):
                 det.reset()
@@ -556,13 +560,17 @@ def main(argv=None) -> int:
     print("\n".join(surface_table(recs, 2.0 if args.quick else 3.0)))
     print("\nStable depth changes within one cut, not in the corpus above (cuts that alarmed, of 5 "
           "seeds; a draw that chattered is left out):\n")
+    # the --variant rows as columns too: what each rule buys against the false alarms (docs/chatter.md)
+    variant_cols = [(DEFAULT_DETECTOR + "".join(f" {k}={v:g}" for k, v in params.items()), DEFAULT_DETECTOR, params)
+                    for n, params in variants[len(names):] if n == DEFAULT_DETECTOR and params
+                    and "_reference" not in params and params != {"load_scaled": 1.0}]
     shoulder_cols = names + ([(f"{DEFAULT_DETECTOR} load_scaled=1", DEFAULT_DETECTOR, {"load_scaled": 1.0})]
-                             if DEFAULT_DETECTOR in names else [])
+                             if DEFAULT_DETECTOR in names else []) + variant_cols
     print("\n".join(shoulder_table(shoulder_cols, 2.0 if args.quick else 3.0, args.seed_base, sim_kw)))
     print("\nPart-program features (lathed.analysis.chatter.cases; docs/chatter.md): false alarms on the "
           "stable ones (0.8 x the limit), missed controls (the same feature at 1.6 x) and the controls' "
           "median delay in revolutions after chatter is visible; 2 seeds each at 1000/2000/3000 r/min:\n")
-    print("\n".join(part_program_table([DEFAULT_DETECTOR], 2, args.seed_base)))
+    print("\n".join(part_program_table([DEFAULT_DETECTOR] + variant_cols, 2, args.seed_base)))
     print("\nLong stable cuts with the baseline learned mid-cut (10 s seen from its second second "
           "on, as a recording or a baseline re-learned after a speed change sees a cut: no entry "
           "ring in the learning windows; cuts that alarmed, of 4 seeds per speed):\n")

@@ -159,8 +159,7 @@ def test_a_stable_cut_raises_no_alarm_live_and_replayed(cell, name, rpm, seconds
     strict=True, reason="known limit (issue 38): c_770_005 chatters from its first sample and its first "
     "3 s rise 1.55 x with the spectrum's shape unchanged; the shape gate, which keeps a stable cut's "
     "wander and a sensor's gain from alarming (bench_chatter's mid-cut table 5/24 and 14/24 -> 0 and "
-    "1-2), holds that back too; the whole file's verdict (its comb) says chatter offline, but the "
-    "verdict is not used live (docs/chatter.md, known limits)"))])
+    "1-2), holds that back too (docs/chatter.md, known limits)"))])
 def test_a_chattering_cut_alarms_live_and_the_recording_says_so_too(cell, name, rpm, tmp_path):
     alarms, rec, wav = cell.cut(name, rpm, 3.0)
     assert alarms, f"no chatter alarm live on {name}"

@@ -73,7 +73,7 @@ def _comb(rpm: float, share: float, seed: int, rate: float, **kw):
     return v, find_comb(x, rate, rpm, 0.95 * v.frequency_hz, 1.05 * v.frequency_hz)
 
 
-@pytest.mark.parametrize("rpm, rate", [(425.0, 10000.0), (425.0, 51200.0), (570.0, 10000.0)])
+@pytest.mark.parametrize("rpm, rate", [(425.0, 10000.0), (570.0, 10000.0)])   # 10 kHz: the envelope costs less
 def test_chatter_below_1000_rpm_is_a_comb_off_the_harmonics(rpm, rate):
     # chatter that leaves the cut every revolution is modulated once a revolution: narrow lines
     # a revolution apart at a non-zero offset from the spindle's harmonics (comb.py)
