@@ -38,7 +38,10 @@ def _reference(modes, kf, rpm, depth_mm, feed_mm, n, flat_fraction=0.0):
     th_hist, s_hist, ys, inc = [], [], [], []
     for k in range(n):
         th = (k + 1) * dth
-        sb = np.interp(th - 2 * np.pi, th_hist, s_hist, left=0.0) if th_hist else 0.0
+        # th_hist[i] = (i + 1) dth: the pair around one revolution back lies near index j, and
+        # np.interp over a few points around it gives what it gives over the whole history
+        j = max(0, int((th - 2 * np.pi) / dth) - 3)
+        sb = np.interp(th - 2 * np.pi, th_hist[j:j + 6], s_hist[j:j + 6], left=0.0) if th_hist else 0.0
         geo = h0 + sb
         y = c @ x
         flat = (th % (2 * np.pi)) < 2 * np.pi * flat_fraction
