@@ -13,6 +13,7 @@ Runs in threads of the bench's process, each loop its own; lathed-opcua at its u
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import resource
 import socket
 import statistics
@@ -171,7 +172,16 @@ class Storm(Threaded):
         asyncio.run(self._main())
 
     async def _main(self) -> None:
-        await asyncio.gather(*(self._client(i) for i in range(STORM_CLIENTS)))
+        clients = asyncio.gather(*(self._client(i) for i in range(STORM_CLIENTS)))
+        while not (self.stop.is_set() or clients.done()):
+            await asyncio.sleep(0.1)
+        # the load is over: a client waiting on a request (up to its 30 s timeout) is not waited
+        # for; one closing its session is given a few seconds, then left (the server is stopped next)
+        clients.cancel()
+        await asyncio.wait({clients}, timeout=5.0)
+        clients.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await clients
 
     async def _client(self, i: int) -> None:
         from asyncua import Client, ua
@@ -189,6 +199,8 @@ class Storm(Threaded):
                     nodes = [await _lathe_node(c, "Spindle", n) if n != "Override" else
                              await _override(c) for n in WATCHED]
                     for _ in range(STORM_SUBS):
+                        if self.stop.is_set():       # the load is over: asking on would hold up join()
+                            break
                         try:
                             sub = await c.create_subscription(STORM_MS, Count())
                             self.subs += 1
