@@ -27,6 +27,8 @@ def pytest_sessionstart(session):
 
 def pytest_collection_finish(session):
     gc.enable()
+
+
 BIN = Path(sys.executable).parent
 
 
@@ -89,6 +91,21 @@ IDENTITY_REGISTERS = '\n[machine.lathe.identity]\nserial_number = { address = 36
 IDENTITY = '\n[machine.lathe.identification]\nserial_number = "SIM-LATHE-0001"\n' + IDENTITY_REGISTERS
 # the simulated CNC has it; the default config does not map it (real controls rarely report it)
 DEPTH_REGISTER = 'depth_of_cut_mm = { address = 20, type = "float32", unit = "mm" }\n'
+
+
+DEFAULT_CONFIG = (ROOT / "etc" / "lathed.toml").read_text()
+
+
+def default_table(name: str) -> str:
+    """The ``[analyzer.NAME]`` table of the shipped default config, verbatim."""
+    m = re.search(rf"^\[analyzer\.{name}\]\n.*?(?=^\s*$|\Z)", DEFAULT_CONFIG, re.S | re.M)
+    assert m, f"no [analyzer.{name}] in etc/lathed.toml"
+    return m.group(0)
+
+
+def events(d, kind: str, limit: int = 1000) -> list[dict]:
+    """The daemon's newest ``limit`` events of ``kind``, oldest first, as `lathectl events` lists them."""
+    return json.loads(d.ctl("events", "--kind", kind, "--limit", str(limit), "--json").stdout)
 
 
 def without_dangling_read_on(text: str) -> str:

@@ -8,23 +8,10 @@ from contextlib import contextmanager
 
 import pytest
 
-from tests.conftest import DEPTH_REGISTER, ROOT, Daemon, sim_call, sim_config, wait_until
-
-DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
-
-
-def default_table(name: str) -> str:
-    """The ``[analyzer.NAME]`` table of the shipped default config, verbatim."""
-    m = re.search(rf"^\[analyzer\.{name}\]\n.*?(?=^\s*$|\Z)", DEFAULT, re.S | re.M)
-    assert m, f"no [analyzer.{name}] in etc/lathed.toml"
-    return m.group(0)
+from tests.conftest import DEPTH_REGISTER, Daemon, default_table, events, sim_call, sim_config, wait_until
 
 
 CHATTER = default_table("chatter")
-
-
-def events(d, kind: str) -> list[dict]:
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "200", "--json").stdout)
 
 
 def sim_set(d, depth) -> dict:
@@ -221,7 +208,6 @@ def test_a_turret_tool_the_model_is_not_for_is_handled_model_free_live(tmp_path)
         assert all("with tool 2" in p["reason"] for p in parts if p["tools"] == "2" and p["chatter_alarms"])
         assert any(p["chatter_alarms"] for p in parts if p["tools"] == "2"), parts
         assert not any(p["chatter_alarms"] for p in parts if p["tools"] == "1"), parts
-
 
 
 def test_light_passes_are_judged_with_the_cutting_feed_signal_live(tmp_path):

@@ -166,7 +166,7 @@ def test_a_lathe_read_over_mtconnect_raises_chatter_alarms_and_flags_parts_live(
     import re
 
     from tests.conftest import Daemon, free_port, sim_call, sim_config, wait_until
-    from tests.test_chatter_live import default_table, events
+    from tests.conftest import default_table, events
 
     port = free_port()
     items = "".join(f'{k} = "{v}"\n' for k, v in ITEMS.items())

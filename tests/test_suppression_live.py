@@ -10,23 +10,10 @@ import signal
 
 import pytest
 
-from tests.conftest import DEPTH_REGISTER, ROOT, Daemon, sim_call, sim_config, wait_until
-
-DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
-
-
-def default_table(name: str) -> str:
-    """The ``[analyzer.NAME]`` table of the shipped default config, verbatim."""
-    m = re.search(rf"^\[analyzer\.{name}\]\n.*?(?=^\s*$|\Z)", DEFAULT, re.S | re.M)
-    assert m, f"no [analyzer.{name}] in etc/lathed.toml"
-    return m.group(0)
+from tests.conftest import DEPTH_REGISTER, Daemon, default_table, events, sim_call, sim_config, wait_until
 
 
 ANALYZERS = default_table("chatter") + "\n" + default_table("suppress")
-
-
-def events(d, kind: str) -> list[dict]:
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "500", "--json").stdout)
 
 
 def sim_set(d, depth) -> dict:

@@ -17,16 +17,7 @@ from lathed.analysis.thermal import Candidate
 from lathed.sim.thermal import generate_run
 from lathed.store import Store
 from lathed_plugins.thermal import MIN_REFIT_ROWS
-from tests.conftest import ROOT, sim_call, wait_until
-
-DEFAULT = (ROOT / "etc" / "lathed.toml").read_text()
-
-
-def default_table(name: str) -> str:
-    """The ``[analyzer.NAME]`` table of the shipped default config, verbatim."""
-    m = re.search(rf"^\[analyzer\.{name}\]\n.*?(?=^\s*$|\Z)", DEFAULT, re.S | re.M)
-    assert m, f"no [analyzer.{name}] in etc/lathed.toml"
-    return m.group(0)
+from tests.conftest import default_table, events, sim_call, wait_until
 
 
 STEP_S = 1.0                 # the analyzer's default evaluation step
@@ -38,10 +29,6 @@ RATE_UM_S = float(re.search(r"^rate_um_s = ([\d.]+)", THERMAL, re.M).group(1))
 # the restart test's spindle: standing until the cold touch-off, then one speed
 STANDING_RPM = 60.0           # the slowest the simulated control takes
 RUNNING_RPM = 2500.0
-
-
-def events(d, kind: str) -> list[dict]:
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "1000", "--json").stdout)
 
 
 def lathe_offset(d) -> float | None:
