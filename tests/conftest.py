@@ -32,6 +32,27 @@ def pytest_collection_finish(session):
 BIN = Path(sys.executable).parent
 
 
+# Seconds each test file took in a full run (tests/durations.py writes it from a --durations=0 log)
+DURATIONS = ROOT / "tests" / "durations.json"
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """`make test` runs a file's tests together on one worker (--dist loadfile), files in the
+    order of collection (--no-loadscope-reorder): the longest first, so that what is left at
+    the end is short and neither worker idles long while the other finishes a long file. Only
+    the order depends on the figures; a file not in them counts as the median one."""
+    try:
+        seconds = json.loads(DURATIONS.read_text())
+    except (OSError, ValueError):
+        return
+    median = sorted(seconds.values())[len(seconds) // 2] if seconds else 0.0
+    files: dict[str, list] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
+    order = sorted(files, key=lambda f: -seconds.get(f, median))
+    items[:] = [item for f in order for item in files[f]]
+
+
 def disk_full(store, table: str) -> None:
     """``store`` refuses every row of ``table`` as a full disk does, until ``disk_free``."""
     store.submit(f"CREATE TEMP TRIGGER disk_full BEFORE INSERT ON {table} "
