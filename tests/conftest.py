@@ -125,8 +125,16 @@ def default_table(name: str) -> str:
 
 
 def events(d, kind: str, limit: int = 1000) -> list[dict]:
-    """The daemon's newest ``limit`` events of ``kind``, oldest first, as `lathectl events` lists them."""
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", str(limit), "--json").stdout)
+    """The daemon's newest ``limit`` events of ``kind``, oldest first, as `lathectl events --json`
+    lists them: asked in this process while the daemon runs (the tests poll it), through
+    lathectl once it has stopped (lathectl then reads them from its database)."""
+    from lathed.client import DaemonUnavailable, RemoteError, call
+    try:
+        return call("events", {"limit": limit, "kind": kind, "source": None}, sock_path=d.socket, timeout=60)
+    except RemoteError as e:
+        raise AssertionError(f"lathectl events --kind {kind}: lathed refused: {e}") from None
+    except DaemonUnavailable:
+        return json.loads(d.ctl("events", "--kind", kind, "--limit", str(limit), "--json").stdout)
 
 
 def without_dangling_read_on(text: str) -> str:
