@@ -215,6 +215,7 @@ def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 200))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seconds", [10.0])   # the issue's figure: every peer gone 10 s
 def test_every_peer_killed_and_restarted(tmp_path, seconds):
     """Each peer in turn down for ``seconds``; every driver returns within 5 s;

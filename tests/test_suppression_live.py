@@ -158,6 +158,7 @@ def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
     assert d.item("analyzers", "suppress")["last_action"]["sent"] is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("registers", [DEPTH_REGISTER, ""], ids=["depth register", "depth from spindle load"])
 def test_avoid_changes_speed_at_cut_entry_when_the_lobes_predict_chatter(sim_daemon, registers):
     # predicting needs the depth: a machine's depth register, else the spindle load's estimate

@@ -275,6 +275,7 @@ def test_the_default_view_acts_only_for_its_own_page(stack):
     assert act(c2, t2, f"http://{own}")[0] == 200
 
 
+@pytest.mark.slow
 def test_pages_that_read_nothing_are_cut_and_the_daemon_link_stays(stack):
     """Issue 35 case 7: pages that stop reading (and ones that vanish) cost lathed-web a bounded
     amount and are cut; its subscription to the daemon is never dropped for them; no traceback."""
