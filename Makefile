@@ -131,7 +131,7 @@ install-venv:
 	PIP_ROOT_USER_ACTION=ignore $(STAGE)/bin/pip install -q --no-compile -c constraints.txt \
 		"$$(echo "$$tmp"/dist/lathed-*.whl)$(if $(strip $(EXTRAS)),[$(strip $(EXTRAS))])"
 	@if [ -n "$(DESTDIR)" ]; then grep -rlIF -- '$(STAGE)' $(STAGE) | xargs -r sed -i 's|$(STAGE)|$(LIBDIR)|g'; fi
-	$(STAGE)/bin/python -m compileall -q -f $(if $(DESTDIR),-s '$(DESTDIR)' -p /) $(STAGE)/lib
+	$(STAGE)/bin/python -m compileall -q -f -j 0 $(if $(DESTDIR),-s '$(DESTDIR)' -p /) $(STAGE)/lib
 # how a missing extra is added to this venv (lathed/extras.py says it)
 	echo "prefix=$(PREFIX)" > $(STAGE)/lathed-install
 
