@@ -23,7 +23,7 @@ from lathed.opcua.app import Settings
 from lathed.opcua.nodesets import DI, MACHINE_TOOL, MACHINERY, UA
 from lathed.opcua.space import NAMESPACE
 from lathed.web import accounts
-from tests.conftest import BIN, ROOT, Daemon, free_port, shipped_config, sim_call, wait_until
+from tests.conftest import BIN, ROOT, Daemon, events, free_port, shipped_config, sim_call, wait_until
 
 CLIENT_URI = "urn:lathed:test-client"
 WATCHDOG_S = 10.0    # asyncua 2's client probes the server every 1 s and reconnects after a 1 s stall: a loaded CI has those
@@ -203,10 +203,6 @@ async def encrypted(url: str, key: Path, cert: Path, user: str | None = None, pw
     return c
 
 
-def _events(d, kind: str) -> list[dict]:
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "20", "--json").stdout)
-
-
 # -- the tests ------------------------------------------------------------------------
 def test_a_client_finds_every_machine_in_the_40501_layout(stack):
     async def go():
@@ -356,7 +352,7 @@ def test_a_chatter_alarm_arrives_as_an_event_within_a_second(stack):
             sub = await c.create_subscription(50, got)
             await sub.subscribe_events(await lathe_node(c, "mt:Notification", "mt:Messages"), etype)
             await sub.subscribe_events(c.nodes.server, etype)
-            known = {e["id"] for e in _events(d, "chatter_alarm")}
+            known = {e["id"] for e in events(d, "chatter_alarm", 20)}
             # every cut now goes 3 mm deep, past the lobes' limit: the next cut chatters
             wait_until(lambda: sim_call(d.paths["sim"], "set", {"depth_mm": 3.0}), what="simulator control")
             seen = []
@@ -369,7 +365,7 @@ def test_a_chatter_alarm_arrives_as_an_event_within_a_second(stack):
         seen, known = asyncio.run(go())
     finally:
         sim_call(d.paths["sim"], "set", {"depth_mm": None})
-    alarm = [e for e in _events(d, "chatter_alarm") if e["id"] not in known][0]
+    alarm = [e for e in events(d, "chatter_alarm", 20) if e["id"] not in known][0]
     for at, ev in seen:
         assert ev.RecordId == alarm["id"] and ev.Severity == 800 and ev.SourceName == "lathe"
         assert json.loads(ev.Payload)["chatter_frequency_hz"] == alarm["payload"]["chatter_frequency_hz"]
@@ -402,7 +398,7 @@ def test_the_suppression_mode_is_written_only_by_an_operator_and_through_the_dae
     assert asyncio.run(write(None, None, "off")).value == denied            # anonymous
     assert asyncio.run(write("victor", "victor-pw", "off")).value == denied  # a viewer
     assert d.item("analyzers", "suppress")["mode"] == "auto"
-    assert [e for e in _events(d, "suppression_mode") if e["payload"]["to"] == "off"] == []
+    assert [e for e in events(d, "suppression_mode", 20) if e["payload"]["to"] == "off"] == []
     with pytest.raises(ua.uaerrors.BadUserAccessDenied):    # a wrong password: no session at all
         asyncio.run(write("olga", "wrong", "off"))
     assert asyncio.run(write("olga", "olga-pw", "fast")).value == ua.StatusCodes.BadOutOfRange
@@ -410,7 +406,7 @@ def test_the_suppression_mode_is_written_only_by_an_operator_and_through_the_dae
         assert asyncio.run(write("olga", "olga-pw", "manual")).is_good()
         assert d.item("analyzers", "suppress")["mode"] == "manual"
         # the daemon's own command, recorded with the OPC UA user's name
-        last = _events(d, "suppression_mode")[-1]["payload"]
+        last = events(d, "suppression_mode", 20)[-1]["payload"]
         assert (last["to"], last["by"]) == ("manual", "olga")
     finally:
         d.ctl("suppress", "auto")

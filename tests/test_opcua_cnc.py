@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import re
 import threading
 import time
@@ -26,7 +25,7 @@ from lathed.sim.pki import ensure_pki
 from lathed.supervisor import cancel_and_wait
 from lathed.ua_session import Refused
 from lathed_plugins.opcua_cnc import OpcUaCNC
-from tests.conftest import ROOT, Daemon, free_port, shipped_config, sim_call, wait_until
+from tests.conftest import ROOT, Daemon, events, free_port, shipped_config, sim_call, wait_until
 
 SHIPPED = ROOT / "etc" / "lathed-cell-opcua.toml"
 LATHE = tomllib.loads(SHIPPED.read_text())["machine"]["lathe"]
@@ -405,10 +404,6 @@ def test_a_speed_written_as_an_override_and_released(plant):
         control.set(**BASE)
 
 
-def _events(d, kind: str) -> list[dict]:
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "1000", "--json").stdout)
-
-
 @pytest.mark.slow
 def test_the_shipped_opcua_cell_cures_chatter_and_rides_out_a_server_restart(tmp_path):
     """etc/lathed-cell-opcua.toml, as shipped (SignAndEncrypt, a user): the lathe over OPC UA
@@ -425,12 +420,12 @@ def test_the_shipped_opcua_cell_cures_chatter_and_rides_out_a_server_restart(tmp
         d.wait_ready()
         wait_until(lambda: d.item("machines", "lathe")["state"] == "connected", timeout=60, what="lathe connected")
         # the 3 mm passes chatter and are cured
-        cured = wait_until(lambda: [c for c in _events(d, "cut") if c["payload"].get("cured")], timeout=90,
+        cured = wait_until(lambda: [c for c in events(d, "cut") if c["payload"].get("cured")], timeout=90,
                            interval=0.5, what="a chattering pass cured")
         assert cured[0]["payload"]["depth_mm"] > 2.5 and cured[0]["payload"]["outcome"] == "chatter"
-        assert _events(d, "chatter_alarm")
+        assert events(d, "chatter_alarm")
         def sent():
-            return [e["payload"] for e in _events(d, "command_sent") if e["payload"]["machine"] == "lathe"]
+            return [e["payload"] for e in events(d, "command_sent") if e["payload"]["machine"] == "lathe"]
         assert any(p["action"] == "spindle_rpm" and p["by"] == "suppress" for p in sent()), sent()
         offsets = wait_until(lambda: [p["value"] for p in sent() if p["action"] == "offset_x_um"], timeout=30,
                              interval=0.5, what="a thermal offset written")
@@ -440,7 +435,7 @@ def test_the_shipped_opcua_cell_cures_chatter_and_rides_out_a_server_restart(tmp
 
         # the control's OPC UA server restarts: 2 s without it
         parts_before = sim_call(sim, "status")["part"]
-        early = [e["t"] for e in _events(d, "machine_fault") if e["source"] == "lathe"]
+        early = [e["t"] for e in events(d, "machine_fault") if e["source"] == "lathe"]
         sim_call(sim, "outage", {"peer": "opcua", "seconds": 2})
         wait_until(lambda: d.item("machines", "lathe")["state"] != "connected", timeout=10, what="the link lost")
         wait_until(lambda: d.item("machines", "lathe")["state"] == "connected", timeout=30, what="the link back")
@@ -448,19 +443,19 @@ def test_the_shipped_opcua_cell_cures_chatter_and_rides_out_a_server_restart(tmp
         assert lathe["link"]["subscription"]["id"] != first and lathe["model"]["part_count"]["stale"] is False
         wait_until(lambda: sim_call(sim, "status")["part"] >= parts_before + 1, timeout=30, interval=0.5,
                    what="a part after the restart")
-        faults = [e for e in _events(d, "machine_fault") if e["source"] == "lathe" and e["t"] not in early]
+        faults = [e for e in events(d, "machine_fault") if e["source"] == "lathe" and e["t"] not in early]
         assert faults, "no fault recorded for the restart"
         down = faults[0]["t"]
         # recorded once the link has held a while (one record a spell); down_s: from the fault to
         # the connect that ended it
-        rec = wait_until(lambda: [e for e in _events(d, "machine_recovered") if e["source"] == "lathe"
+        rec = wait_until(lambda: [e for e in events(d, "machine_recovered") if e["source"] == "lathe"
                                   and e["t"] > down], timeout=30, interval=0.5, what="the recovery recorded")
         up = down + rec[0]["payload"]["down_s"]
-        assert not [e for e in _events(d, "command_sent") if e["payload"]["machine"] == "lathe"
+        assert not [e for e in events(d, "command_sent") if e["payload"]["machine"] == "lathe"
                     and down <= e["t"] < up]
-        assert all("held in safe state" in e["payload"]["refused"] for e in _events(d, "command_refused")
+        assert all("held in safe state" in e["payload"]["refused"] for e in events(d, "command_refused")
                    if e["payload"]["machine"] == "lathe" and down <= e["t"] < up)
-        counts = [e["payload"]["part_count"] for e in _events(d, "part_completed") if e["source"] == "lathe"]
+        counts = [e["payload"]["part_count"] for e in events(d, "part_completed") if e["source"] == "lathe"]
         assert counts == list(range(counts[0], counts[0] + len(counts))), counts     # none lost, none twice
         assert counts[-1] == sim_call(sim, "status")["registers"]["part_count"] or \
             counts[-1] == sim_call(sim, "status")["registers"]["part_count"] - 1     # the last step in flight

@@ -1,7 +1,6 @@
 """Configuration reload on SIGHUP (issue 17 item 7): live values at once, structural changes refused."""
 from __future__ import annotations
 
-import json
 import signal
 from types import SimpleNamespace
 
@@ -9,12 +8,8 @@ import numpy as np
 
 from lathed.config import Section
 from lathed_plugins.chatter import ChatterAnalyzer
-from tests.conftest import wait_until
+from tests.conftest import events, wait_until
 from tests.test_chatter_live import CHATTER
-
-
-def _events(d, kind):
-    return json.loads(d.ctl("events", "--kind", kind, "--limit", "20", "--json").stdout)
 
 
 def test_sighup_applies_live_values_and_refuses_structural_changes(sim_daemon):
@@ -25,7 +20,7 @@ def test_sighup_applies_live_values_and_refuses_structural_changes(sim_daemon):
     text = cfg.read_text().replace("spindle_rpm_max = 6000.0", "spindle_rpm_max = 4000.0")
     cfg.write_text(text + "\n[analyzer.chatter.params]\nthreshold = 3.5\n")
     d.proc.send_signal(signal.SIGHUP)
-    done = wait_until(lambda: _events(d, "config_reloaded"), timeout=20, what="config_reloaded")
+    done = wait_until(lambda: events(d, "config_reloaded", 20), timeout=20, what="config_reloaded")
     assert sorted(done[-1]["payload"]["changed"]) == ["[analyzer.chatter]", "[machine.lathe.limits]"]
     wait_until(lambda: d.item("analyzers", "chatter")["threshold"] == 3.5, timeout=20, what="threshold 3.5 live")
     ch = d.item("analyzers", "chatter")
@@ -36,13 +31,13 @@ def test_sighup_applies_live_values_and_refuses_structural_changes(sim_daemon):
     cfg.write_text(text.replace("threshold = 3.5", "threshold = 5.0").replace('stale_after = "5s"',
                                                                             'stale_after = "7s"'))
     d.proc.send_signal(signal.SIGHUP)
-    refused = wait_until(lambda: _events(d, "config_reload_refused"), timeout=20, what="config_reload_refused")
+    refused = wait_until(lambda: events(d, "config_reload_refused", 20), timeout=20, what="config_reload_refused")
     assert refused[-1]["payload"]["problems"] == ["[sensor.temps] stale_after changed (restart lathed to apply)"]
     assert d.item("analyzers", "chatter")["threshold"] == 3.5
     # a config that does not parse is refused with its error, the daemon goes on
     cfg.write_text("[daemon\n")
     d.proc.send_signal(signal.SIGHUP)
-    wait_until(lambda: len(_events(d, "config_reload_refused")) == 2, timeout=20, what="second refusal")
+    wait_until(lambda: len(events(d, "config_reload_refused", 20)) == 2, timeout=20, what="second refusal")
     assert d.status()["daemon"]["state"] == "running"
 
 
