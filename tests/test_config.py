@@ -194,7 +194,7 @@ machine = "lathe"
 strategy = "frequency"
 avoid = true
 """
-    code, err = check(tmp_path, text)
+    code, err = refused(tmp_path, text)
     assert code == 78 and err.splitlines()[0] == ('lathed: FILE: [analyzer.suppress] avoid: predicting chatter at '
                                                   'cut entry needs strategy = "lobes" (and its modes)'), err
 
@@ -218,18 +218,18 @@ machine = "lathe"
 
 def test_one_bad_key_is_one_error_not_its_follow_ons(tmp_path):
     # issue 18 D10: the analyzers referring to the refused machine were each reported too
-    code, err = check(tmp_path, BASE.replace("port = 15020", "port = 15020\nprot = 1", 1) + ANALYZERS)
+    code, err = refused(tmp_path, BASE.replace("port = 15020", "port = 15020\nprot = 1", 1) + ANALYZERS)
     assert code == 78
     assert err == "lathed: FILE: [machine.lathe] prot: unknown key; did you mean port? allowed keys here: " + \
         err.split("allowed keys here: ", 1)[1]
     assert len(err.splitlines()) == 1, err
     # an analyzer naming a machine that is not configured at all is still an error
-    code, err = check(tmp_path, BASE + ANALYZERS.replace('machine = "lathe"', 'machine = "lath"'))
+    code, err = refused(tmp_path, BASE + ANALYZERS.replace('machine = "lathe"', 'machine = "lath"'))
     assert code == 78 and "'lath' is not a configured machine" in err
 
 
 def test_a_config_with_nothing_to_run_is_refused(tmp_path):
-    code, err = check(tmp_path, '[daemon]\nname = "t"\nstate_dir = "state"\nruntime_dir = "run"\n')
+    code, err = refused(tmp_path, '[daemon]\nname = "t"\nstate_dir = "state"\nruntime_dir = "run"\n')
     assert (code, err) == (78, "lathed: FILE: nothing to run: no [machine.*], [sensor.*] or [analyzer.*] table")
 
 
@@ -269,7 +269,7 @@ def test_simulator_links_must_be_in_a_directory_only_we_can_write(tmp_path):
     shared = tmp_path / "shared"
     shared.mkdir()
     shared.chmod(0o777)
-    code, err = check(tmp_path, BASE + f'\n[simulator]\nserial_link = "{shared / "ttyARDUINO"}"\n')
+    code, err = refused(tmp_path, BASE + f'\n[simulator]\nserial_link = "{shared / "ttyARDUINO"}"\n')
     assert code == 78
     assert err == (f"lathed: FILE: [simulator] serial_link: unsafe place for the simulator's tty link: "
                    f"{shared} is writable by others (mode 0777)")
@@ -300,7 +300,7 @@ def test_checking_the_default_config_imports_neither_scipy_nor_the_simulator():
 def test_a_read_on_trigger_must_name_a_configured_instance(tmp_path):
     text = BASE.replace('spindle_rpm = { address = 2, type = "float32" }',
                         'spindle_rpm = { address = 2, type = "float32", read_on = ["chatr.cutting"] }')
-    code, err = check(tmp_path, text)
+    code, err = refused(tmp_path, text)
     assert (code, err) == (78, "lathed: FILE: [machine.lathe.registers.spindle_rpm] read_on: 'chatr' is not a "
                                "configured analyzer, machine or sensor")
 
