@@ -113,7 +113,7 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
     # ring's revolution difference read as chatter (index 4-6) at the end of stable cuts.
     from lathed.analysis.lobes import StabilityLobes
     from lathed.sim.lathe import LATHE_KF, LATHE_MODES
-    suppress = re.search(r"^\[analyzer\.suppress\]\n.*?(?=^\s*$|\Z)", DEFAULT, re.S | re.M).group(0)
+    suppress = default_table("suppress")
     cfg, paths = sim_config(tmp_path, analyzers=with_detector(detector) + "\n" + suppress + "\navoid = true\n",
                             registers=DEPTH_REGISTER, simulator='program = ["1500,3.0", "2000,3.0"]')
     d = Daemon(cfg, paths["socket"])
