@@ -99,3 +99,21 @@ def test_a_stable_cut_near_its_limit_can_show_regenerations_comb_and_stays_stabl
     rec = simulate_cut([Segment(11.0, 320.0, round(0.85 * b_lim_mm(320.0), 2))], seed=11, rate_hz=10000.0)
     v = judge(rec.signal[10000:], 10000.0, 320.0)
     assert rec.label == "stable" and v.verdict == "stable" and v.comb, (v.verdict, v.comb)
+
+
+@pytest.mark.parametrize("trend", [400, 401])
+def test_the_envelope_trend_is_the_moving_mean_np_convolve_gives(trend):
+    # the trend is a running sum (np.convolve's direct sum took 11 s on a 20 s recording): the
+    # same mean, window and alignment, even or odd, as the convolution it replaced
+    from lathed.analysis.chatter.verdict import _envelope_cv
+    rng = np.random.default_rng(3)
+    n = 6000
+    spec = np.fft.rfft(rng.normal(size=n) * (1 + 0.5 * np.sin(np.arange(n) / 300)))
+    band = np.zeros(len(spec), bool)
+    band[200:900] = True
+    a = np.zeros(n, complex)
+    a[:len(spec)][band] = 2.0 * spec[band]
+    env = np.abs(np.fft.ifft(a))
+    tr = np.convolve(env, np.ones(trend) / trend, mode="same")
+    e = env[trend:-trend] / tr[trend:-trend]
+    assert _envelope_cv(spec, band, n, trend) == pytest.approx(e.std() / e.mean(), rel=1e-12)

@@ -27,6 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 
 from lathed.analysis.chatter.comb import MIN_COMB_SHARE, find_comb
 from lathed.analysis.chatter.spectrum import fast_len
@@ -115,7 +116,8 @@ def _envelope_cv(spec: np.ndarray, band: np.ndarray, n: int, trend: int) -> floa
     a[:len(spec)][band] = 2.0 * spec[band]
     env = np.abs(np.fft.ifft(a)[:n])
     if n > 3 * trend > 0:
-        tr = np.convolve(env, np.ones(trend) / trend, mode="same")
+        # the moving mean as a running sum: np.convolve's direct sum took 11 s on a 20 s recording
+        tr = uniform_filter1d(env, trend)
         e = env[trend:-trend] / np.maximum(tr[trend:-trend], 1e-300)
     else:
         e = env / max(float(env.mean()), 1e-300)
