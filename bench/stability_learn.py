@@ -44,17 +44,17 @@ TEST_CUTS = 1000
 BAR_ACCURACY, BAR_FALSE_STABLE, BAR_CUTS = 0.95, 0.03, 300
 
 
-def _cases(seeds: int, hidden: int):
+def _cases(seeds: int, hidden: int, first_machine: int = 9001):
     for eff in ("none", *UNDECLARED):
         for s in range(5001, 5001 + seeds):
             yield f"{eff}", s, true_dynamics(eff), {}
-    for s in range(9001, 9001 + hidden):
+    for s in range(first_machine, first_machine + hidden):
         true, kw = random_machine(s)
         desc = " + ".join(f"{m.fn_hz:.0f} Hz" for m in true.modes) + (", process damping" if true.process_damping else "")
         yield f"machine {s} ({desc})", s, true, kw
 
 
-def bench_curve(seeds: int, hidden: int, checkpoints: list[int]) -> int:
+def bench_curve(seeds: int, hidden: int, checkpoints: list[int], first_machine: int = 9001) -> int:
     print(f"## Learning curve: the model from the first N cuts alone, judged on the {TEST_CUTS:,} cuts after them\n")
     print("Each cell: accuracy / false stable on the later cuts; (T: the learn called itself trusted; "
           "- : not trusted; x: no model). The bar: accuracy >= 95 %, false stable <= 3 % by 300 cuts.\n")
@@ -62,7 +62,7 @@ def bench_curve(seeds: int, hidden: int, checkpoints: list[int]) -> int:
           "b_min interval holds the true one | learn s (median) |")
     print("|---|---:|" + "---:|" * len(checkpoints) + "---:|---:|---:|")
     misses = 0
-    for name, seed, true, kw in _cases(seeds, hidden):
+    for name, seed, true, kw in _cases(seeds, hidden, first_machine):
         cuts = generate_cuts(true, max(checkpoints) + TEST_CUTS, seed=seed, **kw)
         test = cuts.take(np.arange(max(checkpoints), len(cuts)))
         cells, met, holds, ts = [], None, [0, 0], []
@@ -201,6 +201,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="data sets per undeclared effect")
     ap.add_argument("--hidden", type=int, default=6, help="random machines (seeds 9001...)")
+    ap.add_argument("--first-machine", type=int, default=9001, help="the first random machine's seed")
     ap.add_argument("--cuts", type=int, nargs="+", default=[50, 100, 200, 300], help="learning-curve checkpoints")
     ap.add_argument("--wrong-seeds", type=int, default=2)
     ap.add_argument("--loop-seeds", type=int, default=2)
@@ -210,7 +211,7 @@ def main() -> None:
     ap.add_argument("--skip-loop", action="store_true")
     a = ap.parse_args()
     if not a.skip_curve:
-        bench_curve(a.seeds, a.hidden, sorted(a.cuts))
+        bench_curve(a.seeds, a.hidden, sorted(a.cuts), a.first_machine)
     if not a.skip_wrong:
         bench_wrong_start(a.wrong_seeds)
     if not a.skip_loop:
