@@ -153,11 +153,13 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
           "lobes (hold when no speed within reach is stable), learning again each time the cut speeds grow by "
           "a quarter (stability.learn.Learner, as the daemon). Re-chatters: moves to a speed that chatters "
           "again, in each third of the program (summed over the programs); and per cut, over the cuts run "
-          "model-free (before a learn was trusted, or after one was withdrawn) against the last third.\n")
+          "model-free (before a learn was trusted, or after one was withdrawn) against the last third. "
+          "Cuts ending in chatter: no move left, or held with advice (what holding costs).\n")
     print("| undeclared effect | trusted from cut (median) | re-chatters first third | middle | last | last / first | "
           "re-chatters per cut model-free | last third | last / model-free | moves first third | last | "
-          "held with advice | accuracy of the model in use at the end | learn s (median) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "held with advice | cuts ending in chatter first third | last | accuracy of the model in use at the end | "
+          "learn s (median) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     given = StabilityModel(LATHE_MODES, LATHE_KF)
     b_min = float(given.limit(np.geomspace(300, 6000, 2000))[0].min())
     out = []
@@ -165,6 +167,7 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
         true = true_dynamics(eff, given)
         test = generate_cuts(true, TEST_CUTS, given=given, seed=77)
         rc, mv, held, at, accs, ls, curves, free = [0, 0, 0], [0, 0, 0], 0, [], [], [], [], [0, 0]
+        ended = [0, 0, 0]
         for s in range(seeds):
             rng = np.random.default_rng(3000 + s)
             program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
@@ -174,6 +177,7 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
                 rc[k] += r["thirds"][k]["rechatter"]
                 mv[k] += r["thirds"][k]["moves"]
                 held += r["thirds"][k]["held"]
+                ended[k] += r["thirds"][k]["ended_chattering"]
             at.append(r["trusted_at"] or n_cuts + 1)
             free = [free[0] + r["free"][0], free[1] + r["free"][1]]
             accs.append(r["curve"][-1][3] if r["curve"] and r["curve"][-1][3] is not None else float("nan"))
@@ -187,12 +191,12 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
         ratio2 = f"{per_last / per_free:.2f}" if per_free > 0 else "-"
         print(f"| {eff} | {statistics.median(at):.0f} | {rc[0]} | {rc[1]} | {rc[2]} | {ratio} | "
               f"{per_free:.3f} ({free[0]} cuts) | {per_last:.3f} | {ratio2} | {mv[0]} | {mv[2]} | "
-              f"{held} | {100 * acc:.1f} % | {statistics.median(ls):.1f} |", flush=True)
+              f"{held} | {ended[0]} | {ended[2]} | {100 * acc:.1f} % | {statistics.median(ls):.1f} |", flush=True)
         out.append((eff, rc[0], rc[2]))
         for c in curves[:1]:
             print("|  | learns (cut, cut speeds, verdict, accuracy of the model in use): "
                   + "; ".join(f"{i}, {n}, {w}, {'-' if a is None else f'{100 * a:.1f} %'}" for i, n, w, a in c)
-                  + " |" + " |" * 13)
+                  + " |" + " |" * 15)
     print()
     return out
 
