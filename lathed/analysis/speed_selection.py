@@ -306,7 +306,7 @@ class SuppressionPolicy:
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
     6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes say
-       speed it would move to chatters at this depth (its b_lim below the
+       the speed it would move to chatters at this depth (its b_lim below the
        depth, LobeSelection.advise), and the fallback too,
        the speed is kept and ``observe`` returns an Advice, once: the policy
        is then exhausted for this part, unless the cut gets shallower
@@ -315,8 +315,9 @@ class SuppressionPolicy:
        model error; such moves cure most such cuts).  A fallback the lobes
        say chatters is not taken either (the budget spent, say): the policy
        is exhausted.  Moves to speeds the model itself called chattering
-       re-chattered five times in six in the closed loop from zero.  "move" takes the most
-       stable speed and then the fallback, as the paper's rule would.
+       re-chattered five times in six in the closed loop from zero.  "move"
+       takes the most stable speed and then the fallback, as the paper's rule
+       would.
     """
     strategy: Strategy
     limits: SpindleLimits

@@ -3,8 +3,9 @@ to trust it (docs/stability.md).
 
 ``learn`` fits the model from the cuts alone (lathed.analysis.stability.start)
 on the earlier cuts, decides between the fits without and with process
-damping (on the later cuts of two rolling origins) and lets the residual loop (lathed.analysis.stability.refit) add what
-they lack, all judged on the later cuts; then fits the chosen model on every
+damping (on the later cuts of two rolling origins) and lets the residual
+loop (lathed.analysis.stability.refit) add what they lack, all judged on the
+later cuts; then fits the chosen model on every
 cut and resamples the cuts (bootstrap) for intervals on the minimum stable
 depth and on the best speeds.  It is trusted only when it classifies the
 later cuts well, no worse than a depth threshold fitted on the same cuts
