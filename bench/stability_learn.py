@@ -44,17 +44,17 @@ TEST_CUTS = 1000
 BAR_ACCURACY, BAR_FALSE_STABLE, BAR_CUTS = 0.95, 0.03, 300
 
 
-def _cases(seeds: int, hidden: int):
+def _cases(seeds: int, hidden: int, first_machine: int = 9001):
     for eff in ("none", *UNDECLARED):
         for s in range(5001, 5001 + seeds):
             yield f"{eff}", s, true_dynamics(eff), {}
-    for s in range(9001, 9001 + hidden):
+    for s in range(first_machine, first_machine + hidden):
         true, kw = random_machine(s)
         desc = " + ".join(f"{m.fn_hz:.0f} Hz" for m in true.modes) + (", process damping" if true.process_damping else "")
         yield f"machine {s} ({desc})", s, true, kw
 
 
-def bench_curve(seeds: int, hidden: int, checkpoints: list[int]) -> int:
+def bench_curve(seeds: int, hidden: int, checkpoints: list[int], first_machine: int = 9001) -> int:
     print(f"## Learning curve: the model from the first N cuts alone, judged on the {TEST_CUTS:,} cuts after them\n")
     print("Each cell: accuracy / false stable on the later cuts; (T: the learn called itself trusted; "
           "- : not trusted; x: no model). The bar: accuracy >= 95 %, false stable <= 3 % by 300 cuts.\n")
@@ -62,7 +62,7 @@ def bench_curve(seeds: int, hidden: int, checkpoints: list[int]) -> int:
           "b_min interval holds the true one | learn s (median) |")
     print("|---|---:|" + "---:|" * len(checkpoints) + "---:|---:|---:|")
     misses = 0
-    for name, seed, true, kw in _cases(seeds, hidden):
+    for name, seed, true, kw in _cases(seeds, hidden, first_machine):
         cuts = generate_cuts(true, max(checkpoints) + TEST_CUTS, seed=seed, **kw)
         test = cuts.take(np.arange(max(checkpoints), len(cuts)))
         cells, met, holds, ts = [], None, [0, 0], []
@@ -153,11 +153,13 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
           "lobes (hold when no speed within reach is stable), learning again each time the cut speeds grow by "
           "a quarter (stability.learn.Learner, as the daemon). Re-chatters: moves to a speed that chatters "
           "again, in each third of the program (summed over the programs); and per cut, over the cuts run "
-          "model-free (before a learn was trusted, or after one was withdrawn) against the last third.\n")
+          "model-free (before a learn was trusted, or after one was withdrawn) against the last third. "
+          "Cuts ending in chatter: no move left, or held with advice (what holding costs).\n")
     print("| undeclared effect | trusted from cut (median) | re-chatters first third | middle | last | last / first | "
           "re-chatters per cut model-free | last third | last / model-free | moves first third | last | "
-          "held with advice | accuracy of the model in use at the end | learn s (median) |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+          "held with advice | cuts ending in chatter first third | last | accuracy of the model in use at the end | "
+          "learn s (median) |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     given = StabilityModel(LATHE_MODES, LATHE_KF)
     b_min = float(given.limit(np.geomspace(300, 6000, 2000))[0].min())
     out = []
@@ -165,6 +167,7 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
         true = true_dynamics(eff, given)
         test = generate_cuts(true, TEST_CUTS, given=given, seed=77)
         rc, mv, held, at, accs, ls, curves, free = [0, 0, 0], [0, 0, 0], 0, [], [], [], [], [0, 0]
+        ended = [0, 0, 0]
         for s in range(seeds):
             rng = np.random.default_rng(3000 + s)
             program = list(zip(np.exp(rng.uniform(np.log(1000), np.log(4500), n_cuts)),
@@ -174,6 +177,7 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
                 rc[k] += r["thirds"][k]["rechatter"]
                 mv[k] += r["thirds"][k]["moves"]
                 held += r["thirds"][k]["held"]
+                ended[k] += r["thirds"][k]["ended_chattering"]
             at.append(r["trusted_at"] or n_cuts + 1)
             free = [free[0] + r["free"][0], free[1] + r["free"][1]]
             accs.append(r["curve"][-1][3] if r["curve"] and r["curve"][-1][3] is not None else float("nan"))
@@ -187,12 +191,12 @@ def bench_loop_from_zero(seeds: int, n_cuts: int, depths=(0.6, 1.6)) -> list[tup
         ratio2 = f"{per_last / per_free:.2f}" if per_free > 0 else "-"
         print(f"| {eff} | {statistics.median(at):.0f} | {rc[0]} | {rc[1]} | {rc[2]} | {ratio} | "
               f"{per_free:.3f} ({free[0]} cuts) | {per_last:.3f} | {ratio2} | {mv[0]} | {mv[2]} | "
-              f"{held} | {100 * acc:.1f} % | {statistics.median(ls):.1f} |", flush=True)
+              f"{held} | {ended[0]} | {ended[2]} | {100 * acc:.1f} % | {statistics.median(ls):.1f} |", flush=True)
         out.append((eff, rc[0], rc[2]))
         for c in curves[:1]:
             print("|  | learns (cut, cut speeds, verdict, accuracy of the model in use): "
                   + "; ".join(f"{i}, {n}, {w}, {'-' if a is None else f'{100 * a:.1f} %'}" for i, n, w, a in c)
-                  + " |" + " |" * 13)
+                  + " |" + " |" * 15)
     print()
     return out
 
@@ -201,6 +205,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="data sets per undeclared effect")
     ap.add_argument("--hidden", type=int, default=6, help="random machines (seeds 9001...)")
+    ap.add_argument("--first-machine", type=int, default=9001, help="the first random machine's seed")
     ap.add_argument("--cuts", type=int, nargs="+", default=[50, 100, 200, 300], help="learning-curve checkpoints")
     ap.add_argument("--wrong-seeds", type=int, default=2)
     ap.add_argument("--loop-seeds", type=int, default=2)
@@ -210,7 +215,7 @@ def main() -> None:
     ap.add_argument("--skip-loop", action="store_true")
     a = ap.parse_args()
     if not a.skip_curve:
-        bench_curve(a.seeds, a.hidden, sorted(a.cuts))
+        bench_curve(a.seeds, a.hidden, sorted(a.cuts), a.first_machine)
     if not a.skip_wrong:
         bench_wrong_start(a.wrong_seeds)
     if not a.skip_loop:

@@ -83,7 +83,7 @@ def main() -> int:
             stop(proc, tmp)
     cuts = sorted(cuts, key=lambda c: c["id"])[:a.cuts]
     n = len(cuts)
-    thirds = [[0, 0, 0] for _ in range(3)]      # re-chatters, moves, chatter at entry
+    thirds = [[0, 0, 0, 0] for _ in range(3)]      # re-chatters, moves, chatter at entry, ended in chatter
     for i, c in enumerate(cuts):
         k = min(2, 3 * i // max(n, 1))
         for s in c["payload"]["speeds"]:
@@ -91,6 +91,8 @@ def main() -> int:
             thirds[k][1] += moved and s["trigger"] == "alarm"
             thirds[k][0] += moved and s["outcome"] == "chatter"
             thirds[k][2] += not moved and s["outcome"] == "chatter"
+        speeds = c["payload"]["speeds"]
+        thirds[k][3] += bool(speeds) and speeds[-1]["outcome"] == "chatter"
     first_trusted = min((e["t"] for e in learned), default=None)
     at = next((i + 1 for i, c in enumerate(cuts) if first_trusted is not None and c["t"] > first_trusted), None)
     print(f"## The closed loop from zero, live: {n} cuts of the program (seed {a.seed}) on the simulated lathe, "
@@ -100,6 +102,7 @@ def main() -> int:
     print("| re-chatters (a move that chattered again) | " + " | ".join(str(t[0]) for t in thirds) + " |")
     print("| moves on an alarm | " + " | ".join(str(t[1]) for t in thirds) + " |")
     print("| cuts chattering at entry | " + " | ".join(str(t[2]) for t in thirds) + " |")
+    print("| cuts ending in chatter (held, or no move left) | " + " | ".join(str(t[3]) for t in thirds) + " |")
     ratio = f"{thirds[2][0] / thirds[0][0]:.2f}" if thirds[0][0] else "-"
     print(f"\nre-chatters last / first third: {ratio}; first trusted learn before cut {at}; learns trusted "
           f"{len(learned)}, not trusted {len(untrusted)}; model in use at the end: {status['model']}")

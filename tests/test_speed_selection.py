@@ -239,14 +239,59 @@ def test_policy_holds_and_advises_when_the_model_says_every_speed_within_reach_c
     assert p.advice is None and isinstance(p.observe(0.0, 2000.0, True, 260.0), Advice)
 
 
-def test_policy_moves_as_before_when_a_speed_within_reach_is_above_the_depth():
+def _target(n, b, worst, reach, rpm=2000.0):
+    """The speed the rule moves to when none is stable with the margin: the most stable over
+    the band, the speed just left banned (+-4 %)."""
+    left = reach & ~((n >= 0.96 * rpm) & (n <= 1.04 * rpm))
+    return int(np.flatnonzero(left)[np.argmax(worst[left])])
+
+
+def test_policy_moves_as_before_when_the_speed_it_moves_to_is_above_the_depth():
     n, b, worst, reach = _grid()
+    j = _target(n, b, worst, reach)
     # stable with the margin near 2500 r/min; and above the limit there but not by the margin
-    for depth, stable in ((1.2 * LOBES.b_lim_min_m, True), (0.95 * float(b[reach].max()), False)):
+    for depth, stable in ((1.2 * LOBES.b_lim_min_m, True), (0.95 * float(b[j]), False)):
         assert bool(depth * 1.15 <= worst[reach].max()) is stable
         d_hold = _reach_policy(depth, "hold").observe(0.0, 2000.0, True, 260.0)
         d_move = _reach_policy(depth, "move").observe(0.0, 2000.0, True, 260.0)
         assert d_hold == d_move and d_hold.expected_stable is stable and d_hold.rpm_after <= 2600.0
+
+
+def test_policy_holds_when_the_speed_it_would_move_to_chatters_though_a_narrow_cusp_does_not():
+    """A lobe's cusp above the depth, narrower than the band, is not where the rule moves: it
+    moves to the most stable speed over the band, whose own limit is below the depth.  That
+    move is one the model itself says chatters; it used to be made (the closed loop from zero:
+    five in six such moves chattered again)."""
+    from lathed.analysis.speed_selection import Advice
+    n, b, worst, reach = _grid()
+    j = _target(n, b, worst, reach)
+    depth = 1.05 * float(b[j])
+    assert depth < float(b[reach].max())          # the cusp is above the depth
+    d = _reach_policy(depth, "move").observe(0.0, 2000.0, True, 260.0)
+    assert d.rpm_after == pytest.approx(n[j]) and d.expected_b_lim_mm < depth * 1e3
+    a = _reach_policy(depth, "hold").observe(0.0, 2000.0, True, 260.0)
+    assert isinstance(a, Advice) and a.depth_mm == pytest.approx(depth * 1e3)
+    assert "on a cusp narrower than the lobes' speed band; speed held" in a.advice
+
+
+def test_holding_takes_no_fallback_the_lobes_say_chatters_when_the_budget_is_spent():
+    from lathed.analysis.speed_selection import Advice
+    n, b, worst, reach = _grid()
+    j = _target(n, b, worst, reach)
+    depth = 0.95 * float(b[j])            # above the limit at the rule's speed, not by the margin
+    rated = 750.0
+    assert float(LOBES.b_lim_at(rated)[0][0]) < depth     # the rated speed chatters at this depth
+    for when in ("hold", "move"):
+        p = _reach_policy(depth, when, rated=rated)
+        p.max_changes = 1
+        d = p.observe(0.0, 2000.0, True, 260.0)
+        assert d.strategy == "sss_lobes" and d.rpm_after == pytest.approx(n[j])
+        # it chattered there too; the budget is spent: the fallback is all that is left
+        d = p.observe(1e6, d.rpm_after, True, 260.0)
+        if when == "hold":
+            assert d is None and p.exhausted and len(p.changes) == 1
+        else:
+            assert d.strategy == "rated_speed" and d.expected_stable is False
 
 
 def test_holding_does_not_take_a_rated_speed_above_the_speed_cap():

@@ -128,9 +128,11 @@ class Advice:
 
     @property
     def advice(self) -> str:
+        # a cusp above the depth, narrower than the speed band, is no speed to move to
+        cusp = " on a cusp narrower than the lobes' speed band" if self.best_limit_mm > self.depth_mm else ""
         return (f"no stable speed within {self.min_rpm:.0f}-{self.max_rpm:.0f} r/min at {self.depth_mm:.2f} mm: "
                 f"the model's limit is {self.limit_mm:.2f} mm at {self.rpm:.0f} r/min, at best "
-                f"{self.best_limit_mm:.2f} mm ({self.best_rpm:.0f} r/min); speed held: reduce the depth of cut "
+                f"{self.best_limit_mm:.2f} mm ({self.best_rpm:.0f} r/min){cusp}; speed held: reduce the depth of cut "
                 f"below {self.safe_depth_mm:.2f} mm (stable here with the lobes' margin) or stiffen the set-up")
 
     def record(self) -> dict:
@@ -227,17 +229,22 @@ class LobeSelection:
         n, _, worst = self.grid
         return float(np.interp(rpm, n, worst)) * 1e3
 
-    def advise(self, rpm_now: float, chatter_frequency_hz: float | None = None) -> Advice | None:
-        """When the model says every speed within reach chatters at the cut's depth (b_lim
-        below it), what would cure it; None when a speed's b_lim is above the depth (if not by
-        the margin, a move there is the bet the margin leaves open) or nothing is drivable."""
+    def advise(self, rpm_now: float, chatter_frequency_hz: float | None = None,
+               avoid: Sequence[tuple[float, float]] = ()) -> Advice | None:
+        """When the model says the speed this rule would move to chatters at the cut's depth
+        (its b_lim below it), what would cure it; None when that speed's b_lim is above the
+        depth (if not by the margin, a move there is the bet the margin leaves open) or
+        nothing is drivable.  The speed it would move to is the most stable one over the band
+        among those not in ``avoid``: a peak of b_lim above the depth narrower than the band is
+        not where it goes, so it does not stand against the hold."""
         robust_mm = self.limit_mm(rpm_now)     # builds the grid when not yet there
-        n, b, _ = self.grid
+        n, b, worst = self.grid
         ok = self.cut.drivable(n, self.limits)
         if not ok.any():
             return None
         i = int(np.flatnonzero(ok)[np.argmax(b[ok])])
-        if b[i] > self.cut.depth_m:
+        left = ok & _allowed(n, avoid)
+        if left.any() and b[int(np.flatnonzero(left)[np.argmax(worst[left])])] > self.cut.depth_m:
             return None
         return Advice(rpm_now, self.cut.depth_m * 1e3, float(np.interp(rpm_now, n, b)) * 1e3, float(n[i]),
                       float(b[i]) * 1e3, robust_mm / self.margin, float(n[ok][0]), float(n[ok][-1]),
@@ -299,14 +306,18 @@ class SuppressionPolicy:
        admissible speed or the budget is spent, the ``fallback`` (the paper's
        rated speed) is taken once; after that the policy holds and reports.
     6. ``when_no_stable_speed = "hold"`` (lobe strategy): when the lobes say
-       every speed within reach chatters at this depth (its b_lim below the
+       the speed it would move to chatters at this depth (its b_lim below the
        depth, LobeSelection.advise), and the fallback too,
        the speed is kept and ``observe`` returns an Advice, once: the policy
        is then exhausted for this part, unless the cut gets shallower
-       (``lift_advice``).  Where a speed's limit is above the
+       (``lift_advice``).  Where that speed's limit is above the
        depth but not by the margin, it still moves there (the margin is for
-       model error; such moves cure most such cuts).  "move" takes the most
-       stable speed and then the fallback, as the paper's rule would.
+       model error; such moves cure most such cuts).  A fallback the lobes
+       say chatters is not taken either (the budget spent, say): the policy
+       is exhausted.  Moves to speeds the model itself called chattering
+       re-chattered five times in six in the closed loop from zero.  "move"
+       takes the most stable speed and then the fallback, as the paper's rule
+       would.
     """
     strategy: Strategy
     limits: SpindleLimits
@@ -402,7 +413,7 @@ class SuppressionPolicy:
             decision = self._admissible(self.strategy.select(rpm, chatter_frequency_hz, self.banned))
             if (decision is not None and decision.expected_stable is False and self.when_no_stable_speed == "hold"
                     and isinstance(self.strategy, LobeSelection)):
-                advice = self.strategy.advise(rpm, chatter_frequency_hz)
+                advice = self.strategy.advise(rpm, chatter_frequency_hz, self.banned)
                 fb = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned)) \
                     if fallback_left and advice is not None else None
                 if fb is not None and fb.expected_stable is not False:
@@ -415,6 +426,9 @@ class SuppressionPolicy:
                 # else a speed within reach is above the depth, not by the margin: the most stable one
         if decision is None and fallback_left:
             decision = self._admissible(self.fallback.select(rpm, chatter_frequency_hz, self.banned))
+            if (decision is not None and decision.expected_stable is False and self.when_no_stable_speed == "hold"
+                    and isinstance(self.strategy, LobeSelection)):
+                decision = None        # the lobes say the fallback chatters too: no move to trade chatter
         if decision is None:
             self.exhausted = True
             return None
