@@ -649,3 +649,20 @@ def test_a_flood_of_bad_connections_is_counted_in_the_log_not_written_line_by_li
     wait_until(lambda: sum(shown_and_counted()) == 60, timeout=40, interval=0.5, what="60 lines written or counted")
     shown, counted = shown_and_counted()
     assert 1 <= shown <= 2 * LOG_BURST and counted >= 60 - 2 * LOG_BURST
+
+
+def test_frames_queued_while_busy_are_applied_as_one_in_order():
+    from lathed.opcua.app import coalesced
+    link_down = {"type": "link", "connected": False}
+    batch = [{"type": "frame", "samples": {"lathe/spindle_rpm": [1.0, 2000.0, "r/min"]}, "events": [{"id": 1}]},
+             {"type": "frame", "samples": {"lathe/spindle_rpm": [2.0, 2100.0, "r/min"],
+                                           "lathe/x_mm": [2.0, 5.0, "mm"]}, "events": [{"id": 2}],
+              "status": {"machines": []}},
+             link_down,
+             {"type": "init", "samples": {}},
+             {"type": "frame", "samples": {"lathe/x_mm": [3.0, 6.0, "mm"]}}]
+    out = coalesced(batch)
+    assert [m["type"] for m in out] == ["frame", "link", "init", "frame"]
+    assert out[0]["samples"] == {"lathe/spindle_rpm": [2.0, 2100.0, "r/min"], "lathe/x_mm": [2.0, 5.0, "mm"]}
+    assert out[0]["events"] == [{"id": 1}, {"id": 2}] and out[0]["status"] == {"machines": []}
+    assert batch[0]["samples"] == {"lathe/spindle_rpm": [1.0, 2000.0, "r/min"]}    # the queue's own untouched

@@ -334,30 +334,51 @@ async def _first_status(space: Space, link: UaLink, stop: asyncio.Event) -> None
             pass
 
 
+def coalesced(batch: list[dict]) -> list[dict]:
+    """Frames queued while the address space was busy, merged into one (the newest value of
+    each sample, every event, the last status); a link or init message keeps its place."""
+    out: list[dict] = []
+    for msg in batch:
+        prev = out[-1] if out else None
+        if msg["type"] == "frame" and prev is not None and prev["type"] == "frame":
+            prev["samples"] = {**(prev.get("samples") or {}), **(msg.get("samples") or {})}
+            prev["events"] = [*(prev.get("events") or []), *(msg.get("events") or [])]
+            if msg.get("status"):
+                prev["status"] = msg["status"]
+        else:
+            out.append(dict(msg))
+    return out
+
+
 async def _feed(link: UaLink, space: Space) -> None:
-    """The link's messages into the address space, in order."""
+    """The link's messages into the address space, in order. Under a subscription storm a frame
+    takes long to apply: what queued meanwhile is applied as one frame, so the link keeps
+    reading (the daemon drops a subscriber that does not) and nothing piles up."""
     failing: str | None = None
     while True:
-        msg = await link.queue.get()
-        try:
-            if msg["type"] == "link":
-                await space.daemon_lost()
-            else:
-                if msg["type"] == "init":
-                    space.connected = True
-                    latest = max((e["id"] for e in msg.get("events") or []), default=0)
-                    # first start: the snapshot's events are history; after a reconnection those
-                    # past the last one shown were missed and go out now (a new store starts over)
-                    if space.last_event_id is None or latest < space.last_event_id:
-                        space.last_event_id = latest
-                await space.apply(msg)
-                if msg["type"] == "init":
-                    space.ready.set()
-            failing = None
-        except Exception as e:   # a bug here must not stop the values (the next frame goes on); said once
-            if repr(e) != failing:
-                failing = repr(e)
-                log.exception("apply_failed", type=msg.get("type"))
+        batch = [await link.queue.get()]
+        while not link.queue.empty():
+            batch.append(link.queue.get_nowait())
+        for msg in coalesced(batch):
+            try:
+                if msg["type"] == "link":
+                    await space.daemon_lost()
+                else:
+                    if msg["type"] == "init":
+                        space.connected = True
+                        latest = max((e["id"] for e in msg.get("events") or []), default=0)
+                        # first start: the snapshot's events are history; after a reconnection those
+                        # past the last one shown were missed and go out now (a new store starts over)
+                        if space.last_event_id is None or latest < space.last_event_id:
+                            space.last_event_id = latest
+                    await space.apply(msg)
+                    if msg["type"] == "init":
+                        space.ready.set()
+                failing = None
+            except Exception as e:   # a bug here must not stop the values (the next frame goes on); said once
+                if repr(e) != failing:
+                    failing = repr(e)
+                    log.exception("apply_failed", type=msg.get("type"))
 
 
 def main(argv: list[str] | None = None) -> int:

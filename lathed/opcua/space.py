@@ -266,6 +266,7 @@ class Space:
             await self._guarded("status", self.apply_status(frame["status"]))
         for key, (t, value, unit) in (frame.get("samples") or {}).items():
             await self._guarded(key, self.apply_sample(key, t, value, unit))
+            await asyncio.sleep(0)   # each value fans out to every monitored item: the link reads between
         for e in sorted(frame.get("events") or [], key=lambda e: e["id"]):
             await self._guarded(f"event {e.get('kind')}", self.apply_event(e))
 
