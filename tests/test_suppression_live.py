@@ -259,6 +259,8 @@ def test_a_control_that_takes_the_speed_as_an_override_is_cured_and_released_liv
         d.stop()
 
 
+@pytest.mark.xfail(strict=False, reason="issue 38, open: a live alarm inside a cured pass, seen once in three "
+                                       "full runs on a quiet machine (14:07 min, 2026-11-28), not reproduced alone")
 def test_a_dwell_mid_pass_holds_the_cure_live(tmp_path):
     """A 3 mm pass at 2000 r/min chatters and is cured by an override; halfway along it the feed
     stops for 1 s (G04), the tool in the work: the cutting-feed signal, the spindle load and
