@@ -34,8 +34,8 @@ def have_jackd() -> bool:
     return shutil.which("jackd") is not None or os.path.exists("/usr/bin/jackd")
 
 
-def _leftover(name: str | None) -> list[int]:
-    """jackd processes serving ``name`` (a test run killed before it stopped its server); None: any."""
+def _leftover(name: str) -> list[int]:
+    """jackd processes serving ``name`` (a test run killed before it stopped its server)."""
     pids = []
     for d in os.listdir("/proc"):
         if d.isdigit():
@@ -43,7 +43,7 @@ def _leftover(name: str | None) -> list[int]:
                 args = open(f"/proc/{d}/cmdline", "rb").read().split(b"\0")
             except OSError:
                 continue
-            if args and args[0].endswith(b"jackd") and (name is None or name.encode() in args):
+            if args and args[0].endswith(b"jackd") and name.encode() in args:
                 pids.append(int(d))
     return pids
 
