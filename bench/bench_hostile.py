@@ -782,7 +782,11 @@ def run(a) -> dict:
 def opcua_start(tmp: Path, sock: Path) -> tuple:
     """lathed-opcua beside the daemon, and the fresh-client probe from now on (the floods wait)."""
     ua = hostile_opcua.OpcUa(tmp, sock)
-    ua.wait_serving()
+    try:
+        ua.wait_serving()
+    except BaseException:
+        ua.stop()             # not left running (at 80 % of a core) when the bench gives up on it
+        raise
     return (ua, hostile_opcua.IdleFlood(ua.port), hostile_opcua.Storm(ua.url),
             hostile_opcua.FreshClient(ua.url).start())
 

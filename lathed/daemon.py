@@ -28,6 +28,7 @@ from lathed.args import Args
 from lathed.audit import AuditReserve, ReserveError
 from lathed.control import AcceptErrorLog, ControlServer, SocketInUse, offload
 from lathed.looplag import LagStats, watch
+from lathed.memtrim import keep_trimmed
 from lathed.push import PushHub
 from lathed.recorder import Recorder
 from lathed.plugins import PluginLoader, load_all
@@ -186,6 +187,7 @@ class Daemon:
         notify(f"READY=1\nSTATUS=running: {len(self.plan.drivers)} drivers, {len(self.plan.analyzers)} analyzers")
         watchdog = asyncio.create_task(self._watchdog())
         lag_watch = asyncio.create_task(watch(self.loop_lag))
+        trimming = asyncio.create_task(keep_trimmed())
         self._pruning = asyncio.create_task(self._prune()) if self.settings.keep_days > 0 else None
         await self._stop.wait()
         for t in [self._pruning, *self._reloads]:
@@ -211,6 +213,7 @@ class Daemon:
         try:
             watchdog.cancel()
             lag_watch.cancel()
+            trimming.cancel()
             starting.cancel()
             await asyncio.gather(starting, return_exceptions=True)
             self._step = "stopping analyzers and drivers"
