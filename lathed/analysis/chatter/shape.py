@@ -35,7 +35,8 @@ class SpectralShape:
     def reset(self) -> None:
         self._base: np.ndarray | None = None
         self._base_n = 0
-        self._base_len: int | None = None
+        self._base_len: int | None = None     # the window length the baseline's bands are of
+        self._now_len: int | None = None      # ... and the last window's (bands())
 
     def bands(self, d: np.ndarray) -> np.ndarray:
         n = len(d)
@@ -49,14 +50,35 @@ class SpectralShape:
                 edges.append(min(int(round(f / df)), int(hi / df)))
             self._edges[n] = (nf, np.unique(np.asarray(edges)))
         nf, edges = self._edges[n]
+        self._now_len = n
         ps = np.abs(np.fft.rfft((d - d.mean()) * np.hanning(n), nf)) ** 2
         return np.add.reduceat(ps, edges[:-1])[:len(edges) - 1]
 
+    def _base_for(self, n: int) -> np.ndarray | None:
+        """The baseline as bands of a window ``n`` long.  A new speed makes the windows (a
+        number of revolutions) another length and the bands others: the baseline's power is
+        spread over its bands' frequencies and summed into the new ones, in the new length's
+        scale (a band's power grows with the square of the window's length).  Without this a
+        cure's new speed had no shape to judge against, and chatter there raised no alarm."""
+        b = self._base
+        if b is None or self._base_len is None or n == self._base_len or n not in self._edges:
+            return b
+        nf0, e0 = self._edges[self._base_len]
+        nf1, e1 = self._edges[n]
+        f0 = e0[:len(b) + 1] * (self.rate / nf0)
+        cum = np.concatenate(([0.0], np.cumsum(b)))
+        f1 = e1 * (self.rate / nf1)
+        return np.diff(np.interp(f1, f0, cum)) * (nf1 / nf0) ** 2
+
     def learn(self, bands: np.ndarray) -> None:
-        """A stable window's bands: the baseline is their running mean (restarted when the window
-        length changes with the speed: the bands are then others)."""
+        """A stable window's bands: the baseline is their running mean (carried over to the
+        bands of a new window length when the speed changes)."""
+        n = self._now_len
+        if self._base is not None and n != self._base_len:
+            self._base = self._base_for(n)
         if self._base is None or len(bands) != len(self._base):
             self._base, self._base_n = np.zeros(len(bands)), 0
+        self._base_len = n
         self._base_n += 1
         self._base += (bands - self._base) / self._base_n
 
@@ -66,7 +88,7 @@ class SpectralShape:
 
     def index(self, bands: np.ndarray) -> float:
         """The shape index of these bands against the baseline (nan: none at this window length)."""
-        b = self._base
+        b = self._base_for(self._now_len) if self._now_len is not None else self._base
         if b is None or len(bands) != len(b) or not self._base_n:
             return math.nan
         ok = b > 0
