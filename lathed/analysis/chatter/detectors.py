@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lathed.analysis.chatter.base import RevolutionDetector
-from lathed.analysis.chatter.spectrum import fast_len, median_abs
+from lathed.analysis.chatter.spectrum import fast_len, hann, median_abs
 
 
 class SyncResidualDetector(RevolutionDetector):
@@ -92,7 +92,7 @@ class SpectralRatioDetector(RevolutionDetector):
         x = self._x[start:end]
         n = len(x)
         nf = fast_len(n)
-        ps = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(n), nf)) ** 2
+        ps = np.abs(np.fft.rfft((x - x.mean()) * hann(n), nf)) ** 2
         df = self.rate / nf
         f = np.arange(len(ps)) * df
         frot = rpm / 60.0

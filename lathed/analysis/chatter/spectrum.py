@@ -1,6 +1,8 @@
 """Small spectral helpers the chatter detectors share (numpy only: the daemon does not import scipy)."""
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 def median_abs(x: np.ndarray) -> float:
@@ -16,12 +18,37 @@ def median_abs(x: np.ndarray) -> float:
     return float((a[k - 1] + a[k]) / 2)
 
 
+def median(a: np.ndarray) -> float:
+    """np.median of a 1-D float array, bit for bit (NaN if any element is), without its
+    checks and copies: ``a`` is partitioned in place (a spectrum's band ratios each window)."""
+    n = len(a)
+    if n == 0:
+        return float("nan")
+    k = n // 2
+    if n % 2:
+        a.partition((k, n - 1))           # the last: NaN sorts there, as np.median checks
+        m = float(a[k])
+    else:
+        a.partition((k - 1, k, n - 1))
+        m = float((a[k - 1] + a[k]) / 2)
+    return float("nan") if a[n - 1] != a[n - 1] else m
+
+
+@lru_cache(maxsize=64)
+def hann(n: int) -> np.ndarray:
+    """np.hanning(n), made once per window length (it cost as much as the FFT it weights);
+    read-only, shared. A window's length follows the speed: the last 64 are kept."""
+    w = np.hanning(n)
+    w.flags.writeable = False
+    return w
+
+
 def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> float | None:
     n = len(x)
     if n < 8:
         return None
     nf = fast_len(n)
-    spec = np.abs(np.fft.rfft(x * np.hanning(n), nf))
+    spec = np.abs(np.fft.rfft(x * hann(n), nf))
     f = np.arange(len(spec)) * rate / nf
     band = np.flatnonzero((f >= fmin) & (f <= min(fmax, rate / 2)))
     if band.size < 3:
@@ -35,6 +62,7 @@ def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> fl
     return float(f[i])
 
 
+@lru_cache(maxsize=256)
 def fast_len(n: int) -> int:
     """The smallest 2^a 3^b 5^c >= n: an FFT length numpy's pocketfft does fast
     (scipy.fft would do, but costs the daemon a quarter second to import)."""
