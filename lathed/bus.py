@@ -90,6 +90,9 @@ class Subscription:
 class Bus:
     def __init__(self) -> None:
         self._subs: dict[str, list[Subscription]] = defaultdict(list)
+        # subscriptions that take only the Blocks of a source (an analyzer of the waveform,
+        # not of its rms): a queue's put and get, and a dispatch, fewer per block
+        self._block_subs: dict[str, list[Subscription]] = defaultdict(list)
         self.latest: dict[tuple[str, str], Sample] = {}
         self.published = 0
         self._taps: dict[str, list[Tap]] = {}
@@ -97,18 +100,21 @@ class Bus:
         self.last_tap_failure: str | None = None
         self._dropped_gone: dict[str, int] = defaultdict(int)   # by unsubscribed subscriptions, by name
 
-    def subscribe(self, *sources: str, maxsize: int = 1024, name: str | None = None) -> Subscription:
+    def subscribe(self, *sources: str, maxsize: int = 1024, name: str | None = None,
+                  blocks_only: tuple[str, ...] = ()) -> Subscription:
+        """Every message of ``sources``; of those also in ``blocks_only``, their Blocks alone."""
         sub = Subscription(frozenset(sources), maxsize, name)
         for s in sources:
-            self._subs[s].append(sub)
+            (self._block_subs if s in blocks_only else self._subs)[s].append(sub)
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
         subscribed = False
         for s in sub.sources:
-            if sub in self._subs.get(s, []):
-                self._subs[s].remove(sub)
-                subscribed = True
+            for subs in (self._subs, self._block_subs):
+                if sub in subs.get(s, []):
+                    subs[s].remove(sub)
+                    subscribed = True
         if subscribed and sub.dropped:    # a restarted analyzer subscribes again: its count goes on
             self._dropped_gone[sub.name] += sub.dropped
 
@@ -127,6 +133,9 @@ class Bus:
         self.published += 1
         if isinstance(msg, Sample):
             self.latest[(msg.source, msg.quantity)] = msg
+        else:
+            for sub in self._block_subs.get(msg.source, ()):
+                sub.put(msg)
         for sub in self._subs.get(msg.source, ()):
             sub.put(msg)
         taps = self._taps.get(msg.source)
@@ -146,7 +155,8 @@ class Bus:
 
     def stats(self) -> dict:
         dropped = dict(self._dropped_gone)
-        for sub in {id(sub): sub for subs in self._subs.values() for sub in subs}.values():
+        for sub in {id(sub): sub for by in (self._subs, self._block_subs) for subs in by.values()
+                    for sub in subs}.values():
             if sub.dropped:
                 dropped[sub.name] = dropped.get(sub.name, 0) + sub.dropped
         return {"published": self.published, "taps": sum(map(len, self._taps.values())),

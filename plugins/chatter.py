@@ -125,7 +125,9 @@ class ChatterAnalyzer(Analyzer):
         return make_detector(self.detector_name, rate, extra=extra, **self.params)
 
     async def run(self) -> None:
-        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096, name=self.name)
+        # the sensor's Blocks, not its rms Samples (ignored here, and a queue's work a block)
+        sub = self.ctx.bus.subscribe(self.input, self.machine, maxsize=4096, name=self.name,
+                                     blocks_only=(self.input,))
         watch = asyncio.create_task(self._watch_sight())
         try:
             while True:
@@ -150,10 +152,11 @@ class ChatterAnalyzer(Analyzer):
         elif s.quantity == "spindle_load_pct":
             self.load_pct = s.value
         self._on_cut(self.cut.machine(s.quantity, s.value, s.t, self.rpm))
-        set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
-        if s.quantity == "spindle_load_pct" and self.cutting and set_load is not None:
-            # the static cutting force, for load_scaled (the detector ignores it otherwise)
-            set_load(self.cut.cutting_load(s.value, self.rpm))
+        if s.quantity == "spindle_load_pct" and self.cutting:
+            set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
+            if set_load is not None:
+                # the static cutting force, for load_scaled (the detector ignores it otherwise)
+                set_load(self.cut.cutting_load(s.value, self.rpm))
 
     def _source(self, name: str, on: bool, t: float) -> None:
         """One source's verdict, as the cut state takes it."""

@@ -131,8 +131,7 @@ class Conditioner:
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """One block of full-scale samples -> physical units (float32)."""
-        y = x.astype(np.float64)
-        y *= self.scale
+        y = np.multiply(x, self.scale, dtype=np.float64)    # x.astype(np.float64) * scale, in one pass
         if self._hp is not None:
             pole, g = self._hp
             if self._x_last is None:

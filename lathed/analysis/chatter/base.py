@@ -235,12 +235,18 @@ class RevolutionDetector(AlarmRules):
         dth = 2 * np.pi * rpm / 60.0 / self.rate
         n0 = self._n
         self._x[n0:n0 + k] = x
-        self._th[n0:n0 + k] = self._theta + dth * np.arange(1, k + 1)
+        if len(self._steps) != k:
+            self._steps = np.arange(1, k + 1, dtype=np.float64)     # a block's sample steps, made once
+        th = self._th[n0:n0 + k]
+        np.multiply(self._steps, dth, out=th)         # theta + dth * (1..k), without temporaries
+        th += self._theta
         self._theta += dth * k
         self._n += k
         self._total += k
-        self._d[n0:self._n] = self._x[n0:self._n] - self._delayed(n0, self._n)
+        np.subtract(self._x[n0:self._n], self._delayed(n0, self._n), out=self._d[n0:self._n])
         self._new_samples(n0, self._n)
+
+    _steps = np.empty(0)
 
     def _history(self) -> dict[str, np.ndarray]:
         """Per-sample history arrays kept aligned, by attribute (subclasses add theirs)."""

@@ -97,34 +97,47 @@ class VibrationCutDetector:
         dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / self.frame
         rms = np.sqrt(np.add.reduce(dev * dev, axis=1) / self.frame)
         offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
-        changed = None
         self.contact = None
-        for i, r in enumerate(rms.tolist()):
+        if self.cutting and not (rms < self.off_ratio * self.floor).any():
+            # in the cut, every frame over the exit's level (a block's usual case): no frame
+            # counts towards the exit, nothing changes but the two last frames' rms
+            r = rms.tolist()
+            self._quiet = 0
+            self._last_rms = (self._last_rms[1], r[0]) if nf == 1 else (r[-2], r[-1])
+            return None
+        return self._frames(rms.tolist(), offset0)
+
+    def _frames(self, rms: list[float], offset0: int) -> int | None:
+        """The frames one by one: the floor follows the air frame by frame."""
+        changed = None
+        frame, floor, last = self.frame, self.floor, self._last_rms
+        for i, r in enumerate(rms):
             if not self.cutting:
-                if self.floor is not None and r > self.on_ratio * self.floor:
+                if floor is not None and r > self.on_ratio * floor:
                     self.cutting, self._quiet, self._run = True, 0, 0
                     # the lower of the two frames before: an impulse mid-frame lifts the first
-                    self.entry_jump = r / max(min(self._last_rms), 1e-300)
-                    self._last_rms = (self._last_rms[1], r)
-                    changed = max(0, offset0 + i * self.frame)
+                    self.entry_jump = r / max(min(last), 1e-300)
+                    last = (last[1], r)
+                    changed = max(0, offset0 + i * frame)
                     continue
-                self._last_rms = (self._last_rms[1], r)
-                self._run = self._run + 1 if self.floor is not None and r > self.contact_ratio * self.floor else 0
+                last = (last[1], r)
+                self._run = self._run + 1 if floor is not None and r > self.contact_ratio * floor else 0
                 if self._run == self.contact_frames:
-                    self.contact = max(0, offset0 + (i + 1 - self._run) * self.frame)
+                    self.contact = max(0, offset0 + (i + 1 - self._run) * frame)
                 self._air.push(r)
                 if len(self._air) >= min(4, self.floor_frames):
                     # a low quantile: a knock or a ramp's ringing does not lift it
-                    self.floor = max(self._air.value(), 1e-300)
+                    floor = self.floor = max(self._air.value(), 1e-300)
                     if self.cutting is None:
                         self.cutting = False
             else:
-                self._last_rms = (self._last_rms[1], r)
-                self._quiet = self._quiet + 1 if r < self.off_ratio * self.floor else 0
+                last = (last[1], r)
+                self._quiet = self._quiet + 1 if r < self.off_ratio * floor else 0
                 if self._quiet >= self.off_frames:
                     self.cutting = False
                     self._air.clear()
-                    changed = max(0, offset0 + (i + 1) * self.frame)
+                    changed = max(0, offset0 + (i + 1) * frame)
+        self._last_rms = last
         return changed
 
 
