@@ -92,3 +92,27 @@ def test_what_a_full_subscriber_missed_is_in_stats_by_subscriber_and_logged_once
     bus.subscribe("lathe", maxsize=0, name="records")
     bus.publish(s(9))
     assert bus.stats()["dropped"] == {"records": 4}
+
+
+def test_a_blocks_only_source_gives_its_blocks_and_not_its_samples():
+    """The chatter analyzer takes its sensor's waveform, not the rms published beside each
+    block: a queue's put and get fewer a block (bench/bench_channel_path.py)."""
+    import numpy as np
+
+    from lathed.bus import Block
+
+    async def main():
+        bus = Bus()
+        sub = bus.subscribe("accel", "lathe", blocks_only=("accel",), name="chatter")
+        every = bus.subscribe("accel")
+        block = Block("accel", "acceleration", 51200.0, 0.0, 0, np.zeros(4))
+        bus.publish(block)
+        bus.publish(s(1, "accel"))               # the sensor's rms: not for it
+        bus.publish(s(2))                        # the machine's samples: all of them
+        got = [await sub.get() for _ in range(2)]
+        assert got[0] is block and got[1].value == 2.0 and not sub._items
+        assert len(every._items) == 2
+        bus.unsubscribe(sub)
+        bus.publish(block)
+        assert not sub._items and bus.stats()["dropped"] == {}
+    asyncio.run(main())

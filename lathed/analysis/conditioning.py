@@ -62,7 +62,7 @@ class OnePole:
                 self._powers[n] = (self.p ** k, self.p ** -k)
             fwd, back = self._powers[n]
             w = np.multiply(back, u)
-            np.cumsum(w, out=w)
+            w.cumsum(out=w)                   # the method: np.cumsum's wrapper costs as much again
             w += self.p * self.w
             w *= fwd
             self.w = float(w[-1])

@@ -172,7 +172,11 @@ class RevolutionDetector(AlarmRules):
         self._hold_raw = 0.0        # an alarm raised by growth holds while raw is above this
         if self._fixed_baseline is None or not hasattr(self, "_shape"):   # a reference's shape is kept
             self._shape = SpectralShape(self.rate, self.params["fmin_hz"], self.params["fmax_hz"])
-        self.shape = math.nan               # the last window's shape index (SpectralShape)
+        self.shape = math.nan               # the last window's shape index (SpectralShape), nan unless the
+                                            # shape gate looked at it (_shape_now)
+        self._span: tuple[int, int] = (0, 0)     # the window being judged (buffer indices)
+        self._wb: np.ndarray | None = None       # its band powers, once made (_bands)
+        self._made = False                       # its shape index made (_shape_now)
         self._eye_base_d: np.ndarray | None = None   # the cut's first counted window's d, for the eye
         self._eye_base: tuple[np.ndarray, np.ndarray, float] | None = None   # its eye, made once
         self._reset_extra()
@@ -358,12 +362,12 @@ class RevolutionDetector(AlarmRules):
             raw /= (self._load / self._load_ref) ** self.RAW_POWER
         if self._eye_base_d is None and not settling and not self.OWN_EYE:
             self._eye_base_d = self._d[max(start - EYE_MEMORY, 0):end].copy()
-        bands = self._shape.bands(self._d[start:end])
-        self.shape = self._shape.index(bands)
+        # the window's band powers and shape index, made when first needed (_bands, _shape_now)
+        self._span, self._wb, self._made, self.shape = (start, end), None, False, math.nan
         if self.baseline is None:
             if not settling:
                 self._learn.append(raw)
-                self._shape.learn(bands)
+                self._shape.learn(self._bands())
             if len(self._learn) >= self.params["learn_windows"]:
                 self.baseline = max(float(np.quantile(self._learn, self.params["learn_quantile"])), 1e-300)
                 self._on_learned()
@@ -387,13 +391,14 @@ class RevolutionDetector(AlarmRules):
                        or self._impulse[0] < self._next_end <= self._impulse[1])
             other = settling or self._waiting_for_load(start, end, rpm)
             # a deeper pass: its span is not judged but for growth beyond a stable echo's
-            shoulder, grew_out = self._shoulder(start, end, rpm, raw, bands, other or stepped)
+            shoulder, grew_out = self._shoulder(start, end, rpm, raw, other or stepped)
             index = raw / self.baseline         # the deeper pass may have its own baseline now
             settling = other or stepped or shoulder
             # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape
             # changed (but against a reference, which vouches for the level)
-            shaped = not p["shape_min"] or self._fixed_baseline is not None or self.shape >= p["shape_min"]
-            self._on = self._on + 1 if (index > self.threshold and not settling and shaped) else 0
+            gated = bool(p["shape_min"]) and self._fixed_baseline is None
+            self._on = self._on + 1 if (index > self.threshold and not settling
+                                        and (not gated or self._shape_now() >= p["shape_min"])) else 0
             if self._rising_from_step(start, end, index, stepped, other or shoulder) and not (stepped or shoulder):
                 self._on = max(self._on, p["on_windows"])
             grew = self._growth(start, end, rpm, raw, settling and not shoulder)
@@ -402,7 +407,7 @@ class RevolutionDetector(AlarmRules):
                 raised_by = "threshold"
             elif grew:
                 raised_by = "growth"
-            elif self._cusum_says(index, settling) and shaped:
+            elif self._cusum_says(index, settling) and (not gated or self._shape_now() >= p["shape_min"]):
                 raised_by = "sustained rise"
             if raised_by:
                 self.alarm, self._off = True, 0
@@ -427,13 +432,29 @@ class RevolutionDetector(AlarmRules):
         elif (self._calm is not None and not self._chattered and not settling
               and 0 < index < p["cusum_ratio"]):
             self._follow(raw)
-            self._shape.learn(bands)
+            self._shape.learn(self._bands())
         freq = self._chatter_frequency(start, end, rpm) if self.alarm else None
         return Window(t_s, index, self.threshold, self.alarm, freq, raised_by=raised_by,
                       judged=self.alarm or not settling, shape=self.shape)
 
     def _on_learned(self) -> None:
         pass
+
+    def _bands(self) -> np.ndarray:
+        """This window's band powers (SpectralShape.bands), made once when first needed: by the
+        shape gate, the shape's baseline learning, a deeper pass's span; an alarm's windows and
+        those the gate does not reach never need them (an FFT a window saved)."""
+        if self._wb is None:
+            start, end = self._span
+            self._wb = self._shape.bands(self._d[start:end])
+        return self._wb
+
+    def _shape_now(self) -> float:
+        """This window's shape index (``shape``), against the baseline's bands as they were when
+        the window began: made before anything in the window learns them (_shoulder's end)."""
+        if not self._made:
+            self.shape, self._made = self._shape.index(self._bands()), True
+        return self.shape
 
     # -- the chaos eye, for display -------------------------------------------------
     def eye_views(self) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray] | None]:

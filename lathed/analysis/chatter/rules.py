@@ -67,7 +67,7 @@ class AlarmRules:
         self._grown = self._grown + 1 if grows else 0
         return self._grown >= p["on_windows"]
 
-    def _shoulder(self, start: int, end: int, rpm: float, raw: float, bands, other: bool) -> tuple[bool, bool]:
+    def _shoulder(self, start: int, end: int, rpm: float, raw: float, other: bool) -> tuple[bool, bool]:
         """A deeper pass (a shoulder, a step in the stock): (this window is in its span, chatter
         grew out of it).  rise_ratio: a window whose level is that many times the level a
         revolution earlier, from a cut at its own steady level, is the chip thickening.  Its
@@ -106,7 +106,7 @@ class AlarmRules:
                 self._sh_until = 0
                 return True, True
             if self._next_end < self._sh_until:
-                self._sh_raws.append((raw, bands))
+                self._sh_raws.append((raw, self._bands()))
                 return True, False
             self._sh_until = 0
             self._grown = 0                 # growth within the span was judged against its bound
@@ -121,6 +121,7 @@ class AlarmRules:
                 self.baseline = max(self.baseline, level)
                 self._learned_baseline = max(self._learned_baseline or 0.0, level)
                 self._cusum = 0.0
+                self._shape_now()               # this window's gate reads the shape before the step
                 self._shape.reset()
                 for _, b in last:
                     self._shape.learn(b)
@@ -138,7 +139,7 @@ class AlarmRules:
             # (a level already held over the sum's allowance is rising, not a cut at its own level)
             return False, False
         self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
-        self._sh_raws = [(raw, bands)]
+        self._sh_raws = [(raw, self._bands())]
         self._sh_from = before              # the level before the step
         self._sh_grown = 0
         self._recent.clear()            # growth is looked for from the step on, not across it
@@ -239,7 +240,8 @@ class AlarmRules:
                 return lv
         # a few hundred samples tell a level to a few %, enough against a ratio of 1.5 or more
         a = np.abs(self._x[start:end:max(1, (end - start) // 256)])
-        lv = float(np.partition(a, len(a) // 2)[len(a) // 2])
+        a.partition(len(a) // 2)               # in place: np.partition's copy and wrapper spared
+        lv = float(a[len(a) // 2])
         self._levels.append((at, lv))
         return lv
 

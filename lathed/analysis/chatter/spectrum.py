@@ -48,18 +48,28 @@ def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> fl
     if n < 8:
         return None
     nf = fast_len(n)
-    spec = np.abs(np.fft.rfft(x * hann(n), nf))
-    f = np.arange(len(spec)) * rate / nf
-    band = np.flatnonzero((f >= fmin) & (f <= min(fmax, rate / 2)))
-    if band.size < 3:
+    lo, hi = _band_bins(nf, rate, fmin, fmax)
+    if hi - lo < 3:
         return None
-    i = int(band[np.argmax(spec[band])])
-    if 0 < i < len(spec) - 1:
-        a, b, c = np.log(spec[i - 1:i + 2] + 1e-300)
+    r = np.fft.rfft(x * hann(n), nf)
+    # the magnitudes of the band and a bin either side (the parabola's), not of every bin
+    a0, top = max(lo - 1, 0), len(r) - 1
+    spec = np.abs(r[a0:min(hi + 1, len(r))])
+    i = lo + int(np.argmax(spec[lo - a0:hi - a0]))
+    if 0 < i < top:
+        a, b, c = np.log(spec[i - 1 - a0:i + 2 - a0] + 1e-300)
         den = a - 2 * b + c
         off = 0.5 * (a - c) / den if den < 0 else 0.0
         return float((i + off) * rate / nf)
-    return float(f[i])
+    return float(np.float64(i) * rate / nf)
+
+
+@lru_cache(maxsize=256)
+def _band_bins(nf: int, rate: float, fmin: float, fmax: float) -> tuple[int, int]:
+    """The bins lo..hi (hi excluded) of an nf-point rfft within fmin..fmax, once per length."""
+    f = np.arange(nf // 2 + 1) * rate / nf
+    band = np.flatnonzero((f >= fmin) & (f <= min(fmax, rate / 2)))
+    return (int(band[0]), int(band[-1]) + 1) if band.size else (0, 0)
 
 
 @lru_cache(maxsize=256)

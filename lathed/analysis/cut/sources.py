@@ -86,8 +86,8 @@ class VibrationCutDetector:
     def process(self, x: np.ndarray) -> int | None:
         """Feed samples; returns the sample offset in ``x`` where the state changed
         (the last change in this block), or None."""
-        x = np.asarray(x, dtype=float).ravel()
-        buf = np.concatenate((self._rest, x))
+        x = np.ravel(x)
+        buf = np.concatenate((self._rest, x), dtype=float)     # the cast and the join in one pass
         nf = len(buf) // self.frame
         self._rest = buf[nf * self.frame:]
         if nf == 0:
