@@ -222,11 +222,18 @@ class AlarmRules:
             return True
         return False
 
+    _pair: tuple = ()
+
     def _level_pair(self, start: int, end: int, rpm: float) -> tuple[int, float, float]:
-        """(samples a revolution, this window's level, the level a revolution earlier)."""
+        """(samples a revolution, this window's level, the level a revolution earlier); kept for
+        the window (the level step, the shoulder and the load's wait each ask for it)."""
+        key = (self._next_end, start, end, rpm)
+        if self._pair[:4] == key:
+            return self._pair[4]
         di = int(self.rate * 60.0 / rpm)
-        return (di, self._level(start, end, self._next_end),
-                self._level(start - di, end - di, self._next_end - di))
+        pair = (di, self._level(start, end, self._next_end), self._level(start - di, end - di, self._next_end - di))
+        self._pair = (*key, pair)
+        return pair
 
     def _level(self, start: int, end: int, at: int) -> float:
         """Median |x| over buffer samples start..end, which end at sample ``at`` since reset.

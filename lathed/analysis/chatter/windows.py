@@ -17,7 +17,8 @@ class Window:
                                         # "sustained rise" (the CUSUM: index held above cusum_ratio)
     judged: bool = True                 # False: the index was not judged (learning, a speed change,
                                         # the tool entering or leaving the work, waiting for the load)
-    shape: float = math.nan             # the spectral shape index (chatter.shape): 1 for a change of level
+    shape: float = math.nan             # the spectral shape index (chatter.shape): 1 for a change of level;
+                                        # nan where the shape gate did not need it (it is made only then)
 
 
 # name -> (default, min, max, meaning)
