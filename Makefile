@@ -73,6 +73,10 @@ bench: bench-daemon bench-chatter bench-suppression bench-loop bench-thermal ben
 bench-channels: $(STAMP)
 	bash tests/ensure_jack.sh
 	$(BIN)/python bench/bench_channels.py
+# its per-block path in-process, stage by stage; AGAINST=REV runs REV's code beside this one
+# (alternating, the same signal) and checks both published the same chatter samples
+bench-channel-path: $(STAMP)
+	$(BIN)/python bench/bench_channel_path.py $(if $(AGAINST),--against $(AGAINST))
 # issue 15: both plant protocols
 bench-plant: bench-plant-mqtt bench-plant-opcua
 

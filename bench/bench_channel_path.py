@@ -9,12 +9,14 @@ registers published every 100 ms as its driver does. The signal is the simulator
 cuts, entries, dwells and chatter), made once and fed to every run. Per block and channel:
 the driver (conditioning, the bus), the analyzer's machine samples, its cut state, its
 detector (and the detector's parts), its windows' samples, and the rest (asyncio, the
-subscriptions); total CPU of the loop per block, and its slope over the channels.
+subscriptions): the thread's CPU time in each (a busy machine's preemption not counted; each
+timer adds about a microsecond to the stage around it), per block and channel; then the loop's
+CPU per block and its slope over the channels (what `make bench-channels` measures as % of a core).
 
 With ``--against REV`` the same runs alternate between this checkout and REV (taken out of
 git into a temporary directory), so both are measured under the same load: each stage's
 median over the rounds, the ratio new/old, and a check that both published the same chatter
-samples (every index, threshold, alarm, frequency, to the bit or within --tol).
+samples (every index, threshold, alarm, frequency, to the bit or within --tol; exit 1 if not).
 
     .venv/bin/python bench/bench_channel_path.py [--channels 1,4] [--seconds 30] [--rounds 3]
                                                   [--against REV] [--profile]
@@ -43,24 +45,24 @@ T0 = 3.0e9                                       # the stream's first sample, ho
 
 # the stages, in the order printed; "(...)" ones are parts of the stage above them
 STAGES = [
-    ("driver", "audio_input: one block (conditioning, rms, the gate, the bus)"),
-    ("  conditioning", "(calibration, DC high-pass)"),
+    ("driver", "audio_input: a block (calibration, rms, the gate, the bus)"),
+    ("  conditioning", "(calibration and DC high-pass)"),
     ("  publish", "(the gate's checks and the bus's puts)"),
     ("poll", "the lathe's registers published (per block, shared)"),
-    ("machine", "chatter: the machine's samples (cut state's sources)"),
-    ("block", "chatter: one block"),
-    ("  cut", "(cut state: vibration source, contact, dwell)"),
+    ("machine", "chatter: the machine's samples (the cut's sources)"),
+    ("block", "chatter: a block"),
+    ("  cut", "(the cut state: vibration source, contact, dwell)"),
     ("  detector", "(the detector's process)"),
-    ("    window", "(its windows: measure, rules, shape)"),
+    ("    window", "(its windows)"),
     ("      measure", "(the raw measure: robust rms of the revolution difference)"),
     ("      bands", "(the spectral shape's band powers: an FFT)"),
-    ("      shape", "(the shape index against the baseline's bands)"),
-    ("      level", "(levels: the median magnitude of a window and of the one a revolution before)"),
-    ("      rules", "(the alarm rules: shoulder, growth, rising, CUSUM, follow)"),
-    ("      frequency", "(the chatter frequency, while alarmed: an FFT)"),
-    ("  samples", "(the windows' samples published, sight)"),
+    ("      shape", "(the shape index against the baseline's)"),
+    ("      level", "(a window's level and the one a revolution before)"),
+    ("      rules", "(shoulder, growth, rising, CUSUM, follow, load)"),
+    ("      frequency", "(the chatter frequency while alarmed: an FFT)"),
+    ("  samples", "(the windows' samples published)"),
     ("rest", "asyncio and the subscriptions (the loop less the above)"),
-    ("total", "the loop's CPU per block and channel"),
+    ("total", "the loop's CPU"),
 ]
 
 
@@ -325,18 +327,20 @@ def main() -> int:
             print(f"| {label} | {med[('new', n)][s]:.1f} |")
     if len(ns) > 1:
         lo, hi = min(ns), max(ns)
+        slopes = {}
         for name in names:
             slope = [(b["cpu_per_block"] - c["cpu_per_block"]) / (hi - lo)
                      for b, c in zip(runs[(name, hi)], runs[(name, lo)])]
-            us = statistics.median(slope)
+            us = slopes[name] = statistics.median(slope)
             print(f"\n{name}: each added channel {us:.0f} µs a block (median of {a.rounds}), "
                   f"{us * RATE / BLOCK / 1e4:.2f} % of a core at {RATE / BLOCK:g} blocks a second", end="")
-        print()
+        print(f"\nafter / before: {slopes['new'] / slopes['old']:.2f}" if a.against else "")
     one_run = runs[(names[-1], n)][0]
     print(f"\n{one_run['blocks']} blocks, {one_run['windows']} windows over {n} channel(s)")
     if a.against:
-        print("chatter1's samples, old against new: "
-              + compare(runs[("old", n)][0]["out"], runs[("new", n)][0]["out"], a.tol))
+        same = compare(runs[("old", n)][0]["out"], runs[("new", n)][0]["out"], a.tol)
+        print(f"chatter1's samples, old against new: {same}")
+        return 1 if same.startswith("DIFFERENT") else 0
     return 0
 
 
