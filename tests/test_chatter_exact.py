@@ -9,13 +9,13 @@ import numpy as np
 from lathed.analysis.chatter.detectors import SyncCusumDetector
 from lathed.analysis.chatter.registry import make_detector
 from lathed.analysis.chatter.shape import SpectralShape
-from lathed.analysis.chatter.spectrum import fast_len, median, spectral_peak_hz
+from lathed.analysis.chatter.spectrum import fast_len, median, median_abs, spectral_peak_hz
 from lathed.analysis.regen import Segment, simulate_cut
 
 RATE = 51200.0
 
 
-def test_median_is_np_median_bit_for_bit():
+def test_the_medians_are_np_median_bit_for_bit():
     rng = np.random.default_rng(1)
     for n in list(range(1, 90)) * 10:
         a = rng.normal(size=n) * rng.choice([1e-6, 1.0, 1e6])
@@ -25,7 +25,12 @@ def test_median_is_np_median_bit_for_bit():
             a[rng.integers(n)] = np.nan
         want, got = np.median(a), median(a.copy())
         assert want == got or (math.isnan(want) and math.isnan(got)), (n, want, got)
+        if not np.isnan(a).any():
+            assert median_abs(a) == np.median(np.abs(a)), n
     assert math.isnan(median(np.empty(0)))
+    for n in (1024, 1229, 2048):                   # a window's raw measure
+        d = rng.normal(size=n)
+        assert median_abs(d) == np.median(np.abs(d))
 
 
 def _peak(x, rate, fmin, fmax):
