@@ -63,6 +63,9 @@ class ChatterAnalyzer(Analyzer):
         self.cut = CutState(self.cut_from, self.dwell_axes, dwell_max,
                             section.getfloat("load_margin_pct", 5.0, above=0.0, maxval=100.0),
                             section.getfloat("contact_ratio", 1.3, above=1.0, maxval=4.0))
+        # the machine's quantities read here or by the cut state (the rest of a poll passes by)
+        self._reads = frozenset({"spindle_rpm", "tool_number", "depth_of_cut_mm", "spindle_load_pct"}) | \
+            self.cut.quantities
         self._cut_rpm: float | None = None     # speed the cut started at (None: no cut)
         self._cut_revs = 0.0
         self._cut_alarmed = False
@@ -143,6 +146,8 @@ class ChatterAnalyzer(Analyzer):
     def _on_machine(self, s: Sample) -> None:
         if s.source != self.machine:
             return
+        if s.quantity not in self._reads and self.cut.held is None:
+            return           # a register neither this nor the cut state reads, and no dwell to time
         if s.quantity == "spindle_rpm":
             self.rpm = s.value
         elif s.quantity == "tool_number":

@@ -57,6 +57,8 @@ class CutState:
         self.cut_from = list(cut_from)
         self.dwell_max = float(dwell_max)
         self.feed_stop = FeedStop(list(dwell_axes)) if dwell_axes else None
+        # the machine's quantities machine() reads; another does nothing but time a dwell
+        self.quantities = frozenset({"cutting_feed", "depth_of_cut_mm", "spindle_load_pct", *(dwell_axes or ())})
         self.load_cut = LoadCutDetector(load_margin_pct)
         self.contact_ratio = contact_ratio
         self.vib_cut: VibrationCutDetector | None = None
@@ -73,7 +75,8 @@ class CutState:
 
     # -- the machine's samples -----------------------------------------------------------
     def machine(self, quantity: str, value: float, t: float, rpm: float | None) -> list[CutEvent]:
-        """A sample of the machine (``rpm``: its speed now, for the load's no-chip level)."""
+        """A sample of the machine (``rpm``: its speed now, for the load's no-chip level); one
+        not in ``quantities`` only times a held dwell (``held``)."""
         ev: list[CutEvent] = []
         if quantity == "cutting_feed":
             if self.feed_stop is not None:
