@@ -106,3 +106,21 @@ def test_the_shape_made_when_the_gate_needs_it_judges_as_the_one_made_at_once():
             assert math.isnan(a.shape) or a.shape == b.shape
         made += sum(not math.isnan(w.shape) for w in lazy)
     assert made > 0       # the gate looked, somewhere
+
+
+def test_a_reset_detector_judges_as_a_fresh_one():
+    """What a window keeps for the next (levels, the pair of them) goes with the cut: sample
+    counts restart at a reset, so a short cut's last window stands where the next cut's first
+    judged one does (at 3000 r/min: windows of 1024 samples every 512, the fifth, the first past
+    the learning, ends at sample 4098), and there the next cut's level steps 5 x."""
+    rng = np.random.default_rng(8)
+    rpm = 3000.0
+    short = rng.normal(size=4100)                             # five windows, the last judged
+    cut = rng.normal(size=int(RATE * 0.3))
+    cut[3074:] *= 5.0
+    used = make_detector("sync_cusum", RATE)
+    assert len(used.process(short, rpm)) == 5
+    used.reset()
+    fresh = _windows(make_detector("sync_cusum", RATE), cut, rpm)
+    assert _judged(_windows(used, cut, rpm)) == _judged(fresh)
+    assert fresh[4].t_s * RATE == 4098 and not fresh[4].judged     # the step, not judged

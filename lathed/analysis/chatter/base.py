@@ -139,6 +139,7 @@ class RevolutionDetector(AlarmRules):
         self._step_until = 0        # no alarm counted before this sample (a level step)
         self._impulse = (0, 0)      # windows ending in this span do not count (impulse())
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
+        self._pair: tuple = ()      # the last window's pair of levels (_level_pair): sample counts restart
         self._raw_hist: deque[tuple[int, float]] = deque(maxlen=8)     # (window end, raw measure)
         self._raw_now = 0.0
         self._learn: list[float] = []

@@ -222,8 +222,6 @@ class AlarmRules:
             return True
         return False
 
-    _pair: tuple = ()
-
     def _level_pair(self, start: int, end: int, rpm: float) -> tuple[int, float, float]:
         """(samples a revolution, this window's level, the level a revolution earlier); kept for
         the window (the level step, the shoulder and the load's wait each ask for it)."""
