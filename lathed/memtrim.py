@@ -41,8 +41,9 @@ def trim() -> bool:
 
 
 async def keep_trimmed(interval_s: float = INTERVAL_S) -> None:
-    """Trim every ``interval_s`` in a worker thread (a trim walks every arena: some
-    milliseconds that the event loop, and the chatter loop on it, must not wait for)."""
+    """Trim every ``interval_s`` in a worker thread. A trim walks every arena (about 8 ms on
+    a 90 MB heap half freed): the event loop does not wait for it, but an allocation of its
+    own can wait for the arena's lock that long, once a minute."""
     if _TRIM is None:
         return
     while True:
