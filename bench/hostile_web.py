@@ -298,8 +298,10 @@ def web_report(w: dict, daemon_dropped: int | None) -> tuple[list[str], list[tup
         ("lathed-web answers a fresh client within 2 s during the flood", page_ok and live_ok,
          f"page {w['page']['outcomes']} max {_s(w['page']['max_s'])}; live stream {w['live']['outcomes']} "
          f"max {_s(w['live']['max_s'])}"),
-        ("lathed-web's subscription to the daemon never dropped", w["link_down_seen"] == 0 and daemon_dropped == 0,
-         f"{daemon_dropped} subscribers dropped by the daemon, link seen down {w['link_down_seen']} times"),
+        # the daemon's count is of every subscriber (lathed-web's and lathed-opcua's links alike)
+        ("the daemon dropped no subscriber (lathed-web, lathed-opcua); lathed-web's link never down",
+         w["link_down_seen"] == 0 and daemon_dropped == 0,
+         f"{daemon_dropped} subscribers dropped by the daemon, lathed-web's link seen down {w['link_down_seen']} times"),
         (f"lathed-web within its MemoryMax ({RSS_BAR_MB:g} MB), no log flood",
          w["rss_peak_mb"] is not None and w["rss_peak_mb"] < RSS_BAR_MB and w["log_tracebacks"] == 0
          and w["log_bytes"] < (1 << 20),
