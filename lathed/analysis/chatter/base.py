@@ -148,6 +148,7 @@ class RevolutionDetector(AlarmRules):
         self._sh_steady = 0         # windows in a row without a rise: a rise after enough is a step
         self._sh_grown = 0
         self._sh_from = 0.0         # the level before its step
+        self._sh_level = 0.0        # its last window's level (a ring falls from it, chatter rises)
         self._sh_over = self._sh_over_before = 0   # windows in a row over the sum's allowance
         self._prev_raw = 0.0
         self._recent_from = -1      # the growth look-back counts from this window (a shoulder's)
@@ -391,8 +392,9 @@ class RevolutionDetector(AlarmRules):
             stepped = (self._level_step(start, end, rpm)
                        or self._impulse[0] < self._next_end <= self._impulse[1])
             other = settling or self._waiting_for_load(start, end, rpm)
-            # a deeper pass: its span is not judged but for growth beyond a stable echo's
-            shoulder, grew_out = self._shoulder(start, end, rpm, raw, other or stepped)
+            # a deeper pass: its span is not judged but for growth beyond a stable echo's (not
+            # a step's: the tool leaving, whose release may fall late in the span's first window)
+            shoulder, grew_out = self._shoulder(start, end, rpm, raw, other or stepped, stepped)
             index = raw / self.baseline         # the deeper pass may have its own baseline now
             settling = other or stepped or shoulder
             # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape
