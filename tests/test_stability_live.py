@@ -54,9 +54,6 @@ def judged(rows) -> int:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="issue 41, open: with the hold rule judging the speed it moves to, "
-                                       "the 40 cuts' held-out part is small and the refit's gain sometimes "
-                                       "misses its margin (fixes 8, breaks 3, z 1.5), 1 run in 2 today")
 def test_the_refit_names_the_shifted_mode_and_suppression_uses_it(shifted, tmp_path):
     d = shifted
     wait_until(lambda: judged(cuts(d)) >= 40, timeout=240, interval=1.0, what="40 judged cut speeds")
