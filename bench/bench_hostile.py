@@ -13,7 +13,8 @@ temporary directory, plus two hostile peers the benchmark owns:
                           read by [analyzer.hostile_thermal], which computes
                           on the mill (no offset register: it can never write)
 
-Phases: warm-up (``--warmup``), load (``--duration``, 600 s = the issue's 10
+Phases: warm-up (``--warmup``, from the daemon's readiness; lathed-web and lathed-opcua
+start within it, and the load waits for lathed-opcua to serve), load (``--duration``, 600 s = the issue's 10
 minutes), after (``--after``). During the load, all on loopback and local
 sockets, bounded and stopping by itself:
 
@@ -633,19 +634,21 @@ def run(a) -> dict:
         vib.start()
         ser.start()
         proc = start(cfg, tmp)
+        t_ready = time.time()
         sock, sim_sock = tmp / "run" / "lathed.sock", tmp / "run" / "sim.sock"
+        # lathed-opcua's start (its nodeset import, ~10 s) runs inside the warm-up, not before it
+        ua = hostile_opcua.OpcUa(tmp, sock) if a.opcua else None
         web_port = free_port()
         web = start_web(tmp, sock, web_port) if a.web else None
         webw = WebWatch(web_port, web.pid if web else 0, tmp / "lathed-web.log")
         sampler = Sampler(sock, sim_sock, proc.pid).start()
         fz = Fuzzer(sock, random.Random(rng.random()), heavy_every=max(30.0, a.duration / 5))
         slow = SlowClients(sock)
-        ua = ua_floods = None
+        ua_floods = None
         try:
-            if a.opcua:
-                ua_floods = opcua_start(tmp, sock)
-                ua = ua_floods[0]
-            time.sleep(a.warmup)
+            if ua is not None:
+                ua_floods = opcua_start(ua)
+            time.sleep(max(0.0, t_ready + a.warmup - time.time()))
             t_load = time.time()
             if ua_floods:
                 ua_cpu0, ua_t0 = opcua_load(ua_floods)
@@ -683,14 +686,19 @@ def run(a) -> dict:
             sampler.join()
             if "web" not in res:
                 res["web"] = webw.end_flood()
-            if web is not None:
-                web.terminate()
-                web.wait(15)
             if ua_floods:
                 for flood in ua_floods[1:]:
                     flood.join()
-                res["opcua_stop"] = ua.stop()
+            # the three are told to stop at once and then waited for (each stop takes a second or two)
+            if web is not None:
+                web.terminate()
+            if ua is not None:
+                ua.proc.terminate()
             res["daemon_stop"] = stop_daemon(proc, tmp)
+            if web is not None:
+                web.wait(15)
+            if ua is not None:
+                res["opcua_stop"] = ua.stop()
             vib.join()
             ser.join()
             ser.close()
@@ -731,7 +739,7 @@ def run(a) -> dict:
     acts = {}
     for ph, (t0, t1) in phases.items():
         ev = [e for e in sampler.events.values() if t0 <= e["t"] < t1]
-        span = (t1 - t0) if ph != "before" else a.warmup
+        span = (t1 - t0) if ph != "before" else t_load - t_ready
         c0, c1 = (counters(sampler, t0) if ph != "before" else {}), counters(sampler, t1)
         offs = [o for t, o in sampler.offsets if t0 <= t < t1]
         acts[ph] = {"minutes": span / 60.0,
@@ -779,9 +787,9 @@ def run(a) -> dict:
 
 
 # -- the OPC UA floods (bench/hostile_opcua.py) -----------------------------------------
-def opcua_start(tmp: Path, sock: Path) -> tuple:
-    """lathed-opcua beside the daemon, and the fresh-client probe from now on (the floods wait)."""
-    ua = hostile_opcua.OpcUa(tmp, sock)
+def opcua_start(ua: hostile_opcua.OpcUa) -> tuple:
+    """Once lathed-opcua (started beside the daemon) serves: the fresh-client probe from now on
+    (the floods wait)."""
     try:
         ua.wait_serving()
     except BaseException:

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_short_hostile_run_reports_every_field(tmp_path):
     out = tmp_path / "figures.json"
     p = subprocess.run([sys.executable, str(ROOT / "bench" / "bench_hostile.py"), "--duration", "20",
-                        "--warmup", "15", "--after", "10", "--json", str(out)],
+                        "--warmup", "5", "--after", "10", "--json", str(out)],
                        capture_output=True, text=True, timeout=400)
     assert p.returncode == 0, p.stderr[-2000:]
     r = json.loads(out.read_text())
