@@ -1,8 +1,11 @@
 """Config validation: every refusal is one line naming file, table, key and what is allowed."""
 from __future__ import annotations
 
+import logging
+import os
 import shutil
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -37,6 +40,31 @@ def check(tmp_path, text: str) -> tuple[int, str]:
     return r.returncode, r.stderr.replace(str(cfg), "FILE").strip()
 
 
+@pytest.fixture
+def check_here(tmp_path, monkeypatch, capsys, caplog):
+    """check() run in this process: lathed's main() with --check-config, its exit code and stderr
+    (and no warning logged, which the program would print), without a process of imports. The
+    program itself is run by test_default_config_is_valid, test_bad_toml_is_one_line and others."""
+    import lathed.daemon
+    monkeypatch.setattr(lathed.daemon.logmod, "setup", lambda *a, **k: None)   # keeps pytest's handlers
+
+    def run(text: str, where: Path = tmp_path) -> tuple[int, str]:
+        cfg = where / "lathed.toml"
+        cfg.write_text(text)
+        capsys.readouterr()
+        caplog.clear()
+        umask = os.umask(0)
+        os.umask(umask)
+        try:
+            code = lathed.daemon.main(["--check-config", str(cfg)])
+        finally:
+            os.umask(umask)
+        err = capsys.readouterr().err
+        warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        return code, (err + "".join(f"{w}\n" for w in warned)).replace(str(cfg), "FILE").strip()
+    return run
+
+
 def refused(tmp_path, text: str) -> tuple[int, str]:
     """check() for a config the check refuses, in this process: what main() exits with and prints
     for a ConfigError (its lines, each after "lathed: "), without a process of imports per case.
@@ -57,8 +85,8 @@ def test_default_config_is_valid():
     assert "ok" in r.stdout
 
 
-def test_valid_minimal(tmp_path):
-    assert check(tmp_path, BASE) == (0, "")
+def test_valid_minimal(check_here):
+    assert check_here(BASE) == (0, "")
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -233,11 +261,11 @@ def test_a_config_with_nothing_to_run_is_refused(tmp_path):
     assert (code, err) == (78, "lathed: FILE: nothing to run: no [machine.*], [sensor.*] or [analyzer.*] table")
 
 
-def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path):
+def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path, check_here):
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
     text = BASE.replace('state_dir = "state"', f'state_dir = "{blocker / "state"}"')
-    code, err = check(tmp_path, text)
+    code, err = check_here(text)
     assert code == 73
     assert err == f"lathed: FILE: [daemon] state_dir {blocker / 'state'} is not usable: Not a directory ({blocker})"
     # the daemon itself says the same instead of a traceback
@@ -248,7 +276,7 @@ def test_an_unusable_state_dir_is_one_line_naming_it(tmp_path):
                                                       "Not a directory")
 
 
-def test_check_config_refuses_a_state_dir_the_daemon_cannot_make(tmp_path):
+def test_check_config_refuses_a_state_dir_the_daemon_cannot_make(tmp_path, check_here):
     # issue 35 case 13: permission bits said yes (root passes them) for a state_dir under
     # /proc; --check-config said ok and the daemon then refused it (73). Now both try it
     text = BASE.replace('state_dir = "state"', 'state_dir = "/proc/lathed/state"')
@@ -261,7 +289,7 @@ def test_check_config_refuses_a_state_dir_the_daemon_cannot_make(tmp_path):
     # and nothing is left behind by the trial where it works
     fresh = tmp_path / "fresh"
     fresh.mkdir()
-    assert check(fresh, BASE) == (0, "") and sorted(p.name for p in fresh.iterdir()) == ["lathed.toml"]
+    assert check_here(BASE, fresh) == (0, "") and sorted(p.name for p in fresh.iterdir()) == ["lathed.toml"]
 
 
 def test_simulator_links_must_be_in_a_directory_only_we_can_write(tmp_path):
