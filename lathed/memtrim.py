@@ -4,8 +4,8 @@ A long-running daemon whose threads (the store writer, offloaded requests,
 driver reads) allocate and free under load keeps that memory in glibc's
 per-thread arenas: after a flood its resident set stays where the flood left
 it although Python holds no more objects (make bench-hostile: RSS
-after 10 min of load, 7-13 % over runs, all of it outside Python's own allocations, measured
-with tracemalloc). ``malloc_trim(0)`` returns the free pages of every arena.
+7-13 % above its start after 10 min of load, all of it outside Python's own
+allocations, measured with tracemalloc). ``malloc_trim(0)`` returns the free pages of every arena.
 Where the C library has no malloc_trim (musl, macOS) this does nothing.
 """
 from __future__ import annotations
