@@ -152,7 +152,9 @@ class JackServer:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(10)
+                # a server whose capture client was killed can take 10 s or more to act on
+                # SIGTERM; killed, it leaves entries the next start frees (_reclaim_dead_entries)
+                self.proc.wait(2)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
