@@ -37,6 +37,7 @@ class SpectralShape:
         self._base_n = 0
         self._base_len: int | None = None     # the window length the baseline's bands are of
         self._now_len: int | None = None      # ... and the last window's (bands())
+        self._moved: tuple[int, np.ndarray] | None = None   # the baseline spread onto a length's bands
 
     def bands(self, d: np.ndarray) -> np.ndarray:
         n = len(d)
@@ -64,12 +65,16 @@ class SpectralShape:
         b = self._base
         if b is None or self._base_len is None or n == self._base_len or n not in self._edges:
             return b
+        if self._moved is not None and self._moved[0] == n:    # once per length, not per window
+            return self._moved[1]
         nf0, e0 = self._edges[self._base_len]
         nf1, e1 = self._edges[n]
         f0 = e0[:len(b) + 1] * (self.rate / nf0)
         cum = np.concatenate(([0.0], np.cumsum(b)))
         f1 = e1 * (self.rate / nf1)
-        return np.diff(np.interp(f1, f0, cum)) * (nf1 / nf0) ** 2
+        moved = np.diff(np.interp(f1, f0, cum)) * (nf1 / nf0) ** 2
+        self._moved = (n, moved)
+        return moved
 
     def learn(self, bands: np.ndarray) -> None:
         """A stable window's bands: the baseline is their running mean (carried over to the
@@ -77,6 +82,7 @@ class SpectralShape:
         n = self._now_len
         if self._base is not None and n != self._base_len:
             self._base = self._base_for(n)
+        self._moved = None                     # the baseline changes below
         if self._base is None or len(bands) != len(self._base):
             self._base, self._base_n = np.zeros(len(bands)), 0
         self._base_len = n
