@@ -44,6 +44,7 @@ describing function at the recent amplitude.  No asyncio here.  docs/simulator.m
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,6 +79,7 @@ DEFAULT_DIAMETER_MM = 30.0  # workpiece diameter: sets the cutting speed the fla
 # over about this long (several chatter periods; chatter grows over tens of
 # revolutions, so the describing function's lag is negligible).
 _VEL_TAU_S = 0.01
+_KEEP_POWERS = 1024    # per regime: 64 kB with two modes
 
 
 @dataclass(frozen=True)
@@ -167,6 +169,19 @@ class _Regime:
         # the closed form below divides by lam**k; keep |lam|**-k under e**30
         # so no precision is lost
         self.safe_len = int(min(1 << 20, 30.0 / max(1e-12, float(np.max(np.abs(self.loglam.real))))))
+        self._powers = np.ones((len(s), 1), dtype=complex)
+
+    def powers(self, m: int) -> np.ndarray:
+        """lam^k for k = 0..m, each mode a row. The last ones (up to _KEEP_POWERS) are kept: a
+        cut asks for the same chunk lengths block after block and the complex exp was half of
+        ``response``'s time; a kept entry is the same exp of the same product."""
+        if m < self._powers.shape[1]:
+            return self._powers[:, :m + 1]
+        p = np.exp(self.loglam[:, None] * np.arange(m + 1)[None, :])
+        if m < _KEEP_POWERS:
+            p.flags.writeable = False
+            self._powers = p
+        return p
 
     def response(self, z0: np.ndarray, w: np.ndarray | None, m: int) -> np.ndarray:
         """Modal states z[:, 0..m] from z0 with input w[0..m-1] (None: free).
@@ -174,7 +189,7 @@ class _Regime:
         z[k] = lam^k z0 + sum_{i<k} lam^(k-1-i) beta w[i]
              = lam^k (z0 + sum_{i<k} beta w[i] lam^-(i+1)),
         all modes at once instead of one recursive filter per mode."""
-        p = np.exp(self.loglam[:, None] * np.arange(m + 1)[None, :])
+        p = self.powers(m)
         if w is None:
             return z0[:, None] * p
         acc = np.empty_like(p)
@@ -242,7 +257,8 @@ class RegenerativeTurning:
             self._acc_row[2 * i + 1] = -2 * md.zeta * md.wn
         self._acc_gain = float(b.sum())
         self._free = _Regime(a, b, 0.0, self.dt)
-        self._cut_cache: dict[tuple[float, float], _Regime] = {}
+        # the regimes met lately: the wander moves the depth about a few dozen quantised levels
+        self._cut_cache: OrderedDict[tuple[float, float], _Regime] = OrderedDict()
         # flank damping is quantised to 0.25 % of the weakest mode's own
         # damping (far below what moves a limit) so regimes can be cached
         self._c_step = 0.0025 * min(2 * md.zeta * md.wn * md.mass_kg for md in self.modes)
@@ -278,14 +294,17 @@ class RegenerativeTurning:
 
     def _cut_regime(self, b_m: float, c_n_s_m: float = 0.0) -> _Regime:
         """In-cut regime at depth b_m with extra (flank) damping c along the normal."""
-        reg = self._cut_cache.get((b_m, c_n_s_m))
-        if reg is None:
+        key = (b_m, c_n_s_m)
+        reg = self._cut_cache.get(key)
+        if reg is not None:
+            self._cut_cache.move_to_end(key)
+        else:
             g = self.kf * b_m
             a = self._a0 - g * np.outer(self._b, self._c) - c_n_s_m * np.outer(self._b, self._cv)
             reg = _Regime(a, self._b, g, self.dt)
             if len(self._cut_cache) > 64:
-                self._cut_cache.clear()
-            self._cut_cache[(b_m, c_n_s_m)] = reg
+                self._cut_cache.popitem(last=False)
+            self._cut_cache[key] = reg
         return reg
 
     def _flank_terms(self, b_m: float, rpm: float, diameter_mm: float) -> tuple[float, float]:
