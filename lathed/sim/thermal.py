@@ -191,30 +191,11 @@ class SpindleThermal:
         self._play = min(max(self._play, self.x[FB] - w), self.x[FB] + w)
 
     # -- outputs ---------------------------------------------------------
-    def _rise(self, i: int) -> float:
-        return float(self.x[i] - self.x0[i])
-
     @property
     def displacement_um(self) -> float:
         """True growth of the spindle nose (µm) since the cold start."""
-        p = self.p
-        room_rise = self.room_temp(self.t_s) - self.room0
-        d = (p.k_fb * self._rise(FB) + p.k_rb * self._rise(RB) + p.k_mot * self._rise(MOT)
-             + p.k_body * self._rise(BODY) + p.k_room * room_rise)
-        e = self.effects
-        if "lag" in e:
-            d += p.k_lag_um_per_c * self._rise(SHAFT)
-        if "rate" in e:
-            d += p.k_rate_um_per_c_min * self.x[GRAD] * 60.0
-        if "speed" in e:
-            d += p.k_speed_um_per_krpm2 * (self.rpm / 1000.0) ** 2
-        if "nonlinear" in e:
-            d += p.k_nonlinear_um_per_c2 * self._rise(FB) ** 2
-        if "hysteresis" in e:
-            d += p.k_hyst_um_per_c * (self._play - self.x[FB])
-        if "drift" in e:
-            d += p.drift_um_per_h * self.t_s / 3600.0
-        return float(d)
+        return float(self._growths(self.x[None, :], np.array([self.t_s]), np.array([self.rpm]),
+                                   np.array([self._play]))[0])
 
     def true_temperatures(self) -> dict[str, float]:
         names = ("front_bearing", "rear_bearing", "motor", "spindle_body", "shaft")
@@ -224,11 +205,39 @@ class SpindleThermal:
 
     def readings(self) -> dict[str, float]:
         """What the four DS18B20s report now (°C, 1/16 °C steps, small noise)."""
+        raw = np.array([self.x[S_FB], self.x[S_RB], self.x[S_MOT], self.room_temp(self.t_s)])
+        return dict(zip(SENSOR_KEYS, (float(v) for v in self._read(raw))))
+
+    def _read(self, raw: np.ndarray) -> np.ndarray:
+        """DS18B20 readings of true temperatures ``raw`` (the four sensors' last axis): the
+        noise drawn from this spindle's stream in order, row after row, as one reading at a time."""
         p = self.p
-        raw = (self.x[S_FB], self.x[S_RB], self.x[S_MOT], self.room_temp(self.t_s))
-        noisy = np.asarray(raw) + self._rng.normal(0.0, p.sensor_noise_c, 4)
-        q = np.round(noisy / p.quantum_c) * p.quantum_c
-        return dict(zip(SENSOR_KEYS, (float(v) for v in q)))
+        noisy = raw + self._rng.normal(0.0, p.sensor_noise_c, raw.shape)
+        return np.round(noisy / p.quantum_c) * p.quantum_c
+
+    def _growths(self, x: np.ndarray, t_s: np.ndarray, rpm: np.ndarray, play: np.ndarray) -> np.ndarray:
+        """``displacement_um`` at each row of states ``x`` (times, speeds, play-operator states):
+        the same operations in the same order, element by element (Python's ``**`` where it
+        used it: it is not always x*x to the last bit)."""
+        p = self.p
+        rise = x - self.x0
+        room_rise = np.array([self.room_temp(t) for t in t_s.tolist()]) - self.room0
+        d = (p.k_fb * rise[:, FB] + p.k_rb * rise[:, RB] + p.k_mot * rise[:, MOT]
+             + p.k_body * rise[:, BODY] + p.k_room * room_rise)
+        e = self.effects
+        if "lag" in e:
+            d += p.k_lag_um_per_c * rise[:, SHAFT]
+        if "rate" in e:
+            d += p.k_rate_um_per_c_min * x[:, GRAD] * 60.0
+        if "speed" in e:
+            d += p.k_speed_um_per_krpm2 * np.array([(r / 1000.0) ** 2 for r in rpm.tolist()])
+        if "nonlinear" in e:
+            d += p.k_nonlinear_um_per_c2 * np.array([r ** 2 for r in rise[:, FB].tolist()])
+        if "hysteresis" in e:
+            d += p.k_hyst_um_per_c * (play - x[:, FB])
+        if "drift" in e:
+            d += p.drift_um_per_h * t_s / 3600.0
+        return d
 
 
 # -- runs for tests and benchmarks ---------------------------------------
@@ -282,17 +291,17 @@ def generate_run(schedule: Sequence[tuple[float, float]], effects: Iterable[str]
     rng = np.random.default_rng(seed + 7919)
     rpm_at = np.concatenate([np.full(max(int(round(d / dt_s)), 0), r) for d, r in schedule])
     n = len(rpm_at)
-    cols = {c: np.empty(n) for c in CSV_COLUMNS}
+    # the states stepped one by one; the readings and the growth from them in one go
+    xs, ts, plays = np.empty((n, _N)), np.empty(n), np.empty(n)
     for k in range(n):
         sim.step(dt_s, rpm_at[k])
-        r = sim.readings()
-        cols["time_s"][k] = sim.t_s
-        cols["spindle_rpm"][k] = rpm_at[k]
-        cols["t_front_bearing_c"][k] = r["front_bearing"]
-        cols["t_rear_bearing_c"][k] = r["rear_bearing"]
-        cols["t_motor_c"][k] = r["motor"]
-        cols["t_room_c"][k] = r["room"]
-        cols["displacement_um"][k] = sim.displacement_um
+        xs[k], ts[k], plays[k] = sim.x, sim.t_s, sim._play
+    room = np.array([sim.room_temp(t) for t in ts.tolist()])
+    read = sim._read(np.column_stack([xs[:, S_FB], xs[:, S_RB], xs[:, S_MOT], room]))
+    cols = {"time_s": ts, "spindle_rpm": rpm_at.astype(float),
+            **{f"t_{key}_c": np.ascontiguousarray(read[:, i]) for i, key in enumerate(SENSOR_KEYS)},
+            "displacement_um": sim._growths(xs, ts, rpm_at, plays)}
+    cols = {c: cols[c] for c in CSV_COLUMNS}
     cols["displacement_um"] += rng.normal(0.0, noise_um, n)
     return Run(columns=cols, effects=frozenset(effects), noise_um=noise_um)
 
