@@ -109,14 +109,15 @@ def load_thermal_csv(path: str | Path, need_displacement: bool = True) -> tuple[
     cols = [c for c in header if c in known]
     idx = {c: header.index(c) for c in cols}
     out: dict[str, list[float]] = {c: [] for c in cols}
+    # per column once, not per cell: (index, is a temperature, plausible range)
+    spec = [(c, idx[c], c in temps, *_plausible(c, temps)) for c in cols]
     last_t = -math.inf
     for lineno, row in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in row):
             continue      # a blank line is not a row
         vals: dict[str, float] = {}
         reason = None
-        for c in cols:
-            i = idx[c]
+        for c, i, is_temp, lo, hi in spec:
             cell = row[i].strip() if i < len(row) else ""
             if cell == "":
                 reason = reason or "empty_cell"
@@ -126,17 +127,16 @@ def load_thermal_csv(path: str | Path, need_displacement: bool = True) -> tuple[
             except ValueError:
                 reason = reason or "not_a_number"
                 continue
-            if math.isnan(v) or math.isinf(v):
+            if not math.isfinite(v):
                 reason = reason or "nan"
                 continue
-            lo, hi = _plausible(c, temps)
-            if not lo <= v <= hi and not (c in temps and v == DS18B20_DISCONNECTED_C):
+            if not lo <= v <= hi and not (is_temp and v == DS18B20_DISCONNECTED_C):
                 # wrong units or a corrupt file, not a glitch of one row: refuse it whole
                 raise ThermalCsvError(f"{c} = {cell} is outside the physically plausible {lo:g}..{hi:g} "
                                       f"({path}, line {lineno}, column {c})")
-            if c in temps and v == DS18B20_DISCONNECTED_C:
+            if is_temp and v == DS18B20_DISCONNECTED_C:
                 reason = "sensor_disconnected_-127"
-            elif c in temps and v == DS18B20_POWER_ON_C and reason != "sensor_disconnected_-127":
+            elif is_temp and v == DS18B20_POWER_ON_C and reason != "sensor_disconnected_-127":
                 reason = "sensor_power_on_85"
             vals[c] = v
         if reason is None:
