@@ -74,12 +74,14 @@ def _grid(modes: Sequence[Mode]) -> np.ndarray:
 def _frf(modes: Sequence[Mode], f: np.ndarray, dzeta: np.ndarray | None) -> np.ndarray:
     """Oriented receptance; with ``dzeta`` (one per row) each row has that much
     more damping on every mode."""
-    if dzeta is None:
-        return sum(m.u * m.frf(f) for m in modes)
-    g = 0
+    g = None
     for m in modes:
-        r = f[None, :] / m.fn_hz
-        g = g + m.u / (m.k_n_per_m * (1 - r**2 + 2j * (m.zeta + dzeta[:, None]) * r))
+        if dzeta is None:
+            h = m.u * m.frf(f)
+        else:
+            r = f[None, :] / m.fn_hz
+            h = m.u / (m.k_n_per_m * (1 - r**2 + 2j * (m.zeta + dzeta[:, None]) * r))
+        g = h if g is None else g + h         # not 0 + h: a pass over every speed and frequency
     return g
 
 
@@ -111,8 +113,8 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
         if model.process_damping > 0:
             g = _frf(model.modes, f, model.process_damping / n)
             re = g.real
-            b = np.where(re < 0, -1.0 / (2 * model.kf * np.minimum(re, -1e-300)), np.inf)
-            b[b > cap] = np.inf
+            b = -1.0 / (2 * model.kf * np.minimum(re, -1e-300))
+            b[~(re < 0) | (b > cap)] = np.inf
         else:
             g = g0[keep][None, :]
             b = np.broadcast_to(b0[keep][None, :], (len(n), len(f)))
@@ -127,7 +129,7 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
         # a lobe passes between grid neighbours j, j+1 where that number changes
         # (kk > -1 since eps <= 2 pi, so the larger floor is a lobe number >= 0);
         # only those few entries per speed are interpolated
-        r, j = np.nonzero(fl[:, :-1] != fl[:, 1:])
+        r, j = np.divmod(np.flatnonzero(fl[:, :-1] != fl[:, 1:]), len(f) - 1)   # np.nonzero's, faster
         on = pair[j]
         r, j = r[on], j[on]
         er = r if e.shape[0] > 1 else np.zeros_like(r)
@@ -145,9 +147,12 @@ def limit_depth(model: StabilityModel, rpm: np.ndarray, b_cap_m: float | None = 
             bc = ba + t * (bz - ba)
         bc[~np.isfinite(bc)] = np.inf
         fc = f[j] + t * (f[j + 1] - f[j])
-        # lowest crossing per speed: sort by (speed, depth) and take each speed's first
-        o = np.lexsort((bc, r))
-        first = o[np.r_[True, r[o][1:] != r[o][:-1]]]
+        # lowest crossing per speed, the first of equals: r is in order (np.nonzero's), so each
+        # speed's crossings are a run; its minimum, then the first entry equal to it (no sort)
+        starts = np.flatnonzero(np.r_[True, r[1:] != r[:-1]])
+        group = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(r)]))
+        at_min = np.flatnonzero(bc == np.minimum.reduceat(bc, starts)[group])
+        first = at_min[np.r_[True, group[at_min][1:] != group[at_min][:-1]]]
         rows = s + r[first]
         ok = np.isfinite(bc[first])
         out_b[rows[ok]] = bc[first][ok]
