@@ -45,15 +45,15 @@ def lag_filter(t_s: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
 def play_operator(x: np.ndarray, width: float, start: float | None = None) -> np.ndarray:
     """Backlash (play) operator: follows ``x`` only once it moves more than
     ``width`` away; the simplest model of heating/cooling hysteresis."""
-    out = np.empty(len(x))
     p = float(x[0]) if start is None else start
-    for k, v in enumerate(x.tolist()):
+    out = []                    # a list, not numpy item by item: this loop runs on every candidate width
+    for v in x.tolist():
         if v - p > width:
             p = v - width
         elif p - v > width:
             p = v + width
-        out[k] = p
-    return out
+        out.append(p)
+    return np.array(out, dtype=float)
 
 
 def period_mean(t_s: np.ndarray, x: np.ndarray, period_s: float) -> np.ndarray:
