@@ -39,7 +39,7 @@ force step, so the structure rings once per revolution.
 
 Speed: each regime (in or out of the cut) is linear, so its zero-order-hold
 discretisation is diagonalised and evaluated in closed form over chunks shorter
-than a revolution (``_Regime.response``); the flank's force enters through its
+than a revolution (``lathed.analysis.regime``); the flank's force enters through its
 describing function at the recent amplitude.  No asyncio here.  docs/simulator.md.
 """
 from __future__ import annotations
@@ -52,6 +52,7 @@ import numpy as np
 from lathed.analysis.lobes import StabilityLobes
 from lathed.analysis.modal import Mode
 from lathed.analysis.process_damping import FlankWear
+from lathed.analysis.regime import Regime
 
 # Default lathe structure: a compliant tool-post/spindle mode at 620 Hz at
 # 30 deg to the surface normal, plus a stiffer one at 1450 Hz.  With
@@ -79,7 +80,6 @@ DEFAULT_DIAMETER_MM = 30.0  # workpiece diameter: sets the cutting speed the fla
 # over about this long (several chatter periods; chatter grows over tens of
 # revolutions, so the describing function's lag is negligible).
 _VEL_TAU_S = 0.01
-_KEEP_POWERS = 1024    # per regime: 64 kB with two modes
 
 
 @dataclass(frozen=True)
@@ -152,53 +152,6 @@ class SimBlock:
     theta_rad: np.ndarray   # cumulative spindle angle at each sample
 
 
-class _Regime:
-    """Diagonalised ZOH discretisation of x' = A x + B*g*w.
-
-    From the eigen-decomposition A = V diag(s) V^-1 (damped modes: distinct,
-    non-zero s): A_d = V diag(e^(s dt)) V^-1 and B_d = V diag((e^(s dt) - 1)/s)
-    V^-1 B g, the same as expm's ZOH at a fraction of its cost (a regime is
-    built per flank damping level)."""
-
-    def __init__(self, a: np.ndarray, bvec: np.ndarray, gain: float, dt: float) -> None:
-        s, v = np.linalg.eig(a)
-        self.loglam = s.astype(complex) * dt
-        self.v = v
-        self.vinv = np.linalg.inv(v)
-        self.beta = np.expm1(self.loglam) / s * (self.vinv @ bvec) * gain
-        # the closed form below divides by lam**k; keep |lam|**-k under e**30
-        # so no precision is lost
-        self.safe_len = int(min(1 << 20, 30.0 / max(1e-12, float(np.max(np.abs(self.loglam.real))))))
-        self._powers = np.ones((len(s), 1), dtype=complex)
-
-    def powers(self, m: int) -> np.ndarray:
-        """lam^k for k = 0..m, each mode a row. The last ones (up to _KEEP_POWERS) are kept: a
-        cut asks for the same chunk lengths block after block and the complex exp was half of
-        ``response``'s time; a kept entry is the same exp of the same product."""
-        if m < self._powers.shape[1]:
-            return self._powers[:, :m + 1]
-        p = np.exp(self.loglam[:, None] * np.arange(m + 1)[None, :])
-        if m < _KEEP_POWERS:
-            p.flags.writeable = False
-            self._powers = p
-        return p
-
-    def response(self, z0: np.ndarray, w: np.ndarray | None, m: int) -> np.ndarray:
-        """Modal states z[:, 0..m] from z0 with input w[0..m-1] (None: free).
-
-        z[k] = lam^k z0 + sum_{i<k} lam^(k-1-i) beta w[i]
-             = lam^k (z0 + sum_{i<k} beta w[i] lam^-(i+1)),
-        all modes at once instead of one recursive filter per mode."""
-        p = self.powers(m)
-        if w is None:
-            return z0[:, None] * p
-        acc = np.empty_like(p)
-        acc[:, 0] = z0
-        np.cumsum(self.beta[:, None] * w[None, :] / p[:, 1:], axis=1, out=acc[:, 1:])
-        acc[:, 1:] += z0[:, None]
-        return acc * p
-
-
 class RegenerativeTurning:
     """Streaming regenerative turning model; all state is kept between ``run`` calls."""
 
@@ -256,9 +209,9 @@ class RegenerativeTurning:
             self._acc_row[2 * i] = -md.wn ** 2
             self._acc_row[2 * i + 1] = -2 * md.zeta * md.wn
         self._acc_gain = float(b.sum())
-        self._free = _Regime(a, b, 0.0, self.dt)
+        self._free = Regime(a, b, 0.0, self.dt)
         # the regimes met lately: the wander moves the depth about a few dozen quantised levels
-        self._cut_cache: OrderedDict[tuple[float, float], _Regime] = OrderedDict()
+        self._cut_cache: OrderedDict[tuple[float, float], Regime] = OrderedDict()
         # flank damping is quantised to 0.25 % of the weakest mode's own
         # damping (far below what moves a limit) so regimes can be cached
         self._c_step = 0.0025 * min(2 * md.zeta * md.wn * md.mass_kg for md in self.modes)
@@ -292,7 +245,7 @@ class RegenerativeTurning:
         lo = max(lo, 0)
         return np.interp(q, self._th[lo:self._n], self._s[lo:self._n], left=0.0)
 
-    def _cut_regime(self, b_m: float, c_n_s_m: float = 0.0) -> _Regime:
+    def _cut_regime(self, b_m: float, c_n_s_m: float = 0.0) -> Regime:
         """In-cut regime at depth b_m with extra (flank) damping c along the normal."""
         key = (b_m, c_n_s_m)
         reg = self._cut_cache.get(key)
@@ -301,7 +254,7 @@ class RegenerativeTurning:
         else:
             g = self.kf * b_m
             a = self._a0 - g * np.outer(self._b, self._c) - c_n_s_m * np.outer(self._b, self._cv)
-            reg = _Regime(a, self._b, g, self.dt)
+            reg = Regime(a, self._b, g, self.dt)
             if len(self._cut_cache) > 64:
                 self._cut_cache.popitem(last=False)
             self._cut_cache[key] = reg
