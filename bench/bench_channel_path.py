@@ -46,7 +46,7 @@ T0 = 3.0e9                                       # the stream's first sample, ho
 # the stages, in the order printed; "(...)" ones are parts of the stage above them
 STAGES = [
     ("driver", "audio_input: a block (calibration, rms, the gate, the bus)"),
-    ("  conditioning", "(calibration and DC high-pass)"),
+    ("  conditioning", "(calibration and DC high-pass; with a ConditionerBank the peak too)"),
     ("  publish", "(the gate's checks and the bus's puts)"),
     ("poll", "the lathe's registers published (per block, shared)"),
     ("machine", "chatter: the machine's samples (the cut's sources)"),
@@ -95,7 +95,7 @@ def worker(tree: str, stream: str, channels: int, profile: bool) -> dict:
     from lathed.audio_device import AudioDevice
     from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, DETECTORS
     from lathed.analysis.chatter.shape import SpectralShape
-    from lathed.analysis.conditioning import Conditioner
+    import lathed.analysis.conditioning as conditioning
     from lathed.analysis.cut.state import CutState
     from lathed.bus import Bus, Sample
     from lathed.config import Section
@@ -123,7 +123,10 @@ def worker(tree: str, stream: str, channels: int, profile: bool) -> dict:
         setattr(cls, name, w)
 
     timed(AudioInput, "_on_block", "driver")
-    timed(Conditioner, "process", "conditioning")
+    if hasattr(conditioning, "ConditionerBank"):     # a device's channels conditioned in one pass
+        timed(conditioning.ConditionerBank, "take", "conditioning")
+    else:
+        timed(conditioning.Conditioner, "process", "conditioning")
     timed(ChatterAnalyzer, "_on_machine", "machine")
     timed(ChatterAnalyzer, "_on_block", "block")
     timed(CutState, "block", "cut")

@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 import structlog
 
+from lathed.analysis.conditioning import ConditionerBank
 from lathed.audio_capture import FRAME, MAGIC, OVERFLOW
 from lathed.driver import LinkDown
 
@@ -131,6 +132,12 @@ class AudioDevice:
         self._lock = asyncio.Lock()
         self.starts = 0
         self.last_stderr: deque[str] = deque(maxlen=4)
+        self._banks: dict[tuple[float, float], ConditionerBank] = {}
+
+    def bank(self, highpass_hz: float, mains_hz: float) -> ConditionerBank:
+        """The conditioners of this device's sensors with this high-pass and mains frequency,
+        run as one pass a block (its channels in one set of numpy calls)."""
+        return self._banks.setdefault((highpass_hz, mains_hz), ConditionerBank())
 
     def claim(self, sensor: object, channels: int) -> None:
         """At construction: the device is opened with every claimed sensor's channels."""

@@ -67,6 +67,8 @@ class AudioInput(Driver):
             raise section.error("plugin", f"audio_input needs {why}")
         self.dev = AudioDevice.of(self.device, self.hostapi, self.rate, self.block)
         self.dev.claim(self, max(self.channel, self.kp_channel))
+        # the device's channels with this conditioning are conditioned together, once a block
+        self.bank = self.dev.bank(self.highpass_hz, self.mains_hz)
         self.clock = SampleClock(self.rate)
         self.info: dict = {}
         self.seq = 0                   # the next sample's index on the device clock, over reconnections
@@ -85,6 +87,7 @@ class AudioInput(Driver):
         # fresh filters and clock fit: the stream starts anew (its state is not the last one's);
         # made before the first block can come
         self.cond = Conditioner(self.rate, self.calibration.scale, self.highpass_hz, self.mains_hz)
+        self.bank.join(self, self.cond, self.channel - 1)
         self.keyphasor = Keyphasor(self.rate) if self.kp_channel else None
         self.clock.reset()
         self._dropped0 = None
@@ -105,6 +108,7 @@ class AudioInput(Driver):
                                  f"for {age:.1f} s")
 
     async def close(self) -> None:
+        self.bank.leave(self)
         await self.dev.detach(self)
 
     def _on_gone(self, why: str) -> None:
@@ -124,10 +128,9 @@ class AudioInput(Driver):
             self.seq += lost
         if meta["overflow"] or lost:
             self._report()
-        x = np.ascontiguousarray(data[:, self.channel - 1])
+        x, peak, y = self.bank.take(self, data)
         self.clock.add(self.seq, meta["host_t"])
-        peak = max(float(np.maximum.reduce(x)), -float(np.minimum.reduce(x)))   # x.max()'s, without its wrapper
-        if peak == 0.0:
+        if y is None:
             # exact digital silence is no sensor (an input with nothing plugged in, a stream
             # not yet fed): counted and said, not published, so an analyzer is blind, not calm
             self.silent_blocks += 1
@@ -140,7 +143,6 @@ class AudioInput(Driver):
         self._silent = False
         if peak >= CLIP:
             self.clipped += int(np.count_nonzero(np.abs(x) >= CLIP))
-        y = self.cond.process(x)
         t0 = self.clock.t(self.seq)
         rpm = None
         if self.keyphasor is not None:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from lathed.analysis.conditioning import G0, Calibration, Conditioner, Keyphasor, MainsComb, OnePole
+from lathed.analysis.conditioning import (G0, Calibration, Conditioner, ConditionerBank, Keyphasor, MainsComb,
+                                         OnePole)
 from lathed.audio_device import SampleClock
 from lathed.sight import Sight
 
@@ -47,6 +48,42 @@ def test_highpass_removes_dc_from_the_first_sample_and_passes_the_band():
     ref = signal.lfilter(b, a, 10.0 * x.astype(np.float32).astype(float), zi=signal.lfilter_zi(b, a) * 3.0)[0]
     assert np.allclose(y, ref, atol=1e-4)
     assert abs(y.mean()) < 0.01 and np.sqrt(2) * y[rate:].std() == pytest.approx(2.0, rel=0.01)
+
+
+@pytest.mark.parametrize("rate, highpass, mains", [(51200, 2.0, 0.0), (48000, 2.0, 50.0), (1000, 2.0, 0.0),
+                                                    (44100, 0.0, 0.0)])
+def test_a_bank_conditions_each_channel_as_its_own_conditioner_would(rate, highpass, mains):
+    # a device's channels in one pass: each the numbers of its own Conditioner, bit for bit
+    # (1000 S/s: the pole is worked in chunks shorter than a block)
+    rng = np.random.default_rng(3)
+    scales, columns = [490.3, 10.0, 3.3], [0, 4, 2]
+    alone = [Conditioner(rate, s, highpass, mains) for s in scales]
+    bank, members = ConditionerBank(), ["a", "b", "c"]
+    for m, s, col in zip(members, scales, columns):
+        bank.join(m, Conditioner(rate, s, highpass, mains), col)
+    for b in range(12):
+        data = (rng.normal(0.3, 0.1, (1024, 6))).astype(np.float32)
+        if b in (4, 5):
+            data[:, 4] = 0.0           # digital silence: not conditioned, its state as it was
+        for m, col, own in zip(members, columns, alone):
+            x, peak, y = bank.take(m, data)
+            assert np.array_equal(x, data[:, col]) and peak == float(np.abs(data[:, col]).max())
+            if b in (4, 5) and col == 4:
+                assert y is None
+                continue
+            assert y.dtype == np.float32 and y.base is None     # its own array, not a view of all
+            assert y.tobytes() == own.process(np.ascontiguousarray(data[:, col])).tobytes()
+        if b == 7:     # one that joins after a block's pass is conditioned alone, once
+            bank.join("d", Conditioner(rate, 7.0, highpass, mains), 1)
+            alone.append(Conditioner(rate, 7.0, highpass, mains))
+            for _ in range(2):
+                y = bank.take("d", data)[2]
+            assert y.tobytes() == alone[-1].process(np.ascontiguousarray(data[:, 1])).tobytes()
+            members.append("d")
+            columns.append(1)
+        if b == 9:
+            bank.leave("a")
+            del alone[0], members[0], columns[0]
 
 
 @pytest.mark.parametrize("rate, mains", [(48000, 50.0), (44100, 60.0), (51200, 60.0)])

@@ -54,31 +54,37 @@ class OnePole:
         self.chunk = max(16, int(9.2 / -math.log(self.p)))
         self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
+    def _power(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        if n not in self._powers:
+            k = np.arange(n, dtype=np.float64)
+            self._powers[n] = (self.p ** k, self.p ** -k)
+        return self._powers[n]
+
     def run(self, u: np.ndarray) -> np.ndarray:
-        if len(u) <= self.chunk:          # a block in one piece: the common case, no copy
-            n = len(u)
-            if n not in self._powers:
-                k = np.arange(n, dtype=np.float64)
-                self._powers[n] = (self.p ** k, self.p ** -k)
-            fwd, back = self._powers[n]
+        w, self.w = self.run_rows(u, self.w)
+        return w
+
+    def run_rows(self, u: np.ndarray, w0):
+        """The filter along the last axis of ``u`` from state ``w0`` (a float, or one per row
+        of a 2-D ``u``): (output, the new state). Row by row the same numbers as one at a time."""
+        n = u.shape[-1]
+        p = self.p
+        if n <= self.chunk:               # a block in one piece: the common case, no copy
+            fwd, back = self._power(n)
             w = np.multiply(back, u)
-            w.cumsum(out=w)                   # the method: np.cumsum's wrapper costs as much again
-            w += self.p * self.w
+            w.cumsum(axis=-1, out=w)          # the method: np.cumsum's wrapper costs as much again
+            w += p * w0 if u.ndim == 1 else (p * w0)[:, None]
             w *= fwd
-            self.w = float(w[-1])
-            return w
-        out = np.empty(len(u))
-        for i in range(0, len(u), self.chunk):
-            seg = u[i:i + self.chunk]
-            n = len(seg)
-            if n not in self._powers:
-                k = np.arange(n, dtype=np.float64)
-                self._powers[n] = (self.p ** k, self.p ** -k)
-            fwd, back = self._powers[n]
-            w = fwd * (self.p * self.w + np.cumsum(back * seg))
-            out[i:i + n] = w
-            self.w = float(w[-1])
-        return out
+            return w, (float(w[-1]) if u.ndim == 1 else w[:, -1].copy())
+        out = np.empty(u.shape)
+        for i in range(0, n, self.chunk):
+            seg = u[..., i:i + self.chunk]
+            fwd, back = self._power(seg.shape[-1])
+            c = np.cumsum(back * seg, axis=-1)
+            w = fwd * (p * w0 + c if u.ndim == 1 else (p * w0)[:, None] + c)
+            out[..., i:i + seg.shape[-1]] = w
+            w0 = float(w[-1]) if u.ndim == 1 else w[:, -1].copy()
+        return out, w0
 
 
 class MainsComb:
@@ -131,20 +137,83 @@ class Conditioner:
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """One block of full-scale samples -> physical units (float32)."""
-        y = np.multiply(x, self.scale, dtype=np.float64)    # x.astype(np.float64) * scale, in one pass
-        if self._hp is not None:
-            pole, g = self._hp
-            if self._x_last is None:
-                self._x_last = y[0]          # started at the first sample's level: no step from a DC offset
+        return Conditioner.process_rows([self], x[None, :])[0]
+
+    @staticmethod
+    def process_rows(conds: list[Conditioner], x: np.ndarray) -> np.ndarray:
+        """Row i of ``x`` (channels x frames, full scale) through ``conds[i]``, in one pass of
+        numpy calls for all rows: each row's numbers are its own ``process``'s, bit for bit.
+        The conditioners share their rate and high-pass (a ConditionerBank's)."""
+        scale = np.array([[c.scale] for c in conds])
+        y = np.multiply(x, scale, dtype=np.float64)     # x.astype(np.float64) * scale, in one pass
+        hp = conds[0]._hp
+        if hp is not None:
+            g = hp[1]
+            for i, c in enumerate(conds):
+                if c._x_last is None:
+                    c._x_last = float(y[i, 0])   # started at the first sample's level: no step from a DC offset
             dx = np.empty_like(y)
-            dx[0] = y[0] - self._x_last
-            np.subtract(y[1:], y[:-1], out=dx[1:])
+            np.subtract(y[:, 0], [c._x_last for c in conds], out=dx[:, 0])
+            np.subtract(y[:, 1:], y[:, :-1], out=dx[:, 1:])
             dx *= g
-            self._x_last = y[-1]
-            y = pole.run(dx)
-        if self.comb is not None:
-            y = self.comb.run(y)
+            for c, last in zip(conds, y[:, -1].tolist()):
+                c._x_last = last
+            # one pole's powers for all (the same rate and corner), each row its own state
+            y, w = hp[0].run_rows(dx, np.array([c._hp[0].w for c in conds]))
+            for c, wi in zip(conds, w.tolist()):
+                c._hp[0].w = wi
+        for i, c in enumerate(conds):
+            if c.comb is not None:
+                y[i] = c.comb.run(y[i])
         return y.astype(np.float32)
+
+
+class ConditionerBank:
+    """The conditioners of the channels of one device that share a high-pass and a mains
+    frequency (the audio_input sensors reading it, lathed.audio_device): a block of all its
+    channels is conditioned in one pass (Conditioner.process_rows) when the first of them asks,
+    so numpy's call overhead is paid once a block, not once a channel. Each member's samples
+    are the ones its own Conditioner would give, bit for bit."""
+
+    def __init__(self) -> None:
+        self._members: dict[object, tuple[Conditioner, int]] = {}
+        self._block: np.ndarray | None = None
+        self._rows: dict[object, tuple[np.ndarray, float, np.ndarray | None]] = {}
+
+    def join(self, member: object, cond: Conditioner, column: int) -> None:
+        """``member`` takes ``column`` (from 0) of each block through ``cond`` (fresh state)."""
+        self._members[member] = (cond, column)
+        self._rows.pop(member, None)
+
+    def leave(self, member: object) -> None:
+        self._members.pop(member, None)
+
+    def take(self, member: object, data: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
+        """The member's column of ``data`` (frames x channels, full scale), its peak |x| and its
+        conditioned samples (float32; None for exact digital silence, which leaves its
+        conditioner as it was). A block is conditioned once, for every member, whoever asks first."""
+        if data is not self._block:
+            self._block = data
+            self._rows = self._pass(list(self._members.items()), data)
+        got = self._rows.get(member)
+        if got is None:     # joined after this block's pass: its own, once
+            got = self._rows[member] = self._pass([(member, self._members[member])], data)[member]
+        return got
+
+    @staticmethod
+    def _pass(members: list, data: np.ndarray) -> dict:
+        x = data.T[[col for _, (_, col) in members]]      # a row a member, each contiguous
+        peak = np.maximum.reduce(np.abs(x), axis=1).tolist()
+        live = [i for i, p in enumerate(peak) if p != 0.0]
+        y = None
+        if live:
+            y = Conditioner.process_rows([members[i][1][0] for i in live],
+                                         x if len(live) == len(members) else x[live])
+        out = {m: (x[i], peak[i], None) for i, (m, _) in enumerate(members)}
+        for j, i in enumerate(live):
+            # each its own array: a Block kept (a recording, a display's ring) holds one channel
+            out[members[i][0]] = (x[i], peak[i], y[j].copy())
+        return out
 
 
 class Keyphasor:
