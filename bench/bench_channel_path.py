@@ -67,11 +67,14 @@ STAGES = [
 
 
 # -- the signal ------------------------------------------------------------------------
-def make_stream(seconds: float, path: Path) -> None:
-    """The simulator's accelerometer (full scale) and the lathe's registers at each poll."""
+def make_stream(seconds: float, path: Path, skip: float = 0.0) -> None:
+    """The simulator's accelerometer (full scale) and the lathe's registers at each poll,
+    from ``skip`` seconds into its program."""
     sys.path.insert(0, str(ROOT))
     from lathed.sim.lathe import SimLathe
     lathe = SimLathe(rate_hz=RATE, seed=0)
+    for _ in range(int(skip * RATE / BLOCK)):
+        lathe.step(BLOCK)
     n = int(seconds * RATE / BLOCK)
     x = np.empty((n, BLOCK), np.float32)
     regs = []
@@ -281,6 +284,9 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--channels", default="1,4")
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--skip", type=float, default=0.0,
+                    help="start this far into the simulator's program (make bench-channels' window "
+                         "is about 25-55 s into it)")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--against", help="a git revision to compare with (e.g. main)")
     ap.add_argument("--profile", action="store_true", help="cProfile one run of this checkout (stderr)")
@@ -298,8 +304,9 @@ def main() -> int:
         tmp = Path(d)
         stream = tmp / "stream.npz"
         t = time.monotonic()
-        make_stream(a.seconds, stream)
-        print(f"signal: {a.seconds:g} s of the simulator's cuts made in {time.monotonic() - t:.0f} s",
+        make_stream(a.seconds, stream, a.skip)
+        print(f"signal: {a.seconds:g} s of the simulator's cuts from {a.skip:g} s in, made in "
+              f"{time.monotonic() - t:.0f} s",
               file=sys.stderr)
         trees = {"new": tree_of(None, tmp)}
         if a.against:

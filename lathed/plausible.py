@@ -72,6 +72,7 @@ class Plausibility:
 
     def __init__(self, rules: dict[str, Bounds] | None = None, confirm: int = CONFIRM):
         self.rules = dict(rules or {})
+        self._bounds: dict[tuple[str, str], Bounds | None] = {}
         self.confirm = confirm
         self._last: dict[str, tuple[float, float]] = {}          # quantity -> last accepted (value, t)
         self._chain: dict[str, tuple[float, float, int]] = {}    # quantity -> (value, t, n) of a jump
@@ -112,7 +113,14 @@ class Plausibility:
 
     def bounds(self, quantity: str, unit: str) -> Bounds | None:
         """The quantity's rule (exact name, then the first glob that matches) merged
-        over its unit's defaults; None: no bounds, finite is enough."""
+        over its unit's defaults; None: no bounds, finite is enough. Worked out once per
+        quantity and unit (the rules are fixed): every sample is checked."""
+        key = (quantity, unit)
+        if key not in self._bounds:
+            self._bounds[key] = self._bounds_of(quantity, unit)
+        return self._bounds[key]
+
+    def _bounds_of(self, quantity: str, unit: str) -> Bounds | None:
         base = UNIT_DEFAULTS.get(unit)
         rule = self.rule(quantity)
         if rule is None:
