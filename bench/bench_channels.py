@@ -11,6 +11,12 @@ is their resident set at the window's end (every detector's history full by then
 the JACK server's shared memory the helper maps (an audio server's, not lathed's).
 
     .venv/bin/python bench/bench_channels.py [--channels 1,2,4,8] [--warmup 20] [--seconds 30]
+                                             [--py-spy]
+
+``--py-spy`` samples the daemon with py-spy (``pip install py-spy``; not a dependency)
+through each window instead of only timing it, and prints where its CPU went, stage by
+stage, and each stage's slope over the channels: the live daemon's own breakdown (the
+sampling costs the daemon a little; read the CPU table of a run without it).
 """
 from __future__ import annotations
 
@@ -165,7 +171,41 @@ def received(st: dict) -> int:
     return 1024 * sum(s.get("blocks") or 0 for s in st.get("sensors", []) if s["name"].startswith("accel"))
 
 
-def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
+SPY_RATE = 250      # py-spy's samples a second
+# where the daemon's samples go: a sample counts for the innermost of these functions on its stack
+SPY_STAGES = [
+    ("hand-over", "the capture helper's frames read and split (audio_device._read)", "AudioDevice._read"),
+    ("pipe", "the helper's pipe read into the stream buffer", "_UnixReadPipeTransport._read_ready"),
+    ("sensor", "audio_input: a block (conditioning, the gate, the bus)", "AudioInput._on_block"),
+    ("machine", "chatter: the machine's samples", "ChatterAnalyzer._on_machine"),
+    ("cut", "chatter: the cut state", "CutState.block"),
+    ("detector", "chatter: the detector", "RevolutionDetector.process"),
+    ("block rest", "chatter: the rest of a block (its samples published)", "ChatterAnalyzer._on_block"),
+    ("store", "the store's writer thread (SQLite)", "Store._writer"),
+    ("epoll", "the event loop's wait (epoll; idle, mostly)", "EpollSelector.select"),
+]
+
+
+def spy_stages(path: Path) -> dict[str, int]:
+    """py-spy's raw (collapsed) stacks -> samples per stage; "all" every sample."""
+    out = {k: 0 for k, *_ in SPY_STAGES}
+    out["all"] = 0
+    fns = {fn: key for key, _, fn in SPY_STAGES}
+    for line in path.read_text().splitlines():
+        stack, _, count = line.rpartition(" ")
+        n = int(count)
+        out["all"] += n
+        # the innermost stage the stack is in (a sensor's block is under the hand-over's frames)
+        for f in reversed(stack.split(";")):
+            key = fns.get(f.partition(" ")[0])
+            if key is not None:
+                out[key] += n
+                break
+    out["rest"] = out["all"] - sum(out[k] for k, *_ in SPY_STAGES)
+    return out
+
+
+def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = False) -> dict:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         cfg = config(tmp, n)
@@ -188,7 +228,15 @@ def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
             pids = (proc.pid, helper)
             got0 = received(status(sock))
             c0, w0 = [cpu_s(p) for p in pids], time.monotonic()
-            time.sleep(seconds)
+            spied = None
+            if spy:
+                spied = tmp / "spy.txt"
+                subprocess.run([str(BIN / "py-spy"), "record", "-p", str(proc.pid), "-d", f"{seconds:g}",
+                                "-r", str(SPY_RATE), "-f", "raw", "-o", str(spied), "--nonblocking"],
+                               check=True, capture_output=True)
+                time.sleep(max(0.0, seconds - (time.monotonic() - w0)))
+            else:
+                time.sleep(seconds)
             used = [cpu_s(p) - c for p, c in zip(pids, c0)]
             wall = time.monotonic() - w0
             cpu = [100 * u / wall for u in used]
@@ -201,6 +249,7 @@ def run(n: int, server: JackServer, warmup: float, seconds: float) -> dict:
             lost = sum(s.get("lost_samples", 0) or 0 for s in st["sensors"] if s["name"].startswith("accel"))
             bridge.close()
             return {"n": n, "cpu": cpu, "rss": rss, "windows": windows, "lost": lost,
+                    "spy": spy_stages(spied) if spied is not None else None,
                     "underruns": bridge.underruns, "rt": [100 * u / took for u in used] if took > 0 else cpu,
                     "took": took, "wall": wall}
         finally:
@@ -213,7 +262,10 @@ def main() -> int:
     ap.add_argument("--channels", default="1,2,4,8")
     ap.add_argument("--warmup", type=float, default=20.0)
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--py-spy", action="store_true", help="sample the daemon with py-spy: its CPU by stage")
     a = ap.parse_args()
+    if a.py_spy and not (BIN / "py-spy").exists():
+        raise SystemExit(f"--py-spy needs py-spy in {BIN} (pip install py-spy)")
     ns = [int(x) for x in a.channels.split(",")]
     rows = []
     for n in ns:
@@ -222,7 +274,7 @@ def main() -> int:
         server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
         server.start()
         try:
-            rows.append(run(n, server, a.warmup, a.seconds))
+            rows.append(run(n, server, a.warmup, a.seconds, a.py_spy))
         finally:
             server.stop()
     print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
@@ -239,6 +291,18 @@ def main() -> int:
         rt = np.polyfit(x, [sum(r["rt"]) for r in rows], 1)[0]
         rss = np.polyfit(x, [sum(r["rss"]) for r in rows], 1)[0]
         print(f"| each added channel (least-squares slope) | {cpu:+.2f} % | {rt:+.2f} % | {rss:+.1f} MB | | |")
+    if a.py_spy:
+        pct = 100.0 / (SPY_RATE * a.seconds)          # % of a core a sample is
+        print(f"\n| the daemon's CPU by stage (py-spy, % of a core) | "
+              + " | ".join(f"{r['n']} ch" for r in rows) + " | each added channel | µs a block and channel |")
+        print("|---|" + "---|" * (len(rows) + 2))
+        x = np.array([r["n"] for r in rows], float)
+        for key, what, _ in [*SPY_STAGES, ("rest", "the rest (asyncio, the subscriptions, the lathe's driver...)",
+                                            None), ("all", "all the daemon's samples", None)]:
+            v = [r["spy"][key] * pct for r in rows]
+            slope = np.polyfit(x, v, 1)[0] if len(rows) > 1 else float("nan")
+            print(f"| {key}: {what} | " + " | ".join(f"{u:.2f}" for u in v)
+                  + f" | {slope:+.3f} % | {slope * 1e4 * 1024 / RATE:.0f} |")
     behind = [r["n"] for r in rows if r["took"] < 0.95 * r["wall"]]
     if behind:
         print(f"\nnote: with {', '.join(map(str, behind))} channel(s) the daemon took in less signal than the "
