@@ -191,21 +191,29 @@ def spy_stages(path: Path) -> dict[str, int]:
     out = {k: 0 for k, *_ in SPY_STAGES}
     out["all"] = 0
     fns = {fn: key for key, _, fn in SPY_STAGES}
+    others = 0
     for line in path.read_text().splitlines():
         stack, _, count = line.rpartition(" ")
         n = int(count)
         out["all"] += n
+        if "BaseEventLoop.run_forever" not in stack and "Store._writer" not in stack:
+            # another thread (a serial port's reader, the executor's): py-spy often counts one
+            # blocked in a read as active, so these are kept apart
+            others += n
+            continue
         # the innermost stage the stack is in (a sensor's block is under the hand-over's frames)
         for f in reversed(stack.split(";")):
             key = fns.get(f.partition(" ")[0])
             if key is not None:
                 out[key] += n
                 break
-    out["rest"] = out["all"] - sum(out[k] for k, *_ in SPY_STAGES)
+    out["threads"] = others
+    out["rest"] = out["all"] - others - sum(out[k] for k, *_ in SPY_STAGES)
     return out
 
 
-def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = False) -> dict:
+def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = False,
+        keep: str | None = None) -> dict:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         cfg = config(tmp, n)
@@ -230,7 +238,8 @@ def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = F
             c0, w0 = [cpu_s(p) for p in pids], time.monotonic()
             spied = None
             if spy:
-                spied = tmp / "spy.txt"
+                spied = Path(keep) / f"daemon-{n}.txt" if keep else tmp / "spy.txt"
+                spied.parent.mkdir(parents=True, exist_ok=True)
                 subprocess.run([str(BIN / "py-spy"), "record", "-p", str(proc.pid), "-d", f"{seconds:g}",
                                 "-r", str(SPY_RATE), "-f", "raw", "-o", str(spied), "--nonblocking"],
                                check=True, capture_output=True)
@@ -263,6 +272,7 @@ def main() -> int:
     ap.add_argument("--warmup", type=float, default=20.0)
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--py-spy", action="store_true", help="sample the daemon with py-spy: its CPU by stage")
+    ap.add_argument("--py-spy-keep", metavar="DIR", help="keep py-spy's raw stacks there (daemon-N.txt)")
     a = ap.parse_args()
     if a.py_spy and not (BIN / "py-spy").exists():
         raise SystemExit(f"--py-spy needs py-spy in {BIN} (pip install py-spy)")
@@ -274,7 +284,7 @@ def main() -> int:
         server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
         server.start()
         try:
-            rows.append(run(n, server, a.warmup, a.seconds, a.py_spy))
+            rows.append(run(n, server, a.warmup, a.seconds, a.py_spy, a.py_spy_keep))
         finally:
             server.stop()
     print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
@@ -297,8 +307,10 @@ def main() -> int:
               + " | ".join(f"{r['n']} ch" for r in rows) + " | each added channel | µs a block and channel |")
         print("|---|" + "---|" * (len(rows) + 2))
         x = np.array([r["n"] for r in rows], float)
-        for key, what, _ in [*SPY_STAGES, ("rest", "the rest (asyncio, the subscriptions, the lathe's driver...)",
-                                            None), ("all", "all the daemon's samples", None)]:
+        rest = [("rest", "the event loop's rest (asyncio, the subscriptions, the other drivers)", None),
+                ("threads", "the other threads (serial readers, the executor: blocked reads counted too)", None),
+                ("all", "all the daemon's samples", None)]
+        for key, what, _ in [*SPY_STAGES, *rest]:
             v = [r["spy"][key] * pct for r in rows]
             slope = np.polyfit(x, v, 1)[0] if len(rows) > 1 else float("nan")
             print(f"| {key}: {what} | " + " | ".join(f"{u:.2f}" for u in v)
