@@ -60,7 +60,7 @@ import numpy as np
 from lathed.analysis.chatter.eye import eye_of_difference
 from lathed.analysis.chatter.rules import AlarmRules
 from lathed.analysis.chatter.shape import SpectralShape
-from lathed.analysis.chatter.spectrum import spectral_peak_hz
+from lathed.analysis.chatter.spectrum import median, spectral_peak_hz
 from lathed.analysis.chatter.windows import BASE_PARAMS, Window
 from lathed.analysis.quantile import SlidingQuantile
 
@@ -374,7 +374,8 @@ class RevolutionDetector(AlarmRules):
                 self.baseline = max(float(np.quantile(self._learn, self.params["learn_quantile"])), 1e-300)
                 self._on_learned()
                 self._learned_baseline = self.baseline
-            med = float(np.median(self._learn)) if self._learn else float("nan")
+            # np.median bit for bit, without its wrappers (every learning window)
+            med = median(np.array(self._learn, dtype=float)) if self._learn else float("nan")
             return Window(t_s, raw / med if med > 0 else float("nan"), self.threshold, False, None, True,
                           judged=False)
         index = raw / self.baseline

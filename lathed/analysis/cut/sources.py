@@ -86,7 +86,7 @@ class VibrationCutDetector:
     def process(self, x: np.ndarray) -> int | None:
         """Feed samples; returns the sample offset in ``x`` where the state changed
         (the last change in this block), or None."""
-        x = np.ravel(x)
+        x = x.ravel() if type(x) is np.ndarray else np.ravel(x)    # the method: np.ravel's wrapper spared
         buf = np.concatenate((self._rest, x), dtype=float)     # the cast and the join in one pass
         nf = len(buf) // self.frame
         self._rest = buf[nf * self.frame:]
@@ -98,7 +98,7 @@ class VibrationCutDetector:
         rms = np.sqrt(np.add.reduce(dev * dev, axis=1) / self.frame)
         offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
         self.contact = None
-        if self.cutting and not (rms < self.off_ratio * self.floor).any():
+        if self.cutting and not np.logical_or.reduce(rms < self.off_ratio * self.floor):   # .any(), unwrapped
             # in the cut, every frame over the exit's level (a block's usual case): no frame
             # counts towards the exit, nothing changes but the two last frames' rms
             r = rms.tolist()
