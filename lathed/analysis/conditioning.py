@@ -61,30 +61,45 @@ class OnePole:
         return self._powers[n]
 
     def run(self, u: np.ndarray) -> np.ndarray:
-        w, self.w = self.run_rows(u, self.w)
-        return w
+        if len(u) <= self.chunk:          # a block in one piece: the common case, no copy
+            fwd, back = self._power(len(u))
+            w = np.multiply(back, u)
+            w.cumsum(out=w)                   # the method: np.cumsum's wrapper costs as much again
+            w += self.p * self.w
+            w *= fwd
+            self.w = float(w[-1])
+            return w
+        out = np.empty(len(u))
+        for i in range(0, len(u), self.chunk):
+            seg = u[i:i + self.chunk]
+            n = len(seg)
+            fwd, back = self._power(n)
+            w = fwd * (self.p * self.w + np.cumsum(back * seg))
+            out[i:i + n] = w
+            self.w = float(w[-1])
+        return out
 
-    def run_rows(self, u: np.ndarray, w0):
-        """The filter along the last axis of ``u`` from state ``w0`` (a float, or one per row
-        of a 2-D ``u``): (output, the new state). Row by row the same numbers as one at a time."""
-        n = u.shape[-1]
-        p = self.p
-        if n <= self.chunk:               # a block in one piece: the common case, no copy
+    def run_rows(self, u: np.ndarray, w0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``run`` along each row of ``u`` (rows x samples), row i from state ``w0[i]``: (the
+        output, the new states). Each row's numbers are ``run``'s, bit for bit (the same
+        operations, element by element; a cumulative sum runs in order along its row)."""
+        n = u.shape[1]
+        pw = (self.p * w0)[:, None]
+        if n <= self.chunk:
             fwd, back = self._power(n)
             w = np.multiply(back, u)
-            w.cumsum(axis=-1, out=w)          # the method: np.cumsum's wrapper costs as much again
-            w += p * w0 if u.ndim == 1 else (p * w0)[:, None]
+            w.cumsum(axis=1, out=w)
+            w += pw
             w *= fwd
-            return w, (float(w[-1]) if u.ndim == 1 else w[:, -1].copy())
+            return w, w[:, -1].copy()
         out = np.empty(u.shape)
         for i in range(0, n, self.chunk):
-            seg = u[..., i:i + self.chunk]
-            fwd, back = self._power(seg.shape[-1])
-            c = np.cumsum(back * seg, axis=-1)
-            w = fwd * (p * w0 + c if u.ndim == 1 else (p * w0)[:, None] + c)
-            out[..., i:i + seg.shape[-1]] = w
-            w0 = float(w[-1]) if u.ndim == 1 else w[:, -1].copy()
-        return out, w0
+            seg = u[:, i:i + self.chunk]
+            fwd, back = self._power(seg.shape[1])
+            w = fwd * (pw + np.cumsum(back * seg, axis=1))
+            out[:, i:i + seg.shape[1]] = w
+            pw = (self.p * w[:, -1])[:, None]
+        return out, out[:, -1].copy()
 
 
 class MainsComb:
@@ -137,35 +152,49 @@ class Conditioner:
 
     def process(self, x: np.ndarray) -> np.ndarray:
         """One block of full-scale samples -> physical units (float32)."""
-        return Conditioner.process_rows([self], x[None, :])[0]
+        y = np.multiply(x, self.scale, dtype=np.float64)    # x.astype(np.float64) * scale, in one pass
+        if self._hp is not None:
+            pole, g = self._hp
+            if self._x_last is None:
+                self._x_last = y[0]          # started at the first sample's level: no step from a DC offset
+            dx = np.empty_like(y)
+            dx[0] = y[0] - self._x_last
+            np.subtract(y[1:], y[:-1], out=dx[1:])
+            dx *= g
+            self._x_last = y[-1]
+            y = pole.run(dx)
+        if self.comb is not None:
+            y = self.comb.run(y)
+        return y.astype(np.float32)
 
     @staticmethod
-    def process_rows(conds: list[Conditioner], x: np.ndarray) -> np.ndarray:
-        """Row i of ``x`` (channels x frames, full scale) through ``conds[i]``, in one pass of
-        numpy calls for all rows: each row's numbers are its own ``process``'s, bit for bit.
-        The conditioners share their rate and high-pass (a ConditionerBank's)."""
-        scale = np.array([[c.scale] for c in conds])
+    def process_rows(conds: list[Conditioner], x: np.ndarray, scale: np.ndarray) -> list[np.ndarray]:
+        """Row i of ``x`` (channels x frames, full scale) through ``conds[i]`` (whose scales are
+        ``scale``, a column), in one pass of numpy calls for all rows: each row's numbers are
+        its own ``process``'s, bit for bit. The conditioners share their rate and high-pass."""
+        if len(conds) == 1:
+            return [conds[0].process(x[0])]
         y = np.multiply(x, scale, dtype=np.float64)     # x.astype(np.float64) * scale, in one pass
         hp = conds[0]._hp
         if hp is not None:
             g = hp[1]
-            for i, c in enumerate(conds):
-                if c._x_last is None:
-                    c._x_last = float(y[i, 0])   # started at the first sample's level: no step from a DC offset
+            last = [c._x_last for c in conds]
+            if None in last:                 # started at the first sample's level: no step from a DC offset
+                last = [y[i, 0] if v is None else v for i, v in enumerate(last)]
             dx = np.empty_like(y)
-            np.subtract(y[:, 0], [c._x_last for c in conds], out=dx[:, 0])
+            np.subtract(y[:, 0], last, out=dx[:, 0])
             np.subtract(y[:, 1:], y[:, :-1], out=dx[:, 1:])
             dx *= g
-            for c, last in zip(conds, y[:, -1].tolist()):
-                c._x_last = last
-            # one pole's powers for all (the same rate and corner), each row its own state
+            for c, v in zip(conds, y[:, -1].tolist()):
+                c._x_last = v
+            # one pole's powers for all (the same rate and corner), each row from its own state
             y, w = hp[0].run_rows(dx, np.array([c._hp[0].w for c in conds]))
-            for c, wi in zip(conds, w.tolist()):
-                c._hp[0].w = wi
-        for i, c in enumerate(conds):
-            if c.comb is not None:
-                y[i] = c.comb.run(y[i])
-        return y.astype(np.float32)
+            for c, v in zip(conds, w.tolist()):
+                c._hp[0].w = v
+        out = []
+        for c, row in zip(conds, y):
+            out.append((row if c.comb is None else c.comb.run(row)).astype(np.float32))
+        return out
 
 
 class ConditionerBank:
@@ -179,14 +208,24 @@ class ConditionerBank:
         self._members: dict[object, tuple[Conditioner, int]] = {}
         self._block: np.ndarray | None = None
         self._rows: dict[object, tuple[np.ndarray, float, np.ndarray | None]] = {}
+        self._order()
 
     def join(self, member: object, cond: Conditioner, column: int) -> None:
         """``member`` takes ``column`` (from 0) of each block through ``cond`` (fresh state)."""
         self._members[member] = (cond, column)
         self._rows.pop(member, None)
+        self._order()
 
     def leave(self, member: object) -> None:
-        self._members.pop(member, None)
+        if self._members.pop(member, None) is not None:
+            self._order()
+
+    def _order(self) -> None:
+        """The members as rows: their keys, conditioners, columns and scales, made once."""
+        self._keys = list(self._members)
+        self._conds = [c for c, _ in self._members.values()]
+        self._cols = np.array([col for _, col in self._members.values()], dtype=np.intp)
+        self._scale = np.array([[c.scale] for c in self._conds], dtype=np.float64).reshape(-1, 1)
 
     def take(self, member: object, data: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
         """The member's column of ``data`` (frames x channels, full scale), its peak |x| and its
@@ -194,25 +233,30 @@ class ConditionerBank:
         conditioner as it was). A block is conditioned once, for every member, whoever asks first."""
         if data is not self._block:
             self._block = data
-            self._rows = self._pass(list(self._members.items()), data)
+            self._rows = self._pass(data)
         got = self._rows.get(member)
         if got is None:     # joined after this block's pass: its own, once
-            got = self._rows[member] = self._pass([(member, self._members[member])], data)[member]
+            cond, col = self._members[member]
+            x = np.ascontiguousarray(data[:, col])
+            peak = float(np.maximum.reduce(np.abs(x)))
+            got = self._rows[member] = (x, peak, cond.process(x) if peak != 0.0 else None)
         return got
 
-    @staticmethod
-    def _pass(members: list, data: np.ndarray) -> dict:
-        x = data.T[[col for _, (_, col) in members]]      # a row a member, each contiguous
+    def _pass(self, data: np.ndarray) -> dict:
+        keys, conds = self._keys, self._conds
+        if not keys:
+            return {}
+        x = data.T[self._cols]          # a row a member, each contiguous
         peak = np.maximum.reduce(np.abs(x), axis=1).tolist()
+        if 0.0 not in peak:
+            ys = Conditioner.process_rows(conds, x, self._scale)
+            return {k: (x[i], peak[i], ys[i]) for i, k in enumerate(keys)}
         live = [i for i, p in enumerate(peak) if p != 0.0]
-        y = None
+        out = {k: (x[i], peak[i], None) for i, k in enumerate(keys)}
         if live:
-            y = Conditioner.process_rows([members[i][1][0] for i in live],
-                                         x if len(live) == len(members) else x[live])
-        out = {m: (x[i], peak[i], None) for i, (m, _) in enumerate(members)}
-        for j, i in enumerate(live):
-            # each its own array: a Block kept (a recording, a display's ring) holds one channel
-            out[members[i][0]] = (x[i], peak[i], y[j].copy())
+            ys = Conditioner.process_rows([conds[i] for i in live], x[live], self._scale[live])
+            for i, y in zip(live, ys):
+                out[keys[i]] = (x[i], peak[i], y)
         return out
 
 
