@@ -86,6 +86,20 @@ def test_a_bank_conditions_each_channel_as_its_own_conditioner_would(rate, highp
             del alone[0], members[0], columns[0]
 
 
+def test_a_bank_member_whose_column_a_block_lacks_fails_alone():
+    # one sensor's channel beyond the device's: its own IndexError, the others' blocks as ever
+    bank = ConditionerBank()
+    bank.join("in", Conditioner(51200, 10.0, 2.0), 0)
+    bank.join("out", Conditioner(51200, 10.0, 2.0), 5)
+    alone = Conditioner(51200, 10.0, 2.0)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        data = rng.normal(0.0, 0.1, (1024, 2)).astype(np.float32)
+        with pytest.raises(IndexError):
+            bank.take("out", data)
+        assert bank.take("in", data)[2].tobytes() == alone.process(np.ascontiguousarray(data[:, 0])).tobytes()
+
+
 @pytest.mark.parametrize("rate, mains", [(48000, 50.0), (44100, 60.0), (51200, 60.0)])
 def test_mains_comb_takes_every_harmonic_and_leaves_what_is_between(rate, mains):
     t = np.arange(3 * rate) / rate

@@ -226,16 +226,18 @@ class ConditionerBank:
         self._conds = [c for c, _ in self._members.values()]
         self._cols = np.array([col for _, col in self._members.values()], dtype=np.intp)
         self._scale = np.array([[c.scale] for c in self._conds], dtype=np.float64).reshape(-1, 1)
+        self._top = int(self._cols.max()) if len(self._cols) else -1
 
     def take(self, member: object, data: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
         """The member's column of ``data`` (frames x channels, full scale), its peak |x| and its
         conditioned samples (float32; None for exact digital silence, which leaves its
         conditioner as it was). A block is conditioned once, for every member, whoever asks first."""
         if data is not self._block:
+            self._rows = {}
             self._block = data
             self._rows = self._pass(data)
         got = self._rows.get(member)
-        if got is None:     # joined after this block's pass: its own, once
+        if got is None:     # joined after this block's pass (or a column the block lacks): its own
             cond, col = self._members[member]
             x = np.ascontiguousarray(data[:, col])
             peak = float(np.maximum.reduce(np.abs(x)))
@@ -243,18 +245,25 @@ class ConditionerBank:
         return got
 
     def _pass(self, data: np.ndarray) -> dict:
-        keys, conds = self._keys, self._conds
+        keys, conds, cols, scale = self._keys, self._conds, self._cols, self._scale
         if not keys:
             return {}
-        x = data.T[self._cols]          # a row a member, each contiguous
+        if self._top >= data.shape[1]:
+            # a member's column the block lacks fails on its own (take), as it would alone
+            inside = np.flatnonzero(cols < data.shape[1])
+            keys, conds = [keys[i] for i in inside], [conds[i] for i in inside]
+            cols, scale = cols[inside], scale[inside]
+            if not keys:
+                return {}
+        x = data.T[cols]                # a row a member, each contiguous
         peak = np.maximum.reduce(np.abs(x), axis=1).tolist()
         if 0.0 not in peak:
-            ys = Conditioner.process_rows(conds, x, self._scale)
+            ys = Conditioner.process_rows(conds, x, scale)
             return {k: (x[i], peak[i], ys[i]) for i, k in enumerate(keys)}
         live = [i for i, p in enumerate(peak) if p != 0.0]
         out = {k: (x[i], peak[i], None) for i, k in enumerate(keys)}
         if live:
-            ys = Conditioner.process_rows([conds[i] for i in live], x[live], self._scale[live])
+            ys = Conditioner.process_rows([conds[i] for i in live], x[live], scale[live])
             for i, y in zip(live, ys):
                 out[keys[i]] = (x[i], peak[i], y)
         return out
