@@ -133,3 +133,21 @@ def test_the_simulator_refuses_an_outage_it_cannot_take(tmp_path):
         with pytest.raises(ValueError, match=r"^seconds must be a number in \(0, 3600\], got "):
             asyncio.run(sim._command("outage", {"peer": "modbus", "seconds": seconds}))
     assert not sim._outages
+
+
+@pytest.mark.parametrize("argv,wait", [(["thermal", "refit"], 180.0), (["thermal", "status"], 10.0),
+                                       (["thermal", "touchoff"], 10.0)])
+def test_a_thermal_refit_is_waited_for_as_long_as_a_stability_refit(argv, wait, monkeypatch, capsys):
+    # a refit runs in a process of its own and takes tens of seconds on a busy PC: lathectl
+    # waited its usual 10 s and said "lathed did not answer" while the refit went on (seen on a
+    # loaded fresh clone in test_thermal_live)
+    import lathed.cli.thermal as thermal_cli
+    asked = []
+
+    def answer(cmd, args=None, sock_path=None, timeout=10.0):
+        asked.append((cmd, args["action"], timeout))
+        return {"summary": "ok", "effects": [], "model_before": "eq14", "before_rmse_um": 1.0, "model_after": "x",
+                "after_rmse_um": 0.5, "better": True, "rows": 30}
+    monkeypatch.setattr(thermal_cli, "call", answer)
+    assert main(["--socket", "/nonexistent.sock", *argv]) == 0
+    assert asked == [("thermal", argv[1], wait)]

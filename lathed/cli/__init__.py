@@ -12,6 +12,9 @@ from lathed.client import DaemonUnavailable, call, default_db
 
 # sysexits codes the offline commands use
 EX_DATAERR, EX_NOINPUT, EX_UNAVAILABLE, EX_CANTCREAT = 65, 66, 69, 73
+# a refit (stability or thermal) takes tens of seconds on a big store or a busy PC; other
+# commands are answered within lathectl's usual 10 s
+REFIT_TIMEOUT_S = 180.0
 
 
 class UsageError(Exception):

@@ -17,10 +17,9 @@ from lathed.cli import EX_CANTCREAT, EX_DATAERR, fail
 from lathed.cli import count
 from lathed.cli.eventtext import cut_text
 from lathed.client import call
-from lathed.cli import print_json, remote
+from lathed.cli import REFIT_TIMEOUT_S, print_json, remote
 
 MAX_CUTS = 100_000     # the events command's limit
-REFIT_TIMEOUT_S = 180.0
 
 
 def _since(text: str) -> float:
@@ -92,7 +91,6 @@ def run_stability(args) -> int:
     req = {"action": args.action, "analyzer": _analyzer(args)}
     if args.action == "refit":
         req.update(dry_run=args.dry_run, holdout=args.holdout)
-    # a refit on thousands of cuts takes tens of seconds (lathectl's usual wait is 10 s)
     r = call("stability", req, sock_path=args.socket,
              timeout=REFIT_TIMEOUT_S if args.action in ("refit", "learn") else 10.0)
     if args.json:

@@ -3,11 +3,13 @@ from __future__ import annotations
 
 import argparse
 
-from lathed.cli import print_json, remote
+from lathed.cli import REFIT_TIMEOUT_S, print_json
+from lathed.client import call
 
 
 def run(args: argparse.Namespace) -> int:
-    r = remote(args, "thermal", {"action": args.action, "analyzer": args.analyzer})
+    r = call("thermal", {"action": args.action, "analyzer": args.analyzer}, sock_path=args.socket,
+             timeout=REFIT_TIMEOUT_S if args.action == "refit" else 10.0)
     if args.json:
         print_json(r)
     elif args.action == "refit":
