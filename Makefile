@@ -30,7 +30,7 @@ test: $(STAMP)
 	bash tests/ensure_mosquitto.sh
 	bash tests/ensure_node_opcua.sh
 	bash tests/ensure_jack.sh
-	$(BIN)/python -m pytest -n 4 --dist loadfile --no-loadscope-reorder
+	$(BIN)/python -m pytest -n 2 --dist loadfile --no-loadscope-reorder
 
 # Benchmarks: each prints a Markdown table (docs/benchmarks.md).
 bench-daemon: $(STAMP)
