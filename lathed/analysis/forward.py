@@ -127,11 +127,13 @@ class Scored:
     later: float | None = None
     baseline: bool = False
     note: str = ""
+    rolling: float | None = None     # a baseline's error over the later half of the training rows
 
     def to_json(self) -> dict[str, Any]:
         r = (lambda v: None if v is None else round(v, 4))
         return {"model": self.label, "forward_rmse_um": r(self.forward), "rmse_um": r(self.later),
-                "baseline": self.baseline, **({"note": self.note} if self.note else {})}
+                "baseline": self.baseline, **({"note": self.note} if self.note else {}),
+                **({"rolling_rmse_um": r(self.rolling)} if self.rolling is not None else {})}
 
 
 def best(rows: Sequence[Scored], on: str = "forward", baseline: bool | None = None) -> Scored | None:

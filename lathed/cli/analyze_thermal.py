@@ -73,7 +73,7 @@ def _plot(path: str, a: Analysis, data, label: str) -> None:
     import matplotlib.pyplot as plt
     h = (data.time_s - data.t0_s) / 3600.0
     y = data.displacement_um
-    best = a.best_baseline("forward")
+    best = a.best_baseline("rolling")
     lines = [(f"best baseline: {best.label}", best, "tab:gray", "--"),
              ("selected sensors, linear", a.start, "tab:orange", "-"), ("selected model", a.loop, "tab:blue", "-")]
     if a.final is not a.loop and a.final is not best:
@@ -161,7 +161,8 @@ def _print_report(a: Analysis, where: str) -> None:
         fw = f"{c.forward:.2f}" if c.forward is not None else "n/a"
         lt = f"{c.later:.2f}" if c.later is not None else "n/a"
         tag = " [baseline]" if c.baseline else ""
-        print(f"  {c.label}{tag}: forward {fw} µm, later {lt} µm rms" + (f" ({c.note})" if c.note else ""))
+        half = f", later half of the training rows {c.rolling:.2f} µm" if c.rolling is not None else ""
+        print(f"  {c.label}{tag}: forward {fw} µm{half}, later {lt} µm rms" + (f" ({c.note})" if c.note else ""))
     if a.sensors:
         print("sensors: " + "; ".join(
             f"{k.sensor}{f' (smoothed {k.smooth_s:g} s)' if k.smooth_s else ''}"

@@ -286,16 +286,7 @@ def analyze(train: Rows, test: Rows | None = None, *,
     stage.label = (f"selected: {len(sensor_terms)} sensor(s) and {len(loop.effects)} effect(s), "
                    f"{len(stage.model.names)} term(s)")
     baselines = baseline_stages(train, test, cut, folds)
-    best = min(baselines, key=lambda s: s.forward_rmse_um)
-    # The selected model came out of a search over thousands of variants and will fit some folds
-    # by chance: it replaces the best baseline only when it predicts the newest rows better by as
-    # much as an effect must, and consistently so across them, as a sensor must to enter.
-    verdict = beats(best.forward_errors, stage.forward_errors, min_gain, n_folds)
-    final = stage if verdict.better else best
-    if not verdict.better:
-        notes.append(f"{best.label} is the model: on the newest training rows the selected model "
-                     f"({stage.forward_rmse_um:.2f} µm) does not beat it ({best.forward_rmse_um:.2f} µm) by "
-                     f"{100 * min_gain:g} % consistently ({verdict.why()})")
+    final = hand_on(stage, baselines, min_gain, n_folds, notes)
     newest = train.slice(cut, n)
     if test is not None:
         res = residual_structure(test.time_s, test.displacement_um - final.model.predict(test), test)
@@ -308,6 +299,26 @@ def analyze(train: Rows, test: Rows | None = None, *,
     comparison = _comparison(newest, test, current, [start, stage, *baselines], final)
     return Analysis(start, found, stage, final, baselines, res, notes, comparison, loop.kept, judged_on,
                     forward_on)
+
+
+def hand_on(stage: Stage, baselines: Sequence[Stage], min_gain: float, n_folds: int, notes: list[str]) -> Stage:
+    """The model ``analyze`` hands on: ``stage`` (the selected model) or a baseline.
+
+    The baseline is the one with the least error over the later half of the training rows. The
+    selected model came out of a search over thousands of variants and will fit some folds by
+    chance, so it is judged only on the newest rows, which no choice saw: it replaces the
+    baselines only when it beats the best of them there by as much as an effect must, and
+    consistently so across them, as a sensor must to enter."""
+    best = min(baselines, key=lambda s: s.rolling_rmse_um)
+    rival = min(baselines, key=lambda s: s.forward_rmse_um)
+    verdict = beats(rival.forward_errors, stage.forward_errors, min_gain, n_folds)
+    if verdict.better:
+        return stage
+    notes.append(f"{best.label} is the model, the baseline with the least error over the later half "
+                 f"of the training rows ({best.rolling_rmse_um:.2f} µm): on the newest training rows the "
+                 f"selected model ({stage.forward_rmse_um:.2f} µm) does not beat {rival.label} "
+                 f"({rival.forward_rmse_um:.2f} µm) by {100 * min_gain:g} % consistently ({verdict.why()})")
+    return best
 
 
 def _comparison(newest: Rows, test: Rows | None, current: ThermalModel | None, stages: Sequence[Stage],

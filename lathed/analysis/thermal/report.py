@@ -26,13 +26,16 @@ class Stage:
     label: str = ""
     baseline: bool = False
     forward_errors: np.ndarray | None = field(default=None, repr=False)
+    # baselines only: expanding-window error over the later half of every training row
+    rolling_rmse_um: float | None = None
 
     def scored(self) -> Scored:
-        return Scored(self.label, self.forward_rmse_um, self.test_rmse_um, self.baseline)
+        return Scored(self.label, self.forward_rmse_um, self.test_rmse_um, self.baseline, rolling=self.rolling_rmse_um)
 
     def to_json(self) -> dict[str, Any]:
         return {"model": self.label, "terms": self.model.names, "rmse_um": round(self.rmse_um, 4),
-                "forward_rmse_um": round(self.forward_rmse_um, 4), "test_rmse_um": round(self.test_rmse_um, 4)}
+                "forward_rmse_um": round(self.forward_rmse_um, 4), "test_rmse_um": round(self.test_rmse_um, 4),
+                **({"rolling_rmse_um": round(self.rolling_rmse_um, 4)} if self.rolling_rmse_um is not None else {})}
 
 
 @dataclass
@@ -69,8 +72,8 @@ class SensorKept:
 class Analysis:
     """``start``: linear on the selected sensors, where the residual loop starts; ``loop``: with
     the effects it found; ``baselines``: the plain models fitted on the same rows; ``final``: the
-    model handed on: ``loop`` when it beats the best baseline on the newest training rows, else
-    that baseline."""
+    model handed on: ``loop`` when it beats every baseline on the newest training rows, else the
+    baseline with the least rolling error."""
     start: Stage
     effects: list[EffectFound]
     loop: Stage
@@ -93,7 +96,9 @@ class Analysis:
         return self.baselines[0]
 
     def best_baseline(self, on: str = "test") -> Stage:
-        key = "test_rmse_um" if on == "test" else "forward_rmse_um"
+        """The baseline with the least error ``on``: "test", "forward" (the newest training rows)
+        or "rolling" (the later half of the training rows, the one handed on when the loop loses)."""
+        key = {"test": "test_rmse_um", "forward": "forward_rmse_um", "rolling": "rolling_rmse_um"}[on]
         return min(self.baselines, key=lambda s: getattr(s, key))
 
     def to_json(self) -> dict[str, Any]:
