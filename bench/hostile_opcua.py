@@ -166,7 +166,7 @@ class Storm(Threaded):
         super().__init__()
         self.url = url
         self.subs = self.subs_refused = self.items = self.items_refused = self.notifications = 0
-        self.reconnects = 0
+        self.reconnects = self.attempts = 0
 
     def run(self) -> None:
         asyncio.run(self._main())
@@ -194,6 +194,7 @@ class Storm(Threaded):
             def status_change_notification(self, status):
                 pass
         while not self.stop.is_set():
+            self.attempts += 1
             try:
                 async with Client(self.url, timeout=30, watchdog_intervall=30) as c:
                     nodes = [await _lathe_node(c, "Spindle", n) if n != "Override" else
@@ -267,7 +268,8 @@ def figures(ua: OpcUa, idle: IdleFlood, storm: Storm, probe: FreshClient, t_load
                          "connect_failed": idle.connect_failed, "max_open": idle.max_open},
             "storm": {"clients": STORM_CLIENTS, "subscriptions": storm.subs, "subscriptions_refused": storm.subs_refused,
                       "monitored_items": storm.items, "monitored_items_refused": storm.items_refused,
-                      "notifications": storm.notifications, "reconnects": storm.reconnects},
+                      "notifications": storm.notifications, "reconnects": storm.reconnects,
+                      "connects_tried": storm.attempts},
             "opcua_cpu_pct": 100 * (cpu_s(ua.proc.pid) - cpu0) / wall if ua.proc.poll() is None else None,
             "opcua_rss_mb": rss_mb(ua.proc.pid) if ua.proc.poll() is None else None,
             "opcua_log_lines": ua.log_lines(),
