@@ -1,6 +1,8 @@
 """The residual loop on simulated runs: fit on one run, test on another with a
 different speed schedule, and check the effect the simulator put in is the
 one named, and that none is claimed where there is none."""
+import functools
+
 import numpy as np
 import pytest
 
@@ -28,6 +30,14 @@ def pair(effects, extra=None, train_seed=TRAIN_SEED, test_seed=TEST_SEED):
     return tr, te
 
 
+@functools.cache
+def analyzed(effects: tuple[str, ...]):
+    """pair(effects) and its analysis, for the tests that check different things of the same
+    fit (a fit costs seconds of CPU); the tests only read them."""
+    tr, te = pair(effects)
+    return tr, te, analyze(tr, te)
+
+
 def test_schedules_differ():
     assert random_schedule(TRAIN_SEED, SHIFT_S) != random_schedule(TEST_SEED, SHIFT_S)
 
@@ -35,8 +45,7 @@ def test_schedules_differ():
 @pytest.mark.parametrize("effect", EFFECTS)
 def test_the_effect_in_the_data_is_named_and_the_test_error_falls(effect):
     from lathed.analysis.thermal import residual_structure
-    tr, te = pair((effect,))
-    a = analyze(tr, te)
+    tr, te, a = analyzed((effect,))
     assert a.effects, f"nothing found; residual: {a.residual.note}"
     assert a.effects[0].term.effect == effect
     fall = 1 - a.loop.test_rmse_um / a.start.test_rmse_um
@@ -77,8 +86,7 @@ def test_a_notch_does_not_stand_in_for_a_lag_not_yet_found():
 
 
 def test_lag_time_constant_is_found():
-    tr, te = pair(("lag",))
-    a = analyze(tr, te)
+    _, _, a = analyzed(("lag",))
     first = a.effects[0]
     assert first.term.sensor == "t_front_bearing_c"
     # The shaft's own time constant (C / sum of G) is ~1700 s; the grid is ~30 % apart.
@@ -151,8 +159,7 @@ def test_a_plugin_candidate_is_tried_and_named():
 
 
 def test_json_contract():
-    tr, te = pair(("speed",))
-    js = analyze(tr, te).to_json()
+    js = analyzed(("speed",))[2].to_json()
     stage = {"model", "terms", "rmse_um", "forward_rmse_um", "test_rmse_um"}
     assert set(js["start"]) == set(js["loop"]) == stage
     # least squares, with the speed, ridge; each with its error over the later half of the rows
