@@ -10,38 +10,7 @@ import subprocess
 
 import pytest
 
-from tests.conftest import BIN, sim_call, wait_until
-
-
-def test_status_json_has_live_values(sim_daemon):
-    d = sim_daemon()
-    st = wait_until(lambda: (s := d.status()) and all(
-        x["state"] == "connected" for x in s["machines"] + s["sensors"]) and s, what="all drivers connected")
-    assert st["daemon"]["state"] == "running" and st["daemon"]["version"]
-    assert st["daemon"]["uptime_s"] > 0
-    lathe = next(m for m in st["machines"] if m["name"] == "lathe")
-    assert set(lathe) >= {"name", "kind", "state", "spindle_rpm"} and lathe["kind"] == "lathe"
-    for s in st["sensors"]:
-        assert set(s) >= {"name", "state", "last_value", "age_s"}
-    assert {a["name"] for a in st["analyzers"]} == set()
-    temps = wait_until(lambda: d.item("sensors", "temps")["last_value"], what="temperatures")
-    assert set(temps) == {"t_front_bearing", "t_rear_bearing", "t_motor", "t_room"}
-    assert all(10 < v < 60 for v in temps.values())
-    # connected before its first block: the accel's value comes with the block, not the connect
-    accel = wait_until(lambda: d.item("sensors", "accel")["last_value"], what="first accel block")
-    assert accel["rms"] > 0
-    # the program turns parts at 1500, 2000, 2500 r/min: the speed in status follows
-    seen = set()
-    wait_until(lambda: seen.add(round(d.item("machines", "lathe")["spindle_rpm"] or 0)) or
-               len(seen & {1500, 2000}) == 2, timeout=40, interval=0.2, what="spindle speed change")
-    # human output names every instance
-    text = d.ctl("status").stdout
-    for name in ("lathe", "temps", "accel"):
-        assert name in text
-    # the shipped map's heartbeat, counted at connect and every 500 ms since
-    assert re.search(r"^    heartbeat: count [1-9]\d*, written every 0.5 s$", text, re.M), text
-    events = json.loads(d.ctl("events", "--json").stdout)
-    assert events[0]["kind"] == "daemon_started"
+from tests.conftest import BIN, Daemon, sim_call, sim_config, wait_until
 
 
 def test_modbus_outage_retrying_then_connected(sim_daemon):
@@ -60,27 +29,6 @@ def test_modbus_outage_retrying_then_connected(sim_daemon):
     kinds = wait_until(lambda: (k := [e["kind"] for e in json.loads(d.ctl("events", "--json", "--limit", "200").stdout)])
                        and "machine_recovered" in k and k, what="machine_recovered recorded")
     assert "machine_fault" in kinds and "machine_recovered" in kinds
-
-
-def test_malformed_requests_get_error_replies(sim_daemon):
-    d = sim_daemon()
-    with socket.socket(socket.AF_UNIX) as s:
-        s.settimeout(10)
-        s.connect(str(d.socket))
-        f = s.makefile("rwb")
-        for bad, want in [(b"not json\n", "malformed request: not JSON"),
-                          (b'["cmd"]\n', "malformed request: expected"),
-                          (b'{"cmd": "status", "args": 3}\n', "args must be an object"),
-                          (b'{"cmd": "explode"}\n', "unknown command 'explode'"),
-                          (b'{"cmd": "events", "args": {"limit": -1}}\n', "events: limit: -1 is out of range")]:
-            f.write(bad)
-            f.flush()
-            reply = json.loads(f.readline())
-            assert reply["ok"] is False and want in reply["error"], reply
-        f.write(b'{"cmd": "ping"}\n')
-        f.flush()
-        assert json.loads(f.readline()) == {"ok": True, "result": "pong"}
-    assert oct(os.stat(d.socket).st_mode & 0o777) == "0o660"
 
 
 def test_no_daemon_is_one_line(tmp_path):
@@ -212,23 +160,6 @@ def test_a_dead_store_writer_fails_the_daemon_loudly_and_loses_nothing(sim_daemo
     assert _count(d.paths["state"] / "lathed.db", "command_sent") == 200
 
 
-def test_a_second_daemon_on_the_same_config_refuses_and_leaves_the_first_alone(sim_daemon):
-    # issue 18 D2: the second unlinked the live socket, ran on and deleted the socket at exit
-    d = sim_daemon()
-    ino = os.stat(d.socket).st_ino
-    r = subprocess.run([str(BIN / "lathed"), "--config", str(d.cfg)], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 75, r.stderr
-    (line,) = r.stderr.strip().splitlines()
-    assert line == f"lathed: another lathed (pid {d.proc.pid}) holds {d.paths['state'] / 'lathed.lock'}: " \
-                   "not starting a second daemon on the same directories"
-    assert os.stat(d.socket).st_ino == ino and d.status()["daemon"]["pid"] == d.proc.pid
-    # D13: records readable by the group only, also outside systemd
-    state = d.paths["state"]
-    assert oct(os.stat(state).st_mode & 0o777) == "0o750"
-    for f in ("lathed.db", "lathed.db-wal"):
-        assert oct(os.stat(state / f).st_mode & 0o777) == "0o640", f
-
-
 def test_the_control_socket_of_a_live_daemon_is_never_unlinked(tmp_path):
     import asyncio
     from lathed.control import ControlServer, SocketInUse
@@ -278,3 +209,90 @@ def test_status_text_names_a_failing_store_and_an_analyzer_that_crash_looped(mon
     assert out[1].startswith("store: FAILING for 30") and "database or disk is full; 10 written, 65 failed, 3 queued" \
         in out[1]
     assert any(ln.strip().startswith("records") and "restarted after: OperationalError" in ln for ln in out)
+
+
+# -- one daemon for the tests that only ask it; last in the file, so that it stops as soon as
+# they are done (a module's fixture lives to the module's end; idle, it and its simulator
+# still cost ~0.15 CPU-s a second) ----------------------------------------------------
+
+@pytest.fixture(scope="module")
+def plain_daemon(tmp_path_factory):
+    """One daemon on the plain simulator config for the tests that only ask it (status, bad
+    requests, a second daemon refused): a start with its simulator costs ~3 CPU-s."""
+    cfg, paths = sim_config(tmp_path_factory.mktemp("plain"))
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.stop()
+
+
+def test_status_json_has_live_values(plain_daemon):
+    d = plain_daemon
+    st = wait_until(lambda: (s := d.status()) and all(
+        x["state"] == "connected" for x in s["machines"] + s["sensors"]) and s, what="all drivers connected")
+    assert st["daemon"]["state"] == "running" and st["daemon"]["version"]
+    assert st["daemon"]["uptime_s"] > 0
+    lathe = next(m for m in st["machines"] if m["name"] == "lathe")
+    assert set(lathe) >= {"name", "kind", "state", "spindle_rpm"} and lathe["kind"] == "lathe"
+    for s in st["sensors"]:
+        assert set(s) >= {"name", "state", "last_value", "age_s"}
+    assert {a["name"] for a in st["analyzers"]} == set()
+    temps = wait_until(lambda: d.item("sensors", "temps")["last_value"], what="temperatures")
+    assert set(temps) == {"t_front_bearing", "t_rear_bearing", "t_motor", "t_room"}
+    assert all(10 < v < 60 for v in temps.values())
+    # connected before its first block: the accel's value comes with the block, not the connect
+    accel = wait_until(lambda: d.item("sensors", "accel")["last_value"], what="first accel block")
+    assert accel["rms"] > 0
+    # the program turns parts at 1500, 2000, 2500 r/min: the speed in status follows
+    seen = set()
+    wait_until(lambda: seen.add(round(d.item("machines", "lathe")["spindle_rpm"] or 0)) or
+               len(seen & {1500, 2000}) == 2, timeout=40, interval=0.2, what="spindle speed change")
+    # human output names every instance
+    text = d.ctl("status").stdout
+    for name in ("lathe", "temps", "accel"):
+        assert name in text
+    # the shipped map's heartbeat, counted at connect and every 500 ms since
+    assert re.search(r"^    heartbeat: count [1-9]\d*, written every 0.5 s$", text, re.M), text
+    events = json.loads(d.ctl("events", "--json").stdout)
+    assert events[0]["kind"] == "daemon_started"
+
+
+def test_malformed_requests_get_error_replies(plain_daemon):
+    d = plain_daemon
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(10)
+        s.connect(str(d.socket))
+        f = s.makefile("rwb")
+        for bad, want in [(b"not json\n", "malformed request: not JSON"),
+                          (b'["cmd"]\n', "malformed request: expected"),
+                          (b'{"cmd": "status", "args": 3}\n', "args must be an object"),
+                          (b'{"cmd": "explode"}\n', "unknown command 'explode'"),
+                          (b'{"cmd": "events", "args": {"limit": -1}}\n', "events: limit: -1 is out of range")]:
+            f.write(bad)
+            f.flush()
+            reply = json.loads(f.readline())
+            assert reply["ok"] is False and want in reply["error"], reply
+        f.write(b'{"cmd": "ping"}\n')
+        f.flush()
+        assert json.loads(f.readline()) == {"ok": True, "result": "pong"}
+    assert oct(os.stat(d.socket).st_mode & 0o777) == "0o660"
+
+
+def test_a_second_daemon_on_the_same_config_refuses_and_leaves_the_first_alone(plain_daemon):
+    # issue 18 D2: the second unlinked the live socket, ran on and deleted the socket at exit
+    d = plain_daemon
+    ino = os.stat(d.socket).st_ino
+    r = subprocess.run([str(BIN / "lathed"), "--config", str(d.cfg)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 75, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line == f"lathed: another lathed (pid {d.proc.pid}) holds {d.paths['state'] / 'lathed.lock'}: " \
+                   "not starting a second daemon on the same directories"
+    assert os.stat(d.socket).st_ino == ino and d.status()["daemon"]["pid"] == d.proc.pid
+    # D13: records readable by the group only, also outside systemd
+    state = d.paths["state"]
+    assert oct(os.stat(state).st_mode & 0o777) == "0o750"
+    for f in ("lathed.db", "lathed.db-wal"):
+        assert oct(os.stat(state / f).st_mode & 0o777) == "0o640", f
