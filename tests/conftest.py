@@ -36,11 +36,37 @@ BIN = Path(sys.executable).parent
 DURATIONS = ROOT / "tests" / "durations.json"
 
 
+# Files that keep a core busy the whole time they run (CPU seconds ~ wall seconds, measured with
+# tests/cpu_profile.py). `make test`'s workers take them as one unit, one after another on one
+# worker, so that the other workers' files, which mostly wait on a simulator's real time, never
+# share two cores with two of these at once.
+CPU_BOUND = ("tests/test_bench_hostile.py", "tests/test_install.py", "tests/test_thermal_loop.py",
+             "tests/test_thermal_real.py", "tests/test_analyze_thermal_cli.py")
+
+
+def _unit(path: str) -> str:
+    return "cpu-bound" if path in CPU_BOUND else path
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """--dist loadfile with the CPU-bound files one unit (xdist's loadgroup would do it with
+    marks, but it renames the tests through an attribute pytest 9 no longer reads)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class FileUnits(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _unit(nodeid.split("::", 1)[0])
+    return FileUnits(config, log)
+
+
 def pytest_collection_modifyitems(session, config, items):
-    """`make test` runs a file's tests together on one worker (--dist loadfile), files in the
-    order of collection (--no-loadscope-reorder): the longest first, so that what is left at
-    the end is short and neither worker idles long while the other finishes a long file. Only
-    the order depends on the figures; a file not in them counts as the median one."""
+    """`make test` runs a file's tests together on one worker (--dist loadfile; the CPU-bound
+    files are one unit), units in the order of collection (--no-loadscope-reorder): the longest
+    first, so that what is left at the end is short and no worker idles long while another
+    finishes a long unit. Only the order depends on the figures; a file not in them counts as
+    the median one."""
     try:
         seconds = json.loads(DURATIONS.read_text())
     except (OSError, ValueError):
@@ -49,7 +75,10 @@ def pytest_collection_modifyitems(session, config, items):
     files: dict[str, list] = {}
     for item in items:
         files.setdefault(item.nodeid.split("::", 1)[0], []).append(item)
-    order = sorted(files, key=lambda f: -seconds.get(f, median))
+    units: dict[str, float] = {}
+    for f in files:
+        units[_unit(f)] = units.get(_unit(f), 0.0) + seconds.get(f, median)
+    order = sorted(files, key=lambda f: (-units[_unit(f)], _unit(f)))
     items[:] = [item for f in order for item in files[f]]
 
 
