@@ -2,7 +2,7 @@
 with `--durations=0` (setup, call and teardown summed per file). conftest.py orders the files
 by it for `make test`, the longest first; the figures decide nothing else.
 
-    .venv/bin/python -m pytest -n 2 --dist loadfile --durations=0 > run.log
+    .venv/bin/python -m pytest -n 4 --dist loadfile --durations=0 > run.log
     .venv/bin/python tests/durations.py run.log
 """
 from __future__ import annotations
