@@ -14,9 +14,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import can
-import cantools
-
 from lathed import hookimpl
 from lathed.bus import Sample
 from lathed.config import Section
@@ -27,6 +24,16 @@ REQUIRED = ("j1_deg", "j2_deg", "j3_deg", "j4_deg", "j5_deg", "j6_deg", "tool_x_
             "state", "gripper", "alarm_code", "cycle_count")
 GRIPPER = {0: "open", 1: "closed", 2: "moving"}
 BATCH_S = 0.05    # frames are read in a worker thread in batches this long: one loop hop per batch
+
+# python-can and cantools, imported with the first robot arm configured: the daemon loads every
+# plugin at start, and a quarter second of import per start is not for daemons without one
+can = cantools = None
+
+
+def _import_can() -> None:
+    global can, cantools
+    import can
+    import cantools
 
 
 class ReadAhead:
@@ -69,6 +76,7 @@ class CanRobot(Driver):
 
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
+        _import_can()
         self.interface = section.getstr("interface", choices=tuple(sorted(can.VALID_INTERFACES)))
         self.channel = section.getstr("channel")
         self.bitrate = section.getint("bitrate", 0, minval=0, maxval=8_000_000) or None

@@ -14,8 +14,6 @@ from collections import Counter
 from datetime import datetime
 from xml.etree import ElementTree as ET
 
-import aiohttp
-
 from lathed import hookimpl
 from lathed.bus import Sample
 from lathed.config import Section
@@ -27,6 +25,15 @@ UNITS = {"spindle_rpm": "REVOLUTION/MINUTE", "spindle_load_pct": "PERCENT", "fee
 AXIS_UNITS = {"mm": "MILLIMETER", "deg": "DEGREE"}
 UNIT_TEXT = {"spindle_rpm": "r/min", "spindle_load_pct": "%", "feed_mm_rev": "mm/rev", "spindle_override_pct": "%"}
 COUNT = 1000    # observations asked for at a time
+
+# aiohttp, imported with the first machine of this type: the daemon loads every plugin at start,
+# and aiohttp's import (its TLS contexts read the system's CA file) costs half a CPU-second
+aiohttp = None
+
+
+def _import_aiohttp() -> None:
+    global aiohttp
+    import aiohttp
 
 
 def _local(tag: str) -> str:
@@ -55,6 +62,7 @@ class MTConnect(Driver):
 
     def __init__(self, name: str, section: Section):
         super().__init__(name, section)
+        _import_aiohttp()
         self.kind = section.getstr("kind", "lathe", choices=("lathe", "mill", "grinder"))
         self.url = section.getstr("url").rstrip("/")
         if not re.match(r"^https?://[^/]+", self.url):
