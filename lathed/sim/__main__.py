@@ -44,7 +44,6 @@ from lathed.sim.lathe import LATHE_KF, LATHE_MODES, LOAD_S, RETRACT_S, SimLathe
 from lathed.sim.program import FORM as CUT_FORM, MAX_DEPTH_MM, MAX_OUTAGE_S, parse_cut
 from lathed.sim.line import GRINDER_PROGRAM, MILL_PROGRAM, SimCycleMachine, SimRobotArm
 from lathed.sim.modbus_peer import ModbusPeer
-from lathed.sim.mtconnect_agent import MTConnectAgent
 from lathed.sim.registers import (CELL_IDENTITY, CELL_MAP, HEARTBEAT_TIMEOUT_S, LATHE_IDENTITY, LATHE_MAP,
                                   N_CELL_REGISTERS, N_REGISTERS, SERIALS)
 from lathed.sim.serial_peer import NullModem, SerialPeer
@@ -63,8 +62,10 @@ class Simulator:
         self.modbus = ModbusPeer(args.host, args.modbus_port, LATHE_MAP, N_REGISTERS, self._lathe_write,
                                  identity=_identity(LATHE_IDENTITY, args.lathe_serial))
         self.vibration = VibrationPeer(args.host, args.vibration_port, args.rate)
-        self.agent = (MTConnectAgent(args.host, args.mtconnect_port, serial_number=args.lathe_serial)
-                      if args.mtconnect_port else None)
+        self.agent = None
+        if args.mtconnect_port:  # aiohttp (half a CPU-second of import) only where the agent is served
+            from lathed.sim.mtconnect_agent import MTConnectAgent
+            self.agent = MTConnectAgent(args.host, args.mtconnect_port, serial_number=args.lathe_serial)
         self.opcua = None
         if args.opcua_port:      # asyncua (the opcua extra) only where the control serves OPC UA
             from lathed.sim.opcua_peer import OpcUaPeer
