@@ -9,8 +9,8 @@ import sys
 HEAVY = ("aiohttp", "can", "cantools", "scipy.signal")
 
 
-def _imported(code: str) -> list[str]:
-    code += f"\nimport sys, json\nprint(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+def _imported(code: str, watch: tuple[str, ...] = HEAVY) -> list[str]:
+    code += f"\nimport sys, json\nprint(json.dumps([m for m in {watch!r} if m in sys.modules]))"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout.splitlines()[-1])
@@ -36,3 +36,9 @@ def test_the_simulator_serves_modbus_with_pymodbus_own_server_classes_either_way
     # the MTConnect agent's aiohttp after pymodbus's servers: a whole aiohttp, not the blocked one
     assert _imported(code.format(first="") + "from lathed.sim.mtconnect_agent import MTConnectAgent\n"
                      "import aiohttp.web\n") == ["aiohttp"]
+
+
+def test_lathectl_imports_no_pluggy_or_numpy_for_a_status():
+    code = ("import sys\nsys.argv = ['lathectl', '--socket', '/nonexistent/lathed.sock', 'status']\n"
+            "from lathed.cli.main import main\ntry:\n    main()\nexcept SystemExit:\n    pass")
+    assert _imported(code, HEAVY + ("pluggy", "numpy")) == []
