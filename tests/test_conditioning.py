@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from lathed.analysis.conditioning import (G0, Calibration, Conditioner, ConditionerBank, Keyphasor, MainsComb,
                                          OnePole)
@@ -25,6 +24,7 @@ def test_calibrations_in_physical_units():
 
 
 def test_one_pole_in_blocks_is_the_recursion():
+    from scipy import signal    # here, not at collection: every xdist worker collects this file
     rng = np.random.default_rng(0)
     u = rng.normal(size=30000)
     p = 0.9995
@@ -39,6 +39,7 @@ def test_one_pole_in_blocks_is_the_recursion():
 
 
 def test_highpass_removes_dc_from_the_first_sample_and_passes_the_band():
+    from scipy import signal
     rate = 48000
     t = np.arange(2 * rate) / rate
     x = 0.3 + 0.2 * np.sin(2 * np.pi * 200 * t)
