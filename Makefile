@@ -80,6 +80,10 @@ bench-channels: $(STAMP)
 # (alternating, the same signal) and checks both published the same chatter samples
 bench-channel-path: $(STAMP)
 	$(BIN)/python bench/bench_channel_path.py $(if $(AGAINST),--against $(AGAINST))
+# CPU seconds from exec to ready of each program the suite starts many times; AGAINST=REV
+# alternates REV's code with this one
+bench-startup: $(STAMP)
+	$(BIN)/python bench/bench_startup.py $(if $(AGAINST),--against $(AGAINST))
 # issue 15: both plant protocols
 bench-plant: bench-plant-mqtt bench-plant-opcua
 
@@ -170,4 +174,4 @@ uninstall:
 
 .PHONY: install install-venv install-config uninstall
 .PHONY: venv run test bench bench-daemon bench-chatter bench-suppression bench-loop bench-thermal bench-store \
-	bench-stability bench-hostile bench-web bench-plant bench-plant-mqtt bench-plant-opcua bench-channels
+	bench-stability bench-hostile bench-web bench-plant bench-plant-mqtt bench-plant-opcua bench-channels bench-startup
