@@ -42,3 +42,10 @@ def test_lathectl_imports_no_pluggy_or_numpy_for_a_status():
     code = ("import sys\nsys.argv = ['lathectl', '--socket', '/nonexistent/lathed.sock', 'status']\n"
             "from lathed.cli.main import main\ntry:\n    main()\nexcept SystemExit:\n    pass")
     assert _imported(code, HEAVY + ("pluggy", "numpy")) == []
+
+
+def test_with_another_thread_running_pymodbus_is_imported_as_it_comes():
+    # no module blocked where another thread could be importing it meanwhile (a pytest worker)
+    code = ("import threading\nstop = threading.Event()\nt = threading.Thread(target=stop.wait)\nt.start()\n"
+            "from lathed.sim import modbus_peer\nstop.set()\nt.join()")
+    assert _imported(code) == ["aiohttp"]

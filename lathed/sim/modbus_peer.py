@@ -6,6 +6,7 @@ import asyncio
 import logging
 import socket
 import sys
+import threading
 from typing import Callable
 
 from pymodbus.client import AsyncModbusTcpClient
@@ -21,8 +22,10 @@ def _import_servers():
     """pymodbus.server's package imports pymodbus's HTTP simulator, which takes aiohttp if it can
     (half a CPU-second of import: aiohttp reads the system's CA file) for that simulator alone, and
     a simulator start should not pay it. A None in sys.modules makes `import aiohttp` fail there,
-    which pymodbus allows; the servers are the same classes. A pymodbus that needs it is retried."""
-    block = "aiohttp" not in sys.modules and "pymodbus.server" not in sys.modules
+    which pymodbus allows; the servers are the same classes. A pymodbus that needs it is retried.
+    Only while this is the process's one thread: another might import aiohttp meanwhile."""
+    block = (threading.active_count() == 1 and "aiohttp" not in sys.modules
+             and "pymodbus.server" not in sys.modules)
     if block:
         sys.modules["aiohttp"] = None
     try:
