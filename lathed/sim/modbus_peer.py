@@ -5,44 +5,17 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
-import sys
-import threading
 from typing import Callable
 
 from pymodbus.client import AsyncModbusTcpClient
 from pymodbus.constants import ExcCodes
 from pymodbus import FramerType
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 from lathed.modbus_identity import encode_ascii
 from lathed.sim.serial_peer import NullModem
 
-
-def _import_servers():
-    """pymodbus.server's package imports pymodbus's HTTP simulator, which takes aiohttp if it can
-    (half a CPU-second of import: aiohttp reads the system's CA file) for that simulator alone, and
-    a simulator start should not pay it. A None in sys.modules makes `import aiohttp` fail there,
-    which pymodbus allows; the servers are the same classes. A pymodbus that needs it is retried.
-    Only while this is the process's one thread: another might import aiohttp meanwhile."""
-    block = (threading.active_count() == 1 and "aiohttp" not in sys.modules
-             and "pymodbus.server" not in sys.modules)
-    if block:
-        sys.modules["aiohttp"] = None
-    try:
-        from pymodbus.server import ModbusSerialServer, ModbusTcpServer
-    except ImportError:
-        if not block:
-            raise
-        for name in [m for m in sys.modules if m.startswith(("pymodbus.server.", "aiohttp"))] + ["pymodbus.server"]:
-            sys.modules.pop(name, None)
-        from pymodbus.server import ModbusSerialServer, ModbusTcpServer
-    finally:
-        if block and sys.modules.get("aiohttp", 0) is None:
-            del sys.modules["aiohttp"]
-    return ModbusSerialServer, ModbusTcpServer
-
-
-ModbusSerialServer, ModbusTcpServer = _import_servers()
 log = logging.getLogger("lathed.sim.modbus")
 DT = AsyncModbusTcpClient.DATATYPE
 HOLDING = {3, 6, 16, 22, 23}     # function codes on holding registers
