@@ -3,7 +3,6 @@ through lathectl as an operator sees it (issue 3, last Done-when item)."""
 from __future__ import annotations
 
 import json
-import math
 import re
 from contextlib import contextmanager
 
@@ -134,26 +133,16 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
         alarms = events(d, "chatter_alarm")
         trace = (st, [(a["t"], a["payload"]) for a in alarms],
                  [(p["part"], p["cut_start_wall"], p["cut_start_s"], p["cut_end_s"], p["speed_writes"]) for p in parts])
-
-        def part_at(t):
-            # a part's cut from its start to a second after its end (the release's ring), wall time
-            return next((p for p in parts if p["cut_start_wall"] - 0.5 <= t
-                         <= p["cut_start_wall"] + p["cut_end_s"] - p["cut_start_s"] + 1.0), None)
-        at_speed = []
-        for a in alarms:
-            p = part_at(a["t"])
-            moved = min((w["wall_t"] for w in p["speed_writes"]), default=math.inf) if p else -math.inf
-            # Before the part's first speed write the cut runs at its programmed speed, above the
-            # limit: the tool's contact was seen before the depth register's next poll (100 ms,
-            # later on a loaded host), and the chatter from entry was caught before the avoid
-            # could act. That is detection doing its job (suppression cures it); an alarm once
-            # the part runs at the speed the lobes call stable, or at its release, is the defect.
-            if not a["t"] < moved:
-                at_speed.append(a)
+        # An alarm at a part's programmed speed (1500 or 2000 r/min, above the limit): the tool's
+        # contact was seen before the depth register's next poll (100 ms, later on a loaded
+        # host), and the chatter from entry was caught before the avoid could act. That is
+        # detection doing its job (suppression cures it). An alarm at a speed written to the
+        # lathe, one the lobes call stable, or at such a cut's release, is the defect.
+        programmed = {1500.0, 2000.0}
+        at_speed = [a for a in alarms if round(a["payload"]["rpm"], 1) not in programmed]
         assert at_speed == [], trace
-        # ... and the avoid won that race on most parts: moved at entry, no alarm in the cut
-        quiet = [p for p in stable if not any(part_at(a["t"]) is p for a in alarms)]
-        assert len(quiet) >= 3, trace
+        # ... and the avoid won that race on most parts: at least 3 moved at entry without an alarm
+        assert len(stable) - len(alarms) >= 3, trace
     finally:
         d.stop()
 

@@ -355,17 +355,21 @@ def test_a_chatter_alarm_arrives_as_an_event_within_a_second(stack):
             known = {e["id"] for e in events(d, "chatter_alarm", 20)}
             # every cut now goes 3 mm deep, past the lobes' limit: the next cut chatters
             wait_until(lambda: sim_call(d.paths["sim"], "set", {"depth_mm": 3.0}), what="simulator control")
-            seen = []
-            while len(seen) < 2:      # on the lathe's Messages and on the Server object
+            # The shipped program's own 3 mm parts alarm too: one of theirs recorded between the
+            # subscription and `known` arrives as well (seen at four test workers). The first
+            # new alarm seen on both notifiers, the lathe's Messages and the Server object:
+            seen: dict[int, list] = {}
+            while True:
                 at, ev = await asyncio.wait_for(got.events.get(), 60.0)
-                if ev.Identifier == "chatter_alarm":
-                    seen.append((at, ev))
-            return seen, known
+                if ev.Identifier == "chatter_alarm" and ev.RecordId not in known:
+                    seen.setdefault(ev.RecordId, []).append((at, ev))
+                    if len(seen[ev.RecordId]) == 2:
+                        return seen[ev.RecordId], known
     try:
         seen, known = asyncio.run(go())
     finally:
         sim_call(d.paths["sim"], "set", {"depth_mm": None})
-    alarm = [e for e in events(d, "chatter_alarm", 20) if e["id"] not in known][0]
+    alarm = next(e for e in events(d, "chatter_alarm", 50) if e["id"] == seen[0][1].RecordId)
     for at, ev in seen:
         assert ev.RecordId == alarm["id"] and ev.Severity == 800 and ev.SourceName == "lathe"
         assert json.loads(ev.Payload)["chatter_frequency_hz"] == alarm["payload"]["chatter_frequency_hz"]
