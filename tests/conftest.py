@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -293,6 +294,18 @@ class Daemon:
                 self.proc.wait()
         self.log.close()
         return self.proc.returncode
+
+
+@contextmanager
+def running_daemon(cfg: Path, paths: dict):
+    """The daemon on ``cfg`` (from ``sim_config``), ready; stopped on leaving."""
+    d = Daemon(cfg, paths["socket"])
+    d.paths = paths
+    try:
+        d.wait_ready()
+        yield d
+    finally:
+        d.stop()
 
 
 @pytest.fixture

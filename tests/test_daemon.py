@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from tests.conftest import BIN, Daemon, sim_call, sim_config, wait_until
+from tests.conftest import BIN, running_daemon, sim_call, sim_config, wait_until
 
 
 def test_modbus_outage_retrying_then_connected(sim_daemon):
@@ -220,13 +220,8 @@ def plain_daemon(tmp_path_factory):
     """One daemon on the plain simulator config for the tests that only ask it (status, bad
     requests, a second daemon refused): a start with its simulator costs ~3 CPU-s."""
     cfg, paths = sim_config(tmp_path_factory.mktemp("plain"))
-    d = Daemon(cfg, paths["socket"])
-    d.paths = paths
-    try:
-        d.wait_ready()
+    with running_daemon(cfg, paths) as d:
         yield d
-    finally:
-        d.stop()
 
 
 def test_status_json_has_live_values(plain_daemon):

@@ -13,7 +13,7 @@ import pytest
 from lathed.analysis.cuts import load_cuts_csv
 from lathed.analysis.stability import StabilityModel
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES
-from tests.conftest import BIN, DEPTH_REGISTER, Daemon, sim_config, wait_until
+from tests.conftest import BIN, DEPTH_REGISTER, Daemon, running_daemon, sim_config, wait_until
 from tests.test_suppression_live import default_table, events
 
 TRUE_FN = round(LATHE_MODES[0].fn_hz * 1.12, 1)
@@ -34,13 +34,8 @@ def shifted(tmp_path):
     assert "remember = false" in suppress
     cfg, paths = sim_config(tmp_path, analyzers=default_table("chatter") + "\n" + suppress,
                             simulator=SIMULATOR, registers=DEPTH_REGISTER)
-    d = Daemon(cfg, paths["socket"])
-    d.paths = paths
-    try:
-        d.wait_ready()
+    with running_daemon(cfg, paths) as d:
         yield d
-    finally:
-        d.stop()
 
 
 def cuts(d) -> list[dict]:

@@ -10,7 +10,7 @@ import signal
 
 import pytest
 
-from tests.conftest import DEPTH_REGISTER, Daemon, default_table, events, sim_call, sim_config, wait_until
+from tests.conftest import DEPTH_REGISTER, Daemon, default_table, events, running_daemon, sim_call, sim_config, wait_until
 
 
 ANALYZERS = default_table("chatter") + "\n" + default_table("suppress")
@@ -131,13 +131,8 @@ def tight_guard(tmp_path):
     assert "offset_rate_max_um_s = 5.0\n" in text
     cfg.write_text(text.replace("offset_rate_max_um_s = 5.0\n",
                                 "offset_rate_max_um_s = 5.0\nspindle_rpm_step_max = 1.0\n", 1))
-    d = Daemon(cfg, paths["socket"])
-    d.paths = paths
-    try:
-        d.wait_ready()
+    with running_daemon(cfg, paths) as d:
         yield d
-    finally:
-        d.stop()
 
 
 def test_a_refused_speed_is_recorded_and_never_sent(tight_guard):
