@@ -9,7 +9,7 @@ import time
 import pytest
 from asyncua import Client, Server, ua
 
-from lathed.opcua import nodesets
+from lathed.opcua import nodesets, spacecache
 from lathed.opcua.machines import instance
 from lathed.opcua.space import NAMESPACE, Space
 from tests.conftest import ROOT, free_port
@@ -26,10 +26,9 @@ def model() -> Model:
 
 async def served_space() -> tuple[Server, Space, str]:
     server = Server()
-    await server.init()
+    ns = await spacecache.open_space(server, spacecache.default_dir())   # the run's cache (conftest)
     url = f"opc.tcp://127.0.0.1:{free_port()}"
     server.set_endpoint(url)
-    ns = await nodesets.load(server)
     space = Space(server, await server.register_namespace(NAMESPACE), nodesets.Types(server, ns))
     await space.build(writable=False)
     await server.start()
