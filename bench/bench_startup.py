@@ -5,7 +5,8 @@ and lathectl hundreds of times, so their start-up (mostly imports) is a large sh
 
 Ready: lathed-sim prints READY; the daemon answers `status` on its control socket (its simulator
 not spawned: the daemon's own CPU); lathed-web and lathed-opcua accept on their port; lathectl
-exits (`status` with no daemon, `--help`). The CPU is the process's own (/proc/PID/stat at
+exits (`status` with no daemon, `--help`); lathed-opcua with its address space cached by an
+earlier start (warm) and without (cold, its cache directory empty). The CPU is the process's own (/proc/PID/stat at
 ready, or its rusage at exit), children not counted. ``--against REV`` runs a git revision's
 lathed/ and plugins/ (or a checkout's, given its directory) with this venv, alternated with
 this one start by start, and prints both medians: the machine's load hits both alike.
@@ -104,12 +105,17 @@ def web(tmp: Path, env: dict) -> float:
                       lambda p: until(lambda: accepts(port), p, "lathed-web"), "lathed-web")
 
 
-def opcua(tmp: Path, env: dict) -> float:
-    port = free_port()
-    cfg = tmp / "opcua.toml"
-    cfg.write_text(f'[opcua]\nport = {port}\nsocket = "{tmp / "none.sock"}"\nstate_dir = "{tmp / "ua"}"\n')
-    return run_served([str(BIN / "lathed-opcua"), "--config", str(cfg)], env,
-                      lambda p: until(lambda: accepts(port), p, "lathed-opcua", 180), "lathed-opcua")
+def opcua(warm: bool):
+    """Its address space cached by an earlier start (the tree's cache directory, filled by the
+    unmeasured start), or built (an empty one); a tree without the cache builds it both times."""
+    def measure(tmp: Path, env: dict) -> float:
+        port = free_port()
+        cfg = tmp / "opcua.toml"
+        cfg.write_text(f'[opcua]\nport = {port}\nsocket = "{tmp / "none.sock"}"\nstate_dir = "{tmp / "ua"}"\n')
+        env = env if warm else {**env, "CACHE_DIRECTORY": str(tmp / "cache")}
+        return run_served([str(BIN / "lathed-opcua"), "--config", str(cfg)], env,
+                          lambda p: until(lambda: accepts(port), p, "lathed-opcua", 180), "lathed-opcua")
+    return measure
 
 
 def ctl(*args: str):
@@ -123,11 +129,13 @@ def ctl(*args: str):
 
 
 PROGRAMS = {"lathed-sim": sim, "lathed": daemon, "lathectl status (no daemon)": ctl("status"),
-            "lathectl --help": ctl("--help"), "lathed-web": web, "lathed-opcua": opcua}
+            "lathectl --help": ctl("--help"), "lathed-web": web,
+            "lathed-opcua (cold cache)": opcua(warm=False), "lathed-opcua (warm cache)": opcua(warm=True)}
 
 
 def tree_env(against: str | None, scratch: Path) -> dict:
-    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": ""}     # as `make test`: bytecode cached
+    # as `make test`: bytecode cached; lathed-opcua's address space cached per tree
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "", "CACHE_DIRECTORY": str(scratch / "cache")}
     if against is not None:
         tree = Path(against)
         if not tree.is_dir():

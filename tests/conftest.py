@@ -6,10 +6,12 @@ import json
 import os
 import random
 import re
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,6 +30,23 @@ def pytest_sessionstart(session):
 
 def pytest_collection_finish(session):
     gc.enable()
+
+
+_OWN_CACHE: list[str] = []
+
+
+def pytest_configure(config):
+    # lathed-opcua's address space cache (docs/opcua.md), one directory for the whole run: the
+    # workers inherit it, so the suite builds the space once. A cached space is the built one
+    # (tests/test_opcua_cache.py), so which test builds it first does not matter.
+    if "LATHED_TEST_CACHE_DIRECTORY" not in os.environ:
+        _OWN_CACHE.append(tempfile.mkdtemp(prefix="lathed-test-cache-"))
+        os.environ["LATHED_TEST_CACHE_DIRECTORY"] = os.environ["CACHE_DIRECTORY"] = _OWN_CACHE[0]
+
+
+def pytest_unconfigure(config):
+    for d in _OWN_CACHE:
+        shutil.rmtree(d, ignore_errors=True)
 
 
 BIN = Path(sys.executable).parent

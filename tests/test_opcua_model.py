@@ -4,12 +4,13 @@ The live server's check and node-opcua's reading are in tests/test_opcua.py."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import time
 
 import pytest
 from asyncua import Client, Server, ua
 
-from lathed.opcua import nodesets
+from lathed.opcua import nodesets, spacecache
 from lathed.opcua.machines import instance
 from lathed.opcua.space import NAMESPACE, Space
 from tests.conftest import ROOT, free_port
@@ -26,10 +27,9 @@ def model() -> Model:
 
 async def served_space() -> tuple[Server, Space, str]:
     server = Server()
-    await server.init()
+    ns = await spacecache.open_space(server, spacecache.default_dir())   # the run's cache (conftest)
     url = f"opc.tcp://127.0.0.1:{free_port()}"
     server.set_endpoint(url)
-    ns = await nodesets.load(server)
     space = Space(server, await server.register_namespace(NAMESPACE), nodesets.Types(server, ns))
     await space.build(writable=False)
     await server.start()
@@ -59,6 +59,7 @@ def served():
     finally:
         loop.run_until_complete(server.stop())
         loop.close()
+        gc.unfreeze()     # open_space froze what was alive (for a server process); a test worker goes on
 
 
 def test_the_type_check_passes_and_finds_what_an_instance_lacks(served):

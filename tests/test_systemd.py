@@ -66,6 +66,7 @@ def test_web_unit_runs_after_the_daemon_as_its_own_user():
 def test_opcua_unit_runs_after_the_daemon_as_its_own_user_with_its_key_kept():
     unit = (ROOT / "systemd" / "lathed-opcua.service").read_text()
     for line in ("Wants=lathed.service", "After=lathed.service", "User=lathed-opcua", "SupplementaryGroups=lathed",
-                 "StateDirectory=lathed-opcua", "StateDirectoryMode=0700", "UMask=0077", "ProtectSystem=strict",
+                 "StateDirectory=lathed-opcua", "StateDirectoryMode=0700", "CacheDirectory=lathed-opcua",
+                 "CacheDirectoryMode=0700", "UMask=0077", "ProtectSystem=strict",
                  "PrivateDevices=yes", "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6", "CapabilityBoundingSet=\n"):
         assert line in unit

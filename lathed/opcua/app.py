@@ -41,7 +41,7 @@ from lathed import __version__
 from lathed import log as logmod
 from lathed.client import default_socket
 from lathed.config import EX_CONFIG, ConfigError, Section
-from lathed.opcua import nodesets
+from lathed.opcua import nodesets, spacecache
 from lathed.opcua.guard import GuardedServer, Limits, LogLimit, flush_logs
 from lathed.opcua.space import NAMESPACE, SUPPRESSION_MODES, Space
 from lathed.web import accounts
@@ -254,7 +254,7 @@ def ensure_certificate(state_dir: Path, app_uri: str) -> tuple[Path, Path]:
 async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | None = None) -> int:
     users = Accounts(settings.users, anonymous=settings.loopback)
     server = GuardedServer(settings.limits, user_manager=users)
-    await server.init()
+    ns = await spacecache.open_space(server, spacecache.default_dir())   # init and the NodeSets
     server.set_endpoint(settings.url)
     server.set_server_name(f"lathed-opcua ({settings.name})")
     app_uri = f"urn:lathed:opcua:{socket.gethostname()}"
@@ -285,7 +285,6 @@ async def serve(settings: Settings, stop: asyncio.Event, log_limit: LogLimit | N
         server.set_certificate_validator(CertificateValidator(
             CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI |
             CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.PEER_CLIENT, store))
-    ns = await nodesets.load(server)
     idx = await server.register_namespace(NAMESPACE)
     space = Space(server, idx, nodesets.Types(server, ns))
     await space.build(settings.writable)
