@@ -105,7 +105,9 @@ def test_suppression_modes_on_the_running_lathe(sim_daemon):
 
     # --- off: alarms, but no action -------------------------------------------------------------
     assert suppress(d, "off")["mode"] == "off"
-    assert [e["payload"]["to"] for e in events(d, "suppression_mode")] == ["manual", "off"]
+    # the mode's event is recorded after the reply, by the store's writer: waited for, not raced
+    wait_until(lambda: [e["payload"]["to"] for e in events(d, "suppression_mode")] == ["manual", "off"],
+               timeout=10, what="the mode change to off recorded")
     before = {k: ids(events(d, k)) for k in ("suppression_action", "suppression_proposed", "command_sent")}
     n_alarms = len(events(d, "chatter_alarm"))
     # the present alarm ends with its cut; the next part's alarm is seen by the suppression

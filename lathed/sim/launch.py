@@ -30,6 +30,9 @@ class SimulatorSettings:
         self.serial_link = sec.getstr("serial_link", str(runtime_dir / "sim" / "ttyARDUINO"))
         self.control = sec.getstr("control", str(runtime_dir / "sim.sock"))
         self.time_scale = sec.getfloat("time_scale", 1.0, minval=0.01, maxval=10_000.0)
+        # the simulated DAQ's sample rate (real ones offer 12.8 to 51.2 kS/s); the daemon takes it
+        # from each frame
+        self.rate_hz = sec.getint("rate_hz", 51200, minval=2000, maxval=204800)
         self.depth_mm = sec.getfloat("depth_mm", -1.0, minval=0.0, maxval=MAX_DEPTH_MM)
         self.seed = sec.getint("seed", 0, minval=0)
         # the tool's worn flank ploughing the wavy surface (process damping: mild
@@ -87,7 +90,7 @@ class SimulatorSettings:
     def argv(self) -> list[str]:
         a = [sys.executable, "-m", "lathed.sim", "--host", self.host, "--modbus-port", str(self.modbus_port),
              "--vibration-port", str(self.vibration_port), "--serial-link", self.serial_link,
-             "--control", self.control, "--time-scale", str(self.time_scale), "--seed", str(self.seed),
+             "--control", self.control, "--time-scale", str(self.time_scale), "--rate", str(self.rate_hz), "--seed", str(self.seed),
              "--exit-with-parent"]
         if self.mill_port:
             a += ["--mill-port", str(self.mill_port)]
