@@ -115,7 +115,11 @@ def test_no_alarm_when_the_tool_leaves_a_stable_cut(tmp_path, detector):
     from lathed.sim.lathe import LATHE_KF, LATHE_MODES
     suppress = default_table("suppress")
     cfg, paths = sim_config(tmp_path, analyzers=with_detector(detector) + "\n" + suppress + "\navoid = true\n",
-                            registers=DEPTH_REGISTER, simulator='program = ["1500,3.0", "2000,3.0"]')
+                            registers=DEPTH_REGISTER,
+                            # at the shipped rate: at 25.6 kS/s the sync_cusum case alarms 0.12 s into a
+                            # cut, on the block where the avoid's speed lands, and this test cannot tell
+                            # that alarm's evidence from the programmed speed's (issue 38, open)
+                            simulator='program = ["1500,3.0", "2000,3.0"]\nrate_hz = 51200')
     d = Daemon(cfg, paths["socket"])
     d.paths = paths
     try:
