@@ -285,13 +285,12 @@ class ChatterAnalyzer(Analyzer):
             self.detector.impulse(bc.impulse_at, rpm)
         was = self.detector.alarm
         windows = self.detector.process(data, rpm)
-        now = time.time()
-        self.lag_ms = 1000 * (now - (b.t0 + len(b.data) / b.rate_hz))
+        t = b.t0 + len(b.data) / b.rate_hz      # the block's end: when its windows are dated
+        self.lag_ms = 1000 * (time.time() - t)
+        pub = self.ctx.bus.publish
         for w in windows:
             self.windows += 1
             self.last = w
-            t = b.t0 + len(b.data) / b.rate_hz
-            pub = self.ctx.bus.publish
             if not math.isnan(w.index):
                 pub(Sample(self.name, "chatter_index", w.index, "", t))
             judged = self._judged.push(w, t)      # what a part's record keeps as its highest

@@ -249,7 +249,9 @@ class RevolutionDetector(AlarmRules):
         self._theta += dth * k
         self._n += k
         self._total += k
-        np.subtract(self._x[n0:self._n], self._delayed(n0, self._n), out=self._d[n0:self._n])
+        d = self._d[n0:self._n]
+        self._delayed(n0, self._n, d)
+        np.subtract(self._x[n0:self._n], d, out=d)
         self._new_samples(n0, self._n)
 
     _steps = np.empty(0)
@@ -272,7 +274,8 @@ class RevolutionDetector(AlarmRules):
         """Feed consecutive samples at spindle speed ``rpm``; returns the windows completed."""
         if not rpm > 0:
             raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
-        x = np.asarray(block, dtype=float).ravel()
+        # a 1-D array is cast as _append copies it in (a float32 block: no float64 copy first)
+        x = block if type(block) is np.ndarray and block.ndim == 1 else np.asarray(block, dtype=float).ravel()
         spr = self.rate * 60.0 / rpm
         if self._ramping(rpm, spr):
             # the speed may change all through the block: settle_revs from its end
@@ -332,20 +335,23 @@ class RevolutionDetector(AlarmRules):
         """Extra samples before the window a subclass needs (filter warm-up)."""
         return 0
 
-    def _delayed(self, start: int, end: int) -> np.ndarray:
-        """The signal one revolution earlier (in angle) for samples start..end."""
+    def _delayed(self, start: int, end: int, out: np.ndarray) -> None:
+        """The signal one revolution earlier (in angle) for samples start..end, into ``out``."""
         spr = self.rate * 60.0 / self._rpm
         di = int(spr)
         first = start - di - 1
         if first >= 0 and first >= self._since_idx:
-            # constant speed over the span: a fixed fractional delay, two slices
+            # constant speed over the span: a fixed fractional delay, two slices (the products
+            # and their sum made in ``out``, without temporaries: the same numbers)
             fr = spr - di
-            return (1.0 - fr) * self._x[start - di:end - di] + fr * self._x[start - di - 1:end - di - 1]
+            np.multiply(self._x[start - di:end - di], 1.0 - fr, out=out)
+            out += np.multiply(self._x[start - di - 1:end - di - 1], fr)
+            return
         q = self._th[start:end] - 2 * np.pi
         lo = int(np.searchsorted(self._th[:start], q[0])) - 1
         lo = max(lo, 0)
         # before any history: no difference (windows never reach back there)
-        return np.interp(q, self._th[lo:end], self._x[lo:end], left=np.nan)
+        out[:] = np.interp(q, self._th[lo:end], self._x[lo:end], left=np.nan)
 
     def _window(self, start: int, end: int, rpm: float) -> Window:
         raw = float(self._measure(start, end, rpm))
