@@ -118,6 +118,8 @@ class VibrationCutDetector:
         """The frames one by one: the floor follows the air frame by frame."""
         changed = None
         frame, floor, last = self.frame, self.floor, self._last_rms
+        air = self._air
+        enough = min(4, self.floor_frames)
         for i, r in enumerate(rms):
             if not self.cutting:
                 if floor is not None and r > self.on_ratio * floor:
@@ -131,10 +133,10 @@ class VibrationCutDetector:
                 self._run = self._run + 1 if floor is not None and r > self.contact_ratio * floor else 0
                 if self._run == self.contact_frames:
                     self.contact = max(0, offset0 + (i + 1 - self._run) * frame)
-                self._air.push(r)
-                if len(self._air) >= min(4, self.floor_frames):
+                air.push(r)
+                if len(air) >= enough:
                     # a low quantile: a knock or a ramp's ringing does not lift it
-                    floor = self.floor = max(self._air.value(), 1e-300)
+                    floor = self.floor = max(air.value(), 1e-300)
                     if self.cutting is None:
                         self.cutting = False
             else:
