@@ -248,7 +248,8 @@ class ChatterAnalyzer(Analyzer):
         if self.sight.block(time.monotonic()):
             self._sight_back()
         bc = self.cut.block(b.data, b.rate_hz, b.t0)
-        self._on_cut(bc.events)
+        if bc.events:
+            self._on_cut(bc.events)
         data = bc.data
         if data is None:
             return           # not the cut's samples: air, a dwell
