@@ -134,11 +134,11 @@ class ChatterAnalyzer(Analyzer):
         watch = asyncio.create_task(self._watch_sight())
         try:
             while True:
-                msg = await sub.get()
-                if isinstance(msg, Sample):
-                    self._on_machine(msg)
-                elif isinstance(msg, Block):
-                    self._on_block(msg)
+                for msg in await sub.get_all():
+                    if isinstance(msg, Sample):
+                        self._on_machine(msg)
+                    elif isinstance(msg, Block):
+                        self._on_block(msg)
         finally:
             watch.cancel()
             self.ctx.bus.unsubscribe(sub)
