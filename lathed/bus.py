@@ -95,6 +95,20 @@ class Subscription:
                 self._waiter = None
         return self._items.popleft()
 
+    async def get_all(self) -> list[Message]:
+        """Every message waiting (at least one), in order: one wait, not one coroutine and
+        call a message, for a reader that handles each as it comes (the chatter analyzer:
+        a block and the machine's registers every 20 ms, a channel)."""
+        while not self._items:
+            self._waiter = asyncio.get_running_loop().create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        items = list(self._items)
+        self._items.clear()
+        return items
+
 
 class Bus:
     def __init__(self) -> None:

@@ -134,11 +134,11 @@ class ChatterAnalyzer(Analyzer):
         watch = asyncio.create_task(self._watch_sight())
         try:
             while True:
-                msg = await sub.get()
-                if isinstance(msg, Sample):
-                    self._on_machine(msg)
-                elif isinstance(msg, Block):
-                    self._on_block(msg)
+                for msg in await sub.get_all():
+                    if isinstance(msg, Sample):
+                        self._on_machine(msg)
+                    elif isinstance(msg, Block):
+                        self._on_block(msg)
         finally:
             watch.cancel()
             self.ctx.bus.unsubscribe(sub)
@@ -248,7 +248,8 @@ class ChatterAnalyzer(Analyzer):
         if self.sight.block(time.monotonic()):
             self._sight_back()
         bc = self.cut.block(b.data, b.rate_hz, b.t0)
-        self._on_cut(bc.events)
+        if bc.events:
+            self._on_cut(bc.events)
         data = bc.data
         if data is None:
             return           # not the cut's samples: air, a dwell
@@ -285,13 +286,12 @@ class ChatterAnalyzer(Analyzer):
             self.detector.impulse(bc.impulse_at, rpm)
         was = self.detector.alarm
         windows = self.detector.process(data, rpm)
-        now = time.time()
-        self.lag_ms = 1000 * (now - (b.t0 + len(b.data) / b.rate_hz))
+        t = b.t0 + len(b.data) / b.rate_hz      # the block's end: when its windows are dated
+        self.lag_ms = 1000 * (time.time() - t)
+        pub = self.ctx.bus.publish
         for w in windows:
             self.windows += 1
             self.last = w
-            t = b.t0 + len(b.data) / b.rate_hz
-            pub = self.ctx.bus.publish
             if not math.isnan(w.index):
                 pub(Sample(self.name, "chatter_index", w.index, "", t))
             judged = self._judged.push(w, t)      # what a part's record keeps as its highest

@@ -116,3 +116,23 @@ def test_a_blocks_only_source_gives_its_blocks_and_not_its_samples():
         bus.publish(block)
         assert not sub._items and bus.stats()["dropped"] == {}
     asyncio.run(main())
+
+
+def test_get_all_waits_for_one_then_takes_every_waiting_message_in_order():
+    async def main():
+        bus = Bus()
+        sub = bus.subscribe("lathe", "accel")
+        got = asyncio.create_task(sub.get_all())
+        await asyncio.sleep(0)                  # waiting on an empty queue
+        assert not got.done()
+        bus.publish(s(1))
+        bus.publish(s(2, "accel"))
+        bus.publish(s(3))
+        assert [m.value for m in await got] == [1.0, 2.0, 3.0] and not sub._items
+        waiting = asyncio.create_task(sub.get_all())   # a cancelled wait takes nothing
+        await asyncio.sleep(0)
+        waiting.cancel()
+        await asyncio.gather(waiting, return_exceptions=True)
+        bus.publish(s(4))
+        assert [m.value for m in await asyncio.wait_for(sub.get_all(), 1)] == [4.0]
+    asyncio.run(main())

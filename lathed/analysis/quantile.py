@@ -2,8 +2,8 @@
 state's running baselines)."""
 from __future__ import annotations
 
-import bisect
 import math
+from bisect import bisect_left, insort
 from collections import deque
 
 
@@ -37,17 +37,18 @@ class SlidingQuantile:
 
     def push(self, x: float) -> None:
         x = float(x)
-        self._order.append(x)
-        if math.isnan(x):
+        order = self._order
+        order.append(x)
+        if x != x:                      # NaN (math.isnan, without the call)
             self._nans += 1
         else:
-            bisect.insort(self._sorted, x)
-        if len(self._order) > self.size:
-            old = self._order.popleft()
-            if math.isnan(old):
+            insort(self._sorted, x)
+        if len(order) > self.size:
+            old = order.popleft()
+            if old != old:
                 self._nans -= 1
             else:
-                del self._sorted[bisect.bisect_left(self._sorted, old)]
+                del self._sorted[bisect_left(self._sorted, old)]
 
     def value(self) -> float:
         if not self._order:

@@ -129,6 +129,11 @@ class RevolutionDetector(AlarmRules):
         """Forget the cut (history, alarm, learned baseline unless fixed by a reference)."""
         self.too_slow = False
         self._n = 0                 # valid samples in the buffer
+        # the angle of each sample (_th) is made only when a speed change asks for it (_delayed):
+        # _th[:_th_ok] is made, and each block after it waits as (buffer start, samples, angle
+        # step, angle before it)
+        self._th_ok = 0
+        self._th_todo: list[tuple[int, int, float, float]] = []
         self._total = 0             # samples seen since reset
         self._theta = 0.0
         self._next_end: int | None = None
@@ -234,25 +239,43 @@ class RevolutionDetector(AlarmRules):
         if self._n + k > len(self._x):
             keep = min(self._n, len(self._x) // 2)
             cut = self._n - keep
-            for buf in self._history().values():
-                buf[:keep] = buf[cut:self._n]
+            for name, buf in self._history().items():
+                if name != "_th":
+                    buf[:keep] = buf[cut:self._n]
+            if self._th_ok > cut:
+                self._th[:self._th_ok - cut] = self._th[cut:self._th_ok]
+            self._th_ok = max(self._th_ok - cut, 0)
+            # the blocks whose angle waits move with the buffer (those now before it are gone)
+            self._th_todo = [(n0 - cut, n, dth, th0) for n0, n, dth, th0 in self._th_todo if n0 + n > cut]
             self._n = keep
             self._since_idx = max(self._since_idx - cut, -1)
         dth = 2 * np.pi * rpm / 60.0 / self.rate
         n0 = self._n
         self._x[n0:n0 + k] = x
-        if len(self._steps) != k:
-            self._steps = np.arange(1, k + 1, dtype=np.float64)     # a block's sample steps, made once
-        th = self._th[n0:n0 + k]
-        np.multiply(self._steps, dth, out=th)         # theta + dth * (1..k), without temporaries
-        th += self._theta
+        self._th_todo.append((n0, k, dth, self._theta))
         self._theta += dth * k
         self._n += k
         self._total += k
-        np.subtract(self._x[n0:self._n], self._delayed(n0, self._n), out=self._d[n0:self._n])
+        d = self._d[n0:self._n]
+        self._delayed(n0, self._n, d)
+        np.subtract(self._x[n0:self._n], d, out=d)
         self._new_samples(n0, self._n)
 
     _steps = np.empty(0)
+
+    def _angles(self) -> None:
+        """Make _th up to the last sample: theta + dth * (1..k) for each block that waits (its
+        part still in the buffer), without temporaries, as each block's was made at once."""
+        th = self._th
+        for n0, k, dth, th0 in self._th_todo:
+            if len(self._steps) < k:
+                self._steps = np.arange(1, k + 1, dtype=np.float64)     # sample steps, made once
+            j0 = max(0, -n0)           # a block the last trim cut into: its part still kept
+            out = th[n0 + j0:n0 + k]
+            np.multiply(self._steps[j0:k], dth, out=out)
+            out += th0
+        self._th_todo.clear()
+        self._th_ok = self._n
 
     def _history(self) -> dict[str, np.ndarray]:
         """Per-sample history arrays kept aligned, by attribute (subclasses add theirs)."""
@@ -272,7 +295,8 @@ class RevolutionDetector(AlarmRules):
         """Feed consecutive samples at spindle speed ``rpm``; returns the windows completed."""
         if not rpm > 0:
             raise ValueError(f"spindle speed must be > 0 r/min, got {rpm}")
-        x = np.asarray(block, dtype=float).ravel()
+        # a 1-D array is cast as _append copies it in (a float32 block: no float64 copy first)
+        x = block if type(block) is np.ndarray and block.ndim == 1 else np.asarray(block, dtype=float).ravel()
         spr = self.rate * 60.0 / rpm
         if self._ramping(rpm, spr):
             # the speed may change all through the block: settle_revs from its end
@@ -288,7 +312,8 @@ class RevolutionDetector(AlarmRules):
             # too slow for a window plus a revolution of history (spindle
             # spinning up or down): drop the stream, keep baseline and alarm
             self.too_slow = True
-            self._n = 0
+            self._n = self._th_ok = 0
+            self._th_todo.clear()
             self._next_end = None
             self._rpm = None
             return []
@@ -332,20 +357,25 @@ class RevolutionDetector(AlarmRules):
         """Extra samples before the window a subclass needs (filter warm-up)."""
         return 0
 
-    def _delayed(self, start: int, end: int) -> np.ndarray:
-        """The signal one revolution earlier (in angle) for samples start..end."""
+    def _delayed(self, start: int, end: int, out: np.ndarray) -> None:
+        """The signal one revolution earlier (in angle) for samples start..end, into ``out``."""
         spr = self.rate * 60.0 / self._rpm
         di = int(spr)
         first = start - di - 1
         if first >= 0 and first >= self._since_idx:
-            # constant speed over the span: a fixed fractional delay, two slices
+            # constant speed over the span: a fixed fractional delay, two slices (the products
+            # and their sum made in ``out``, without temporaries: the same numbers)
             fr = spr - di
-            return (1.0 - fr) * self._x[start - di:end - di] + fr * self._x[start - di - 1:end - di - 1]
+            np.multiply(self._x[start - di:end - di], 1.0 - fr, out=out)
+            out += np.multiply(self._x[start - di - 1:end - di - 1], fr)
+            return
+        if self._th_todo:
+            self._angles()
         q = self._th[start:end] - 2 * np.pi
         lo = int(np.searchsorted(self._th[:start], q[0])) - 1
         lo = max(lo, 0)
         # before any history: no difference (windows never reach back there)
-        return np.interp(q, self._th[lo:end], self._x[lo:end], left=np.nan)
+        out[:] = np.interp(q, self._th[lo:end], self._x[lo:end], left=np.nan)
 
     def _window(self, start: int, end: int, rpm: float) -> Window:
         raw = float(self._measure(start, end, rpm))

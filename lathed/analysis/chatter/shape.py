@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from lathed.analysis.chatter.spectrum import fast_len, hann, median
+from lathed.analysis.chatter.spectrum import fast_len, hann, median, rfft
 
 REL_WIDTH = 0.06      # a band's width over its centre frequency (a damped mode's peak spans 1-2)
 MIN_BINS = 2          # ... and never under two FFT bins
@@ -53,7 +53,8 @@ class SpectralShape:
         nf, edges = self._edges[n]
         self._now_len = n
         # np.mean's sum and division without its wrapper (the same numbers, bit for bit)
-        ps = np.abs(np.fft.rfft((d - np.add.reduce(d) / n) * hann(n), nf)) ** 2
+        ps = np.abs(rfft((d - np.add.reduce(d) / n) * hann(n), nf))
+        ps *= ps                               # ** 2, in place
         return np.add.reduceat(ps, edges[:-1])[:len(edges) - 1]
 
     def _base_for(self, n: int) -> np.ndarray | None:

@@ -92,25 +92,34 @@ class VibrationCutDetector:
         self._rest = buf[nf * self.frame:]
         if nf == 0:
             return None
-        frames = buf[:nf * self.frame].reshape(nf, self.frame)
-        # np.mean's sum and division without its Python wrapper (the same numbers, bit for bit)
-        dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / self.frame
-        rms = np.sqrt(np.add.reduce(dev * dev, axis=1) / self.frame)
+        frame = self.frame
+        frames = buf[:nf * frame].reshape(nf, frame)
+        # np.mean's sum and division without its Python wrapper, the deviations squared and the
+        # root in place (the same numbers, bit for bit; a block's few frames are a handful of
+        # numpy calls, each costing more than its arithmetic)
+        dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / frame
+        np.multiply(dev, dev, out=dev)
+        ms = np.add.reduce(dev, axis=1)
+        ms /= frame
+        r = np.sqrt(ms, out=ms).tolist()
         offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
         self.contact = None
-        if self.cutting and not np.logical_or.reduce(rms < self.off_ratio * self.floor):   # .any(), unwrapped
-            # in the cut, every frame over the exit's level (a block's usual case): no frame
-            # counts towards the exit, nothing changes but the two last frames' rms
-            r = rms.tolist()
-            self._quiet = 0
-            self._last_rms = (self._last_rms[1], r[0]) if nf == 1 else (r[-2], r[-1])
-            return None
-        return self._frames(rms.tolist(), offset0)
+        if self.cutting:
+            exit_level = self.off_ratio * self.floor
+            if not any([v < exit_level for v in r]):
+                # in the cut, every frame over the exit's level (a block's usual case): no frame
+                # counts towards the exit, nothing changes but the two last frames' rms
+                self._quiet = 0
+                self._last_rms = (self._last_rms[1], r[0]) if nf == 1 else (r[-2], r[-1])
+                return None
+        return self._frames(r, offset0)
 
     def _frames(self, rms: list[float], offset0: int) -> int | None:
         """The frames one by one: the floor follows the air frame by frame."""
         changed = None
         frame, floor, last = self.frame, self.floor, self._last_rms
+        air = self._air
+        enough = min(4, self.floor_frames)
         for i, r in enumerate(rms):
             if not self.cutting:
                 if floor is not None and r > self.on_ratio * floor:
@@ -124,10 +133,10 @@ class VibrationCutDetector:
                 self._run = self._run + 1 if floor is not None and r > self.contact_ratio * floor else 0
                 if self._run == self.contact_frames:
                     self.contact = max(0, offset0 + (i + 1 - self._run) * frame)
-                self._air.push(r)
-                if len(self._air) >= min(4, self.floor_frames):
+                air.push(r)
+                if len(air) >= enough:
                     # a low quantile: a knock or a ramp's ringing does not lift it
-                    floor = self.floor = max(self._air.value(), 1e-300)
+                    floor = self.floor = max(air.value(), 1e-300)
                     if self.cutting is None:
                         self.cutting = False
             else:
