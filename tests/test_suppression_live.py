@@ -116,7 +116,8 @@ def test_suppression_modes_on_the_running_lathe(sim_daemon):
                what="the cut's alarm cleared")
     wait_until(lambda: d.item("analyzers", "suppress")["chatter_alarm"], timeout=30,
                what="a new alarm seen by the suppression analyzer")
-    assert len(events(d, "chatter_alarm")) > n_alarms
+    wait_until(lambda: len(events(d, "chatter_alarm")) > n_alarms, timeout=10,
+               what="the new alarm recorded (the store writes it after the analyzers see it)")
     for k, seen in before.items():
         assert ids(events(d, k)) == seen, k
     assert d.item("analyzers", "suppress")["pending"] is None
