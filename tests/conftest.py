@@ -369,6 +369,7 @@ def shipped_config(tmp: Path, name: str = "lathed.toml") -> tuple[Path, Path]:
                                                 f'runtime_dir = "{tmp / "run"}"')
     text = text.replace('dbc = "robot_arm.dbc"', f'dbc = "{ROOT / "etc" / "robot_arm.dbc"}"')
     text = text.replace('plugin_dirs = ["plugins.d"]', f'plugin_dirs = ["{ROOT / "etc" / "plugins.d"}"]')
+    text = text.replace("\n[simulator]\n", f"\n[simulator]\n{SIM_RATE}\n", 1)    # as sim_config's
     cfg = tmp / "lathed.toml"
     cfg.write_text(text)
     return cfg, tmp / "run" / "lathed.sock"
