@@ -157,11 +157,9 @@ class ChatterAnalyzer(Analyzer):
         elif s.quantity == "spindle_load_pct":
             self.load_pct = s.value
         self._on_cut(self.cut.machine(s.quantity, s.value, s.t, self.rpm))
-        if s.quantity == "spindle_load_pct" and self.cutting:
-            set_load = getattr(self.detector, "set_load", None)   # a plugin's detector may lack it
-            if set_load is not None:
-                # the static cutting force, for load_scaled (the detector ignores it otherwise)
-                set_load(self.cut.cutting_load(s.value, self.rpm))
+        if s.quantity == "spindle_load_pct" and self.cutting and self.detector is not None:
+            # the static cutting force, for load_scaled (the detector ignores it otherwise)
+            self.detector.set_load(self.cut.cutting_load(s.value, self.rpm))
 
     def _source(self, name: str, on: bool, t: float) -> None:
         """One source's verdict, as the cut state takes it."""
@@ -280,7 +278,7 @@ class ChatterAnalyzer(Analyzer):
             self.state = "learning"
             self._cut_rpm = rpm
         self._cut_revs += len(data) / b.rate_hz * rpm / 60.0
-        if bc.impulse_at is not None and hasattr(self.detector, "impulse"):   # a plugin's may lack it
+        if bc.impulse_at is not None:
             # a release, a knock, or a dwell's join (its revolution difference spans the gap, and
             # the chip's re-entry rings the structure): its windows do not count
             self.detector.impulse(bc.impulse_at, rpm)
