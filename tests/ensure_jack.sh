@@ -7,8 +7,11 @@ set -euo pipefail
 
 have_jack() {
     command -v jackd >/dev/null 2>&1 || [ -x /usr/bin/jackd ] || return 1
-    ldconfig -p 2>/dev/null | grep -q 'libportaudio\.so\.2' || return 1
-    ldconfig -p 2>/dev/null | grep -q 'libjack\.so\.0'
+    # read whole, then searched: `ldconfig -p | grep -q` under pipefail fails whenever grep
+    # matches and exits before ldconfig has written everything (SIGPIPE), found or not
+    local libs
+    libs=$(ldconfig -p 2>/dev/null) || return 1
+    grep -q 'libportaudio\.so\.2' <<<"$libs" && grep -q 'libjack\.so\.0' <<<"$libs"
 }
 
 if have_jack; then
