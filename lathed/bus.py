@@ -85,7 +85,7 @@ class Subscription:
         if w is not None and not w.done():
             w.set_result(None)
 
-    async def get(self) -> Message:
+    async def _wait(self) -> None:
         while not self._items:
             # one consumer per subscription; a cancelled wait takes nothing
             self._waiter = asyncio.get_running_loop().create_future()
@@ -93,18 +93,18 @@ class Subscription:
                 await self._waiter
             finally:
                 self._waiter = None
+
+    async def get(self) -> Message:
+        if not self._items:
+            await self._wait()
         return self._items.popleft()
 
     async def get_all(self) -> list[Message]:
         """Every message waiting (at least one), in order: one wait, not one coroutine and
         call a message, for a reader that handles each as it comes (the chatter analyzer:
         a block and the machine's registers every 20 ms, a channel)."""
-        while not self._items:
-            self._waiter = asyncio.get_running_loop().create_future()
-            try:
-                await self._waiter
-            finally:
-                self._waiter = None
+        if not self._items:
+            await self._wait()
         items = list(self._items)
         self._items.clear()
         return items
