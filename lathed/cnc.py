@@ -61,6 +61,7 @@ class CncDriver(Driver):
         self._cmd_seen: deque = deque(maxlen=4)   # (commanded speed, override) of the last readings
         self._ours: float | None = None           # the override lathed wrote and has not released
         self._pending: float | None = None        # one written whose answer never came (it may hold)
+        self._released_rpm: float | None = None   # the speed released() last gave: written as 100 %
         self.values: dict[str, tuple[float, float]] = {}     # name -> (value, t it was last known to hold)
         self.model = MachineModel(self.kind, self.stale_after, self._record)
 
@@ -110,7 +111,11 @@ class CncDriver(Driver):
             raise ConnectionError("no fresh spindle override and speed to take the programmed speed from")
         ovr, base = p
         exact = 100.0 * rpm / base
-        if abs(exact - 100.0) < 0.05:
+        released, self._released_rpm = self._released_rpm, None
+        if abs(exact - 100.0) < 0.05 or rpm == released:
+            # a release is 100 %: the programmed speed it was worked out from may have moved on
+            # since (the next pass's S word), and that speed over the new one would hold part
+            # after part
             return 100.0, base       # the programmed speed (a release; G96 drifts between the reads)
         if self._speed_drifting():
             # an override scales the programmed speed, and under G96 that moves on its own: the
@@ -158,6 +163,7 @@ class CncDriver(Driver):
         p = self._programmed() if action == "spindle_rpm" and self.speed_by_override else None
         if p is None or not any(v is not None and abs(p[0] - v) <= 1e-3 * v for v in (self._ours, self._pending)):
             return None
+        self._released_rpm = p[1]
         return p[1]
 
     def runs_at(self, cmd: Command) -> tuple[float, str] | None:

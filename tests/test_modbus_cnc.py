@@ -532,6 +532,30 @@ def test_an_override_step_finer_than_its_register_is_refused():
     assert driver({"host": "127.0.0.1", "registers": regs, "override_step_pct": 2.0}).override_step == 2.0
 
 
+def test_a_release_is_100_percent_when_the_program_moved_on_before_it_was_written():
+    """A cut ends, its cure is released as the programmed speed (1500), and before the write the
+    control is already on the next pass's S word (2000): that release was written as 1500/2000 =
+    75 % before (the other way round, 133 %), an override that held part after part. It is 100 %."""
+    ctl = OverrideControl()
+    regs = {"spindle_rpm_cmd": {"address": 0, "type": "float32"},
+            "spindle_override_pct": {"address": 2, "type": "float32", "writable": True}}
+    d = driver({"kind": "lathe", "host": "127.0.0.1", "port": ctl.peer.port, "poll": "20ms",
+                "registers": regs, "override_min_pct": 50.0, "override_max_pct": 150.0})
+
+    async def check(d, events):
+        await until(lambda: d.current("spindle_rpm") == 1500.0, what="polls")
+        await d.execute(Command(machine="m", action="spindle_rpm", value=1650.0, reason="t", source="t"))
+        await until(lambda: d.current("spindle_rpm") == 1650.0, what="the override read back")
+        back = d.released("spindle_rpm")
+        assert back == pytest.approx(1500.0)
+        ctl.program = 2000.0
+        ctl.publish()
+        await until(lambda: d.current("spindle_rpm") == 2200.0, what="the next S word read")
+        out = await d.execute(Command(machine="m", action="spindle_rpm", value=back, reason="released", source="t"))
+        assert out["override_pct"] == 100.0 and ctl.override == 100.0, out
+    asyncio.run(asyncio.wait_for(_run_against(ctl.peer, _NoPhysics(), d, check), 30))
+
+
 def test_an_override_the_control_took_but_answered_late_is_still_released():
     """The write reached the control, the answer did not (a timeout): the command failed, but
     the override on the control is lathed's, and released."""
