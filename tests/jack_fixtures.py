@@ -6,26 +6,29 @@ has a private name (JACK_DEFAULT_SERVER tells a client, the daemon's capture hel
 which one). PortAudio opens it as the device "system"; its stream is the JACK client
 "PortAudio", whose input ports the player's outputs are connected to.
 
-The player is a JACK client in the test process: its process callback plays queued
-segments, and between them its idle signal (the spindle turning in air), on as many
-output ports as channels.
+The player is a JACK client in a process of its own (tests/jack_player.py): it plays
+queued segments, and between them its idle signal (the spindle turning in air), on as
+many output ports as channels.
 """
 from __future__ import annotations
 
 import fcntl
+import json
 import os
+import queue
 import shutil
 import signal
 import struct
 import subprocess
+import sys
 import threading
-import uuid
-from collections import deque
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tests.conftest import wait_until
+from tests.jack_player import HEAD
 
 jack = pytest.importorskip("jack", reason="JACK-Client not installed (pip install -e '.[test]')")
 
@@ -169,70 +172,67 @@ class JackServer:
 
 
 class Player:
-    """Plays queued (frames x channels) float32 segments into JACK; ``idle`` in between."""
+    """Plays queued (frames x channels) float32 segments into JACK; ``idle`` in between. The
+    JACK client is a process of its own (tests/jack_player.py says why)."""
 
     def __init__(self, server: JackServer, channels: int = 1, idle: np.ndarray | None = None) -> None:
         self.server, self.channels = server, channels
-        self.client = jack.Client(f"player-{uuid.uuid4().hex[:6]}", servername=server.name, no_start_server=True)
-        self.ports = [self.client.outports.register(f"out_{i}") for i in range(channels)]
-        self.idle = np.zeros((server.period, channels), np.float32) if idle is None else \
+        idle = np.zeros((server.period, channels), np.float32) if idle is None else \
             np.asarray(idle, np.float32).reshape(-1, channels)
-        self._idle_pos = 0
-        self._queue: deque[tuple[np.ndarray, threading.Event]] = deque()
-        self._pos = 0
-        self.played = 0          # frames played since activation
-        self.client.set_process_callback(self._process)
-        self.client.activate()
+        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("jack_player.py")), server.name,
+                                      str(channels)], env={**os.environ, **server.env},
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=False)
+        self._seq = 0
+        self._done: dict[int, threading.Event] = {}
+        self._replies: queue.Queue = queue.Queue()
+        self._send(b"IDLE", 0, np.ascontiguousarray(idle).tobytes())
+        threading.Thread(target=self._read, daemon=True).start()
+        word = self._reply(20)
+        assert word == "READY", f"the JACK player did not start: {word}"
 
-    def _process(self, frames: int) -> None:
-        out = np.empty((frames, self.channels), np.float32)
-        i = 0
-        while i < frames:
-            if self._queue:
-                seg, done = self._queue[0]
-                n = min(frames - i, len(seg) - self._pos)
-                out[i:i + n] = seg[self._pos:self._pos + n]
-                self._pos += n
-                i += n
-                if self._pos >= len(seg):
-                    self._queue.popleft()
-                    self._pos = 0
-                    done.set()
+    def _send(self, kind: bytes, seq: int, body: bytes) -> None:
+        self.proc.stdin.write(HEAD.pack(kind, seq, len(body)) + body)
+        self.proc.stdin.flush()
+
+    def _read(self) -> None:
+        for raw in self.proc.stdout:
+            line = raw.decode().strip()
+            if line.startswith("DONE "):
+                self._done.pop(int(line[5:])).set()
             else:
-                n = min(frames - i, len(self.idle) - self._idle_pos)
-                out[i:i + n] = self.idle[self._idle_pos:self._idle_pos + n]
-                self._idle_pos = (self._idle_pos + n) % len(self.idle)
-                i += n
-        for k, p in enumerate(self.ports):
-            p.get_array()[:] = out[:, k]
-        self.played += frames
+                self._replies.put(line)
+        self._replies.put(f"the player exited {self.proc.wait()}")
+
+    def _reply(self, timeout: float) -> str:
+        try:
+            return self._replies.get(timeout=timeout)
+        except queue.Empty:
+            return f"no answer from the player within {timeout:g} s"
 
     def play(self, data: np.ndarray) -> threading.Event:
         """Queue a segment; the event is set once its last frame was played."""
-        done = threading.Event()
-        self._queue.append((np.ascontiguousarray(np.asarray(data, np.float32).reshape(-1, self.channels)), done))
+        self._seq += 1
+        done = self._done[self._seq] = threading.Event()
+        seg = np.ascontiguousarray(np.asarray(data, np.float32).reshape(-1, self.channels))
+        self._send(b"PLAY", self._seq, seg.tobytes())
         return done
 
     def connect(self, client: str = "PortAudio", first: int = 0, timeout: float = 20.0) -> list[str]:
         """Our outputs to ``client``'s inputs from ``first`` on, once they exist (a capture
         opens its stream after the daemon starts)."""
-        def targets():
-            names = sorted((p.name for p in self.client.get_ports(f"{client}:.*", is_input=True, is_audio=True)),
-                           key=lambda n: int(n.rsplit("_", 1)[1]) if n.rsplit("_", 1)[1].isdigit() else 0)
-            return names if len(names) >= first + self.channels else None
-        names = wait_until(targets, timeout, 0.05, what=f"JACK input ports of {client}")
-        for k, port in enumerate(self.ports):
-            dest = names[first + k]
-            if port.name not in [p.name for p in self.client.get_all_connections(dest)]:
-                self.client.connect(port, dest)
-        return names[first:first + self.channels]
+        self._send(b"CONN", 0, json.dumps({"client": client, "first": first, "timeout": timeout}).encode())
+        word = self._reply(timeout + 10)
+        assert word.startswith("CONNECTED "), word
+        return json.loads(word[len("CONNECTED "):])
 
     def close(self) -> None:
-        try:
-            self.client.deactivate()
-            self.client.close()
-        except jack.JackError:
-            pass          # the server is gone already
+        if self.proc.poll() is None:
+            self.proc.stdin.close()
+            try:
+                self.proc.wait(5)       # a client of a server that is gone may hang in its close
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
 
 
 @pytest.fixture

@@ -359,3 +359,32 @@ def test_two_sensors_share_one_device(jack_server, monkeypatch):
     ya, yb = (np.concatenate([x.data for x in xs]).astype(float) for xs in (xa, xb))
     assert np.sqrt(2) * ya.std() == pytest.approx(0.1 * 5 / 0.1 * G0, rel=0.02)
     assert np.sqrt(2) * yb.std() == pytest.approx(0.2 * 1 / 0.05, rel=0.02)        # Pa
+
+
+def test_the_player_plays_on_while_the_test_process_holds_its_gil(jack_server, monkeypatch):
+    """The harness: the JACK server waits each period for the player (-S), so a player that
+    needs this process's GIL stalled the server whenever a test held it (a full garbage
+    collection of a long-lived worker), and the capture rightly said "device gone"."""
+    import ctypes
+    for k, v in jack_server.env.items():
+        monkeypatch.setenv(k, v)
+    drv = sensor(timeout="500ms")
+    hold = ctypes.PyDLL(None).usleep        # a PyDLL call keeps the GIL for its whole length
+
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
+        try:
+            player.connect()
+            await rig.drain()
+            await rig.blocks(0.2)
+            hold(1_500_000)
+            after = await rig.blocks(1.0)
+            return after, drv.status()
+        finally:
+            player.close()
+            await rig.stop()
+    after, st = asyncio.run(main())
+    assert st["helper_starts"] == 1, st
+    assert all(b - a == 1024 for a, b in zip([x.seq for x in after], [x.seq for x in after[1:]]))
