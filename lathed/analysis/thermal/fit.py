@@ -201,7 +201,9 @@ class ForwardCache:
         icpt = coef[:, -1] + coef[:, :-1] @ (self.shift[pk] - self.shift[fk[:-1]]) if pk else coef[:, -1]
         e = self.X[self.iy, self.o:] - icpt[self.row_fold]
         if pk:
-            e -= np.einsum("ji,ij->i", self.X[pk, self.o:], coef[self.row_fold, :-1])
+            # each fold's rows by its own coefficients: a product per fold, not a row-by-row gather
+            for i, f in enumerate(self.folds):
+                e[f.lo - self.o:f.hi - self.o] -= coef[i, :-1] @ self.X[pk, f.lo:f.hi]
         return e
 
 
