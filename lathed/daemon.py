@@ -422,6 +422,7 @@ class Daemon:
         a.check_unused()
         if kind is not None and (why := await offload(self.store.unknown_kind, [kind])):
             raise a.error("kind", why)
+        await self.store.settled()      # the events of a command answered just before are there
         return await offload(self.store.events, limit, kind, source, since_id)
 
 

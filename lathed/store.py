@@ -43,6 +43,7 @@ PRUNE_CHUNK = 2000
 # SQLite primary result codes that say the storage failed, not the record:
 # IOERR, CORRUPT, FULL, CANTOPEN, READONLY, NOTADB.
 STORAGE_ERRORS = frozenset({10, 11, 13, 14, 8, 26})
+BARRIER = "-- settled: every record before this one committed"    # queued by Store.settled(), never run
 
 # Tables whose rows are forwarded to sinks, and their JSON-valued columns.
 FORWARDED = ("events", "workpieces", "inspections", "sampling_queue", "experiments")
@@ -230,7 +231,7 @@ class Store:
         except Exception as e2:
             log.error("store_rollback_failed", error=_one_line(e2))
         unsettled = [(fut, None, err) for _, _, fut in batch if not fut.done()]
-        self.failed += len(unsettled)
+        self.failed += sum(sql is not BARRIER for sql, _, fut in batch if not fut.done())
         self._set_failing(True)
         self._note_error(str(err))
         self._settle_all(unsettled)
@@ -258,6 +259,9 @@ class Store:
             self._wcon.execute("BEGIN")
             self._save_clock()        # the rows of this transaction are aged from this reading
             for sql, params, fut in batch:
+                if sql is BARRIER:
+                    results.append((fut, None, None))
+                    continue
                 try:
                     if isinstance(sql, list):     # statements that stand or fall together
                         self._wcon.execute("SAVEPOINT item")
@@ -288,7 +292,7 @@ class Store:
                 self._wcon.execute("ROLLBACK")
             except sqlite3.Error:
                 pass
-            self.failed += len(batch)
+            self.failed += sum(sql is not BARRIER for sql, _, _ in batch)
             self._set_failing(True)
             self._note_error(f"commit failed, {len(batch)} records not stored: {_one_line(e)}")
             log.error("store_commit_failed", error=self.last_error)
@@ -296,6 +300,8 @@ class Store:
         else:
             self._set_failing(storage)
             for (sql, _, _), (_, _, err) in zip(batch, results):
+                if sql is BARRIER:
+                    continue
                 if err is None:
                     self.written += 1
                     self.events_stored += sum(s is EVENT_SQL for s, _ in sql) if isinstance(sql, list) \
@@ -344,6 +350,16 @@ class Store:
     def record_future(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                       t: float | None = None) -> Future:
         return self.submit(*self.event_statement(kind, source, payload, t))
+
+    async def settled(self, timeout: float = 1.0) -> None:
+        """Return once every record submitted before the call is committed (or failed), or
+        after ``timeout``: a reader after a command sees the events that command recorded
+        (the command replies before the writer commits them)."""
+        try:
+            async with asyncio.timeout(timeout):
+                await self._submit_async(BARRIER, ())
+        except Exception:       # a failing or closed store: the read goes on with what is there
+            pass
 
     def event_statement(self, kind: str, source: str, payload: dict[str, Any] | None = None,
                         t: float | None = None) -> tuple[str, tuple]:

@@ -588,3 +588,30 @@ def test_a_store_upgraded_to_the_clock_resumes_from_its_newest_record(tmp_path, 
     ages = [r["age_t"] for r in s.query("SELECT age_t FROM outbox ORDER BY id")]
     assert ages == sorted(ages)
     s.close()
+
+
+def test_settled_returns_once_the_records_before_it_are_committed(tmp_path):
+    # `lathectl events` after a command: the command replies before the writer commits the
+    # events it recorded; the read waits for them (Store.settled) instead of missing them
+    import threading
+    s = Store(tmp_path / "a.db")
+    real, gate = s._commit, threading.Event()
+
+    def slow(batch):
+        gate.wait(10)
+        real(batch)
+    s._commit = slow
+    fut = s.record_future("suppression_mode", "suppression", {"mode": "advise"})
+
+    async def main():
+        waiter = asyncio.create_task(s.settled(timeout=10))
+        await asyncio.sleep(0)
+        seen_before = [e["kind"] for e in s.events(kind="suppression_mode")]
+        gate.set()
+        await waiter
+        return seen_before, [e["kind"] for e in s.events(kind="suppression_mode")]
+    before, after = asyncio.run(main())
+    assert before == [] and after == ["suppression_mode"] and fut.done()
+    assert s.stats()["written"] == 1 and s.stats()["failed"] == 0      # the barrier is no record
+    s.close()
+    asyncio.run(s.settled(timeout=1))      # a closed store: the read goes on with what is there
