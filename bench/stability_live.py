@@ -10,13 +10,14 @@ from its own cut records is trusted, then from that model's lobes.  From its cut
 records: re-chatters (a stretch at a speed suppression moved to that chattered
 again) in each third of the program, when a learn was trusted, the learns.
 
-    .venv/bin/python bench/stability_live.py [--cuts 200] [--seed 0] [--timeout 5400]
+    .venv/bin/python bench/stability_live.py [--cuts 200] [--seed 0] [--timeout 5400] [--keep DIR]
 """
 from __future__ import annotations
 
 import argparse
 import json
 import re
+import shutil
 import sys
 import tempfile
 import time
@@ -28,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_daemon import config  # noqa: E402
 from bench_loop import events, start, stop  # noqa: E402
 
+from lathed.analysis.cut_log import RISING_RATIO  # noqa: E402
 from lathed.analysis.stability import StabilityModel  # noqa: E402
 from lathed.client import call  # noqa: E402
 from lathed.sim.lathe import LATHE_KF, LATHE_MODES  # noqa: E402
@@ -61,6 +63,7 @@ def main() -> int:
     ap.add_argument("--cuts", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--timeout", type=float, default=5400.0, help="seconds for the whole program")
+    ap.add_argument("--keep", type=Path, help="copy the daemon's state directory (lathed.db) and log here")
     a = ap.parse_args()
     prog = program(a.cuts, a.seed)
     with tempfile.TemporaryDirectory() as d:
@@ -81,9 +84,13 @@ def main() -> int:
             status = call("stability", {"action": "status", "analyzer": "suppress"}, sock_path=sock, timeout=10.0)
         finally:
             stop(proc, tmp)
+            if a.keep is not None:
+                shutil.copytree(tmp / "state", a.keep / "state", dirs_exist_ok=True)
+                shutil.copy(tmp / "lathed.log", a.keep / "lathed.log")
     cuts = sorted(cuts, key=lambda c: c["id"])[:a.cuts]
     n = len(cuts)
-    thirds = [[0, 0, 0, 0] for _ in range(3)]      # re-chatters, moves, chatter at entry, ended in chatter
+    # re-chatters, moves, chatter at entry, ended in chatter, moves still rising at their end (not judged)
+    thirds = [[0, 0, 0, 0, 0] for _ in range(3)]
     for i, c in enumerate(cuts):
         k = min(2, 3 * i // max(n, 1))
         for s in c["payload"]["speeds"]:
@@ -91,6 +98,7 @@ def main() -> int:
             thirds[k][1] += moved and s["trigger"] == "alarm"
             thirds[k][0] += moved and s["outcome"] == "chatter"
             thirds[k][2] += not moved and s["outcome"] == "chatter"
+            thirds[k][4] += moved and s["outcome"] is None and (s.get("rising") or 0) >= RISING_RATIO
         speeds = c["payload"]["speeds"]
         thirds[k][3] += bool(speeds) and speeds[-1]["outcome"] == "chatter"
     first_trusted = min((e["t"] for e in learned), default=None)
@@ -103,6 +111,8 @@ def main() -> int:
     print("| moves on an alarm | " + " | ".join(str(t[1]) for t in thirds) + " |")
     print("| cuts chattering at entry | " + " | ".join(str(t[2]) for t in thirds) + " |")
     print("| cuts ending in chatter (held, or no move left) | " + " | ".join(str(t[3]) for t in thirds) + " |")
+    print("| moves whose chatter index was still rising at the pass's end (not judged) | "
+          + " | ".join(str(t[4]) for t in thirds) + " |")
     ratio = f"{thirds[2][0] / thirds[0][0]:.2f}" if thirds[0][0] else "-"
     print(f"\nre-chatters last / first third: {ratio}; first trusted learn before cut {at}; learns trusted "
           f"{len(learned)}, not trusted {len(untrusted)}; model in use at the end: {status['model']}")

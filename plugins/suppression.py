@@ -426,6 +426,9 @@ class SuppressionAnalyzer(Analyzer):
         if s.quantity == "dwell":            # the feed stopped mid-pass, or went on
             self.cut.dwell(s.t, s.value > 0.5)
             return
+        if s.quantity == "chatter_index_judged":     # a speed still rising is not called stable
+            self.cut.index(s.t, s.value)
+            return
         if s.quantity != "chatter_alarm":
             return
         alarm = s.value > 0.5

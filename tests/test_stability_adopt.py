@@ -78,7 +78,9 @@ def h(tmp_path):
     h.store.close()
 
 
-def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
+def cured_cut(h, index_growth: float | None = None) -> float:
+    """A 1.3 mm pass at 2500 r/min, an alarm after 1 s, the lobes' move, 25 revolutions at the new
+    speed without an alarm; ``index_growth``: the detector's judged index there, per window."""
     an = h.start()
     t0 = time.time()
 
@@ -100,11 +102,20 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
         for _ in range(int(25 * 60 / target / 0.1) + 1):     # 25 revolutions at the new speed, no alarm: cured
             t += 0.1
             await an._on_machine(Sample("lathe", "spindle_rpm", target, "r/min", t))
+            if index_growth is not None:        # a window every 10 ms
+                for k in range(10):
+                    tk = t - 0.1 + 0.01 * (k + 1)
+                    index = 0.2 * index_growth ** ((tk - t0) / 0.01)
+                    await an._on_chatter(Sample("chatter", "chatter_index_judged", index, "", tk))
             await an._on_chatter(Sample("chatter", "chatter_alarm", 0.0, "", t))
         await an._on_machine(Sample("lathe", "depth_of_cut_mm", 0.0, "mm", t + 0.01))
         await an._on_chatter(Sample("chatter", "cutting", 0.0, "", t + 0.01))   # the cut state's owner
         return target
-    target = asyncio.run(cut())
+    return asyncio.run(cut())
+
+
+def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
+    target = cured_cut(h)
     (rec,) = h.events("cut")
     assert rec["machine"] == "lathe" and (rec["tool"], rec["material"]) == ("T0101", "C45")
     assert rec["depth_mm"] == 1.3 and rec["depth_from"] == "register" and rec["feed_mm_rev"] == 0.3
@@ -124,6 +135,16 @@ def test_a_cut_leaves_one_record_with_each_speed_its_verdict_and_the_action(h):
     cuts, skipped = cut_rows([rec])
     assert list(cuts.rpm) == [2500.0, pytest.approx(target, abs=0.1)] and list(cuts.chatter) == [True, False]
     assert skipped == {}
+
+
+def test_a_move_whose_judged_index_keeps_rising_is_not_recorded_cured(h):
+    # the chatter analyzer's judged index reaches the cut record: a speed it was rising at all
+    # through (chatter regrowing too slowly to alarm) is not called stable, nor the cut cured
+    target = cured_cut(h, index_growth=1.02)
+    (rec,) = h.events("cut")
+    s1 = rec["speeds"][1]
+    assert s1["rpm"] == pytest.approx(target, abs=0.1) and s1["first_alarm_s"] is None
+    assert s1["outcome"] is None and s1["rising"] > 1.2 and rec["cured"] is False, s1
 
 
 def test_a_cut_the_daemon_stops_in_is_recorded_up_to_the_stop(h):

@@ -9,9 +9,11 @@ them apart (``speeds``) with the verdict of each:
 * ``chatter``: a chatter alarm in the stretch, counted from the end of the
   hold after the speed change (the spindle's ramp and ``settle_revs``
   revolutions: before that the old chatter marks are still being cut off);
-* ``stable``: no alarm over at least MIN_JUDGE_REVS revolutions after it;
+* ``stable``: no alarm over at least MIN_JUDGE_REVS revolutions after it,
+  and the detector's index not rising at its end (``rising``);
 * ``null``: too short to tell (a speed left at once at entry, a cut that
-  ended during the hold), or the speed was modulated: not evidence.
+  ended during the hold), the index still rising when it ended, or the
+  speed was modulated: not evidence.
 
 ``cut_rows`` turns records into the rows of the cut-record CSV
 (lathed.analysis.cuts) that ``lathectl cuts --csv`` writes and the
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import math
 import statistics
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +38,16 @@ MIN_JUDGE_REVS = 20.0
 # A stretch whose speed wandered more than this (a program changing speed
 # mid-cut, constant surface speed) has no one speed to be evidence at.
 MAX_SPREAD = 1.05
+# A stretch whose judged chatter index rose by this much, from the first half of its last
+# RISING_REVS judged revolutions to the second (medians), is not called stable: chatter a
+# little above the limit, regrowing from the quiet a speed change leaves, takes longer than
+# a cure's few judged revolutions to reach an alarm (the detector's baseline was learned over
+# the entry's ring).  On the simulated lathe (the cures of two live programs, replayed) the
+# stable ones' halves stayed within 15 % (0.5-1.05 x the limit), the entries' within 10 %;
+# the cures at 1.10-1.25 x that no alarm caught rose 28-124 %.
+RISING_RATIO = 1.2
+RISING_REVS = 2 * MIN_JUDGE_REVS
+RISING_MIN_WINDOWS = 3    # judged windows in each half, at least
 
 
 @dataclass
@@ -51,6 +64,22 @@ class Stretch:
     alarm_t: float | None = None
     alarm_rev: float | None = None
     frequency_hz: float | None = None
+    # (cut revolution, judged chatter index) over the stretch's last RISING_REVS judged revolutions
+    indices: deque = field(default_factory=deque, repr=False)
+
+    @property
+    def rising(self) -> float | None:
+        """The judged index's rise over the stretch's last RISING_REVS judged revolutions: the
+        second half's median over the first's (None: too few windows to tell)."""
+        if len(self.indices) < 2 * RISING_MIN_WINDOWS:
+            return None
+        mid = (self.indices[0][0] + self.indices[-1][0]) / 2
+        first = [i for r, i in self.indices if r <= mid]
+        last = [i for r, i in self.indices if r > mid]
+        if len(first) < RISING_MIN_WINDOWS or len(last) < RISING_MIN_WINDOWS:
+            return None
+        low = statistics.median(first)
+        return statistics.median(last) / low if low > 0 else None
 
     @property
     def rpm(self) -> float | None:
@@ -66,7 +95,10 @@ class Stretch:
             return None
         if self.alarm_t is not None:
             return "chatter"
-        return "stable" if self.judged_revs >= MIN_JUDGE_REVS else None
+        if self.judged_revs < MIN_JUDGE_REVS:
+            return None
+        rising = self.rising
+        return None if rising is not None and rising >= RISING_RATIO else "stable"
 
     def to_json(self, cut_start_t: float) -> dict:
         spread = max(self.rpms) / min(self.rpms) if self.rpms and min(self.rpms) > 0 else None
@@ -77,7 +109,7 @@ class Stretch:
                 "rpm_max": _r(max(self.rpms), 1) if self.rpms else None,
                 "steady": spread is not None and spread <= MAX_SPREAD,
                 "first_alarm_s": None if self.alarm_t is None else _r(self.alarm_t - cut_start_t, 3),
-                "chatter_frequency_hz": _r(self.frequency_hz, 1)}
+                "chatter_frequency_hz": _r(self.frequency_hz, 1), "rising": _r(self.rising, 3)}
 
 
 def _r(x, d):
@@ -160,6 +192,17 @@ class CutTracker:
         if alarm and t >= s.judge_from_t and s.alarm_t is None:
             s.alarm_t, s.alarm_rev, s.frequency_hz = t, self._rev_at(t), frequency_hz
 
+    def index(self, t: float, value: float) -> None:
+        """A window's chatter index the detector judged (``chatter_index_judged``): whether the
+        stretch was still rising when it ended."""
+        s = self.stretches[-1] if self.active else None
+        if s is None or t < s.judge_from_t or self._dwell or not math.isfinite(value) or value <= 0:
+            return
+        rev = self._rev_at(t)
+        s.indices.append((rev, value))
+        while s.indices[0][0] < rev - RISING_REVS:
+            s.indices.popleft()
+
     def _rev_at(self, t: float) -> float:
         if self._last is None:
             return self.revs
@@ -231,7 +274,9 @@ def cut_rows(records: list[dict]) -> tuple[Cuts | None, dict[str, int]]:
         skipped[why] = skipped.get(why, 0) + 1
     for r in records:
         for s in r.get("speeds") or []:
-            if s.get("outcome") is None:
+            if s.get("outcome") is None and (s.get("rising") or 0) >= RISING_RATIO:
+                skip("chatter index still rising when the speed ended")
+            elif s.get("outcome") is None:
                 skip("too short to judge or speed modulated")
             elif r.get("depth_mm") is None:
                 skip("no depth of cut known (no depth register, no programmed depth_mm)")
