@@ -245,7 +245,7 @@ class ChatterAnalyzer(Analyzer):
     def _on_block(self, b: Block) -> None:
         if self.sight.block(time.monotonic()):
             self._sight_back()
-        bc = self.cut.block(b.data, b.rate_hz, b.t0)
+        bc = self.cut.block(b.data, b.rate_hz, b.t0, b.rows, b.row)
         if bc.events:
             self._on_cut(bc.events)
         data = bc.data
