@@ -88,16 +88,15 @@ class VibrationCutDetector:
     def process(self, x: np.ndarray, rows: DeviceRows | None = None, row: int = 0) -> int | None:
         """Feed samples; returns the sample offset in ``x`` where the state changed
         (the last change in this block), or None. ``rows``: the device block ``x`` is row
-        ``row`` of (Block.rows), whose frames are made for all its rows at once when this
-        detector was fed the row before (the same numbers as alone)."""
+        ``row`` of (Block.rows): when this detector was fed the same row of the block before, its
+        frames are made with the rows framed alike, at once (the same numbers as alone)."""
         frame, k = self.frame, len(self._rest)
         r = None
         if rows is not None:
             after, self._after = self._after, (rows, row)
             if after is not None and rows.prev is after[0] and row == after[1]:
-                rms = rows.frame_rms(frame, k)
-                if rms is not None:
-                    r = rms[row]
+                r = rows.frame_rms(frame, k, row)
+                if r is not None:
                     self._rest = x[len(r) * frame - k:]
         else:
             self._after = None
@@ -107,6 +106,8 @@ class VibrationCutDetector:
             nf = len(buf) // frame
             self._rest = buf[nf * frame:]
             if nf == 0:
+                if rows is not None:
+                    rows.ask(frame, len(self._rest), row)
                 return None
             frames = buf[:nf * frame].reshape(nf, frame)
             # np.mean's sum and division without its Python wrapper, the deviations squared and the
@@ -117,6 +118,8 @@ class VibrationCutDetector:
             ms = np.add.reduce(dev, axis=1)
             ms /= frame
             r = np.sqrt(ms, out=ms).tolist()
+        if rows is not None:
+            rows.ask(frame, len(self._rest), row)     # the next block frames this row with the others
         nf = len(r)
         offset0 = -k                         # buffer index 0 in x's coordinates
         self.contact = None
