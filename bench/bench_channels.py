@@ -11,7 +11,11 @@ is their resident set at the window's end (every detector's history full by then
 the JACK server's shared memory the helper maps (an audio server's, not lathed's).
 
     .venv/bin/python bench/bench_channels.py [--channels 1,2,4,8] [--warmup 20] [--seconds 30]
-                                             [--py-spy]
+                                             [--rounds R] [--against REV] [--py-spy]
+
+``--against REV`` runs REV's lathed and plugins (taken out of git) round by round alternately
+with this checkout's, on the same machine under the same load: each one's medians over the
+rounds, each round's per-channel slope, and the ratio of the medians.
 
 ``--py-spy`` samples the daemon with py-spy (``pip install py-spy``; not a dependency)
 through each window instead of only timing it, and prints where its CPU went, stage by
@@ -212,16 +216,33 @@ def spy_stages(path: Path) -> dict[str, int]:
     return out
 
 
+def tree_of(rev: str | None, tmp: Path) -> Path:
+    """A directory whose lathed and lathed_plugins are this checkout's, or REV's."""
+    if rev is None:
+        return ROOT
+    d = tmp / rev.replace("/", "_")
+    d.mkdir()
+    arch = subprocess.run(["git", "-C", str(ROOT), "archive", rev, "lathed", "plugins"], check=True,
+                          capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(d)], input=arch, check=True)
+    (d / "lathed_plugins").symlink_to(d / "plugins")
+    return d
+
+
 def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = False,
-        keep: str | None = None) -> dict:
+        keep: str | None = None, tree: Path = ROOT) -> dict:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         cfg = config(tmp, n)
         text = cfg.read_text()
         vport = int(re.search(r"^vibration_port = (\d+)", text, re.M).group(1))
         sock = tmp / "run" / "lathed.sock"
+        load = [os.getloadavg()[0]]
+        # the tree's code first on the path of the daemon, its helper and its simulator (run
+        # from the temporary directory: a checkout as the working directory would come first)
         proc = subprocess.Popen([str(BIN / "lathed"), "--config", str(cfg)], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, env={**os.environ, **server.env})
+                                stderr=subprocess.DEVNULL, cwd=tmp,
+                                env={**os.environ, **server.env, "PYTHONPATH": str(tree)})
         try:
             deadline = time.monotonic() + 60
             while not (st := status(sock)) or any(s["state"] != "connected" for s in st["sensors"]
@@ -257,7 +278,8 @@ def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = F
             windows = sum(a.get("windows", 0) for a in st["analyzers"] if a["name"].startswith("chatter"))
             lost = sum(s.get("lost_samples", 0) or 0 for s in st["sensors"] if s["name"].startswith("accel"))
             bridge.close()
-            return {"n": n, "cpu": cpu, "rss": rss, "windows": windows, "lost": lost,
+            load.append(os.getloadavg()[0])
+            return {"n": n, "cpu": cpu, "rss": rss, "windows": windows, "lost": lost, "load": load,
                     "spy": spy_stages(spied) if spied is not None else None,
                     "underruns": bridge.underruns, "rt": [100 * u / took for u in used] if took > 0 else cpu,
                     "took": took, "wall": wall}
@@ -266,28 +288,60 @@ def run(n: int, server: JackServer, warmup: float, seconds: float, spy: bool = F
             proc.wait(60)
 
 
+def slopes(rows: list[dict]) -> tuple[float, float, float]:
+    """Each added channel: the least-squares slopes of CPU, CPU per second of signal, RSS."""
+    x = np.array([r["n"] for r in rows], float)
+    return tuple(float(np.polyfit(x, [sum(r[k]) for r in rows], 1)[0]) for k in ("cpu", "rt", "rss"))
+
+
+def medians(runs: list[dict]) -> dict:
+    """One channel count's runs -> their median, component by component."""
+    return {"n": runs[0]["n"], **{k: [float(np.median([r[k][i] for r in runs])) for i in range(2)]
+                                  for k in ("cpu", "rt", "rss")},
+            "took": float(np.median([r["took"] for r in runs])), "lost": max(r["lost"] for r in runs),
+            "wall": float(np.median([r["wall"] for r in runs]))}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--channels", default="1,2,4,8")
     ap.add_argument("--warmup", type=float, default=20.0)
     ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--rounds", type=int, default=1)
+    ap.add_argument("--against", help="a git revision run alternately with this checkout (e.g. main)")
     ap.add_argument("--py-spy", action="store_true", help="sample the daemon with py-spy: its CPU by stage")
     ap.add_argument("--py-spy-keep", metavar="DIR", help="keep py-spy's raw stacks there (daemon-N.txt)")
     a = ap.parse_args()
     if a.py_spy and not (BIN / "py-spy").exists():
         raise SystemExit(f"--py-spy needs py-spy in {BIN} (pip install py-spy)")
     ns = [int(x) for x in a.channels.split(",")]
-    rows = []
-    for n in ns:
-        # a server of its own for each run: a client the last daemon's helper left as it
-        # stopped would hold a synchronous server's cycles
-        server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
-        server.start()
-        try:
-            rows.append(run(n, server, a.warmup, a.seconds, a.py_spy, a.py_spy_keep))
-        finally:
-            server.stop()
-    print(f"| channels (51.2 kS/s, a chatter analyzer each) | CPU daemon + helper, % of a core | "
+    names = ["old", "new"] if a.against else ["new"]
+    runs: dict[str, dict[int, list[dict]]] = {name: {n: [] for n in ns} for name in names}
+    fits: dict[str, list[tuple[float, float, float]]] = {name: [] for name in names}
+    with tempfile.TemporaryDirectory() as d:
+        trees = {"new": ROOT} | ({"old": tree_of(a.against, Path(d))} if a.against else {})
+        for rnd in range(a.rounds):
+            for name in names:
+                done = []
+                for n in ns:
+                    # a server of its own for each run: a client the last daemon's helper left as it
+                    # stopped would hold a synchronous server's cycles
+                    server = JackServer(rate=RATE, capture=max(ns), name="lathed-bench")
+                    server.start()
+                    try:
+                        done.append(run(n, server, a.warmup, a.seconds, a.py_spy, a.py_spy_keep, trees[name]))
+                    finally:
+                        server.stop()
+                    runs[name][n].append(done[-1])
+                if len(done) > 1:
+                    fits[name].append(slopes(done))
+                    load = [v for r in done for v in r["load"]]
+                    print(f"round {rnd + 1}, {a.against if name == 'old' else 'this checkout'}: each added "
+                          f"channel {fits[name][-1][0]:+.2f} % of a core, {fits[name][-1][2]:+.1f} MB "
+                          f"(load average {min(load):.1f}-{max(load):.1f})", file=sys.stderr, flush=True)
+    rows = [medians(runs["new"][n]) for n in ns]
+    of = f", median of {a.rounds}" if a.rounds > 1 else ""
+    print(f"| channels (51.2 kS/s, a chatter analyzer each{of}) | CPU daemon + helper, % of a core | "
           f"the same per second of signal taken in | RSS daemon + helper, MB | signal taken in over "
           f"{a.seconds:g} s | samples lost |")
     print("|---|---|---|---|---|---|")
@@ -296,12 +350,22 @@ def main() -> int:
               f"{sum(r['rt']):.1f} | {sum(r['rss']):.0f} ({r['rss'][0]:.0f} + {r['rss'][1]:.0f}) | "
               f"{r['took']:.1f} s a channel | {r['lost']} |")
     if len(rows) > 1:
-        x = np.array([r["n"] for r in rows], float)
-        cpu = np.polyfit(x, [sum(r["cpu"]) for r in rows], 1)[0]
-        rt = np.polyfit(x, [sum(r["rt"]) for r in rows], 1)[0]
-        rss = np.polyfit(x, [sum(r["rss"]) for r in rows], 1)[0]
-        print(f"| each added channel (least-squares slope) | {cpu:+.2f} % | {rt:+.2f} % | {rss:+.1f} MB | | |")
+        cpu, rt, rss = (float(np.median([f[i] for f in fits["new"]])) for i in range(3))
+        what = "each added channel (least-squares slope" + (", median of the rounds'" if a.rounds > 1 else "")
+        print(f"| {what}) | {cpu:+.2f} % | {rt:+.2f} % | {rss:+.1f} MB | | |")
+        if a.against:
+            for name in names:
+                label = a.against if name == "old" else "this checkout"
+                print(f"\n{label}: each added channel " + ", ".join(f"{f[0]:+.2f}" for f in fits[name])
+                      + f" % of a core (median {np.median([f[0] for f in fits[name]]):+.2f}), "
+                      + ", ".join(f"{f[2]:+.1f}" for f in fits[name])
+                      + f" MB (median {np.median([f[2] for f in fits[name]]):+.1f})", end="")
+            ratio = np.median([f[0] for f in fits["new"]]) / np.median([f[0] for f in fits["old"]])
+            print(f"\nthis checkout / {a.against}, % of a core a channel (medians): {ratio:.2f}")
+    load = [v for by in runs.values() for rs in by.values() for r in rs for v in r["load"]]
+    print(f"load average over the runs: {min(load):.1f}-{max(load):.1f}")
     if a.py_spy:
+        rows = [runs["new"][n][-1] for n in ns]
         pct = 100.0 / (SPY_RATE * a.seconds)          # % of a core a sample is
         print(f"\n| the daemon's CPU by stage (py-spy, % of a core) | "
               + " | ".join(f"{r['n']} ch" for r in rows) + " | each added channel | µs a block and channel |")

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import asyncio
 from collections import defaultdict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 import structlog
+
+from lathed.analysis.device_rows import DeviceRows
 
 log = structlog.get_logger("lathed.bus")
 
@@ -41,7 +43,10 @@ class Sample:
 
 @dataclass(frozen=True)
 class Block:
-    """A block of a sampled waveform (vibration)."""
+    """A block of a sampled waveform (vibration). A sensor that conditions several channels
+    of one device together hands the block's ``rows`` (lathed.analysis.device_rows): ``data``
+    is ``rows.ys[row]``, and the analyzers of the device's channels may work on all of them
+    at once. None (a stream of its own): each analyzer works on ``data`` alone."""
     source: str
     quantity: str        # "acceleration"
     rate_hz: float
@@ -49,10 +54,13 @@ class Block:
     seq: int             # index of the first sample in the stream
     data: np.ndarray
     rpm: float | None = None   # spindle speed the stream reported for this block
+    rows: DeviceRows | None = field(default=None, compare=False, repr=False)
+    row: int = field(default=0, compare=False, repr=False)
 
     def __init__(self, source: str, quantity: str, rate_hz: float, t0: float, seq: int, data: np.ndarray,
-                 rpm: float | None = None) -> None:
-        self.__dict__.update(source=source, quantity=quantity, rate_hz=rate_hz, t0=t0, seq=seq, data=data, rpm=rpm)
+                 rpm: float | None = None, rows: DeviceRows | None = None, row: int = 0) -> None:
+        self.__dict__.update(source=source, quantity=quantity, rate_hz=rate_hz, t0=t0, seq=seq, data=data, rpm=rpm,
+                             rows=rows, row=row)
 
 
 Message = Sample | Block

@@ -128,7 +128,7 @@ class AudioInput(Driver):
             self.seq += lost
         if meta["overflow"] or lost:
             self._report()
-        x, peak, y = self.bank.take(self, data)
+        x, peak, y, shared = self.bank.take(self, data)
         self.clock.add(self.seq, meta["host_t"])
         if y is None:
             # exact digital silence is no sensor (an input with nothing plugged in, a stream
@@ -151,7 +151,9 @@ class AudioInput(Driver):
         self.mark_data()
         self._end_t = t0 + frames / self.rate
         bus = self.ctx.bus
-        bus.publish(Block(self.name, self.calibration.quantity, self.rate, t0, self.seq, y, rpm))
+        # the device block's rows beside its own: its channels' analyzers may work on them together
+        rows, row = shared if shared is not None else (None, 0)
+        bus.publish(Block(self.name, self.calibration.quantity, self.rate, t0, self.seq, y, rpm, rows, row))
         bus.publish(Sample(self.name, "rms", math.sqrt(float(np.dot(y, y)) / frames), self.calibration.unit, t0))
         if rpm is not None:
             bus.publish(Sample(self.name, "keyphasor_rpm", rpm, "r/min", t0))

@@ -67,7 +67,7 @@ def test_a_bank_conditions_each_channel_as_its_own_conditioner_would(rate, highp
         if b in (4, 5):
             data[:, 4] = 0.0           # digital silence: not conditioned, its state as it was
         for m, col, own in zip(members, columns, alone):
-            x, peak, y = bank.take(m, data)
+            x, peak, y, _ = bank.take(m, data)
             assert np.array_equal(x, data[:, col]) and peak == float(np.abs(data[:, col]).max())
             if b in (4, 5) and col == 4:
                 assert y is None

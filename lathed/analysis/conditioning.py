@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lathed.analysis.device_rows import DeviceRows
+
 G0 = 9.80665             # m/s² per g
 MAINS_WIDTH_HZ = 1.5     # each mains notch's width: the grid's frequency wanders by a tenth of a hertz
 
@@ -213,7 +215,8 @@ class ConditionerBank:
     def __init__(self) -> None:
         self._members: dict[object, tuple[Conditioner, int]] = {}
         self._block: np.ndarray | None = None
-        self._rows: dict[object, tuple[np.ndarray, float, np.ndarray | None]] = {}
+        self._rows: dict[object, tuple] = {}
+        self._last: DeviceRows | None = None     # the last block's rows
         self._order()
 
     def join(self, member: object, cond: Conditioner, column: int) -> None:
@@ -234,10 +237,13 @@ class ConditionerBank:
         self._scale = np.array([[c.scale] for c in self._conds], dtype=np.float64).reshape(-1, 1)
         self._top = int(self._cols.max()) if len(self._cols) else -1
 
-    def take(self, member: object, data: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None]:
-        """The member's column of ``data`` (frames x channels, full scale), its peak |x| and its
+    def take(self, member: object, data: np.ndarray) -> tuple[np.ndarray, float, np.ndarray | None,
+                                                              tuple[DeviceRows, int] | None]:
+        """The member's column of ``data`` (frames x channels, full scale), its peak |x|, its
         conditioned samples (float32; None for exact digital silence, which leaves its
-        conditioner as it was). A block is conditioned once, for every member, whoever asks first."""
+        conditioner as it was) and where they lie in the block's DeviceRows (its rows and its
+        row; None when conditioned alone). A block is conditioned once, for every member,
+        whoever asks first."""
         if data is not self._block:
             self._rows = {}
             self._block = data
@@ -247,7 +253,7 @@ class ConditionerBank:
             cond, col = self._members[member]
             x = np.ascontiguousarray(data[:, col])
             peak = float(np.maximum.reduce(np.abs(x)))
-            got = self._rows[member] = (x, peak, cond.process(x) if peak != 0.0 else None)
+            got = self._rows[member] = (x, peak, cond.process(x) if peak != 0.0 else None, None)
         return got
 
     def _pass(self, data: np.ndarray) -> dict:
@@ -265,14 +271,25 @@ class ConditionerBank:
         peak = np.maximum.reduce(np.abs(x), axis=1).tolist()
         if 0.0 not in peak:
             ys = Conditioner.process_rows(conds, x, scale)
-            return {k: (x[i], peak[i], ys[i]) for i, k in enumerate(keys)}
+            rows = self._device_rows(ys)
+            return {k: (x[i], peak[i], ys[i], (rows, i)) for i, k in enumerate(keys)}
         live = [i for i, p in enumerate(peak) if p != 0.0]
-        out = {k: (x[i], peak[i], None) for i, k in enumerate(keys)}
+        out = {k: (x[i], peak[i], None, None) for i, k in enumerate(keys)}
         if live:
             ys = Conditioner.process_rows([conds[i] for i in live], x[live], scale[live])
-            for i, y in zip(live, ys):
-                out[keys[i]] = (x[i], peak[i], y)
+            rows = self._device_rows(ys)
+            for j, (i, y) in enumerate(zip(live, ys)):
+                out[keys[i]] = (x[i], peak[i], y, (rows, j))
         return out
+
+    def _device_rows(self, ys: list[np.ndarray]) -> DeviceRows:
+        """This block's rows for the analyzers, the block before kept beside them (and the one
+        before that let go)."""
+        last = self._last
+        if last is not None:
+            last.release()
+        self._last = DeviceRows(ys, last)
+        return self._last
 
 
 class Keyphasor:

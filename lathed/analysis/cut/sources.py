@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from lathed.analysis.device_rows import DeviceRows
 from lathed.analysis.quantile import SlidingQuantile
 
 SOURCES = ("depth", "load", "vibration", "feed")
@@ -82,27 +83,45 @@ class VibrationCutDetector:
         self._air = SlidingQuantile(0.25, self.floor_frames)   # the air-cut frames' rms
         self._quiet = 0
         self._rest = np.empty(0)
+        self._after: tuple[DeviceRows, int] | None = None    # the device block and row fed last
 
-    def process(self, x: np.ndarray) -> int | None:
+    def process(self, x: np.ndarray, rows: DeviceRows | None = None, row: int = 0) -> int | None:
         """Feed samples; returns the sample offset in ``x`` where the state changed
-        (the last change in this block), or None."""
-        x = x.ravel() if type(x) is np.ndarray else np.ravel(x)    # the method: np.ravel's wrapper spared
-        buf = np.concatenate((self._rest, x), dtype=float)     # the cast and the join in one pass
-        nf = len(buf) // self.frame
-        self._rest = buf[nf * self.frame:]
-        if nf == 0:
-            return None
-        frame = self.frame
-        frames = buf[:nf * frame].reshape(nf, frame)
-        # np.mean's sum and division without its Python wrapper, the deviations squared and the
-        # root in place (the same numbers, bit for bit; a block's few frames are a handful of
-        # numpy calls, each costing more than its arithmetic)
-        dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / frame
-        np.multiply(dev, dev, out=dev)
-        ms = np.add.reduce(dev, axis=1)
-        ms /= frame
-        r = np.sqrt(ms, out=ms).tolist()
-        offset0 = len(x) - len(buf)          # buffer index 0 in x's coordinates
+        (the last change in this block), or None. ``rows``: the device block ``x`` is row
+        ``row`` of (Block.rows): when this detector was fed the same row of the block before, its
+        frames are made with the rows framed alike, at once (the same numbers as alone)."""
+        frame, k = self.frame, len(self._rest)
+        r = None
+        if rows is not None:
+            after, self._after = self._after, (rows, row)
+            if after is not None and rows.prev is after[0] and row == after[1]:
+                r = rows.frame_rms(frame, k, row)
+                if r is not None:
+                    self._rest = x[len(r) * frame - k:]
+        else:
+            self._after = None
+        if r is None:
+            x = x.ravel() if type(x) is np.ndarray else np.ravel(x)    # the method: np.ravel's wrapper spared
+            buf = np.concatenate((self._rest, x), dtype=float)     # the cast and the join in one pass
+            nf = len(buf) // frame
+            self._rest = buf[nf * frame:]
+            if nf == 0:
+                if rows is not None:
+                    rows.ask(frame, len(self._rest), row)
+                return None
+            frames = buf[:nf * frame].reshape(nf, frame)
+            # np.mean's sum and division without its Python wrapper, the deviations squared and the
+            # root in place (the same numbers, bit for bit; a block's few frames are a handful of
+            # numpy calls, each costing more than its arithmetic)
+            dev = frames - np.add.reduce(frames, axis=1, keepdims=True) / frame
+            np.multiply(dev, dev, out=dev)
+            ms = np.add.reduce(dev, axis=1)
+            ms /= frame
+            r = np.sqrt(ms, out=ms).tolist()
+        if rows is not None:
+            rows.ask(frame, len(self._rest), row)     # the next block frames this row with the others
+        nf = len(r)
+        offset0 = -k                         # buffer index 0 in x's coordinates
         self.contact = None
         if self.cutting:
             exit_level = self.off_ratio * self.floor

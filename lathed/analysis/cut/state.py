@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lathed.analysis.cut.sources import SOURCES, FeedStop, LoadCutDetector, VibrationCutDetector
+from lathed.analysis.device_rows import DeviceRows
 
 # A vibration entry in a running cut whose frame jumps this much over the two before is an
 # impulse (the tool's release, a knock), not chatter: the detector does not count it.
@@ -105,9 +106,12 @@ class CutState:
         return self.load_cut.cutting_load(load_pct, rpm)
 
     # -- the accelerometer's blocks -------------------------------------------------------
-    def block(self, data: np.ndarray, rate_hz: float, t0: float) -> BlockCut:
+    def block(self, data: np.ndarray, rate_hz: float, t0: float, rows: DeviceRows | None = None,
+              row: int = 0) -> BlockCut:
         """A block of the accelerometer starting at ``t0``: the vibration source, the chip's
-        contact, and which of its samples the detector takes."""
+        contact, and which of its samples the detector takes. ``rows``, ``row``: the device
+        block ``data`` is a row of (Block.rows), whose frames the cut states of its channels
+        make together."""
         ev: list[CutEvent] = []
         impulse = None
         self._dwell_over(t0, "block", ev)
@@ -115,7 +119,7 @@ class CutState:
             if self.vib_cut is None or self.vib_cut.rate != rate_hz:
                 self.vib_cut = VibrationCutDetector(rate_hz, contact_ratio=self.contact_ratio)
             vib = self.vib_cut
-            at = vib.process(data)
+            at = vib.process(data, rows, row)
             if (at is not None and vib.cutting and self.cutting and self.chip_by is not None
                     and self.held is None and vib.entry_jump >= IMPULSE_JUMP):
                 # in the cut already: the tool's release from a light chip (the feed or the load
