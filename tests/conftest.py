@@ -57,21 +57,19 @@ DURATIONS = ROOT / "tests" / "durations.json"
 
 
 # Files that keep a core busy the whole time they run (CPU seconds ~ wall seconds, measured with
-# tests/cpu_profile.py), in two units of ~105 CPU-s each. `make test`'s workers take a unit's files
-# one after another on one worker, so that at most two of them share the two cores with the other
-# workers' files, which mostly wait on a simulator's real time. As one unit of 213 CPU-s they were
-# the suite's longest chain at five workers.
-CPU_BOUND = {"tests/test_install.py": "cpu-bound-1", "tests/test_thermal_real.py": "cpu-bound-1",
-             "tests/test_analyze_thermal_cli.py": "cpu-bound-1",
-             "tests/test_bench_hostile.py": "cpu-bound-2", "tests/test_thermal_loop.py": "cpu-bound-2"}
+# tests/cpu_profile.py). `make test`'s workers take them as one unit, one after another on one
+# worker, so that the other workers' files, which mostly wait on a simulator's real time, never
+# share two cores with two of these at once.
+CPU_BOUND = ("tests/test_bench_hostile.py", "tests/test_install.py", "tests/test_thermal_loop.py",
+             "tests/test_thermal_real.py", "tests/test_analyze_thermal_cli.py")
 
 
 def _unit(path: str) -> str:
-    return CPU_BOUND.get(path, path)
+    return "cpu-bound" if path in CPU_BOUND else path
 
 
 def pytest_xdist_make_scheduler(config, log):
-    """--dist loadfile with the CPU-bound files in two units (xdist's loadgroup would do it with
+    """--dist loadfile with the CPU-bound files one unit (xdist's loadgroup would do it with
     marks, but it renames the tests through an attribute pytest 9 no longer reads)."""
     if config.getvalue("dist") != "loadfile":
         return None
@@ -85,7 +83,7 @@ def pytest_xdist_make_scheduler(config, log):
 
 def pytest_collection_modifyitems(session, config, items):
     """`make test` runs a file's tests together on one worker (--dist loadfile; the CPU-bound
-    files are two units), units in the order of collection (--no-loadscope-reorder): the longest
+    files are one unit), units in the order of collection (--no-loadscope-reorder): the longest
     first, so that what is left at the end is short and no worker idles long while another
     finishes a long unit. Only the order depends on the figures; a file not in them counts as
     the median one."""
