@@ -254,28 +254,34 @@ def test_mains_lines_are_notched_and_the_rest_kept(jack_server, monkeypatch):
         assert at(50 * k) < 0.05 / 100, (50 * k, at(50 * k))       # 40 dB down at least
 
 
+def stalled(drv: AudioInput, server: JackServer, stall, seconds: float):
+    """A tone played into ``drv``; ``stall()`` called in the rig's loop after 0.3 s of blocks:
+    (the last block before, the blocks of ``seconds`` after, the status, the events)."""
+    async def main():
+        rig = Rig(drv)
+        await rig.start()
+        player = Player(server, idle=tone(440, 0.5, 0.1))
+        try:
+            player.connect()
+            await rig.drain()
+            before = (await rig.blocks(0.3))[-1]
+            stall()
+            after = await rig.blocks(seconds)
+            return before, after, drv.status(), rig.events
+        finally:
+            player.close()
+            await rig.stop()
+    return asyncio.run(main())
+
+
 def test_blocks_the_daemon_did_not_take_are_counted_and_the_index_keeps_time(jack_server, monkeypatch):
     """A loop held for 3 s (more than the helper holds): blocks are dropped in the helper,
     counted as lost samples, recorded, and the device-clock index jumps by them."""
     for k, v in jack_server.env.items():
         monkeypatch.setenv(k, v)
     drv = sensor()
-
-    async def main():
-        rig = Rig(drv)
-        await rig.start()
-        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
-        try:
-            player.connect()
-            await rig.drain()
-            before = (await rig.blocks(0.3))[-1]
-            time.sleep(3.0)                # the fault: an event loop that does not run
-            after = await rig.blocks(5.0)
-            return before, after, drv.status(), rig.events
-        finally:
-            player.close()
-            await rig.stop()
-    before, after, st, events = asyncio.run(main())
+    # the fault: an event loop that does not run
+    before, after, st, events = stalled(drv, jack_server, lambda: time.sleep(3.0), 5.0)
     seqs = [before.seq] + [b.seq for b in after]
     jumps = [(a, b) for a, b in zip(seqs, seqs[1:]) if b - a != 1024]
     # every jump of the index is samples counted lost (a busy machine may add a gap of its own)
@@ -370,21 +376,6 @@ def test_the_player_plays_on_while_the_test_process_holds_its_gil(jack_server, m
         monkeypatch.setenv(k, v)
     drv = sensor(timeout="500ms")
     hold = ctypes.PyDLL(None).usleep        # a PyDLL call keeps the GIL for its whole length
-
-    async def main():
-        rig = Rig(drv)
-        await rig.start()
-        player = Player(jack_server, idle=tone(440, 0.5, 0.1))
-        try:
-            player.connect()
-            await rig.drain()
-            await rig.blocks(0.2)
-            hold(1_500_000)
-            after = await rig.blocks(1.0)
-            return after, drv.status()
-        finally:
-            player.close()
-            await rig.stop()
-    after, st = asyncio.run(main())
+    _, after, st, _ = stalled(drv, jack_server, lambda: hold(1_500_000), 1.0)
     assert st["helper_starts"] == 1, st
     assert all(b - a == 1024 for a, b in zip([x.seq for x in after], [x.seq for x in after[1:]]))
