@@ -316,6 +316,7 @@ KINDS = frozenset({
     "audio_samples_lost",
     "suppression_action", "suppression_proposed", "suppression_mode", "suppression_exhausted",
     "suppression_advice", "suppression_advice_lifted", "suppression_cures_forgotten", "spindle_not_following",
+    "suppression_held",
     "stability_model_adopted", "stability_model_superseded", "stability_model_unreadable",
     "stability_refit_not_adopted", "stability_model_learned", "stability_model_withdrawn",
     "stability_learn_not_trusted",

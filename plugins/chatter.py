@@ -2,8 +2,8 @@
 
 The detector runs only while the tool is in the cut (the cut state's sources:
 lathed.analysis.cut) and learns its baseline at the start of each cut; per window it
-publishes chatter_index, chatter_threshold, chatter_frequency_hz and chatter_alarm, and
-records chatter_alarm / chatter_cleared events. Keys, the cut's sources, dwells and what a
+publishes chatter_index, chatter_threshold, chatter_frequency_hz, chatter_rpm (the speed an
+alarm was judged at) and chatter_alarm, and records chatter_alarm / chatter_cleared events. Keys, the cut's sources, dwells and what a
 reload takes: docs/chatter.md and docs/configuration.md ([analyzer.chatter]).
 """
 from __future__ import annotations
@@ -318,6 +318,9 @@ class ChatterAnalyzer(Analyzer):
             pub(Sample(self.name, "chatter_threshold", w.threshold, "", t))
             if w.chatter_frequency_hz is not None:
                 pub(Sample(self.name, "chatter_frequency_hz", w.chatter_frequency_hz, "Hz", t))
+            if w.alarm:
+                # the speed the alarm was judged at: suppression acts only where its own reading agrees
+                pub(Sample(self.name, "chatter_rpm", rpm, "r/min", t))
             pub(Sample(self.name, "chatter_alarm", 1.0 if w.alarm else 0.0, "", t))
             self.state = "learning" if w.learning else ("chatter" if w.alarm else "watching")
             if w.alarm and not was:

@@ -90,7 +90,7 @@ class SuppressionAnalyzer(Analyzer):
         self.in_cut = False                     # the chatter analyzer's cut state (its one owner)
         self._avoided: set[str] = set()
         self.rpm: float | None = None
-        self.chat = {"index": None, "threshold": None, "frequency": None, "alarm": False, "t": None}
+        self.chat = {"index": None, "threshold": None, "frequency": None, "rpm": None, "alarm": False, "t": None}
         self.actions = 0                       # a count: the records keep every action
         self.last_action: dict | None = None
         self.advisories = 0
@@ -413,7 +413,7 @@ class SuppressionAnalyzer(Analyzer):
 
     async def _on_chatter(self, s: Sample) -> None:
         key = {"chatter_index": "index", "chatter_threshold": "threshold",
-               "chatter_frequency_hz": "frequency"}.get(s.quantity)
+               "chatter_frequency_hz": "frequency", "chatter_rpm": "rpm"}.get(s.quantity)
         if key:
             self.chat[key] = s.value
             return
@@ -436,7 +436,11 @@ class SuppressionAnalyzer(Analyzer):
         if alarm and not self.chat["alarm"]:
             self.alarm_wall_t = s.t
         self.chat["alarm"], self.chat["t"] = alarm, s.t
+        if not alarm:
+            self.chat["rpm"] = None
         if self.mode == "off" or self.policy is None or self.rpm is None or self.held_back is not None:
+            return
+        if alarm and not self.policy.settling(time.monotonic()) and self.commands.disagree(self.chat["rpm"]):
             return
         d = self.policy.observe(time.monotonic(), self.rpm, alarm, self.chat["frequency"] if alarm else None,
                                 self.chat["index"], self.chat["threshold"])
@@ -526,6 +530,9 @@ class SuppressionAnalyzer(Analyzer):
                     raise RequestError("no chatter alarm on this machine now; nothing to suppress")
                 if self.rpm is None or self.policy is None:
                     raise RequestError("the machine is not cutting (no spindle speed or depth of cut known)")
+                if self.commands.disagree(self.chat["rpm"]):
+                    raise RequestError(f"speed held: the alarm was judged at {self.chat['rpm']:.0f} r/min, "
+                                       f"the machine reads {self.rpm:.0f} r/min; try again when they agree")
                 d = self.policy.observe(time.monotonic(), self.rpm, True, self.chat["frequency"],
                                         self.chat["index"], self.chat["threshold"])
                 if isinstance(d, Advice):

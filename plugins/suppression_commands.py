@@ -13,6 +13,9 @@ from lathed.command import Command
 
 FOLLOW_SLACK_S = 1.0      # a commanded speed not reached within the ramp and this: the CNC did not follow
 FOLLOW_BAND = 0.02        # ... to within this share of it
+# The alarm's speed (chatter_rpm) and the machine's last reading further apart than this: one of
+# them is old (a stalled poll), and a speed computed from it is wrong. Held until they agree.
+SPEEDS_AGREE = 0.05
 
 
 class SpindleCommands:
@@ -23,6 +26,7 @@ class SpindleCommands:
         self.commanded = False    # a speed was sent in this cut: released at its end
         self.follow: tuple[float, float, float] | None = None   # (speed sent, when, reached by): wall s
         self.follow_told = False  # ... and the cut's spindle was said not to follow
+        self.disagree_told = False  # the cut's speeds disagreed at an alarm, recorded
 
     async def send(self, d: Decision, source: str) -> dict:
         """The decision's speed, or its modulation's first speed, through the guard."""
@@ -81,11 +85,26 @@ class SpindleCommands:
             o.ctx.log.warning("spindle_not_following", machine=o.machine, sent_rpm=round(target, 1),
                               rpm=rpm, after_s=round(t - sent_t, 2))
 
+    def disagree(self, alarm_rpm: float | None) -> bool:
+        """The alarm's speed against the machine's last reading (an analyzer that publishes no
+        chatter_rpm: nothing to compare). Apart, nothing is decided: recorded once a cut."""
+        o = self.owner
+        if alarm_rpm is None or abs(alarm_rpm - o.rpm) <= SPEEDS_AGREE * alarm_rpm:
+            return False
+        if not self.disagree_told:
+            self.disagree_told = True
+            why = (f"the alarm was judged at {alarm_rpm:.0f} r/min and the machine's last speed reading "
+                   f"is {o.rpm:.0f} r/min: no speed is computed until they agree")
+            o.ctx.record("suppression_held", {"machine": o.machine, "rpm": o.rpm, "alarm_rpm": alarm_rpm,
+                                              "reason": why})
+            o.ctx.log.warning("suppression_held", machine=o.machine, rpm=o.rpm, alarm_rpm=alarm_rpm)
+        return True
+
     async def cut_ended(self) -> None:
         """The program sets the next pass's speed: a speed sent as an override, which holds part
         after part, goes back to the program's (through the guard)."""
         o = self.owner
-        self.follow, self.follow_told = None, False
+        self.follow, self.follow_told, self.disagree_told = None, False, False
         if not self.commanded:
             return
         self.commanded = False

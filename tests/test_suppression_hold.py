@@ -273,3 +273,41 @@ def test_the_cut_is_the_chatter_analyzers_cut_state_not_the_depth_register(make)
     assert h.events("cut") == [] and h.events("suppression_advice") == []
     asyncio.run(_cut(h.an, 2.2))                 # with the cut state: a cut, held with advice
     assert len(h.events("cut")) == 1 and len(h.events("suppression_advice")) == 1
+
+
+async def _alarm_at(an, rpm: float, t: float) -> None:
+    """One alarm window, as the chatter analyzer publishes it: the speed it was judged at first."""
+    await an._on_chatter(Sample("chatter", "chatter_rpm", rpm, "r/min", t))
+    await an._on_chatter(Sample("chatter", "chatter_alarm", 1.0, "", t))
+
+
+@pytest.mark.parametrize("mode", ["auto", "manual"])
+def test_an_alarm_judged_at_another_speed_than_the_machine_reads_moves_nothing(make, mode):
+    # a stalled poll: the machine's last reading says 2000 r/min while the spindle (and the alarm's
+    # stream) run 2500; a cure computed from 2000 is a speed nobody chose for a 2500 r/min cut
+    h = make(mode=mode)
+
+    async def run():
+        an, t = h.an, time.time()
+        await an._on_machine(Sample("lathe", "feed_mm_rev", 0.3, "mm/rev", t))
+        await an._on_machine(Sample("lathe", "spindle_rpm", 2000.0, "r/min", t))
+        await an._on_machine(Sample("lathe", "depth_of_cut_mm", 1.3, "mm", t))
+        await an._on_chatter(Sample("chatter", "cutting", 1.0, "", t))
+        await an._on_chatter(Sample("chatter", "chatter_frequency_hz", 655.0, "Hz", t))
+        for i in range(3):
+            await _alarm_at(an, 2500.0, t + 0.5 * i)
+        assert h.sent == [] and an.pending is None and h.events("suppression_proposed") == []
+        (held,) = h.events("suppression_held")            # once for the cut, not per window
+        assert held["rpm"] == 2000.0 and held["alarm_rpm"] == 2500.0
+        assert "judged at 2500 r/min" in held["reason"] and "reading is 2000 r/min" in held["reason"]
+        if mode == "manual":
+            with pytest.raises(RequestError, match="speed held: the alarm was judged at 2500 r/min"):
+                await an._control({"action": "now"})
+        # the poll catches up: the cure is computed from the speed the spindle runs
+        await an._on_machine(Sample("lathe", "spindle_rpm", 2500.0, "r/min", t + 2))
+        await _alarm_at(an, 2500.0, t + 2)
+        if mode == "manual":
+            await an._control({"action": "now"})
+        (act,) = h.events("suppression_action")
+        assert act["rpm_before"] == 2500.0 and len(h.sent) == 1
+    asyncio.run(run())

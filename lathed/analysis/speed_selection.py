@@ -394,6 +394,10 @@ class SuppressionPolicy:
                               + self.settle_revs * 60 / decision.rpm_after)
         return decision
 
+    def settling(self, t_s: float) -> bool:
+        """In a change's ramp and settle, or with nothing left to try: an alarm decides nothing."""
+        return t_s < self._hold_until_s or self.exhausted
+
     def observe(self, t_s: float, rpm: float, alarm: bool,
                 chatter_frequency_hz: float | None = None,
                 chatter_index: float | None = None,
