@@ -176,7 +176,7 @@ class ChatterAnalyzer(Analyzer):
             self.depth_mm = s.value
         elif s.quantity == "spindle_load_pct":
             self.load_pct = s.value
-        self._on_cut(self.cut.machine(s.quantity, s.value, s.t, self.rpm))
+        self._on_cut(self.cut.machine(s.quantity, s.value, s.t, self.rpm, time.monotonic()))
         if s.quantity == "spindle_load_pct" and self.cutting and self.detector is not None:
             # the static cutting force, for load_scaled (the detector ignores it otherwise)
             self.detector.set_load(self.cut.cutting_load(s.value, self.rpm))
@@ -265,7 +265,7 @@ class ChatterAnalyzer(Analyzer):
     def _on_block(self, b: Block) -> None:
         if self.sight.block(time.monotonic()):
             self._sight_back()
-        bc = self.cut.block(b.data, b.rate_hz, b.t0, b.rows, b.row)
+        bc = self.cut.block(b.data, b.rate_hz, b.t0, b.rows, b.row, time.monotonic())
         if bc.events:
             self._on_cut(bc.events)
         data = bc.data

@@ -469,3 +469,52 @@ def test_the_cut_state_is_one_pure_core_of_every_source():
     assert (end.kind, end.t, end.source, end.held) == ("end", 2.0, "axes", True) and not cut.cutting
     with pytest.raises(ValueError, match="needs \"feed\" in cut_from"):
         CutState(["load"], ["x_mm"])
+
+
+def _passes(gap_s=0.33, stall=None, on_change=False, approach_s=0.0):
+    """Two 1 s passes at 2500 r/min ``gap_s`` apart, through CutState(["feed", "vibration"]):
+    the feed read every 0.1 s (``stall``: no poll within it; ``on_change``: a driver that
+    publishes only changes), the accelerometer in 20 ms blocks, both received when they
+    happen. The feed goes on ``approach_s`` before each pass's chip. Returns the events."""
+    from lathed.analysis.cut.state import CutState
+    air0 = 0.3
+    rec = simulate_cut([S(air0, 2500, 0.0), S(1.0, 2500, 1.0), S(gap_s, 2500, 0.0), S(1.0, 2500, 1.0),
+                        S(0.3, 2500, 0.0)], modes=LATHE_MODES, kf_n_per_m2=LATHE_KF, seed=5)
+    passes = [(air0 - approach_s, air0 + 1.0), (air0 + 1.0 + gap_s - approach_s, air0 + 2.0 + gap_s)]
+    cs, ev, last = CutState(["feed", "vibration"]), [], None
+    polls = iter(np.arange(0.0, len(rec.signal) / RATE, 0.1))
+    poll = next(polls)
+    for i in range(0, len(rec.signal) - FRAME + 1, FRAME):
+        now = (i + FRAME) / RATE
+        while poll is not None and poll <= now:
+            if stall is None or not stall[0] < poll < stall[1]:
+                on = any(a <= poll < b for a, b in passes)
+                if not on_change or on != last:
+                    ev += cs.machine("cutting_feed", 1.0 if on else 0.0, poll, 2500.0, poll)
+                    last = on
+                if not on_change:
+                    ev += cs.machine("spindle_rpm", 2500.0, poll, 2500.0, poll)
+            poll = next(polls, None)
+        ev += cs.block(rec.signal[i:i + FRAME], RATE, i / RATE, now=now).events
+    return ev
+
+
+def test_a_stalled_feed_poll_does_not_hold_one_cut_across_two_passes():
+    # no poll from 1.2 s to 2.0 s (a loaded host): the feed's last "on" held one cut over both
+    # passes, and the detector met the second pass's entry mid-cut
+    for stall in (None, (1.2, 2.0)):
+        ev = _passes(stall=stall)
+        starts = [e.t for e in ev if e.kind == "start"]
+        ends = [e.t for e in ev if e.kind == "end"]
+        assert len(starts) == 2 and len(ends) == 2, (stall, ev)
+        # the first pass ends when the vibration's ring has decayed (or the feed's off is read)
+        assert 1.3 <= ends[0] < 1.6 and 1.6 <= starts[1] < 1.66, (stall, ev)
+
+
+def test_a_feed_on_in_air_holds_the_cut_while_it_is_read_and_from_a_driver_of_changes():
+    # an approach at feed in air, 0.5 s: the feed read every poll, or published once by a driver
+    # that sends only changes (its silence is no age), is one cut with the chip's contact in it
+    for on_change in (False, True):
+        ev = _passes(approach_s=0.5, gap_s=1.0, on_change=on_change)
+        kinds = [e.kind for e in ev]
+        assert kinds == ["start", "contact", "end", "start", "contact", "end"], (on_change, ev)

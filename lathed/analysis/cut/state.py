@@ -22,6 +22,15 @@ from lathed.analysis.device_rows import DeviceRows
 # A vibration entry in a running cut whose frame jumps this much over the two before is an
 # impulse (the tool's release, a knock), not chatter: the detector does not count it.
 IMPULSE_JUMP = 2.0
+# A polled machine source's "on" older than this many of its polls (and this many seconds), with
+# the accelerometer in air, holds the cut no longer: a stalled poll would merge two passes into one.
+# A driver that publishes only changes is never judged so (its silence is no age).
+STALE_POLLS = 3
+STALE_MIN_S = 0.25
+
+
+# the machine's quantities that are cut sources, by source name
+MACHINE_SOURCES = {"cutting_feed": "feed", "depth_of_cut_mm": "depth", "spindle_load_pct": "load"}
 
 
 @dataclass
@@ -73,12 +82,20 @@ class CutState:
         # a dwell rejoined before every axis was read in the feed's poll: (held, source, t) until then
         self._rejoined: tuple[float, str, float] | None = None
         self.dwells = 0
+        self._read: dict[str, tuple[float, float | None]] = {}   # machine source -> (received, poll interval)
+        self._last: dict[str, float] = {}       # each machine quantity's last value ...
+        self._polled = False                   # ... one repeated: the driver polls, silence is age
+        self._air_at: float | None = None      # when the vibration last said air (block clock)
 
     # -- the machine's samples -----------------------------------------------------------
-    def machine(self, quantity: str, value: float, t: float, rpm: float | None) -> list[CutEvent]:
+    def machine(self, quantity: str, value: float, t: float, rpm: float | None,
+                now: float | None = None) -> list[CutEvent]:
         """A sample of the machine (``rpm``: its speed now, for the load's no-chip level); one
-        not in ``quantities`` only times a held dwell (``held``)."""
+        not in ``quantities`` only times a held dwell (``held``). ``now``: when it was received,
+        on the clock ``block``'s ``now`` is on (None: its age is not judged)."""
         ev: list[CutEvent] = []
+        if now is not None:
+            self._received(quantity, value, now)
         if quantity == "cutting_feed":
             if self.feed_stop is not None:
                 self.feed_stop.feed(value != 0, t)
@@ -107,11 +124,12 @@ class CutState:
 
     # -- the accelerometer's blocks -------------------------------------------------------
     def block(self, data: np.ndarray, rate_hz: float, t0: float, rows: DeviceRows | None = None,
-              row: int = 0) -> BlockCut:
+              row: int = 0, now: float | None = None) -> BlockCut:
         """A block of the accelerometer starting at ``t0``: the vibration source, the chip's
         contact, and which of its samples the detector takes. ``rows``, ``row``: the device
         block ``data`` is a row of (Block.rows), whose frames the cut states of its channels
-        make together."""
+        make together. ``now``: when it was received (machine()'s clock): a machine source
+        gone stale while the vibration says air ends the cut."""
         ev: list[CutEvent] = []
         impulse = None
         self._dwell_over(t0, "block", ev)
@@ -129,6 +147,7 @@ class CutState:
                 on = bool(vib.cutting)
                 was, air = self.cutting, self.cutting and (self.chip_by is None or self.held is not None)
                 self._source("vibration", on, t0 + at / rate_hz, ev)
+                self._air_at = None if on else t0 + at / rate_hz
                 if on and (not was or air):
                     data = data[at:]          # the revolution before the chip is air, not the cut
             elif self.cutting and self.chip_by is None and self.held is None:
@@ -137,6 +156,9 @@ class CutState:
                 if chip is not None:
                     self._contact("vibration", t0 + chip / rate_hz, ev)
                     data = data[chip:]
+        if (now is not None and self._polled and self.cutting and self.held is None
+                and self.seen.get("vibration") is False):
+            self._stale(now, t0, ev)
         if not self.cutting or self.held is not None or len(data) == 0:
             return BlockCut(ev, None)           # a dwell's blocks are not the cut's
         if self._rejoin:
@@ -144,6 +166,28 @@ class CutState:
             # spans the join, and the chip's re-entry rings the structure
             self._rejoin, impulse = False, 0
         return BlockCut(ev, data, impulse)
+
+    def _received(self, quantity: str, value: float, now: float) -> None:
+        self._polled = self._polled or self._last.get(quantity) == value
+        self._last[quantity] = value
+        name = MACHINE_SOURCES.get(quantity)
+        if name in self.seen:
+            last = self._read.get(name)
+            gap = None if last is None else now - last[0]
+            if last is not None and last[1] is not None:
+                gap = 0.8 * last[1] + 0.2 * gap    # smoothed: one late poll makes no reading stale
+            self._read[name] = (now, gap)
+
+    def _stale(self, now: float, t0: float, ev: list[CutEvent]) -> None:
+        """The machine's sources still on with no reading for a few polls: taken as off, the
+        chip last seen when the vibration went to air (a feed dwell: dwell_max on this clock)."""
+        for name, (at, gap) in self._read.items():
+            if self.seen[name] and gap is not None and now - at > max(STALE_MIN_S, STALE_POLLS * gap):
+                self._source(name, False, t0 if self._air_at is None else self._air_at, ev)
+                if self.held is not None:
+                    self._held_clock = "block"
+                if not self.cutting or self.held is not None:
+                    return
 
     # -- the sources combined ----------------------------------------------------------------
     def _source(self, name: str, on: bool, t: float, ev: list[CutEvent]) -> None:
