@@ -471,18 +471,17 @@ def test_the_cut_state_is_one_pure_core_of_every_source():
         CutState(["load"], ["x_mm"])
 
 
-def _passes(gap_s=0.33, stall=None, on_change=False, approach_s=0.0):
-    """Two 1 s passes at 2500 r/min ``gap_s`` apart, through CutState(["feed", "vibration"]):
-    the feed read every 0.1 s (``stall``: no poll within it; ``on_change``: a driver that
-    publishes only changes), the accelerometer in 20 ms blocks, both received when they
-    happen. The feed goes on ``approach_s`` before each pass's chip. Returns the events."""
-    from lathed.analysis.cut.state import CutState
+def _two_passes(gap_s=0.33, stall=None, on_change=False, approach_s=0.0):
+    """Two 1 s passes at 2500 r/min ``gap_s`` apart as a machine and its accelerometer send
+    them: the feed read every 0.1 s (``stall``: no poll within it; ``on_change``: a driver that
+    publishes only changes), the accelerometer in 20 ms blocks, each received when it happens.
+    The feed goes on ``approach_s`` before each pass's chip. Yields (now, quantity, value) for
+    the machine's samples and (now, None, (block, t0)) for the accelerometer's."""
     air0 = 0.3
     rec = simulate_cut([S(air0, 2500, 0.0), S(1.0, 2500, 1.0), S(gap_s, 2500, 0.0), S(1.0, 2500, 1.0),
                         S(0.3, 2500, 0.0)], modes=LATHE_MODES, kf_n_per_m2=LATHE_KF, seed=5)
     passes = [(air0 - approach_s, air0 + 1.0), (air0 + 1.0 + gap_s - approach_s, air0 + 2.0 + gap_s)]
-    cs, ev, last = CutState(["feed", "vibration"]), [], None
-    polls = iter(np.arange(0.0, len(rec.signal) / RATE, 0.1))
+    polls, last = iter(np.arange(0.0, len(rec.signal) / RATE, 0.1)), None
     poll = next(polls)
     for i in range(0, len(rec.signal) - FRAME + 1, FRAME):
         now = (i + FRAME) / RATE
@@ -490,12 +489,20 @@ def _passes(gap_s=0.33, stall=None, on_change=False, approach_s=0.0):
             if stall is None or not stall[0] < poll < stall[1]:
                 on = any(a <= poll < b for a, b in passes)
                 if not on_change or on != last:
-                    ev += cs.machine("cutting_feed", 1.0 if on else 0.0, poll, 2500.0, poll)
+                    yield poll, "cutting_feed", 1.0 if on else 0.0
                     last = on
                 if not on_change:
-                    ev += cs.machine("spindle_rpm", 2500.0, poll, 2500.0, poll)
+                    yield poll, "spindle_rpm", 2500.0
             poll = next(polls, None)
-        ev += cs.block(rec.signal[i:i + FRAME], RATE, i / RATE, now=now).events
+        yield now, None, (rec.signal[i:i + FRAME], i / RATE)
+
+
+def _passes(**kw):
+    """_two_passes through CutState(["feed", "vibration"]): its events."""
+    from lathed.analysis.cut.state import CutState
+    cs, ev = CutState(["feed", "vibration"]), []
+    for now, q, v in _two_passes(**kw):
+        ev += cs.machine(q, v, now, 2500.0, now) if q else cs.block(v[0], RATE, v[1], now=now).events
     return ev
 
 
@@ -518,3 +525,29 @@ def test_a_feed_on_in_air_holds_the_cut_while_it_is_read_and_from_a_driver_of_ch
         ev = _passes(approach_s=0.5, gap_s=1.0, on_change=on_change)
         kinds = [e.kind for e in ev]
         assert kinds == ["start", "contact", "end", "start", "contact", "end"], (on_change, ev)
+
+
+def test_the_chatter_analyzer_judges_its_sources_ages_on_the_hosts_clock(monkeypatch):
+    # the plugin gives the cut state each sample's time of receipt: a stalled poll makes two cuts
+    import structlog
+
+    from lathed.analyzer import AnalyzerContext
+    from lathed.bus import Block, Bus, Sample
+    from lathed.config import Section
+    from lathed_plugins import chatter
+    conf = {"input": "accel", "machine": "lathe", "cut_from": ["feed", "vibration"]}
+    an = chatter.ChatterAnalyzer("chatter", Section("t.toml", "analyzer.chatter", conf))
+    bus, out = Bus(), []
+    publish = bus.publish
+    bus.publish = lambda m: (out.append((m.quantity, m.value)) if isinstance(m, Sample) else None, publish(m))[1]
+    an.ctx = AnalyzerContext(bus, structlog.get_logger("test"), lambda *a, **k: None,
+                             None, None, None, lambda n: None, ".")
+    clock = [0.0]
+    monkeypatch.setattr(chatter.time, "monotonic", lambda: clock[0])
+    for now, q, v in _two_passes(stall=(1.2, 2.0)):
+        clock[0] = 1000.0 + now            # the host's clock: not the samples' time stamps
+        if q:
+            an._on_machine(Sample("lathe", q, v, "", now))
+        else:
+            an._on_block(Block("accel", "acceleration", RATE, v[1], round(v[1] * RATE), v[0], 2500.0))
+    assert [v for q, v in out if q == "cutting"] == [1.0, 0.0, 1.0, 0.0], out
