@@ -404,6 +404,17 @@ def test_a_step_into_chatter_whose_level_plateaus_is_caught_as_it_grows():
     assert rec.unstable_at_s <= first and (first - rec.visible_at_s) * 4500 / 60.0 <= 3.0
 
 
+def test_growth_at_a_deeper_pass_span_end_is_followed_one_window_more():
+    # bench_chatter's 6000 r/min step (1.5 -> 2.4 mm, seed 1022): its last window in the step's
+    # span grew past the echo's bound (rise_growth x the span's lowest), the next outside it grew
+    # on, but the span had ended and its level was taken as the deeper pass's: 5.0 revolutions
+    # after visible; followed one window more, as it grows, 3.5
+    rec = simulate_cut([Segment(1.5, 6000, 1.5), Segment(1.5, 6000, 2.4)], seed=1022)
+    assert rec.label == "chatter"
+    first = next(w.t_s for w in _run(make_detector(DEFAULT_DETECTOR, RATE), rec.signal, rec.rpm) if w.alarm)
+    assert rec.unstable_at_s <= first and (first - rec.visible_at_s) * 6000 / 60.0 <= 4.0
+
+
 def test_without_the_shoulder_rule_a_shoulder_alarms():
     # the test above can fail: the threshold read the deeper pass's level as chatter (issue 38)
     assert any(w.alarm for w in _shoulder(DEFAULT_DETECTOR, 2, rise_ratio=0))

@@ -121,7 +121,9 @@ class AlarmRules:
             if self._sh_grown >= p["on_windows"]:
                 self._sh_until = 0
                 return True, True
-            if self._next_end < self._sh_until:
+            # (a window grown past the bound at the span's end is followed one more: where the span
+            # ends is the window grid's, not the chatter's; a stable echo falls back there)
+            if self._next_end < self._sh_until or self._sh_grown:
                 self._sh_raws.append((raw, self._bands()))
                 return True, False
             self._sh_until = 0
