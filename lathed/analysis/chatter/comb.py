@@ -6,12 +6,12 @@ vibration is modulated once a revolution: the chatter frequency fc = (k + eps) f
 comb of narrow lines fc + m f_rev, all at the same non-zero offset eps from the spindle's
 harmonics.  A stable cut's forced lines (runout, a flat's or a keyway's impulses) sit on
 k f_rev (eps = 0).  But regeneration also makes a stable cut near its limit a comb between the
-harmonics (the delay term vanishes on them), so a comb alone does not decide.  What does: in a stable
-cut each line is a regenerative resonance driven by the cutting force's random part, its own
+harmonics (the delay term vanishes on them), so a comb alone does not decide.  What does: in a
+stable cut each line is a regenerative resonance driven by the cutting force's random part, its own
 narrow-band Gaussian vibration, independent of the others (they are driven by disjoint parts of the
 force's spectrum); chatter's lines are one self-excited oscillation modulated once a revolution, so
-they rise and fall together (``lock``).  The spacing is fitted, within SLIP of the nominal rate (simulated combs, at exact speed, are
-spaced 0.95-0.97 x it).
+they rise and fall together (``lock``).  The spacing is fitted, within SLIP of the nominal rate
+(simulated combs, at exact speed, are spaced 0.95-0.97 x it).
 
 The constants are statistics or physics; NARROW was widened after seeing c_770_005 (its lines
 wander +-1.3 Hz over 22 s; docs/chatter.md says so):
@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
 from scipy.stats import norm
 
 from lathed.analysis.chatter.spectrum import fast_len

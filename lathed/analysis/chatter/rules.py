@@ -115,7 +115,8 @@ class AlarmRules:
             # tail); the span's last window too, before its level is taken as the deeper pass's
             low = min(v for v, _ in self._sh_raws)
             grows = (p["growth_ratio"] > 0 and raw > p["rise_growth"] * low and not stepped
-                     and now >= LEVEL_FALL * max(before, self._sh_level) and self._tail(start, end) >= GROWTH_TAIL)
+                     and now >= LEVEL_FALL * max(before, self._sh_level)
+                     and self._tail(start, end) >= GROWTH_TAIL)
             self._sh_level = now
             self._sh_grown = self._sh_grown + 1 if grows else 0
             if self._sh_grown >= p["on_windows"]:

@@ -18,7 +18,8 @@ low harmonics notched out of the chatter band:
 least half the power, or a band that is a comb of narrow lines off the spindle's harmonics (comb.py)
 whose lines rise and fall together (comb.lock, over at least MIN_CYCLES independent samples): one
 oscillation modulated once a revolution, where a stable cut near its limit makes a comb too, but of
-independent random lines (docs/chatter.md).  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
+independent random lines (docs/chatter.md).  "stable": share <= STABLE_SHARE and a Gaussian
+envelope (cv >= GAUSSIAN_CV).
 Else "unknown", with the reason.  Both are ratios: the sensor's gain cancels.  The constants are
 from the physics above and the simulated cuts (tests/test_verdict.py), none from a recording.
 """
