@@ -54,16 +54,17 @@ def test_real_files_without_a_reference(capsys):
     # without --reference: both stable files are broadband, Gaussian and level (stable);
     # c_425_020's chatter grows within it (chatter); c_770_005 chatters from its first sample,
     # its 900 Hz band a comb of narrow lines about a revolution apart, off the spindle's harmonics
-    # (chatter.comb): regeneration's comb, which a stable cut near its limit makes too, so reported
-    # in the reason and not decisive: unknown, never stable (docs/chatter.md)
-    want = {"s_320_010": "stable", "s_570_002": "stable", "c_425_020": "chatter", "c_770_005": "unknown"}
+    # (chatter.comb), which a stable cut near its limit makes too; but its lines rise and fall
+    # together (comb.lock), as one oscillation modulated once a revolution does and a stable
+    # cut's independent random lines do not: chatter (docs/chatter.md)
+    want = {"s_320_010": "stable", "s_570_002": "stable", "c_425_020": "chatter", "c_770_005": "chatter"}
     for name, label, rpm in FILES:
         code, out, err = _cli([str(REAL / f"{name}.mat"), "--var", "tsDS", "--rpm", str(rpm), "--json"], capsys)
         res = json.loads(out)
         assert code == 0 and res["verdict"] == want[name], (name, res["verdict"], res["reason"])
         assert res["reason"] and res["evidence"]["verdict"] in ("stable", "chatter", "unknown")
         if name == "c_770_005":
-            assert "regeneration's comb" in res["reason"] and res["evidence"]["comb"], res["reason"]
+            assert "rise and fall together" in res["reason"] and res["evidence"]["comb"], res["reason"]
 
 
 @need_real

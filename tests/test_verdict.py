@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lathed.analysis.chatter.cases import b_lim_mm
-from lathed.analysis.chatter.comb import find_comb
+from lathed.analysis.chatter.comb import Comb, find_comb, lock
 from lathed.analysis.chatter.shape import SpectralShape
 from lathed.analysis.chatter.verdict import judge
 from lathed.analysis.regen import Segment, simulate_cut
@@ -99,6 +99,35 @@ def test_a_stable_cut_near_its_limit_can_show_regenerations_comb_and_stays_stabl
     rec = simulate_cut([Segment(11.0, 320.0, round(0.85 * b_lim_mm(320.0), 2))], seed=11, rate_hz=10000.0)
     v = judge(rec.signal[10000:], 10000.0, 320.0)
     assert rec.label == "stable" and v.verdict == "stable" and v.comb, (v.verdict, v.comb)
+
+
+def test_a_combs_lines_are_one_oscillation_or_independent():
+    # comb.lock: one oscillation modulated once a revolution (chatter leaving the cut for part of
+    # every revolution) makes lines that rise and fall together, whatever its slow wander; two
+    # independent random lines (a stable cut's regenerative resonances) do not, at any gain
+    rate, spacing, f0 = 10000.0, 12.5, 900.0 + 0.7 * 12.5
+    t = np.arange(int(20 * rate)) / rate
+    rng = np.random.default_rng(5)
+    wander = 1 + 0.3 * np.sin(2 * np.pi * 0.07 * t) + 0.2 * np.sin(2 * np.pi * 0.31 * t + 1)
+    chatter = wander * np.sin(2 * np.pi * f0 * t) * (1 + 0.8 * np.cos(2 * np.pi * spacing * t))
+    comb = Comb([f0, f0 + spacing], spacing, 0.7, 0.05, 0.8)
+    assert lock(chatter + 0.05 * rng.standard_normal(len(t)), rate, comb).locked
+    from scipy.signal import butter, sosfiltfilt
+    lines = sum(sosfiltfilt(butter(2, [f - 0.3, f + 0.3], "bandpass", fs=rate, output="sos"),
+                            rng.standard_normal(len(t))) for f in (f0, f0 + spacing))
+    for gain in (1.0, 1e-3):
+        lk = lock(gain * lines, rate, comb)
+        assert lk.samples >= 30 and not lk.locked, lk
+
+
+@pytest.mark.parametrize("seed", [34, 36])
+def test_a_stable_cuts_comb_near_its_limit_is_of_independent_lines(seed):
+    # 20 s at 320-500 r/min, 0.85 x the limit: regeneration's comb off the harmonics, long enough to
+    # judge its lines (each band's width x the duration over 30), which vary independently: stable
+    rpm = {34: 320.0, 36: 500.0}[seed]
+    rec = simulate_cut([Segment(21.0, rpm, round(0.85 * b_lim_mm(rpm), 2))], seed=seed, rate_hz=10000.0)
+    v = judge(rec.signal[10000:], 10000.0, rpm)
+    assert rec.label == "stable" and v.verdict == "stable" and "vary independently" in (v.comb or ""), v
 
 
 @pytest.mark.parametrize("trend", [400, 401])

@@ -142,6 +142,7 @@ class RevolutionDetector(AlarmRules):
         self._settle_until = 0
         self._speeds: deque[tuple[int, float]] = deque()   # (sample since reset, r/min) of recent blocks
         self._step_until = 0        # no alarm counted before this sample (a level step)
+        self._step_before = 0       # ... as it stood before the window being judged (_level_step)
         self._impulse = (0, 0)      # windows ending in this span do not count (impulse())
         self._levels: deque[tuple[int, float]] = deque(maxlen=8)   # (window end, median |x|)
         self._pair: tuple = ()      # the last window's pair of levels (_level_pair): sample counts restart
@@ -152,6 +153,7 @@ class RevolutionDetector(AlarmRules):
         self._sh_raws: list = []    # (raw, bands) of its windows
         self._sh_steady = 0         # windows in a row without a rise: a rise after enough is a step
         self._sh_grown = 0
+        self._sh_jump = False       # its span began with a jump (a level over jump_ratio x)
         self._sh_from = 0.0         # the level before its step
         self._sh_level = 0.0        # its last window's level (a ring falls from it, chatter rises)
         self._sh_over = self._sh_over_before = 0   # windows in a row over the sum's allowance
@@ -425,7 +427,7 @@ class RevolutionDetector(AlarmRules):
             other = settling or self._waiting_for_load(start, end, rpm)
             # a deeper pass: its span is not judged but for growth beyond a stable echo's (not
             # a step's: the tool leaving, whose release may fall late in the span's first window)
-            shoulder, grew_out = self._shoulder(start, end, rpm, raw, other or stepped, stepped)
+            shoulder, grew_out = self._shoulder(start, end, rpm, raw, other, stepped)
             index = raw / self.baseline         # the deeper pass may have its own baseline now
             settling = other or stepped or shoulder
             # a level alone is not chatter: the threshold and the CUSUM need the spectrum's shape
@@ -433,7 +435,10 @@ class RevolutionDetector(AlarmRules):
             gated = bool(p["shape_min"]) and self._fixed_baseline is None
             self._on = self._on + 1 if (index > self.threshold and not settling
                                         and (not gated or self._shape_now() >= p["shape_min"])) else 0
-            if self._rising_from_step(start, end, index, stepped, other or shoulder) and not (stepped or shoulder):
+            # (a deeper pass's jump too: a stable one's level falls back within a revolution)
+            jumped = shoulder and self._sh_jump
+            if (self._rising_from_step(start, end, index, stepped, other or (shoulder and not jumped))
+                    and not (stepped or (shoulder and not jumped))):
                 self._on = max(self._on, p["on_windows"])
             grew = self._growth(start, end, rpm, raw, settling and not shoulder)
             grew = (grew and not shoulder) or grew_out

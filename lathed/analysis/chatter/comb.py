@@ -1,13 +1,17 @@
-"""Is the dominant band a comb of narrow lines off the spindle's harmonics? (docs/chatter.md)
+"""Is the dominant band a comb of narrow lines off the spindle's harmonics, and are its lines one
+oscillation? (docs/chatter.md)
 
 Below about 1000 r/min regenerative chatter leaves the cut for part of every revolution, so its
 vibration is modulated once a revolution: the chatter frequency fc = (k + eps) f_rev shows as a
 comb of narrow lines fc + m f_rev, all at the same non-zero offset eps from the spindle's
 harmonics.  A stable cut's forced lines (runout, a flat's or a keyway's impulses) sit on
 k f_rev (eps = 0).  But regeneration also makes a stable cut near its limit a comb between the
-harmonics (the delay term vanishes on them), so the verdict reports a comb and does not judge by
-it.  The spacing is fitted, within SLIP of the nominal rate (simulated combs, at exact speed, are
-spaced 0.95-0.97 x it).
+harmonics (the delay term vanishes on them), so a comb alone does not decide.  What does: in a
+stable cut each line is a regenerative resonance driven by the cutting force's random part, its own
+narrow-band Gaussian vibration, independent of the others (they are driven by disjoint parts of the
+force's spectrum); chatter's lines are one self-excited oscillation modulated once a revolution, so
+they rise and fall together (``lock``).  The spacing is fitted, within SLIP of the nominal rate
+(simulated combs, at exact speed, are spaced 0.95-0.97 x it).
 
 The constants are statistics or physics; NARROW was widened after seeing c_770_005 (its lines
 wander +-1.3 Hz over 22 s; docs/chatter.md says so):
@@ -28,6 +32,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import norm
 
 from lathed.analysis.chatter.spectrum import fast_len
 
@@ -38,6 +43,13 @@ MIN_COMB_SHARE = 0.5  # ... whose lines hold most of the band's power (the band 
 SLIP = 0.05           # a loaded spindle's speed within 5 % of its nominal
 SIGMAS = 3.0
 MIN_SPACING_BINS = 8  # the spacing must span this many bins to tell lines from the floor between
+LOCK_FALSE = 0.001    # chance that two independent random lines read as one oscillation's (lock)
+# two independent Gaussian lines: log|a| of each has variance pi^2 / 24 (log of a Rayleigh), so the
+# log of their amplitudes' ratio has standard deviation pi / sqrt(12); its sample value over n
+# independent samples spreads by LOG_SD_SPREAD / sqrt(n) of it (the difference's excess kurtosis 1.2:
+# sqrt(2 + 1.2) / 2); a Monte Carlo of white noise spreads less (conservative)
+INDEPENDENT_SD = math.pi / math.sqrt(12.0)
+LOG_SD_SPREAD = math.sqrt(3.2) / 2.0
 
 
 @dataclass
@@ -132,3 +144,52 @@ def find_comb(x: np.ndarray, rate_hz: float, rpm: float, f_lo: float, f_hi: floa
     s_err = sf / math.sqrt(float(np.sum(m * m)))
     q_err = math.hypot(sf / math.sqrt(len(m)) / s, q * s_err / s)
     return Comb([float(v) for v in f], s, offset, SIGMAS * q_err, share)
+
+
+@dataclass
+class Lock:
+    sd: float           # the standard deviation of log(|a1| / |a0|), the two strongest lines' amplitudes
+    bound: float        # two independent random lines stay above this but with chance LOCK_FALSE
+    samples: float      # independent samples of the lines' amplitudes (each band's width x the duration)
+    half_hz: float      # each line's band: +- this (half the way to the nearest harmonic or line)
+
+    @property
+    def locked(self) -> bool:
+        return self.sd < self.bound
+
+    def describe(self) -> str:
+        return (f"its two strongest lines rise and fall together (the log of their amplitudes' ratio varies "
+                f"by {self.sd:.2f}; independent random lines' by {INDEPENDENT_SD:.2f}, above {self.bound:.2f} "
+                f"but with chance {LOCK_FALSE:g} over {self.samples:.0f} independent samples)")
+
+
+def lock(x: np.ndarray, rate_hz: float, comb: Comb) -> Lock | None:
+    """Do the comb's two strongest lines rise and fall together, as one oscillation modulated once a
+    revolution does, or independently, as a stable cut's regenerative resonances do?  Each line is
+    band-passed over +- half the way to the nearest other line (a spindle harmonic at ``offset``
+    spacings, or the comb's next line), and the log of their amplitudes' ratio is compared with
+    what two independent Gaussian lines give.  The ratio cancels the sensor's gain and the cut's
+    common wander.  None where the comb has fewer than two lines."""
+    if len(comb.lines_hz) < 2:
+        return None
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    half = 0.5 * min(comb.offset, 1.0 - comb.offset, 1.0) * comb.spacing_hz
+    nf = fast_len(n)
+    spec = np.fft.rfft(x - x.mean(), nf)
+    f = np.arange(len(spec)) * rate_hz / nf
+    edge = int(rate_hz / half) if half > 0 else n      # the band's own ring, two correlation times
+    if not half > 0 or n <= 4 * edge:
+        return None
+    amp = []
+    for f0 in comb.lines_hz[:2]:
+        a = np.zeros(nf, dtype=complex)
+        band = np.abs(f - f0) <= half
+        a[:len(spec)][band] = 2.0 * spec[band]
+        amp.append(np.abs(np.fft.ifft(a)[edge:n - edge]))
+    if not (amp[0] > 0).all() or not (amp[1] > 0).all():
+        return None
+    sd = float(np.std(np.log(amp[1]) - np.log(amp[0])))
+    samples = 2.0 * half * (n - 2 * edge) / rate_hz
+    bound = INDEPENDENT_SD * (1.0 - float(norm.isf(LOCK_FALSE)) * LOG_SD_SPREAD / math.sqrt(samples))
+    return Lock(sd, bound, samples, half)

@@ -13,6 +13,11 @@ from lathed.analysis.chatter.spectrum import median_abs
 LOAD_STEP = 1.3       # load_scaled: a level rising this much within a revolution waits for the load
 LOAD_WAIT_S = 0.3     # ... for at most this long (a 100 ms poll and its jitter; a load that stops coming)
 GROWTH_TAIL = 0.3      # growth: a window's second half at least this x its first's level (a release's: 0.2 x)
+# a level is the median |x| of a few hundred samples (_level), good to ~7 % (its standard error
+# 1.17 / sqrt(n)): two of them on a plateau differ by ~10 % by chance, where a release's ring falls
+# by 2 x or more a revolution; so a level "falls" (a ring decaying) only when it is under this x
+# the one it is compared with (at 1.0, chatter's plateau read as a ring by a 0.2 % dip)
+LEVEL_FALL = 0.9
 
 
 class AlarmRules:
@@ -110,13 +115,16 @@ class AlarmRules:
             # tail); the span's last window too, before its level is taken as the deeper pass's
             low = min(v for v, _ in self._sh_raws)
             grows = (p["growth_ratio"] > 0 and raw > p["rise_growth"] * low and not stepped
-                     and now >= max(before, self._sh_level) and self._tail(start, end) >= GROWTH_TAIL)
+                     and now >= LEVEL_FALL * max(before, self._sh_level)
+                     and self._tail(start, end) >= GROWTH_TAIL)
             self._sh_level = now
             self._sh_grown = self._sh_grown + 1 if grows else 0
             if self._sh_grown >= p["on_windows"]:
                 self._sh_until = 0
                 return True, True
-            if self._next_end < self._sh_until:
+            # (a window grown past the bound at the span's end is followed one more: where the span
+            # ends is the window grid's, not the chatter's; a stable echo falls back there)
+            if self._next_end < self._sh_until or self._sh_grown:
                 self._sh_raws.append((raw, self._bands()))
                 return True, False
             self._sh_until = 0
@@ -143,13 +151,21 @@ class AlarmRules:
             self._sh_steady += 1
             return False, False
         steady, self._sh_steady = self._sh_steady, 0
+        # a step up by more than jump_ratio from a cut at its own level (not a release's impulse,
+        # nor within an earlier step's ring) is a deeper pass too: a stable 0.5 -> 1.3 mm shoulder
+        # at 1000 r/min lifts the level 3.6 x in a window; taken as the tool's entry, its deeper
+        # level was judged against the shallower pass's baseline once its ring stopped falling
+        jump_up = (stepped and now > p["jump_ratio"] * before and self._next_end >= self._step_before
+                   and not self._impulse[0] < self._next_end <= self._impulse[1])
+        other = other or (stepped and not jump_up)
         if (other or steady < 2 * p["growth_revs"] / p["hop_revs"] or self._windows <= 2 * p["learn_windows"]
-                or self._next_end < self._step_until
+                or self._next_end < self._step_before
                 or prev < self._learned_baseline / p["jump_ratio"] ** 2
                 or self._sh_over_before >= p["on_windows"]):
             # (a level already held over the sum's allowance is rising, not a cut at its own level)
             return False, False
         self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
+        self._sh_jump = jump_up             # chatter rising through a jump still counts (_rising_from_step)
         self._sh_raws = [(raw, self._bands())]
         self._sh_from = before              # the level before the step
         self._sh_level = now                # the span's last window's level
@@ -194,6 +210,7 @@ class AlarmRules:
         whose level is below the revolution before's: the structure's ring after the tool's
         release decays for several revolutions and keeps that span open; chatter after a
         step (a deeper pass) grows, and counts at once."""
+        self._step_before = self._step_until     # the span of a step before this window's
         di, now, before = self._level_pair(start, end, rpm)
         r = self.params["jump_ratio"]
         stepped = not before / r <= now <= before * r
@@ -207,7 +224,7 @@ class AlarmRules:
         raw_before = next((v for t, v in self._raw_hist if abs(t - (self._next_end - di)) <= 2), None)
         if raw_before and before > 0 and self.params.get("rise_ratio"):
             stepped = stepped or (self._raw_now / raw_before) / (now / before) >= r
-        ringing = self._next_end < self._step_until and now < before
+        ringing = self._next_end < self._step_until and now < LEVEL_FALL * before
         if stepped or ringing:
             self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)
         return stepped or ringing

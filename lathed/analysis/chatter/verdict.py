@@ -15,9 +15,11 @@ low harmonics notched out of the chatter band:
          oscillation's is steady, cv near 0 (0.05-0.2 on the simulated chatter above 1000 r/min)
 
 "chatter": share >= CHATTER_SHARE, or a steady envelope (cv <= STEADY_CV) over a band holding at
-least half the power.  Whether the band is a comb of narrow lines off the spindle's harmonics
-(comb.py) is reported, not judged: regeneration makes one in chatter modulated once a revolution
-and in a stable cut near its limit alike (docs/chatter.md).  "stable": share <= STABLE_SHARE and a Gaussian envelope (cv >= GAUSSIAN_CV).
+least half the power, or a band that is a comb of narrow lines off the spindle's harmonics (comb.py)
+whose lines rise and fall together (comb.lock, over at least MIN_CYCLES independent samples): one
+oscillation modulated once a revolution, where a stable cut near its limit makes a comb too, but of
+independent random lines (docs/chatter.md).  "stable": share <= STABLE_SHARE and a Gaussian
+envelope (cv >= GAUSSIAN_CV).
 Else "unknown", with the reason.  Both are ratios: the sensor's gain cancels.  The constants are
 from the physics above and the simulated cuts (tests/test_verdict.py), none from a recording.
 """
@@ -29,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
-from lathed.analysis.chatter.comb import MIN_COMB_SHARE, find_comb
+from lathed.analysis.chatter.comb import MIN_COMB_SHARE, find_comb, lock
 from lathed.analysis.chatter.spectrum import fast_len
 
 BAND_REL = 0.05        # the band judged: +-5 % of its frequency (a mode's peak, chatter's wander)
@@ -96,8 +98,16 @@ def judge(x: np.ndarray, rate_hz: float, rpm: float, mains_hz: tuple[float, ...]
     what = (f"{share:.0%} of the vibration's power lies within {BAND_REL:.0%} of {fc:.0f} Hz, "
             f"its envelope varying by {cv:.2f} of its mean")
     found = find_comb(x, rate_hz, rpm, fc * (1 - BAND_REL), fc * (1 + BAND_REL), mains_hz)
-    comb = (f"{found.describe()}: regeneration's comb (chatter modulated once a revolution, or a stable "
-            "cut near its limit)") if found and found.off_harmonic and found.share >= MIN_COMB_SHARE else None
+    comb = None
+    if found and found.off_harmonic and found.share >= MIN_COMB_SHARE:
+        comb = (f"{found.describe()}: regeneration's comb (chatter modulated once a revolution, or a stable "
+                "cut near its limit)")
+        lk = lock(x, rate_hz, found)
+        if lk is not None and lk.samples >= MIN_CYCLES:
+            comb = f"{comb}; {lk.describe() if lk.locked else 'its lines vary independently, as random ones do'}"
+            if lk.locked and share < CHATTER_SHARE:
+                return Verdict("chatter", f"{what}; the band is {found.describe()}, and {lk.describe()}: one "
+                               "oscillation modulated once a revolution, self-excited", fc, share, cv, comb)
     if share >= CHATTER_SHARE or (share >= 0.5 and cv <= STEADY_CV and cycles >= MIN_CYCLES):
         return Verdict("chatter", f"{what}: a self-excited vibration that dominates the floor", fc, share, cv, comb)
     if cycles < MIN_CYCLES:
