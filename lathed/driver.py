@@ -45,8 +45,11 @@ class GatedBus:
             bad = self.plausible.check(msg.quantity, msg.unit, msg.value, msg.t)
             value = msg.value
         elif isinstance(msg, Block):
+            # a device's rows come with their extremes, reduced for all channels at once
+            rows = msg.rows
             bad = self.plausible.check_block(msg.quantity, "m/s²" if msg.quantity == "acceleration" else "",
-                                             msg.data, msg.rate_hz, msg.rpm)
+                                             msg.data, msg.rate_hz, msg.rpm,
+                                             None if rows is None else rows.extremes(msg.row, msg.data))
             value = None
         else:
             bad = None

@@ -159,9 +159,10 @@ class Plausibility:
         return None
 
     def check_block(self, quantity: str, unit: str, data: np.ndarray, rate_hz: float = 1.0,
-                    rpm: float | None = None) -> tuple[str, str] | None:
+                    rpm: float | None = None, extremes: tuple[float, float] | None = None) -> tuple[str, str] | None:
         """A waveform block: a finite positive rate, a spindle speed within the r/min
-        range (if given), every sample finite and within its unit's range."""
+        range (if given), every sample finite and within its unit's range. ``extremes``: the
+        block's (lowest, highest) sample, when already made (DeviceRows.extremes)."""
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             return self._refuse(quantity, "rate", f"{quantity}: sample rate {rate_hz!r} Hz is not a finite rate > 0")
         if rpm is not None:
@@ -171,8 +172,10 @@ class Plausibility:
                                                      f"in {b.lo:g}..{b.hi:g}")
         if data.size == 0:
             return None
-        # the ufuncs' reductions: the methods' (and np.min's) wrappers cost as much again
-        lo, hi = float(np.minimum.reduce(data, axis=None)), float(np.maximum.reduce(data, axis=None))
+        if extremes is not None:
+            lo, hi = extremes
+        else:           # the ufuncs' reductions: the methods' (and np.min's) wrappers cost as much again
+            lo, hi = float(np.minimum.reduce(data, axis=None)), float(np.maximum.reduce(data, axis=None))
         if not (math.isfinite(lo) and math.isfinite(hi)):
             bad = int(np.count_nonzero(~np.isfinite(data)))
             return self._refuse(quantity, "not_finite", f"{quantity}: {bad} of {data.size} samples not finite")

@@ -142,12 +142,17 @@ class ChatterAnalyzer(Analyzer):
                 except Exception as e:
                     failed.set_exception(e)
 
+        reads, cut = self._reads, self.cut
+
         def on_machine(msg) -> None:
             if failed.done():
                 return
             try:
                 if isinstance(msg, Sample):
-                    self._on_machine(msg)
+                    # a register neither this nor the cut state reads, and no dwell to time, passes
+                    # by here (_on_machine's own test, without its call: most of each poll)
+                    if msg.quantity in reads or cut.held is not None:
+                        self._on_machine(msg)
                 elif isinstance(msg, Block):
                     self._on_block(msg)
             except Exception as e:

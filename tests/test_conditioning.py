@@ -67,13 +67,20 @@ def test_a_bank_conditions_each_channel_as_its_own_conditioner_would(rate, highp
         if b in (4, 5):
             data[:, 4] = 0.0           # digital silence: not conditioned, its state as it was
         for m, col, own in zip(members, columns, alone):
-            x, peak, y, _ = bank.take(m, data)
+            x, peak, y, shared = bank.take(m, data)
             assert np.array_equal(x, data[:, col]) and peak == float(np.abs(data[:, col]).max())
             if b in (4, 5) and col == 4:
                 assert y is None
                 continue
             assert y.dtype == np.float32 and y.base is None     # its own array, not a view of all
             assert y.tobytes() == own.process(np.ascontiguousarray(data[:, col])).tobytes()
+            if shared is not None:
+                # the gate's extremes, made for all rows at once: the row's own reductions, to the
+                # bit (with a mains notch not made: the gate reduces the row itself)
+                rows, row = shared
+                got = rows.extremes(row, y)
+                assert got is None if mains else got == (float(np.minimum.reduce(y)), float(np.maximum.reduce(y)))
+                assert rows.extremes(row, y.copy()) is None     # another array than the row: not its
         if b == 7:     # one that joins after a block's pass is conditioned alone, once
             bank.join("d", Conditioner(rate, 7.0, highpass, mains), 1)
             alone.append(Conditioner(rate, 7.0, highpass, mains))

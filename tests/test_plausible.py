@@ -47,6 +47,24 @@ def test_nan_and_out_of_range_refused_for_any_unit():
     assert c.bus.published == 1
 
 
+@pytest.mark.parametrize("bad", [math.nan, 2e6, -np.inf])
+def test_a_device_channels_bad_sample_is_refused_and_the_others_pass(bad):
+    # a device's channels conditioned together carry their extremes to the gate: one channel's
+    # NaN, or a sample beyond 100 000 g, refuses its block alone
+    from lathed.analysis.conditioning import Conditioner, ConditionerBank
+    c = ctx()
+    bank = ConditionerBank()
+    for k in range(3):
+        bank.join(k, Conditioner(51200, 1.0, 2.0), k)
+    data = np.random.default_rng(5).normal(0.0, 10.0, (1024, 3)).astype(np.float32)
+    data[500, 1] = bad
+    for k in range(3):
+        _, _, y, (rows, row) = bank.take(k, data)
+        assert c.bus.publish(Block(f"accel{k}", "acceleration", 51200.0, 1.0, 0, y, None, rows, row)) == (k != 1)
+    reason = "not_finite" if math.isnan(bad) or math.isinf(bad) else "out_of_range"
+    assert c.bus.plausible.rejected == {"acceleration": {reason: 1}}
+
+
 def test_without_a_rate_bound_two_values_at_one_instant_are_accepted():
     # an MTConnect agent reports a load that rose and fell within its timestamp's resolution:
     # no rate bound (%) times 0 s was NaN, and the second value was refused as a jump

@@ -174,8 +174,18 @@ class Conditioner:
         """Row i of ``x`` (channels x frames, full scale) through ``conds[i]`` (whose scales are
         ``scale``, a column), in one pass of numpy calls for all rows: each row's numbers are
         its own ``process``'s, bit for bit. The conditioners share their rate and high-pass."""
+        return Conditioner.rows_and_extremes(conds, x, scale)[0]
+
+    @staticmethod
+    def rows_and_extremes(conds: list[Conditioner], x: np.ndarray,
+                        scale: np.ndarray) -> tuple[list[np.ndarray], list[tuple[float, float]] | None]:
+        """``process_rows``, and each row's (lowest, highest) sample as its float32 array's
+        np.minimum/np.maximum.reduce gives them (None: not made here, with a mains notch or a
+        single row): the plausibility gate's check of every block, one reduction for all rows
+        (a reduction's call costs as much as its 1024 samples). Rounding to float32 keeps order,
+        so the float64 rows' extremes rounded are the float32 rows' extremes, to the bit."""
         if len(conds) == 1:
-            return [conds[0].process(x[0])]
+            return [conds[0].process(x[0])], None
         # x.astype(np.float64) * scale: the cast, then the product in place (a cast inside a
         # broadcast multiply goes through numpy's buffered loop, twice the time)
         y = x.astype(np.float64)
@@ -202,7 +212,11 @@ class Conditioner:
         out = []
         for c, row in zip(conds, y):
             out.append((row if c.comb is None else c.comb.run(row)).astype(np.float32))
-        return out
+        if any(c.comb is not None for c in conds):
+            return out, None
+        lo = np.minimum.reduce(y, axis=1).astype(np.float32).tolist()
+        hi = np.maximum.reduce(y, axis=1).astype(np.float32).tolist()
+        return out, list(zip(lo, hi))
 
 
 class ConditionerBank:
@@ -270,25 +284,25 @@ class ConditionerBank:
         x = data.T[cols]                # a row a member, each contiguous
         peak = np.maximum.reduce(np.abs(x), axis=1).tolist()
         if 0.0 not in peak:
-            ys = Conditioner.process_rows(conds, x, scale)
-            rows = self._device_rows(ys)
+            ys, extremes = Conditioner.rows_and_extremes(conds, x, scale)
+            rows = self._device_rows(ys, extremes)
             return {k: (x[i], peak[i], ys[i], (rows, i)) for i, k in enumerate(keys)}
         live = [i for i, p in enumerate(peak) if p != 0.0]
         out = {k: (x[i], peak[i], None, None) for i, k in enumerate(keys)}
         if live:
-            ys = Conditioner.process_rows([conds[i] for i in live], x[live], scale[live])
-            rows = self._device_rows(ys)
+            ys, extremes = Conditioner.rows_and_extremes([conds[i] for i in live], x[live], scale[live])
+            rows = self._device_rows(ys, extremes)
             for j, (i, y) in enumerate(zip(live, ys)):
                 out[keys[i]] = (x[i], peak[i], y, (rows, j))
         return out
 
-    def _device_rows(self, ys: list[np.ndarray]) -> DeviceRows:
+    def _device_rows(self, ys: list[np.ndarray], extremes: list[tuple[float, float]] | None) -> DeviceRows:
         """This block's rows for the analyzers, the block before kept beside them (and the one
         before that let go)."""
         last = self._last
         if last is not None:
             last.release()
-        self._last = DeviceRows(ys, last)
+        self._last = DeviceRows(ys, last, extremes)
         return self._last
 
 

@@ -17,11 +17,13 @@ class DeviceRows:
     frames the next (``ask``), and the next block frames the rows asked alike together (channels
     that lost a block, or started later, frame at another offset: a group of their own)."""
 
-    __slots__ = ("ys", "prev", "_asks", "_done")
+    __slots__ = ("ys", "prev", "_extremes", "_asks", "_done")
 
-    def __init__(self, ys: list[np.ndarray], prev: DeviceRows | None) -> None:
+    def __init__(self, ys: list[np.ndarray], prev: DeviceRows | None,
+                 extremes: list[tuple[float, float]] | None = None) -> None:
         self.ys: list[np.ndarray] | None = ys
         self.prev = prev
+        self._extremes = extremes      # each row's (lowest, highest) sample, when made with the rows
         self._asks: dict[tuple[int, int], list[int]] = {}
         self._done: dict[tuple[int, int], dict[int, list[float]]] = {}
 
@@ -31,6 +33,14 @@ class DeviceRows:
         if self.prev is not None:
             self.prev.ys = None
             self.prev = None
+
+    def extremes(self, row: int, data: np.ndarray) -> tuple[float, float] | None:
+        """Row ``row``'s (lowest, highest) sample if ``data`` is that row and they were made
+        with the rows (ConditionerBank); None: the caller reduces ``data`` itself."""
+        ys, b = self.ys, self._extremes
+        if b is None or ys is None or row >= len(b) or ys[row] is not data:
+            return None
+        return b[row]
 
     def ask(self, frame: int, k: int, row: int) -> None:
         """The reader of ``row`` will frame the next block's row by ``frame`` samples, the first

@@ -221,9 +221,11 @@ class AlarmRules:
         # revolution: the revolution before holds what the cut no longer makes (the tool leaving
         # an interrupted cut, whose impacts cancelled while they repeated; its ring keeps the
         # level up), not chatter, which grows into the vibration as into its revolution difference
-        raw_before = next((v for t, v in self._raw_hist if abs(t - (self._next_end - di)) <= 2), None)
-        if raw_before and before > 0 and self.params.get("rise_ratio"):
-            stepped = stepped or (self._raw_now / raw_before) / (now / before) >= r
+        if before > 0 and self.params.get("rise_ratio"):
+            at = self._next_end - di          # the window a revolution before's raw measure
+            raw_before = next((v for t, v in self._raw_hist if abs(t - at) <= 2), None)
+            if raw_before:
+                stepped = stepped or (self._raw_now / raw_before) / (now / before) >= r
         ringing = self._next_end < self._step_until and now < LEVEL_FALL * before
         if stepped or ringing:
             self._step_until = self._next_end + int((self.params["window_revs"] + 1.0) * di)

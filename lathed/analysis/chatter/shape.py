@@ -52,8 +52,11 @@ class SpectralShape:
             self._edges[n] = (nf, np.unique(np.asarray(edges)))
         nf, edges = self._edges[n]
         self._now_len = n
-        # np.mean's sum and division without its wrapper (the same numbers, bit for bit)
-        ps = np.abs(rfft((d - np.add.reduce(d) / n) * hann(n), nf))
+        # np.mean's sum and division without its wrapper, the window applied in place (the same
+        # numbers, bit for bit)
+        w = d - np.add.reduce(d) / n
+        w *= hann(n)
+        ps = np.abs(rfft(w, nf))
         ps *= ps                               # ** 2, in place
         return np.add.reduceat(ps, edges[:-1])[:len(edges) - 1]
 

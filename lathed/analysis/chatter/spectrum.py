@@ -86,9 +86,10 @@ def spectral_peak_hz(x: np.ndarray, rate: float, fmin: float, fmax: float) -> fl
     # the magnitudes of the band and a bin either side (the parabola's), not of every bin
     a0, top = max(lo - 1, 0), len(r) - 1
     spec = np.abs(r[a0:min(hi + 1, len(r))])
-    i = lo + int(np.argmax(spec[lo - a0:hi - a0]))
+    i = lo + int(spec[lo - a0:hi - a0].argmax())      # the method: np.argmax's wrapper spared
     if 0 < i < top:
-        a, b, c = np.log(spec[i - 1 - a0:i + 2 - a0] + 1e-300)
+        # the three logs as Python floats: the parabola's arithmetic the same, without numpy scalars
+        a, b, c = np.log(spec[i - 1 - a0:i + 2 - a0] + 1e-300).tolist()
         den = a - 2 * b + c
         off = 0.5 * (a - c) / den if den < 0 else 0.0
         return float((i + off) * rate / nf)
