@@ -33,7 +33,7 @@ test: $(STAMP)
 # Bytecode is written (__pycache__/, git ignores it) even where the environment says not to:
 # without it each of the suite's processes (workers, daemons, simulators, lathectl) compiled
 # lathed from source, and each worker re-did pytest's assertion rewriting (15 against 7.5 CPU-s).
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n 5 --dist loadfile --no-loadscope-reorder
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -n 6 --dist loadfile --no-loadscope-reorder
 
 # Benchmarks: each prints a Markdown table (docs/benchmarks.md).
 bench-daemon: $(STAMP)
