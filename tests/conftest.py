@@ -113,20 +113,33 @@ def disk_free(store):
     return store.submit("DROP TRIGGER temp.disk_full", ())
 
 
+_HANDED_OUT: set[int] = set()
+
+
 def free_port() -> int:
     """A port free now, below the kernel's ephemeral range (32768-60999 here): the peer binds it
     later, and in between a port from that range can be taken as the source of any connection
-    or by a server binding port 0 (a CI run's cell simulator then never served its mill)."""
+    or by a server binding port 0 (a CI run's cell simulator then never served its mill).
+    Each xdist worker draws from its own slice of the range and never hands a port out twice:
+    between the draw and the peer's bind nothing holds it, and a stack's web server was once
+    given its own simulator's Modbus port (six workers draw about a thousand ports a run)."""
     with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
         low = int(f.read().split()[0])
-    for port in random.Random().sample(range(10000, max(low, 10200)), 200):
+    top = max(low, 10200)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    span = (top - 10000) // max(count, 1)
+    first = 10000 + (int(worker) % count if worker.isdigit() else 0) * span
+    ports = [p for p in range(first, first + span) if p not in _HANDED_OUT]
+    for port in random.Random().sample(ports, min(200, len(ports))):
         with socket.socket() as s:
             try:
                 s.bind(("127.0.0.1", port))
             except OSError:
                 continue
+            _HANDED_OUT.add(port)
             return port
-    raise RuntimeError(f"no free port in 10000-{low - 1} on 127.0.0.1")
+    raise RuntimeError(f"no free port in {first}-{first + span - 1} on 127.0.0.1")
 
 
 def wait_until(pred, timeout: float = 20.0, interval: float = 0.05, what: str = "condition"):
