@@ -1,7 +1,8 @@
 """The operator view's cost (issue 14): the daemon with and without 5 browsers watching.
 
 Runs the default config (etc/lathed.toml, simulator spawned, every part cut
-3 mm deep so that chatter happens and suppression acts) on free ports. One
+3 mm deep so that chatter happens and suppression acts; its ``remember = true`` turned
+off, as bench_loop.py does, so that every cut's cure is an alarm's) on free ports. One
 daemon, 5 headless Chromium pages (Debian's /usr/bin/chromium via Playwright)
 open on lathed-web throughout, and ``--cycles`` pairs of phases of
 ``--seconds`` each, interleaved so that the shared machine's drift falls on
@@ -122,7 +123,11 @@ def run(cycles: int, seconds: float, warmup: float, browsers: int = BROWSERS, br
     with tempfile.TemporaryDirectory(prefix="bench-web-") as d:
         tmp = Path(d)
         cfg = config(tmp)
-        cfg.write_text(cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1))
+        text = cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1)
+        # remembered cures would change the speed before chatter: no alarm, no alarm -> write to time
+        if "\nremember = true" not in text:
+            raise SystemExit("bench_web.py: etc/lathed.toml no longer sets remember = true in [analyzer.suppress]")
+        cfg.write_text(text.replace("\nremember = true", "\nremember = false", 1))
         sock = tmp / "run" / "lathed.sock"
         proc = start(cfg, tmp)
         port = free_port()
