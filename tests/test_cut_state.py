@@ -330,16 +330,19 @@ def test_a_dwell_is_timed_on_the_clock_that_began_it():
     assert out[-2:] == [("dwell", 0.0), ("cutting", 0.0)]      # dwell_max on the host's clock
 
 
-def _dwell_run(program: list[str], parts: int, dwell_axes: bool, dwell_max: str = "2s", seed: int = 0):
+def _dwell_run(program: list[str], parts: int, dwell_axes: bool, dwell_max: str = "2s", seed: int = 0,
+               stall: tuple[float, float] | None = None, monkeypatch=None):
     """The simulated lathe's program (no daemon: its vibration in 20 ms frames, its registers
     polled every 100 ms as the Modbus driver does) into the chatter analyzer with the shipped
-    cut_from; returns the published (quantity, value, sample time, sim time), the lathe, the analyzer."""
+    cut_from; returns the published (quantity, value, sample time, sim time), the lathe, the analyzer.
+    ``stall``: (from, seconds) of sim time with no poll (a loaded host), received on the sim's clock."""
     import structlog
 
     from lathed.analyzer import AnalyzerContext
     from lathed.bus import Block, Bus, Sample
     from lathed.config import Section
     from lathed.sim.program import parse_cut
+    from lathed_plugins import chatter
     from lathed_plugins.chatter import ChatterAnalyzer
     conf = {"input": "accel", "machine": "lathe", "cut_from": ["feed", "load", "vibration"]}
     if dwell_axes:
@@ -357,12 +360,15 @@ def _dwell_run(program: list[str], parts: int, dwell_axes: bool, dwell_max: str 
     bus.publish = seen
     an.ctx = AnalyzerContext(bus, structlog.get_logger("test"), lambda kind, payload=None: None,
                              None, None, None, lambda name: None, ".")
+    if monkeypatch is not None:
+        monkeypatch.setattr(chatter.time, "monotonic", lambda: lathe.t)
     poll, k = 0.037, 0
     while len(lathe.parts) <= parts or lathe.phase_t < 0.4:      # the last end seen, the next pass not begun
         x = lathe.step(FRAME)
         while lathe.t >= poll:
-            for q, v in lathe.registers().items():
-                an._on_machine(Sample("lathe", q, float(v), "", poll))
+            if stall is None or not stall[0] <= poll < stall[0] + stall[1]:
+                for q, v in lathe.registers().items():
+                    an._on_machine(Sample("lathe", q, float(v), "", poll))
             poll += 0.1
         an._on_block(Block("accel", "acceleration", RATE, lathe.t - FRAME / RATE, k * FRAME, x.astype(float),
                            lathe.block_rpm))
@@ -397,6 +403,37 @@ def test_a_dwell_is_not_the_end_of_the_cut(program, seed):
         assert told - p.cut_end_s < 0.35, (told, p.cut_end_s)      # the retract: at once, as without a hold
     before, lathe, _ = _dwell_run(program, 1, dwell_axes=False, seed=seed)
     assert [c[1] < lathe.parts[0].dwell_end_s for c in _cuts(before)] == [True, False]
+
+
+@pytest.mark.parametrize("before, seconds", [(0.3, 0.5), (0.1, 0.8)])
+def test_a_stalled_poll_at_a_dwell_holds_the_cut(monkeypatch, before, seconds):
+    """No poll from just before a dwell's stop into it (a loaded host): the feed's last reading
+    went stale in air, which ended the cut, so the pass made two cuts (the cure released under
+    the chip; seen live on a loaded fresh clone). The stop is held until the feed is read."""
+    program = ["2000,1.0,0.3,30,dwell=1", "1500,1.0,0.3,20"]
+    _, lathe, _ = _dwell_run(program, 1, dwell_axes=True)
+    p = lathe.parts[0]
+    out, lathe, an = _dwell_run(program, 1, dwell_axes=True, stall=(p.dwell_start_s - before, seconds),
+                                monkeypatch=monkeypatch)
+    cuts = _cuts(out)
+    assert len(cuts) == 1 and an.dwells == 1, cuts
+    assert cuts[0][0] <= p.cut_start_s + 0.05 and p.cut_end_s < cuts[0][1] < p.cut_end_s + 0.35, cuts
+
+
+@pytest.mark.parametrize("seconds", [1.0, 1.4])
+def test_a_stalled_poll_over_a_pass_end_and_the_next_entry_is_two_cuts_with_the_axes_read(monkeypatch, seconds):
+    """The same stall over a pass's end, the retract and the next pass's entry, with dwell_axes
+    (the shipped table): held as a possible dwell, then the feed and axes read again say the tool
+    went elsewhere: the first cut ends where the vibration went to air, the next is its own."""
+    program = ["2000,1.0,0.3,30", "2500,1.0,0.3,20"]
+    _, lathe, _ = _dwell_run(program, 2, dwell_axes=True)
+    p, q = lathe.parts[0], lathe.parts[1]
+    out, lathe, an = _dwell_run(program, 2, dwell_axes=True, stall=(p.cut_end_s - 0.1, seconds),
+                                monkeypatch=monkeypatch)
+    cuts = _cuts(out)
+    assert len(cuts) == 2, cuts
+    assert p.cut_end_s < cuts[0][1] < p.cut_end_s + 0.35 and q.cut_start_s <= cuts[1][0] < q.cut_start_s + seconds
+    assert not any(v for k, v, *_ in out if k == "chatter_alarm")
 
 
 def test_a_dwell_longer_than_dwell_max_ends_the_cut_then():

@@ -251,6 +251,14 @@ class FeedStop:
         self._resume_t: float | None = None
         self._resume_from: dict[str, tuple[float, float, float]] = {}   # axis: (stood, rate, since)
         self.away = False
+        self._unread = False                   # the stop taken from a stale poll: not read standing
+
+    def stopped_unread(self, t: float) -> None:
+        """The feed's poll went stale: taken as stopped just after its last reading. Where the axes
+        stood meanwhile was not read, so a first reading off the feed's path is the tool gone
+        elsewhere, not where it stands."""
+        self.feed(False, t)
+        self._unread = True
 
     @property
     def left(self) -> bool:
@@ -292,7 +300,7 @@ class FeedStop:
                         self._judge_resume(axis, *r)
                 if not self._resume_from:
                     self._resume_t = None
-            self._on = True
+            self._on, self._unread = True, False
         else:
             self._feed_t = t
             if not self._on:
@@ -342,7 +350,8 @@ class FeedStop:
                 reach = v1 + rate * max(0.0, t - t1)
                 slack = self.tol + abs(rate) * POLL_JITTER_S
                 moved = not min(v1, reach) - slack <= value <= max(v1, reach) + slack
-            self._rest[axis] = value
+            if not (moved and self._unread):
+                self._rest[axis] = value
         if moved:
             self._moved(t)
 

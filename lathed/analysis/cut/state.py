@@ -12,6 +12,7 @@ Pure: no bus, no clock of its own, no asyncio.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,6 +87,10 @@ class CutState:
         self._last: dict[str, float] = {}       # each machine quantity's last value ...
         self._polled = False                   # ... one repeated: the driver polls, silence is age
         self._air_at: float | None = None      # when the vibration last said air (block clock)
+        self._feed_at = -math.inf              # the feed's last reading (machine clock)
+        # held because the feed's poll went stale in air: a dwell or the pass's end, the next
+        # poll tells (the axes where the feed left them, or elsewhere); the chip alone does not
+        self._stale_hold = False
 
     # -- the machine's samples -----------------------------------------------------------
     def machine(self, quantity: str, value: float, t: float, rpm: float | None,
@@ -97,6 +102,9 @@ class CutState:
         if now is not None:
             self._received(quantity, value, now)
         if quantity == "cutting_feed":
+            # the feed read again: the hold is judged as any feed stop's (the axes read in its poll)
+            self._stale_hold = False
+            self._feed_at = max(self._feed_at, t)
             if self.feed_stop is not None:
                 self.feed_stop.feed(value != 0, t)
             if "feed" in self.seen:
@@ -181,9 +189,21 @@ class CutState:
     def _stale(self, now: float, t0: float, ev: list[CutEvent]) -> None:
         """The machine's sources still on with no reading for a few polls: taken as off, the
         chip last seen when the vibration went to air (a feed dwell: dwell_max on this clock)."""
+        air = t0 if self._air_at is None else self._air_at
         for name, (at, gap) in self._read.items():
             if self.seen[name] and gap is not None and now - at > max(STALE_MIN_S, STALE_POLLS * gap):
-                self._source(name, False, t0 if self._air_at is None else self._air_at, ev)
+                if name == "feed" and self.feed_stop is not None:
+                    # a dwell's stop looks the same in air: the feed taken as stopped after its
+                    # last reading, the cut held until the axes say where the tool went
+                    self.feed_stop.stopped_unread(math.nextafter(self._feed_at, math.inf))
+                    self.seen["feed"] = False
+                    if not any(self.seen.values()):
+                        self.held, self._held_clock, self._stale_hold = air, "block", True
+                        self.dwells += 1
+                        ev.append(CutEvent("dwell", air, "stale"))
+                        return
+                    continue
+                self._source(name, False, air, ev)
                 if self.held is not None:
                     self._held_clock = "block"
                 if not self.cutting or self.held is not None:
@@ -195,7 +215,7 @@ class CutState:
         self.seen[name] = on
         cutting = any(self.seen.values())
         if self.held is not None:
-            if not cutting:
+            if not cutting or self._stale_hold:
                 return
             if self.feed_stop.away:
                 # the feed back with the tool elsewhere (retract, shift and approach within a
@@ -229,7 +249,7 @@ class CutState:
         ev.append(CutEvent("end", t, source, held=self.held is not None))
         self._rejoined = None
         self.cut_by = self.chip_by = None
-        self.held, self._rejoin = None, False
+        self.held, self._rejoin, self._stale_hold = None, False, False
         self.cutting = False
 
     def _contact(self, by: str, t: float, ev: list[CutEvent]) -> None:
