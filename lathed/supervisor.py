@@ -376,22 +376,17 @@ class Supervisor:
     async def _command(self, cmd: Command) -> dict:
         runner = self.runners.get(cmd.machine)
         drv = runner.obj if runner else None
-        reason = None
-        if drv is None or drv.role != "machine":
-            reason = f"no machine named {cmd.machine!r}"
-        elif runner.state != "connected":
-            reason = f"machine {cmd.machine} is {runner.describe()}: held in safe state"
-        elif cmd.action not in drv.actions:
-            reason = f"machine {cmd.machine} does not take {cmd.action!r} (takes: {', '.join(drv.actions) or 'none'})"
-        elif runner.identity is not None:
-            reason = (f"machine {cmd.machine}: the peer at its address is not confirmed to be this machine "
-                      f"({runner.identity}); no command is sent to it")
+        reason = _link_refusal(cmd, runner)
         value = as_number(cmd.value)
         if value is not None:           # the driver gets a float (not numpy's float32, not an int)
             cmd = replace(cmd, value=value)
         lock = self._cmd_locks.setdefault(cmd.machine, asyncio.Lock())
         interlock = release = None
         async with lock:
+            if reason is None:
+                # asked again in turn: behind a write that hung, the link may have dropped and be
+                # coming back (the driver linked, its peer not yet identified)
+                reason = _link_refusal(cmd, runner)
             if reason is None:
                 interlock = _interlock(drv, cmd)
                 program = drv.released(cmd.action)
@@ -554,6 +549,21 @@ def _payload(cmd: Command) -> dict:
         except (TypeError, ValueError):     # not recordable as given: its text, so it is not lost
             payload["context"] = short_repr(cmd.context)
     return payload
+
+
+def _link_refusal(cmd: Command, runner) -> str | None:
+    """Why ``cmd`` cannot go to its machine as the link stands now (None: it may)."""
+    drv = runner.obj if runner else None
+    if drv is None or drv.role != "machine":
+        return f"no machine named {cmd.machine!r}"
+    if runner.state != "connected":
+        return f"machine {cmd.machine} is {runner.describe()}: held in safe state"
+    if cmd.action not in drv.actions:
+        return f"machine {cmd.machine} does not take {cmd.action!r} (takes: {', '.join(drv.actions) or 'none'})"
+    if runner.identity is not None:
+        return (f"machine {cmd.machine}: the peer at its address is not confirmed to be this machine "
+                f"({runner.identity}); no command is sent to it")
+    return None
 
 
 def _interlock(drv, cmd: Command) -> str | None:
