@@ -153,6 +153,7 @@ class RevolutionDetector(AlarmRules):
         self._sh_raws: list = []    # (raw, bands) of its windows
         self._sh_steady = 0         # windows in a row without a rise: a rise after enough is a step
         self._sh_grown = 0
+        self._sh_start = 0          # its first window's end
         self._sh_jump = False       # its span began with a jump (a level over jump_ratio x)
         self._sh_from = 0.0         # the level before its step
         self._sh_level = 0.0        # its last window's level (a ring falls from it, chatter rises)
@@ -435,10 +436,11 @@ class RevolutionDetector(AlarmRules):
             gated = bool(p["shape_min"]) and self._fixed_baseline is None
             self._on = self._on + 1 if (index > self.threshold and not settling
                                         and (not gated or self._shape_now() >= p["shape_min"])) else 0
-            # (a deeper pass's jump too: a stable one's level falls back within a revolution)
+            # (a deeper pass's jump too: a stable one's level falls back within a revolution, but
+            # near the limit its echo rises for 2-3 revolutions first: not before rules.ECHO_REVS)
             jumped = shoulder and self._sh_jump
             if (self._rising_from_step(start, end, index, stepped, other or (shoulder and not jumped))
-                    and not (stepped or (shoulder and not jumped))):
+                    and not (stepped or (shoulder and not jumped)) and not (shoulder and not self._past_echo(rpm))):
                 self._on = max(self._on, p["on_windows"])
             grew = self._growth(start, end, rpm, raw, settling and not shoulder)
             grew = (grew and not shoulder) or grew_out

@@ -18,6 +18,11 @@ GROWTH_TAIL = 0.3      # growth: a window's second half at least this x its firs
 # by 2 x or more a revolution; so a level "falls" (a ring decaying) only when it is under this x
 # the one it is compared with (at 1.0, chatter's plateau read as a ring by a 0.2 % dip)
 LEVEL_FALL = 0.9
+# a stable shoulder's regenerative echo near the limit (0.8-0.9 x) rises for 2-3 revolutions after
+# the step before it decays (at 4500 r/min its revolution difference 3-14 x the pre-step level at
+# 2-3.5 revolutions: bench/step_bound.py's drawn shoulders, seeds from 30000): growth out of a
+# step is judged from this many revolutions after the span's first window (0.4-1 after the step)
+ECHO_REVS = 2.5
 
 
 class AlarmRules:
@@ -119,7 +124,7 @@ class AlarmRules:
                      and self._tail(start, end) >= GROWTH_TAIL)
             self._sh_level = now
             self._sh_grown = self._sh_grown + 1 if grows else 0
-            if self._sh_grown >= p["on_windows"]:
+            if self._sh_grown >= p["on_windows"] and self._past_echo(rpm, raw):
                 self._sh_until = 0
                 return True, True
             # (a window grown past the bound at the span's end is followed one more: where the span
@@ -165,6 +170,7 @@ class AlarmRules:
             # (a level already held over the sum's allowance is rising, not a cut at its own level)
             return False, False
         self._sh_until = self._next_end + int((p["window_revs"] + 1.0) * self.rate * 60.0 / rpm)
+        self._sh_start = self._next_end
         self._sh_jump = jump_up             # chatter rising through a jump still counts (_rising_from_step)
         self._sh_raws = [(raw, self._bands())]
         self._sh_from = before              # the level before the step
@@ -174,6 +180,26 @@ class AlarmRules:
         self._grown = 0
         self._recent_from = self._next_end
         return True, False
+
+    def _past_echo(self, rpm: float, raw: float | None = None) -> bool:
+        """A deeper pass's growth counts only once a stable echo would have peaked (ECHO_REVS
+        after the span's first window) and, given ``raw``, while the measure still rises over
+        the revolution before by more than a level's chance spread (1 / LEVEL_FALL): a stable
+        echo near the limit grows 2-5 x for 2-3 revolutions, as chatter does, then falls;
+        chatter keeps rising."""
+        spr = self.rate * 60.0 / rpm
+        if self._next_end < self._sh_start + ECHO_REVS * spr:
+            return False
+        if raw is None:
+            return True
+        # the last window at least a revolution before (a hop over half a revolution, above
+        # 6000 r/min, puts none exactly there)
+        at = self._next_end - int(spr) + 2
+        prev = None
+        for t, v in self._raw_hist:
+            if t <= at:
+                prev = v
+        return prev is not None and raw * LEVEL_FALL >= prev
 
     def _tail(self, start: int, end: int) -> float:
         """The window's second half's level over its first half's (median |x|, a few hundred
