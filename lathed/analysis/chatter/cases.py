@@ -6,7 +6,7 @@ pass under constant surface speed (G96).  Each feature here is a list of regen.S
 default lathe structure, at depths given as a share of the stability limit at the speed: stable
 at <= 0.8 x the limit, and as a control the same feature taken above it (its deeper part at
 1.6 x).  Every case starts with the spindle turning in air, as a pass does, so the cut state
-sees the tool enter.  bench/bench_chatter.py's part-program table and tests/test_cases.py use it.
+sees the tool enter.  bench/bench_chatter.py's part-program table and tests/test_detectors.py and tests/test_verdict.py use it.
 """
 from __future__ import annotations
 
