@@ -48,7 +48,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from bench_chatter import corpus, run_detector, score, shoulder_cases  # noqa: E402
+from bench_chatter import BLOCK, _cut_spans, corpus, score, shoulder_cases  # noqa: E402
 
 from lathed.analysis.chatter.cases import b_lim_mm, segments as feature_segments  # noqa: E402
 from lathed.analysis.chatter.registry import DEFAULT_DETECTOR, make_detector  # noqa: E402
@@ -60,6 +60,18 @@ MEASURES = ("level growth", "residual growth", "residual rise", "shape", "band s
 PRE_REVS = 4            # revolutions before the step its level is taken over
 MARGINS = (1.0, 1.1, 1.25, 1.5, 2.0)
 CORPUS_SEED = 1000      # bench_chatter.py's default seed base
+
+
+def alarms_in_cuts(det, rec) -> bool:
+    """Whether the detector alarms on the recording fed as the daemon and bench_chatter.py's
+    part-program table feed it: reset at each cut's entry (the depth register's), fed no air
+    (a part-program shoulder starts in air: fed whole, its entry read as a step mid-cut)."""
+    for a, b in _cut_spans(rec):
+        det.reset()
+        for i in range(a, b, BLOCK):
+            if any(w.alarm for w in det.process(rec.signal[i:min(i + BLOCK, b)], float(rec.rpm[i]))):
+                return True
+    return False
 
 
 def step_of(segs) -> tuple[float, float] | None:
@@ -221,7 +233,7 @@ def main(argv=None) -> int:
             continue
         t, rpm = step_of(segs)
         stable.append((nm, rpm, *measures(rec, t, rpm, args.revs, params)))
-        alarmed = any(w.alarm for w in run_detector(make_detector(DEFAULT_DETECTOR, rec.rate_hz), rec))
+        alarmed = alarms_in_cuts(make_detector(DEFAULT_DETECTOR, rec.rate_hz), rec)
         cusum_fa[rpm] = cusum_fa.get(rpm, 0) + alarmed
 
     # the stable steps' measures as one array (steps x measures x windows), -inf where none
