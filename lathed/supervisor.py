@@ -417,19 +417,19 @@ class Supervisor:
                 raise
 
     async def _send(self, cmd: Command, drv, payload: dict, need: int) -> dict:
-        began = time.monotonic()
+        began, err = time.monotonic(), None
         try:
             detail = await asyncio.wait_for(drv.execute(cmd), 5.0)
         except Exception as e:
-            err = _one_line(e)
+            detail, err = None, _one_line(e)
+        # the record is dated when the machine answered; less this, when the write went out
+        payload["write_ms"] = round(1000 * (time.monotonic() - began), 1)
+        if err is not None:
             log.error("command_failed", command=cmd.describe(), error=err)
             # it may have reached the machine (an answer lost): audited as a command sent is
-            payload["write_ms"] = round(1000 * (time.monotonic() - began), 1)
             self._audit("command_failed", cmd.source, {**payload, "error": err}, need)
             return {"sent": False, "reason": f"write failed: {err}"}
         self.guard.passed(cmd)
-        # the record is dated when the machine answered; less this, when the write went out
-        payload["write_ms"] = round(1000 * (time.monotonic() - began), 1)
         detail = detail or {}
         # how the driver carried it (an override: its % and speed), never over the recorded fields
         payload.update({k: v for k, v in detail.items() if k not in payload})
