@@ -6,8 +6,11 @@ STAMP := $(VENV)/.installed
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -e '.[test]'
+# uv installs what pip did, its downloads and bytecode compiled in parallel: the set-up took
+# 44 s of a fresh clone's make test with pip, 24 s with uv (bytecode is compiled here, not by
+# the suite's first imports, which cost the tests as much again)
+	$(BIN)/pip install -q uv
+	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/uv pip install -q --compile-bytecode -e '.[test]'
 	touch $(STAMP)
 
 venv: $(STAMP)
