@@ -60,6 +60,14 @@ def _import_aiomqtt() -> None:
                 self.refused.append(str(reason_code))
             super()._on_publish(client, userdata, mid, reason_code, properties)
 
+        async def __aenter__(self) -> "Client":
+            await super().__aenter__()
+            # aiomqtt puts an unexpected disconnection on this future and its __aexit__ may not
+            # read it: asyncio logged "Future exception was never retrieved" when it was collected.
+            # The sink learns of the disconnection from its publish and watch instead.
+            self._disconnected.add_done_callback(lambda f: f.cancelled() or f.exception())
+            return self
+
     aiomqtt, MqttConnectError, Refused, _Client = mod, connect_error, Refused_, Client
 
 
