@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
+from scipy.special import ndtri     # scipy.stats (norm.isf is -ndtri) costs a second to import
 
 from lathed.analysis.chatter.spectrum import fast_len
 
@@ -191,5 +191,5 @@ def lock(x: np.ndarray, rate_hz: float, comb: Comb) -> Lock | None:
         return None
     sd = float(np.std(np.log(amp[1]) - np.log(amp[0])))
     samples = 2.0 * half * (n - 2 * edge) / rate_hz
-    bound = INDEPENDENT_SD * (1.0 - float(norm.isf(LOCK_FALSE)) * LOG_SD_SPREAD / math.sqrt(samples))
+    bound = INDEPENDENT_SD * (1.0 - float(-ndtri(LOCK_FALSE)) * LOG_SD_SPREAD / math.sqrt(samples))
     return Lock(sd, bound, samples, half)
