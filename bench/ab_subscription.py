@@ -10,7 +10,7 @@ daemons' CPU (their process only, /proc) per phase, and per cycle each daemon's
 with - without (the subscription's cost, % of a core) and with / without.
 Medians over the cycles: the two daemons see the same neighbours at the same time.
 
-    .venv/bin/python bench/ab_subscription.py [--base main] [--cycles 8] [--seconds 15]
+    .venv/bin/python bench/ab_subscription.py [--base main] [--cycles 8] [--seconds 15] [--own-config]
 """
 from __future__ import annotations
 
@@ -43,8 +43,8 @@ sys.exit(main())
 """
 
 
-def start(src: str, tmp: Path) -> tuple[subprocess.Popen, Path]:
-    cfg = config(tmp)
+def start(src: str, tmp: Path, own_config: bool = False) -> tuple[subprocess.Popen, Path]:
+    cfg = config(tmp, root=Path(src)) if own_config and src != "-" else config(tmp)
     cfg.write_text(cfg.read_text().replace("[simulator]", f"[simulator]\ndepth_mm = {DEPTH_MM}", 1))
     ns = tmp / "notify.sock"
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -94,6 +94,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--warmup", type=float, default=15.0)
     ap.add_argument("--settle", type=float, default=2.0, help="seconds after (un)subscribing before a phase")
+    ap.add_argument("--own-config", action="store_true",
+                    help="each side runs its own revision's etc/lathed.toml (an older daemon may refuse today's)")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="ab-sub-") as d:
         d = Path(d)
@@ -109,7 +111,7 @@ def main() -> int:
         sides = {}
         for name, src in (("base", str(d / "src-base")), ("this", str(d / "src-this") if a.this else "-")):
             (d / name).mkdir()
-            sides[name] = start(src, d / name)
+            sides[name] = start(src, d / name, a.own_config)
         rows: dict[str, list] = {n: [] for n in sides}
         try:
             time.sleep(a.warmup)

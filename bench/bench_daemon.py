@@ -33,10 +33,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def config(tmp: Path, name: str = "lathed.toml") -> Path:
+def config(tmp: Path, name: str = "lathed.toml", root: Path = ROOT) -> Path:
     """A copy of etc/ (relative paths keep working) on free ports and private paths; ``name``:
-    which shipped config (etc/lathed-cell-opcua.toml: the lathe over OPC UA)."""
-    shutil.copytree(ROOT / "etc", tmp / "etc")
+    which shipped config (etc/lathed-cell-opcua.toml: the lathe over OPC UA); ``root``: whose
+    etc/ (another revision's tree)."""
+    shutil.copytree(root / "etc", tmp / "etc")
     text = (tmp / "etc" / name).read_text()
     ports = {}
     for m in sorted(set(re.findall(r"\b(1502\d)\b", text))):
