@@ -62,12 +62,16 @@ def start(src: str, tmp: Path, own_config: bool = False) -> tuple[subprocess.Pop
 
 
 class Reader:
-    """One subscription, read and discarded on a thread (its cost is this process's)."""
+    """One subscription (lathed-web's request, or only the keys in ``parts`` of it: samples,
+    vibration, views, states, events), read and discarded on a thread (its cost is this process's)."""
 
-    def __init__(self, sock: Path):
+    def __init__(self, sock: Path, parts: tuple[str, ...] | None = None):
         self.s = socket.socket(socket.AF_UNIX)
         self.s.connect(str(sock))
         args = DaemonLink(sock, 4.0).subscription()
+        if parts is not None:
+            args = {k: v for k, v in args.items() if k in parts or k == "rate_hz"
+                    or (k == "events_limit" and "events" in parts)}
         self.s.sendall(json.dumps({"cmd": "subscribe", "args": args}).encode() + b"\n")
         self.bytes = 0
         self.t = threading.Thread(target=self._read, daemon=True)

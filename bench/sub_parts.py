@@ -12,52 +12,17 @@ part the median over cycles of (phase - the cycle's first phase without a subscr
 from __future__ import annotations
 
 import argparse
-import json
-import socket
 import statistics
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ab_subscription import start  # noqa: E402
+from ab_subscription import Reader, start  # noqa: E402
 from bench_daemon import cpu_s  # noqa: E402
 
-from lathed.link import DaemonLink  # noqa: E402
-
 PARTS = ("samples", "vibration", "views", "states", "events")
-
-
-class Reader:
-    """A subscription to ``parts`` of lathed-web's request, read and thrown away on a thread."""
-
-    def __init__(self, sock: Path, parts: tuple[str, ...]):
-        args = DaemonLink(sock, 4.0).subscription()
-        for k in PARTS:
-            if k not in parts:
-                args.pop(k)
-        if "events" not in parts:
-            args.pop("events_limit")
-        self.s = socket.socket(socket.AF_UNIX)
-        self.s.connect(str(sock))
-        self.s.sendall(json.dumps({"cmd": "subscribe", "args": args}).encode() + b"\n")
-        self.bytes = 0
-        self.t = threading.Thread(target=self._read, daemon=True)
-        self.t.start()
-
-    def _read(self) -> None:
-        try:
-            while chunk := self.s.recv(1 << 16):
-                self.bytes += len(chunk)
-        except OSError:
-            pass
-
-    def close(self) -> None:
-        self.s.shutdown(socket.SHUT_RDWR)
-        self.s.close()
-        self.t.join(5)
 
 
 def main() -> int:
