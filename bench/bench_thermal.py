@@ -1,11 +1,13 @@
 """Thermal residual loop: time to analyse 3000 rows, and effect recovery.
 
     .venv/bin/python bench/bench_thermal.py [--seeds N] [--repeats R] [--seed-base B] [--real-splits 0.7,...]
-                                            [--only-real | --only-time | --only-second-pass]
+                                            [--only-real | --only-time | --only-second-pass | --only-views]
 
 (0) The real spindle's two channels (../shared/data/real/spindle-thermal), fitted on the first
 part by time and judged on the rest: the model handed on beside each plain baseline fitted on the
-same rows, and whether it is at or below the best of them.
+same rows, and whether it is at or below the best of them. ``--only-views``: the same channels as
+other machines would log them (no speed column, one row a minute; fewer sensors), to see how far
+"at or below the best baseline" carries beyond the view the design looked at.
 
 Prints Markdown: (1) the median time of ``analyze`` on a 3000-row run
 (5 h at one row per 6 s, as in the paper) and on one 8-h shift, against the
@@ -45,8 +47,10 @@ import numpy as np
 
 from pathlib import Path
 
+from lathed.analysis.forward import CONFIRM_SHARE, N_FOLDS, forward_folds
 from lathed.analysis.thermal import (LagTerm, LinearTerm, SpeedTerm, ThermalData, analyze, design, fit_coefficients,
                                      fit_stage, split_run)
+from lathed.analysis.thermal.baselines import baseline_stages
 from lathed.analysis.thermal.csvfile import load_thermal_csv
 from lathed.sim.thermal import (EFFECTS, TRUE_SENSORS, ThermalParams, add_periodic, add_speed_steps,
                                 generate_run, many_sensors, random_schedule)
@@ -295,6 +299,65 @@ def bench_real(splits: list[float]) -> None:
     print()
 
 
+def _view(d: ThermalData, sensors: list[str], speed: bool, every: int = 1) -> ThermalData:
+    """The rows as another machine would log them: these sensors, with or without the speed, every
+    ``every``-th row."""
+    k = slice(None, None, every)
+    return ThermalData(d.time_s[k], {s: d.temps_c[s][k] for s in sensors}, d.displacement_um[k],
+                       d.rpm[k] if speed else None)
+
+
+def bench_views(seed: int = 11) -> None:
+    """(a) ``analyze`` on the real channels without their speed column at one row a minute (the
+    shape of a spindle that logs no speed); (b) the baselines alone on random subsets of the
+    sensors, with and without the speed, at four split points: how often the baseline chosen on
+    the training rows (``hand_on``'s rule) is the best of them on the later rows."""
+    files = sorted(REAL.glob("spindle_ch*.csv"))
+    if not files:
+        print(f"## Real spindle, other views\n\n{REAL} not found: skipped\n")
+        return
+    runs = {f.stem.split("_")[-1]: load_thermal_csv(f)[0] for f in files}
+    print("## Real spindle as a machine without a speed column logs it (16 sensors, one row a minute)\n")
+    print("| channel | fit on | handed on | handed on µm | selected model µm | least squares µm | ridge + lags µm | "
+          "handed on <= best baseline |")
+    print("|---|---|---|---:|---:|---:|---:|---|")
+    for split in (0.6, 0.7, 0.8):
+        for ch, d in runs.items():
+            tr, te = split_run(_view(d, d.sensors, speed=False, every=4), split)
+            a = analyze(tr, te)
+            b = {s.model.source: s.test_rmse_um for s in a.baselines}
+            best = min(b.values())
+            print(f"| {ch} | first {100 * split:.0f} % | "
+                  f"{'baseline: ' + a.final.model.source if a.final.baseline else 'selected model'} | "
+                  f"{a.final.test_rmse_um:.2f} | {a.loop.test_rmse_um:.2f} | {b['least_squares']:.2f} | "
+                  f"{b['ridge_lags']:.2f} | "
+                  f"{'yes' if a.final.test_rmse_um <= best * 1.0001 else f'NO ({a.final.test_rmse_um / best:.2f}x)'} |")
+    print()
+    rng = np.random.default_rng(seed)
+    tally: dict[tuple[int, bool], list[float]] = {}
+    for d in runs.values():
+        for size in (4, 8, 16):
+            for _ in range(3 if size < len(d.sensors) else 1):
+                pick = d.sensors if size >= len(d.sensors) else \
+                    sorted(rng.choice(d.sensors, size, replace=False), key=d.sensors.index)
+                for speed in (True, False):
+                    for split in (0.55, 0.65, 0.75, 0.85):
+                        tr, te = split_run(_view(d, pick, speed), split)
+                        cut = int(round(len(tr) * (1 - CONFIRM_SHARE)))
+                        bs = baseline_stages(tr, te, cut, forward_folds(cut, N_FOLDS))
+                        chosen = min(bs, key=lambda s: s.rolling_rmse_um)
+                        tally.setdefault((size, speed), []).append(
+                            chosen.test_rmse_um / min(s.test_rmse_um for s in bs))
+    print(f"## Real spindle, sensor subsets: the baseline chosen on the training rows against the later rows' best "
+          f"(subsets drawn with seed {seed}; split points 0.55, 0.65, 0.75, 0.85; both channels)\n")
+    print("| sensors | speed column | cases | chosen = later best | median ratio to the best | worst |")
+    print("|---:|---|---:|---:|---:|---:|")
+    for (size, speed), r in sorted(tally.items(), key=lambda kv: (kv[0][0], not kv[0][1])):
+        print(f"| {size} | {'yes' if speed else 'no'} | {len(r)} | {sum(v <= 1.0001 for v in r)} | "
+              f"{statistics.median(r):.2f} | {max(r):.2f} |")
+    print()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
@@ -309,11 +372,16 @@ def main() -> None:
     ap.add_argument("--real-splits", default="0.7", metavar="F,...",
                     help="split points for the real spindle's channels (fit on the first F by time)")
     ap.add_argument("--only-real", action="store_true")
+    ap.add_argument("--only-views", action="store_true",
+                    help="the real channels as other machines would log them (no speed, fewer sensors)")
     ap.add_argument("--seed-base", type=int, default=0,
                     help="train seeds are base+1..base+N: another range checks that nothing was tuned to the first")
     a = ap.parse_args()
     if a.only_time:
         bench_time(a.repeats)
+        return
+    if a.only_views:
+        bench_views()
         return
     if a.real_splits:
         bench_real([float(v) for v in a.real_splits.split(",")])
