@@ -143,8 +143,10 @@ class Runner:
         """It has run a while since its last start: a spell of failures is over."""
         if self._down_since is None:
             return
+        # up_at: when it started again (wall clock, as records are dated), set in the step that
+        # lets commands through: none of them went out before it
         payload = {"after_failures": self._spell, "unrecorded": sum(self._unsaid.values()),
-                   "down_s": round(self._up_t - self._down_since, 1)}
+                   "down_s": round(self._up_t - self._down_since, 1), "up_at": self.connected_since}
         self.log.info("recovered", **payload)
         self._record(f"{self.category}_recovered", self.name, payload)
         self._down_since = None
