@@ -94,6 +94,31 @@ def test_a_bank_conditions_each_channel_as_its_own_conditioner_would(rate, highp
             del alone[0], members[0], columns[0]
 
 
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("highpass, mains", [(2.0, 0.0), (2.0, 50.0), (0.0, 50.0)])
+def test_a_non_finite_sample_spoils_its_block_alone(bad, highpass, mains):
+    # one NaN or inf stayed in the high-pass's state (and came back every mains period in the
+    # notch's): every later block of the channel was non-finite, refused at the gate, the
+    # channel blind until a restart. Its own block is refused; the next starts afresh, as the
+    # first did, alone and in a bank alike.
+    rng = np.random.default_rng(6)
+    blocks = [rng.normal(0.3, 0.1, (1024, 2)).astype(np.float32) for _ in range(3)]
+    blocks[0][500, 1] = bad
+    alone = Conditioner(51200, 10.0, highpass, mains)
+    bank = ConditionerBank()
+    for k in range(2):
+        bank.join(k, Conditioner(51200, 10.0, highpass, mains), k)
+    fresh = Conditioner(51200, 10.0, highpass, mains)      # started at block 1
+    for b, data in enumerate(blocks):
+        y = alone.process(np.ascontiguousarray(data[:, 1]))
+        assert bank.take(1, data)[2].tobytes() == y.tobytes()
+        assert np.isfinite(bank.take(0, data)[2]).all()
+        if b == 0:
+            assert not np.isfinite(y).all()
+        else:
+            assert y.tobytes() == fresh.process(np.ascontiguousarray(data[:, 1])).tobytes()
+
+
 def test_a_bank_member_whose_column_a_block_lacks_fails_alone():
     # one sensor's channel beyond the device's: its own IndexError, the others' blocks as ever
     bank = ConditionerBank()
@@ -148,6 +173,19 @@ def test_keyphasor_speed_to_a_fraction_of_a_sample():
     assert kp.pulses == pytest.approx(5 * 1234.5 / 60, abs=1)
     assert all(r == pytest.approx(1234.5, rel=2e-4) for r in rpms[10:])
     assert kp.phase(kp.marks[-1] + rev / 4) == pytest.approx(math.pi / 2, abs=0.01)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_keyphasor_goes_on_after_a_sample_that_is_not_a_number(bad):
+    # an infinite sample made the running peak infinite for good: no pulse reached half of it
+    rate = 48000.0
+    x = pulse_train(rate * 60 / 1234.5, int(3 * rate)) + np.random.default_rng(2).normal(0, 0.01, int(3 * rate))
+    x[int(rate) + 7] = bad
+    kp = Keyphasor(rate)
+    for i in range(0, len(x), 1024):
+        kp.process(x[i:i + 1024], i)
+    assert kp.marks[-1] > 2.9 * rate - rate * 60 / 1234.5
+    assert kp.rpm(len(x)) == pytest.approx(1234.5, rel=2e-4)
 
 
 def test_keyphasor_slows_down_then_loses_the_spindle():

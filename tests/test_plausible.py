@@ -63,6 +63,12 @@ def test_a_device_channels_bad_sample_is_refused_and_the_others_pass(bad):
         assert c.bus.publish(Block(f"accel{k}", "acceleration", 51200.0, 1.0, 0, y, None, rows, row)) == (k != 1)
     reason = "not_finite" if math.isnan(bad) or math.isinf(bad) else "out_of_range"
     assert c.bus.plausible.rejected == {"acceleration": {reason: 1}}
+    # and the next block passes on every channel: the bad sample left nothing in the filters
+    data = np.random.default_rng(6).normal(0.0, 10.0, (1024, 3)).astype(np.float32)
+    for k in range(3):
+        _, _, y, (rows, row) = bank.take(k, data)
+        assert c.bus.publish(Block(f"accel{k}", "acceleration", 51200.0, 1.0, 1024, y, None, rows, row))
+    assert c.bus.plausible.rejected == {"acceleration": {reason: 1}}
 
 
 def test_without_a_rate_bound_two_values_at_one_instant_are_accepted():

@@ -6,11 +6,16 @@ phase on the device's own clock. Pure numpy/scipy, per block, state carried betw
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
 from lathed.analysis.device_rows import DeviceRows
+
+# A non-finite sample makes its block non-finite here (inf - inf), which the plausibility gate
+# refuses and says in one line (implausible_value, not_finite); numpy's own line adds nothing.
+warnings.filterwarnings("ignore", "invalid value encountered", RuntimeWarning, __name__)
 
 G0 = 9.80665             # m/s² per g
 MAINS_WIDTH_HZ = 1.5     # each mains notch's width: the grid's frequency wanders by a tenth of a hertz
@@ -133,7 +138,13 @@ class MainsComb:
             hx = np.concatenate((hx, c))[-(self.n0 + 1):]
             hy = np.concatenate((hy, y))[-(self.n0 + 1):]
         self._hx, self._hy = hx, hy
+        if not math.isfinite(float(hx.sum() + hy.sum())):
+            self.restart()
         return out
+
+    def restart(self) -> None:
+        """A non-finite sample would come back every period: the next block starts afresh."""
+        self._hx, self._hy = None, np.zeros(self.n0 + 1)
 
 
 class Conditioner:
@@ -165,9 +176,17 @@ class Conditioner:
             dx *= g
             self._x_last = y[-1]
             y = pole.run(dx)
+            self._restart_if_not_finite()
         if self.comb is not None:
             y = self.comb.run(y)
         return y.astype(np.float32)
+
+    def _restart_if_not_finite(self) -> None:
+        """A non-finite sample (its block refused at the gate) would stay in the high-pass's
+        state and make every later block non-finite: the channel blind until a restart. The
+        next block starts afresh, as the first did."""
+        if not (math.isfinite(self._x_last) and math.isfinite(self._hp[0].w)):
+            self._x_last, self._hp[0].w = None, 0.0
 
     @staticmethod
     def process_rows(conds: list[Conditioner], x: np.ndarray, scale: np.ndarray) -> list[np.ndarray]:
@@ -209,6 +228,7 @@ class Conditioner:
             y, w = hp[0].run_rows(dx, np.array([c._hp[0].w for c in conds]))
             for c, v in zip(conds, w.tolist()):
                 c._hp[0].w = v
+                c._restart_if_not_finite()
         out = []
         for c, row in zip(conds, y):
             out.append((row if c.comb is None else c.comb.run(row)).astype(np.float32))
@@ -333,6 +353,9 @@ class Keyphasor:
         if len(x) == 0:
             return []
         top = float(np.max(np.abs(x)))
+        if not math.isfinite(top):
+            # no revolution read from it: an infinite peak would hold the threshold there for good
+            return []
         self.peak = max(top, self.peak * self._decay ** len(x))
         hi, lo = 0.5 * self.peak, 0.2 * self.peak
         found = []
