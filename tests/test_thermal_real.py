@@ -31,6 +31,25 @@ def test_the_model_handed_on_is_no_worse_than_the_best_baseline_on_later_rows(ch
     assert json.dumps(js)
 
 
+@pytest.mark.parametrize("channel", ["ch1", "ch2"])
+def test_logged_without_the_speed_once_a_minute_the_model_handed_on_is_still_no_worse(channel, tmp_path):
+    """The same run as a spindle that logs no speed, once a minute, would give it (the shape of
+    a real spindle the issue names that is not shared): a CSV without spindle_rpm, every 4th row."""
+    src = (REAL / f"spindle_{channel}.csv").read_text().splitlines()
+    head = src[0].split(",")
+    keep = [i for i, h in enumerate(head) if h != "spindle_rpm"]
+    rows = [",".join(r.split(",")[i] for i in keep) for r in src[1::4]]
+    path = tmp_path / f"{channel}_no_speed.csv"
+    path.write_text("\n".join([",".join(head[i] for i in keep), *rows]) + "\n")
+    d, rep = load_thermal_csv(path)
+    assert d.rpm is None and rep.used == len(rows) and len(d.sensors) == 16
+    tr, te = split_run(d, 0.7)
+    a = analyze(tr, te)
+    assert [b.model.source for b in a.baselines] == ["least_squares", "ridge_lags"]
+    best = min(b.test_rmse_um for b in a.baselines)
+    assert a.final.test_rmse_um <= best * 1.0001, [(c.label, c.later) for c in a.comparison]
+
+
 def _part(d, lo_h, hi_h):
     """Hours lo_h..hi_h of the run as a run of its own, its clock restarted."""
     keep = (d.time_s >= lo_h * 3600) & (d.time_s < hi_h * 3600)
