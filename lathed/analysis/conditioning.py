@@ -354,8 +354,10 @@ class Keyphasor:
             return []
         top = float(np.max(np.abs(x)))
         if not math.isfinite(top):
-            # no revolution read from it: an infinite peak would hold the threshold there for good
-            return []
+            # read as 0 (below any pulse): an infinite peak would hold the threshold there for
+            # good, and the block's real pulses are still read
+            x = np.where(np.isfinite(x), x, 0.0)
+            top = float(np.max(np.abs(x)))
         self.peak = max(top, self.peak * self._decay ** len(x))
         hi, lo = 0.5 * self.peak, 0.2 * self.peak
         found = []
