@@ -301,6 +301,12 @@ def analyze(train: Rows, test: Rows | None = None, *,
                     forward_on)
 
 
+def baseline_handed_on(baselines: Sequence[Stage]) -> Stage:
+    """The baseline ``hand_on`` hands on when the selected model loses: the least error over the
+    later half of the training rows."""
+    return min(baselines, key=lambda s: s.rolling_rmse_um)
+
+
 def hand_on(stage: Stage, baselines: Sequence[Stage], min_gain: float, n_folds: int, notes: list[str]) -> Stage:
     """The model ``analyze`` hands on: ``stage`` (the selected model) or a baseline.
 
@@ -309,7 +315,7 @@ def hand_on(stage: Stage, baselines: Sequence[Stage], min_gain: float, n_folds: 
     chance, so it is judged only on the newest rows, which no choice saw: it replaces the
     baselines only when it beats the best of them there by as much as an effect must, and
     consistently so across them, as a sensor must to enter."""
-    best = min(baselines, key=lambda s: s.rolling_rmse_um)
+    best = baseline_handed_on(baselines)
     rival = min(baselines, key=lambda s: s.forward_rmse_um)
     verdict = beats(rival.forward_errors, stage.forward_errors, min_gain, n_folds)
     if verdict.better:
